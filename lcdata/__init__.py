@@ -1,0 +1,28 @@
+"""lcdata: record simulator episodes to MCAP (protobuf), read them back as pandas DataFrames.
+
+Writing::
+
+    with EpisodeWriter("runs/ep0001.mcap", metadata={"config": cfg, "seed": 1, "driver": "rule"}) as w:
+        w.write_vehicles(step, t_s, ids, x, y, yaw, speed, accel, lane, target_lane, length, width)
+        w.write_ego(step, t_s, speed=v, lane=k, collision_with=-1)
+
+Reading::
+
+    episode = read_episode("runs/ep0001.mcap")
+    episode.tracks  # long-form DataFrame, one row per vehicle per step
+
+Regenerate the protobuf module after editing ``lcdata/proto/lc.proto``: ``python tools/gen_protos.py``.
+"""
+
+from lcdata.reader import Episode, TruncatedFileWarning, iter_episodes, list_episodes, read_episode
+from lcdata.writer import EpisodeWriter, partial_path
+
+__all__ = [
+    "Episode",
+    "EpisodeWriter",
+    "TruncatedFileWarning",
+    "iter_episodes",
+    "list_episodes",
+    "partial_path",
+    "read_episode",
+]

@@ -1,0 +1,272 @@
+"""Encoders: numpy arrays -> serialized protobuf bytes for the per-step topics.
+
+Hot messages (``lc.VehicleTracks``, ``lc.EgoState``, ``foxglove.FrameTransform``, the image and the
+scene cubes) are written directly in wire format (see :mod:`lcdata.wire`); tests check every encoder
+against the protobuf runtime's decoder. Field numbers come from ``lcdata/proto/lc.proto`` and the
+``foxglove`` schemas.
+"""
+
+from __future__ import annotations
+
+import math
+import struct
+
+import numpy as np
+
+from lcdata.topics import EGO_FRAME, WORLD_FRAME
+from lcdata.wire import (
+    WIRE_I64,
+    WIRE_LEN,
+    f_bytes,
+    f_double,
+    f_sint,
+    f_string,
+    f_varint,
+    tag,
+    varint,
+)
+
+_T_SPEED = struct.Struct("<BdBd")  # EgoState t (2) and speed (3)
+_CONTROLS = struct.Struct("<BdBdBd")  # EgoState steer (8), throttle (9), brake (10)
+_VEC3 = struct.Struct("<BdBdBd")
+_FIXED32 = struct.Struct("<BI")
+_QUAT = struct.Struct("<BdBdBdBd")
+
+
+# VehicleTracks packed fields in wire order: (field number, little-endian wire dtype).
+_VEHICLE_FIELDS = ((3, "<i4"), (4, "<f8"), (5, "<f8"), (6, "<f8"), (7, "<f8"), (8, "<f8"), (9, "<i4"),
+                   (10, "<i4"), (11, "<f8"), (12, "<f8"))  # fmt: skip
+
+
+class VehicleEncoder:
+    """Encode ``lc.VehicleTracks`` from (N,) arrays into a preallocated wire-format buffer.
+
+    For a given N every packed field has a fixed position, so the key and length prefixes are
+    written once and each call only copies the arrays into numpy views of the buffer (casting to
+    the wire dtype). One instance per writer: the buffer is reused between calls.
+    """
+
+    def __init__(self) -> None:
+        self._n = -1
+        self._buffer = np.zeros(0, dtype=np.uint8)
+        self._views: list[np.ndarray] = []
+
+    def _layout(self, n: int) -> None:
+        template = bytearray()
+        offsets = []
+        for field, dtype in _VEHICLE_FIELDS:
+            size = np.dtype(dtype).itemsize * n
+            template += tag(field, WIRE_LEN) + varint(size)
+            offsets.append((len(template), size, dtype))
+            template += bytes(size)
+        self._buffer = np.frombuffer(bytes(template), dtype=np.uint8).copy()
+        self._views = [self._buffer[o : o + size].view(dtype) for o, size, dtype in offsets]
+        self._n = n
+
+    def encode(
+        self,
+        step: int,
+        t_s: float,
+        ids: np.ndarray,
+        x: np.ndarray,
+        y: np.ndarray,
+        yaw: np.ndarray,
+        speed: np.ndarray,
+        accel: np.ndarray,
+        lane: np.ndarray,
+        target_lane: np.ndarray,
+        length: np.ndarray,
+        width: np.ndarray,
+    ) -> bytes:
+        """Serialized ``lc.VehicleTracks``; every array (N,), any numeric dtype."""
+        n = len(x)
+        head = f_varint(1, step) + f_double(2, t_s)
+        if n == 0:
+            return head
+        if n != self._n:
+            self._layout(n)
+        v = self._views
+        v[0][...] = ids
+        v[1][...] = x
+        v[2][...] = y
+        v[3][...] = yaw
+        v[4][...] = speed
+        v[5][...] = accel
+        v[6][...] = lane
+        v[7][...] = target_lane
+        v[8][...] = length
+        v[9][...] = width
+        return head + self._buffer.tobytes()
+
+
+def encode_vehicles(step: int, t_s: float, *columns: np.ndarray) -> bytes:
+    """``lc.VehicleTracks`` from (N,) arrays ``ids, x, y, yaw, speed, accel, lane, target_lane, length,
+    width`` (convenience wrapper around :class:`VehicleEncoder`)."""
+    return VehicleEncoder().encode(step, t_s, *columns)
+
+
+def encode_ego(
+    step: int,
+    t_s: float,
+    speed: float,
+    lane: int,
+    collision_with: int,
+    lane_invasion: int,
+    off_road: bool,
+    steer: float,
+    throttle: float,
+    brake: float,
+) -> bytes:
+    """``lc.EgoState`` from scalars."""
+    return b"".join(
+        (
+            f_varint(1, step),
+            _T_SPEED.pack(0x11, t_s, 0x19, speed),
+            f_sint(4, lane),
+            f_sint(5, collision_with),
+            f_sint(6, lane_invasion),
+            b"\x38\x01" if off_road else b"",
+            _CONTROLS.pack(0x41, steer, 0x49, throttle, 0x51, brake),
+        )
+    )
+
+
+def encode_timestamp(field: int, time_ns: int) -> bytes:
+    """A ``google.protobuf.Timestamp`` field."""
+    seconds, nanos = divmod(time_ns, 1_000_000_000)
+    return f_bytes(field, f_varint(1, seconds) + f_varint(2, nanos))
+
+
+def encode_image(time_ns: int, chw: np.ndarray, frame_id: str = EGO_FRAME) -> bytes:
+    """``foxglove.RawImage`` (rgb8) from a (3, H, W) uint8 array."""
+    if chw.ndim != 3 or chw.shape[0] != 3 or chw.dtype != np.uint8:
+        raise ValueError(f"image must be a (3, H, W) uint8 array, got {chw.shape} {chw.dtype}")
+    _, h, w = chw.shape
+    data = np.ascontiguousarray(chw.transpose(1, 2, 0)).tobytes()
+    return b"".join(
+        (
+            encode_timestamp(1, time_ns),
+            _FIXED32.pack(0x15, w),  # width: fixed32, field 2
+            _FIXED32.pack(0x1D, h),  # height: fixed32, field 3
+            f_string(4, "rgb8"),
+            _FIXED32.pack(0x2D, 3 * w),  # step (row stride): fixed32, field 5
+            f_bytes(6, data),
+            f_string(7, frame_id),
+        )
+    )
+
+
+def _quaternion_z(yaw: float) -> bytes:
+    return _QUAT.pack(0x09, 0.0, 0x11, 0.0, 0x19, math.sin(yaw / 2), 0x21, math.cos(yaw / 2))
+
+
+def encode_transform(time_ns: int, x: float, y: float, yaw: float, z: float = 0.0) -> bytes:
+    """``foxglove.FrameTransform`` world -> ego for a pose on the road plane."""
+    return b"".join(
+        (
+            encode_timestamp(1, time_ns),
+            f_string(2, WORLD_FRAME),
+            f_string(3, EGO_FRAME),
+            f_bytes(4, _VEC3.pack(0x09, x, 0x11, y, 0x19, z)),
+            f_bytes(5, _quaternion_z(yaw)),
+        )
+    )
+
+
+def _cube_layout() -> tuple[np.dtype, np.ndarray]:
+    """A packed numpy record whose bytes are one ``cubes`` entry of a ``foxglove.SceneEntity``.
+
+    Every double is written (key + 8 bytes), so the entry has a fixed size and the values of all
+    vehicles can be filled column by column. Returns the record dtype and its (itemsize,) uint8 template.
+    """
+    key = tag(1, WIRE_I64)[0]  # member i of Vector3/Quaternion/Color has key `key + 8 * i`
+    pose_len = 2 + _VEC3.size + 2 + _QUAT.size
+    cube_len = 2 + pose_len + 2 + _VEC3.size + 2 + _QUAT.size
+    template = bytearray(tag(8, WIRE_LEN) + varint(cube_len) + tag(1, WIRE_LEN) + varint(pose_len))
+    fields: list[tuple[str, int]] = []
+    parts = (
+        ("p", tag(1, WIRE_LEN) + varint(_VEC3.size), "xyz"),  # pose.position
+        ("q", tag(2, WIRE_LEN) + varint(_QUAT.size), "xyzw"),  # pose.orientation
+        ("s", tag(2, WIRE_LEN) + varint(_VEC3.size), "xyz"),  # size
+        ("c", tag(3, WIRE_LEN) + varint(_QUAT.size), "rgba"),  # color
+    )
+    for prefix, header, members in parts:
+        template += header
+        for i, member in enumerate(members):
+            template.append(key + 8 * i)
+            fields.append((prefix + member, len(template)))
+            template += bytes(8)
+    dtype = np.dtype(
+        {
+            "names": [name for name, _ in fields],
+            "formats": ["<f8"] * len(fields),
+            "offsets": [offset for _, offset in fields],
+            "itemsize": len(template),
+        }
+    )
+    return dtype, np.frombuffer(bytes(template), dtype=np.uint8)
+
+
+_CUBE_DTYPE, _CUBE_TEMPLATE = _cube_layout()
+
+
+def encode_cubes(
+    x: np.ndarray,
+    y: np.ndarray,
+    yaw: np.ndarray,
+    length: np.ndarray,
+    width: np.ndarray,
+    height: float,
+    rgba: np.ndarray,
+) -> bytes:
+    """Repeated ``cubes`` entries (field 8 of ``foxglove.SceneEntity``) for N boxes on the road.
+
+    Args:
+        x, y, yaw, length, width: (N,) box centres (m), headings (rad) and sizes (m).
+        height: box height, m; boxes stand on z = 0.
+        rgba: (N, 4) or (4,) colours in [0, 1].
+    """
+    n = len(x)
+    records = np.tile(_CUBE_TEMPLATE, n).view(_CUBE_DTYPE)
+    half = np.asarray(yaw, dtype=np.float64) / 2
+    records["px"], records["py"], records["pz"] = x, y, height / 2
+    records["qz"], records["qw"] = np.sin(half), np.cos(half)
+    records["sx"], records["sy"], records["sz"] = length, width, height
+    colour = np.broadcast_to(np.asarray(rgba, dtype=np.float64), (n, 4))
+    records["cr"], records["cg"], records["cb"], records["ca"] = colour.T
+    return records.tobytes()
+
+
+def encode_entity(time_ns: int, entity_id: str, primitives: bytes, frame_id: str = WORLD_FRAME) -> bytes:
+    """A ``foxglove.SceneEntity`` (lifetime 0 = until replaced) holding already-encoded primitives."""
+    return encode_timestamp(1, time_ns) + f_string(2, frame_id) + f_string(3, entity_id) + primitives
+
+
+def encode_scene_update(entities: list[bytes]) -> bytes:
+    """A ``foxglove.SceneUpdate`` from encoded entities."""
+    return b"".join(f_bytes(2, entity) for entity in entities)
+
+
+def encode_line_strip(points: np.ndarray, thickness: float, rgba: tuple[float, float, float, float]) -> bytes:
+    """One ``lines`` entry (field 11 of ``foxglove.SceneEntity``): a LINE_STRIP through (K, 2) points."""
+    pts = b"".join(
+        f_bytes(5, _VEC3.pack(0x09, px, 0x11, py, 0x19, 0.0)) for px, py in np.asarray(points, float)
+    )
+    colour = _QUAT.pack(0x09, rgba[0], 0x11, rgba[1], 0x19, rgba[2], 0x21, rgba[3])
+    # type LINE_STRIP = 0 (omitted), pose = identity orientation.
+    pose = f_bytes(2, _QUAT.pack(0x09, 0.0, 0x11, 0.0, 0x19, 0.0, 0x21, 1.0))
+    line = f_bytes(2, pose) + f_double(3, thickness) + pts + f_bytes(6, colour)
+    return f_bytes(11, line)
+
+
+__all__ = [
+    "encode_cubes",
+    "encode_ego",
+    "encode_entity",
+    "encode_image",
+    "encode_line_strip",
+    "encode_scene_update",
+    "encode_timestamp",
+    "encode_transform",
+    "encode_vehicles",
+]
