@@ -1,0 +1,37 @@
+# Two commands set everything up on a fresh machine with only Python 3.11:
+#   make demo   - run the main job end to end on the built-in simulator
+#   make test   - run the test suite
+PYTHON ?= $(shell command -v python3.11 || command -v python3)
+VENV   := .venv
+BIN    := $(VENV)/bin
+STAMP  := $(VENV)/.installed
+TORCH  := torch==2.13.0
+DEMO_OUT ?= runs/demo
+
+.PHONY: demo test lint bench protos clean
+
+$(STAMP): pyproject.toml
+	test -x $(BIN)/python || $(PYTHON) -m venv $(VENV)
+	$(BIN)/python -m pip install --quiet --upgrade pip
+	# The pinned CPU wheel first: an unpinned torch would pull several GB of CUDA packages.
+	$(BIN)/python -m pip install --quiet $(TORCH)
+	$(BIN)/python -m pip install --quiet -e ".[dev]"
+	touch $(STAMP)
+
+demo: $(STAMP)
+	$(BIN)/python -m lcsim.demo --out $(DEMO_OUT)
+
+test: $(STAMP)
+	$(BIN)/python -m pytest -n 2 -q
+
+lint: $(STAMP)
+	$(BIN)/ruff check lcsim lcdata lcmodels tools tests
+
+bench: $(STAMP)
+	$(BIN)/python tools/bench_sim.py
+
+protos: $(STAMP)
+	$(BIN)/python tools/gen_protos.py
+
+clean:
+	rm -rf $(VENV) .pytest_cache

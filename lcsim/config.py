@@ -1,0 +1,338 @@
+"""Frozen, validated, JSON-serialisable configuration of the simulator and its environments.
+
+Every config is a ``@dataclass(frozen=True, slots=True, kw_only=True)``; a bad value raises
+``ValueError`` naming the field. Variants are made with :func:`dataclasses.replace`; the full config
+goes into every recording and checkpoint as JSON (:meth:`ScenarioConfig.to_json`).
+
+Units are in the field names (``_m``, ``_s``, ``_kmh``, ``_mps``, ``_mps2``, ``_deg``).
+Defaults follow the paper (Hybrid-PPO, CARLA Town06) where it says something, and CARLA's own
+code where it does not; ``docs/simulator.md`` lists the choices.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+import math
+from dataclasses import dataclass, field
+from typing import Any, Self
+
+
+def _check(cond: bool, cls: object, name: str, msg: str, value: object) -> None:
+    if not cond:
+        raise ValueError(f"{type(cls).__name__}.{name} {msg}, got {value!r}")
+
+
+def _positive(obj: object, *names: str) -> None:
+    for n in names:
+        v = getattr(obj, n)
+        _check(isinstance(v, int | float) and math.isfinite(v) and v > 0, obj, n, "must be > 0", v)
+
+
+def _non_negative(obj: object, *names: str) -> None:
+    for n in names:
+        v = getattr(obj, n)
+        _check(isinstance(v, int | float) and math.isfinite(v) and v >= 0, obj, n, "must be >= 0", v)
+
+
+class _JsonMixin:
+    """Nested dataclass <-> dict/JSON with unknown keys rejected (a misspelt key is an error)."""
+
+    def to_dict(self) -> dict[str, Any]:
+        return dataclasses.asdict(self)  # type: ignore[call-overload]
+
+    def to_json(self, **kwargs: Any) -> str:
+        return json.dumps(self.to_dict(), sort_keys=True, **kwargs)
+
+    @classmethod
+    def from_dict(cls, data: dict[str, Any]) -> Self:
+        fields = {f.name: f for f in dataclasses.fields(cls)}  # type: ignore[arg-type]
+        unknown = set(data) - set(fields)
+        if unknown:
+            raise ValueError(f"{cls.__name__}: unknown field(s) {sorted(unknown)}")
+        kwargs: dict[str, Any] = {}
+        for name, value in data.items():
+            sub = _NESTED.get((cls.__name__, name))
+            if sub is not None and isinstance(value, dict):
+                value = sub.from_dict(value)
+            elif isinstance(value, list):
+                value = tuple(value)
+            kwargs[name] = value
+        return cls(**kwargs)
+
+    @classmethod
+    def from_json(cls, text: str) -> Self:
+        return cls.from_dict(json.loads(text))
+
+
+@dataclass(frozen=True, slots=True, kw_only=True)
+class RoadConfig(_JsonMixin):
+    """A straight, Town06-like carriageway along +x. Lane 0 is the rightmost lane."""
+
+    num_lanes: int = 4
+    lane_width_m: float = 3.5
+    shoulder_width_m: float = 2.5
+    marking_width_m: float = 0.15
+    dash_length_m: float = 3.0
+    dash_gap_m: float = 6.0
+
+    def __post_init__(self) -> None:
+        _check(isinstance(self.num_lanes, int) and 2 <= self.num_lanes <= 6, self, "num_lanes",
+               "must be an integer in [2, 6]", self.num_lanes)
+        _positive(self, "lane_width_m", "marking_width_m", "dash_length_m", "dash_gap_m")
+        _non_negative(self, "shoulder_width_m")
+        _check(self.lane_width_m >= 2.5, self, "lane_width_m", "must be >= 2.5 m", self.lane_width_m)
+
+    @property
+    def width_m(self) -> float:
+        """Width of the carriageway between the two solid edge lines."""
+        return self.num_lanes * self.lane_width_m
+
+
+@dataclass(frozen=True, slots=True, kw_only=True)
+class TrafficConfig(_JsonMixin):
+    """Autopilot traffic: IDM car following with a Traffic-Manager-like gap and lane changes."""
+
+    num_vehicles: int = 100
+    speed_kmh: float = 24.0
+    speed_spread_kmh: float = 2.0
+    """Standard deviation of the per-vehicle desired speed (clipped at 2.5 sigma)."""
+    length_m: float = 5.37  # Ford Crown
+    width_m: float = 1.80
+    spawn_behind_m: float = 150.0
+    """Traffic is spawned from this far behind the ego's start ..."""
+    spawn_ahead_m: float = 400.0
+    """... to this far ahead of it. The ego gains only ~1.7 m/s on the traffic, so ~200 m ahead already
+    keeps traffic around it for the whole 600 m route; the rest sets the density."""
+    min_spawn_gap_m: float = 6.0
+    ego_clearance_m: float = 20.0
+    """Free space kept ahead of (and half of it behind) the ego in its lane at spawn."""
+    idm_time_headway_s: float = 2.0
+    idm_min_gap_m: float = 2.0
+    idm_max_accel_mps2: float = 1.5
+    idm_comfort_decel_mps2: float = 2.0
+    idm_delta: float = 4.0
+    max_decel_mps2: float = 8.0
+    lane_changes: bool = True
+    lane_change_duration_s: float = 3.0
+    lane_change_check_period_s: float = 0.5
+    blocked_gap_min_m: float = 0.0
+    blocked_gap_max_m: float = 50.0
+    """A leader whose gap is in [min, max] and who is slower than the desired speed blocks."""
+    blocked_speed_margin_kmh: float = 1.5
+    lane_change_front_gap_m: float = 12.0
+    lane_change_rear_gap_m: float = 8.0
+    lane_change_rear_headway_s: float = 1.0
+    random_lane_change_rate_per_min: float = 0.3
+    """Rate of spontaneous lane changes (when the side lane is free), for variety in the corpus."""
+
+    def __post_init__(self) -> None:
+        _check(isinstance(self.num_vehicles, int) and self.num_vehicles >= 0, self, "num_vehicles",
+               "must be an integer >= 0", self.num_vehicles)
+        _positive(self, "speed_kmh", "length_m", "width_m", "idm_time_headway_s", "idm_max_accel_mps2",
+                  "idm_comfort_decel_mps2", "idm_delta", "max_decel_mps2", "lane_change_duration_s",
+                  "lane_change_check_period_s")
+        _non_negative(self, "speed_spread_kmh", "spawn_behind_m", "spawn_ahead_m", "min_spawn_gap_m",
+                      "ego_clearance_m", "idm_min_gap_m", "blocked_gap_min_m", "blocked_gap_max_m",
+                      "blocked_speed_margin_kmh", "lane_change_front_gap_m", "lane_change_rear_gap_m",
+                      "lane_change_rear_headway_s", "random_lane_change_rate_per_min")
+        _check(self.blocked_gap_max_m >= self.blocked_gap_min_m, self, "blocked_gap_max_m",
+               "must be >= blocked_gap_min_m", self.blocked_gap_max_m)
+
+
+@dataclass(frozen=True, slots=True, kw_only=True)
+class PIDGains(_JsonMixin):
+    """Gains of one CARLA ``PID*Controller``; ``dt_s`` is the controller's own dt parameter."""
+
+    kp: float
+    ki: float
+    kd: float
+    dt_s: float = 0.1
+
+    def __post_init__(self) -> None:
+        _non_negative(self, "kp", "ki", "kd")
+        _positive(self, "dt_s")
+
+
+# The paper's gains. Its Ki/Kd labels may be swapped relative to CARLA's BasicAgent code
+# (lateral K_I 0.05 / K_D 0.2 there), so the swapped reading is kept as a named variant.
+PAPER_LATERAL = PIDGains(kp=1.95, ki=0.2, kd=0.07)
+PAPER_LONGITUDINAL = PIDGains(kp=1.0, ki=0.0, kd=0.75)
+SWAPPED_LATERAL = PIDGains(kp=1.95, ki=0.07, kd=0.2)
+SWAPPED_LONGITUDINAL = PIDGains(kp=1.0, ki=0.75, kd=0.0)
+
+
+@dataclass(frozen=True, slots=True, kw_only=True)
+class EgoConfig(_JsonMixin):
+    """The ego (Audi TT): kinematic bicycle model tracked by CARLA's ``VehiclePIDController``."""
+
+    length_m: float = 4.18
+    width_m: float = 1.99
+    wheelbase_m: float = 2.65
+    target_speed_kmh: float = 30.0
+    initial_speed_kmh: float = 30.0
+    start_lane: int = -1
+    """Lane the ego starts in; -1 draws it from the episode seed."""
+    max_steer_angle_deg: float = 70.0
+    max_accel_mps2: float = 4.5
+    """Acceleration at full throttle (Audi TT: 0-100 km/h in about 6 s)."""
+    max_brake_decel_mps2: float = 8.0
+    rolling_resistance_mps2: float = 0.15
+    drag_per_speed2: float = 4.0e-4
+    lateral_pid: PIDGains = field(default_factory=lambda: PAPER_LATERAL)
+    longitudinal_pid: PIDGains = field(default_factory=lambda: PAPER_LONGITUDINAL)
+    max_throttle: float = 0.75
+    max_brake: float = 0.3
+    max_steer: float = 0.8
+    max_steer_change: float = 0.1
+    """Largest change of the steering command per control (simulation) step."""
+    pid_window: int = 10
+    """Errors kept for the integral and derivative terms, as CARLA's ``deque(maxlen=10)``."""
+    lane_change_time_s: float = 2.0
+    same_lane_time_s: float = 0.0
+    waypoint_spacing_m: float = 2.0
+    base_min_distance_m: float = 3.0
+    distance_ratio: float = 0.5
+    """Look-ahead of the local planner: base_min_distance_m + distance_ratio * speed (m/s)."""
+    lane_change_tolerance_m: float = 0.3
+    adaptive_cruise: bool = False
+    """Off by default: the ego does not brake for a slower leader; the decision must avoid it."""
+    acc_time_headway_s: float = 1.5
+    acc_min_gap_m: float = 4.0
+
+    def __post_init__(self) -> None:
+        _positive(self, "length_m", "width_m", "wheelbase_m", "target_speed_kmh", "max_steer_angle_deg",
+                  "max_accel_mps2", "max_brake_decel_mps2", "max_throttle", "max_brake", "max_steer",
+                  "max_steer_change", "lane_change_time_s", "waypoint_spacing_m",
+                  "lane_change_tolerance_m", "acc_time_headway_s")
+        _non_negative(self, "initial_speed_kmh", "rolling_resistance_mps2", "drag_per_speed2",
+                      "same_lane_time_s", "base_min_distance_m", "distance_ratio", "acc_min_gap_m")
+        _check(self.wheelbase_m < self.length_m, self, "wheelbase_m", "must be shorter than length_m",
+               self.wheelbase_m)
+        for name in ("max_throttle", "max_brake", "max_steer"):
+            _check(getattr(self, name) <= 1.0, self, name, "must be <= 1", getattr(self, name))
+        _check(self.max_steer_angle_deg < 90, self, "max_steer_angle_deg", "must be < 90", self.max_steer_angle_deg)
+        _check(isinstance(self.pid_window, int) and self.pid_window >= 2, self, "pid_window",
+               "must be an integer >= 2", self.pid_window)
+        _check(isinstance(self.start_lane, int) and self.start_lane >= -1, self, "start_lane",
+               "must be -1 (random) or a lane index", self.start_lane)
+        for name in ("lateral_pid", "longitudinal_pid"):
+            _check(isinstance(getattr(self, name), PIDGains), self, name, "must be a PIDGains", getattr(self, name))
+
+
+@dataclass(frozen=True, slots=True, kw_only=True)
+class RewardConfig(_JsonMixin):
+    """The paper's reward: collision, out of road, go-forward (metres) and success milestones."""
+
+    collision: float = -500.0
+    off_road: float = -10.0
+    forward_per_m: float = 1.0
+    milestones: tuple[float, ...] = (0.25, 0.5, 0.75, 1.0)
+    """Fractions of the route at which a success reward is paid; reaching 1.0 ends the episode."""
+    milestone_rewards: tuple[float, ...] = (100.0, 150.0, 200.0, 1000.0)
+
+    def __post_init__(self) -> None:
+        _check(len(self.milestones) == len(self.milestone_rewards) and len(self.milestones) > 0, self,
+               "milestone_rewards", "must have one reward per milestone", self.milestone_rewards)
+        ms = list(self.milestones)
+        _check(all(0 < m <= 1 for m in ms) and ms == sorted(ms) and ms[-1] == 1.0, self, "milestones",
+               "must be increasing fractions in (0, 1] ending with 1.0", self.milestones)
+
+
+@dataclass(frozen=True, slots=True, kw_only=True)
+class RenderConfig(_JsonMixin):
+    """Ego-centred, heading-up bird's-eye semantic image."""
+
+    image_size_px: int = 120
+    resolution_m_per_px: float = 0.5
+    max_vehicles_drawn: int = 32
+
+    def __post_init__(self) -> None:
+        _check(isinstance(self.image_size_px, int) and 16 <= self.image_size_px <= 1024, self,
+               "image_size_px", "must be an integer in [16, 1024]", self.image_size_px)
+        _positive(self, "resolution_m_per_px")
+        _check(isinstance(self.max_vehicles_drawn, int) and self.max_vehicles_drawn >= 1, self,
+               "max_vehicles_drawn", "must be an integer >= 1", self.max_vehicles_drawn)
+
+
+@dataclass(frozen=True, slots=True, kw_only=True)
+class ScenarioConfig(_JsonMixin):
+    """Everything that defines an episode, given its seed."""
+
+    road: RoadConfig = field(default_factory=RoadConfig)
+    traffic: TrafficConfig = field(default_factory=TrafficConfig)
+    ego: EgoConfig = field(default_factory=EgoConfig)
+    reward: RewardConfig = field(default_factory=RewardConfig)
+    render: RenderConfig = field(default_factory=RenderConfig)
+    dt_s: float = 0.05
+    """Simulation step (20 Hz)."""
+    decision_period_s: float = 0.5
+    route_length_m: float = 600.0
+    time_limit_s: float = 80.0
+    """Episode time limit (truncation). A lane keeper with adaptive cruise cannot make the route in it."""
+    history_steps: int = 10
+    num_neighbours: int = 8
+    sensing_range_m: float = 80.0
+    render_image: bool = True
+
+    def __post_init__(self) -> None:
+        _positive(self, "dt_s", "decision_period_s", "route_length_m", "time_limit_s", "sensing_range_m")
+        ratio = self.decision_period_s / self.dt_s
+        _check(abs(ratio - round(ratio)) < 1e-9, self, "decision_period_s", "must be a multiple of dt_s",
+               self.decision_period_s)
+        _check(isinstance(self.history_steps, int) and self.history_steps >= 1, self, "history_steps",
+               "must be an integer >= 1", self.history_steps)
+        _check(isinstance(self.num_neighbours, int) and self.num_neighbours >= 1, self, "num_neighbours",
+               "must be an integer >= 1", self.num_neighbours)
+        _check(self.time_limit_s >= self.decision_period_s, self, "time_limit_s",
+               "must be >= decision_period_s", self.time_limit_s)
+        if self.ego.start_lane >= self.road.num_lanes:
+            raise ValueError(f"EgoConfig.start_lane must be < road.num_lanes ({self.road.num_lanes}), "
+                             f"got {self.ego.start_lane}")
+        # Spawn feasibility: every lane must hold its share of vehicles at the minimum spacing.
+        t = self.traffic
+        window = t.spawn_behind_m + t.spawn_ahead_m - t.ego_clearance_m * 1.5
+        per_lane = math.ceil(t.num_vehicles / self.road.num_lanes)
+        need = per_lane * (t.length_m + t.min_spawn_gap_m)
+        if t.num_vehicles and need > window:
+            raise ValueError(
+                f"TrafficConfig.num_vehicles={t.num_vehicles} does not fit: {per_lane} vehicles per lane "
+                f"need {need:.0f} m but the spawn window is {window:.0f} m (raise spawn_ahead_m/"
+                f"spawn_behind_m or lower min_spawn_gap_m)")
+
+    @property
+    def steps_per_decision(self) -> int:
+        return round(self.decision_period_s / self.dt_s)
+
+    @property
+    def max_steps(self) -> int:
+        """Simulation steps in the time limit."""
+        return round(self.time_limit_s / self.dt_s)
+
+
+_NESTED: dict[tuple[str, str], type[_JsonMixin]] = {
+    ("ScenarioConfig", "road"): RoadConfig,
+    ("ScenarioConfig", "traffic"): TrafficConfig,
+    ("ScenarioConfig", "ego"): EgoConfig,
+    ("ScenarioConfig", "reward"): RewardConfig,
+    ("ScenarioConfig", "render"): RenderConfig,
+    ("EgoConfig", "lateral_pid"): PIDGains,
+    ("EgoConfig", "longitudinal_pid"): PIDGains,
+}
+
+
+def paper_scenario(**overrides: Any) -> ScenarioConfig:
+    """The paper's lane-change scenario (100 vehicles at ~24 km/h, ego targeting 30 km/h)."""
+    return ScenarioConfig(**overrides)
+
+
+def corpus_scenario(**overrides: Any) -> ScenarioConfig:
+    """The paper's trajectory corpus: 20 autopilot vehicles, 20 Hz, 2000 steps (100 s).
+
+    The ego is driven by the autopilot too when recording it (``lc-record --driver autopilot``).
+    """
+    traffic = TrafficConfig(num_vehicles=20, spawn_behind_m=80.0, spawn_ahead_m=220.0)
+    kwargs: dict[str, Any] = dict(traffic=traffic, route_length_m=5000.0, time_limit_s=100.0,
+                                  render_image=False)
+    kwargs.update(overrides)
+    return ScenarioConfig(**kwargs)

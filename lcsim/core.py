@@ -1,0 +1,185 @@
+"""The lane-change task on top of :class:`~lcsim.sim.HighwaySim`: decisions, rewards, outcomes, observations.
+
+One :class:`LaneChangeCore` serves the single environment (E = 1), the native vector environment and
+the stable-baselines3 adapter, so all three run the same code and agree bit for bit.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from lcsim.config import ScenarioConfig
+from lcsim.render import BevRenderer
+from lcsim.sim import HighwaySim
+
+# Outcomes (info["outcome"]); "" while the episode runs.
+RUNNING, SUCCESS, COLLISION, OFF_ROAD, TIMEOUT = "", "success", "collision", "off_road", "timeout"
+OUTCOMES = (SUCCESS, COLLISION, OFF_ROAD, TIMEOUT)
+# Actions (Table I of the paper).
+RIGHT, KEEP, LEFT = 0, 1, 2
+ACTION_NAMES = ("right", "keep", "left")
+# Columns of the `current` observation (ego row 0, then the nearest neighbours), in the ego frame.
+CURRENT_FEATURES = ("x_m", "y_m", "vx_mps", "vy_mps", "yaw_rad", "speed_mps", "lane", "target_lane", "present")
+REWARD_COMPONENTS = ("collision", "off_road", "forward", "success")
+
+
+@dataclass(slots=True)
+class StepResult:
+    """What one decision step returns for E environments (arrays of shape (E,) unless noted)."""
+
+    reward: np.ndarray
+    terminated: np.ndarray
+    truncated: np.ndarray
+    outcome: np.ndarray  # object array of str
+    components: dict[str, np.ndarray]
+
+
+class LaneChangeCore:
+    """E lane-change episodes: apply decisions, run ``steps_per_decision`` simulation steps, score them."""
+
+    def __init__(self, config: ScenarioConfig, num_envs: int, *, autopilot_ego: bool = False) -> None:
+        self.config = config
+        self.sim = HighwaySim(config, num_envs, autopilot_ego=autopilot_ego)
+        self.num_envs = num_envs
+        self.renderer = BevRenderer(config.road, config.render) if config.render_image else None
+        self.k = config.num_neighbours
+        self.milestone_x = np.asarray(config.reward.milestones) * config.route_length_m
+        self.milestone_r = np.asarray(config.reward.milestone_rewards)
+        self.next_milestone = np.zeros(num_envs, dtype=np.int64)
+        self.outcome = np.full(num_envs, RUNNING, dtype=object)
+        self.last_action = np.full(num_envs, KEEP, dtype=np.int64)
+        self.event_step = np.full(num_envs, -1, dtype=np.int64)
+        self.seeds = np.zeros(num_envs, dtype=np.int64)
+
+    # ---------------------------------------------------------------- episode
+    def reset(self, env_ids: np.ndarray | list[int], seeds: list[int]) -> None:
+        env_ids = np.asarray(env_ids, dtype=np.int64)
+        self.sim.reset(env_ids, seeds)
+        self.next_milestone[env_ids] = 0
+        self.outcome[env_ids] = RUNNING
+        self.last_action[env_ids] = KEEP
+        self.event_step[env_ids] = -1
+        self.seeds[env_ids] = seeds
+
+    def action_mask(self) -> np.ndarray:
+        """``(E, 3)`` bool: right / keep / left. A change in progress allows only keep; no lane, no change."""
+        sim = self.sim
+        lane = sim.target_lane[:, 0]
+        idle = ~sim.ego_lc_active if not sim.autopilot_ego else np.ones(self.num_envs, dtype=bool)
+        mask = np.ones((self.num_envs, 3), dtype=bool)
+        mask[:, RIGHT] = idle & (lane > 0)
+        mask[:, LEFT] = idle & (lane < sim.road.num_lanes - 1)
+        return mask
+
+    def step(self, actions: np.ndarray) -> StepResult:
+        """Apply one decision per environment and simulate until the next decision.
+
+        An action during a lane change in progress is ignored (the change runs to its end). A change
+        towards a lane that does not exist is carried out and leaves the road (reward ``off_road``).
+        Environments whose episode ends inside the decision period are frozen at that simulation step.
+        """
+        sim, cfg = self.sim, self.config
+        actions = np.asarray(actions, dtype=np.int64).reshape(self.num_envs)
+        if ((actions < 0) | (actions > 2)).any():
+            raise ValueError(f"actions must be in {{0, 1, 2}} (right, keep, left), got {actions.tolist()}")
+        self.last_action = actions.copy()
+        if not sim.autopilot_ego:
+            sim.start_lane_change(actions != KEEP, np.where(actions == LEFT, 1, -1))
+        x_before = sim.x[:, 0].copy()
+        done = self.outcome != RUNNING  # environments already finished stay frozen
+        sim.frozen[:] = done
+        collided = np.zeros(self.num_envs, dtype=bool)
+        left_road = np.zeros(self.num_envs, dtype=bool)
+        for _ in range(cfg.steps_per_decision):
+            sim.substep()
+            new_col = ~done & (sim.collision_with >= 0)
+            new_off = ~done & ~new_col & sim.off_road
+            new_succ = ~done & ~new_col & ~new_off & (sim.x[:, 0] >= cfg.route_length_m)
+            ended = new_col | new_off | new_succ
+            if ended.any():
+                collided |= new_col
+                left_road |= new_off
+                self.outcome[new_col] = COLLISION
+                self.outcome[new_off] = OFF_ROAD
+                self.outcome[new_succ] = SUCCESS
+                self.event_step[ended] = sim.step[ended]
+                done |= ended
+                sim.frozen[:] = done
+        sim.frozen[:] = False
+        progress = sim.x[:, 0] - x_before
+        rc = cfg.reward
+        milestone_reward = np.zeros(self.num_envs)
+        reached = sim.x[:, 0]
+        for i, (mx, mr) in enumerate(zip(self.milestone_x, self.milestone_r, strict=True)):
+            hit = (self.next_milestone == i) & (reached >= mx) & ~collided & ~left_road
+            milestone_reward += np.where(hit, mr, 0.0)
+            self.next_milestone += hit
+        components = {
+            "collision": np.where(collided, rc.collision, 0.0),
+            "off_road": np.where(left_road, rc.off_road, 0.0),
+            "forward": rc.forward_per_m * progress,
+            "success": milestone_reward,
+        }
+        reward = components["collision"] + components["off_road"] + components["forward"] + components["success"]
+        terminated = self.outcome != RUNNING
+        timeout = ~terminated & (sim.t_s >= cfg.time_limit_s - 1e-9)
+        self.outcome[timeout] = TIMEOUT
+        return StepResult(reward, terminated.copy(), timeout, self.outcome.copy(), components)
+
+    # ------------------------------------------------------------ observation
+    def neighbours(self, ids: np.ndarray) -> np.ndarray:
+        """``(len(ids), K)`` indices of the K nearest vehicles to the ego within sensing range, nearest first; -1."""
+        sim = self.sim
+        x, y = sim.x[ids], sim.y[ids]
+        d2 = (x - x[:, :1]) ** 2 + (y - y[:, :1]) ** 2
+        d2[:, 0] = np.inf
+        k = min(self.k, sim.num_vehicles - 1)
+        order = np.argsort(d2, axis=1, kind="stable")[:, :k]
+        near = np.take_along_axis(d2, order, axis=1) <= self.config.sensing_range_m ** 2
+        out = np.full((len(ids), self.k), -1, dtype=np.int64)
+        out[:, :k] = np.where(near, order, -1)
+        return out
+
+    def observe(self, ids: np.ndarray | None = None) -> dict[str, np.ndarray]:
+        """Batched observation of environments ``ids`` (all by default), B = len(ids).
+
+        Returns ``current`` (B, 1+K, 9) with columns :data:`CURRENT_FEATURES` in the ego frame (row 0 is
+        the ego: its own velocity, heading to the road, lane and target lane), ``history`` (B, K, H, 3):
+        the last H positions of the same K vehicles in the ego frame of the current step, oldest first,
+        with a validity flag, and ``image`` (B, 3, S, S) uint8 when rendering is on.
+        """
+        sim = self.sim
+        ids = np.arange(self.num_envs) if ids is None else np.asarray(ids, dtype=np.int64)
+        nb = self.neighbours(ids)
+        rows = np.concatenate([np.zeros((len(ids), 1), dtype=np.int64), nb], axis=1)  # (B, 1+K)
+        present = rows >= 0
+        r = np.maximum(rows, 0)
+        x, y, yaw_all, speed_all = sim.x[ids], sim.y[ids], sim.yaw[ids], sim.speed[ids]
+        take = lambda a: np.take_along_axis(a, r, axis=1)  # noqa: E731
+        ex, ey, eyaw, ev = x[:, :1], y[:, :1], yaw_all[:, :1], speed_all[:, :1]
+        c, s = np.cos(eyaw), np.sin(eyaw)
+        dx, dy = take(x) - ex, take(y) - ey
+        yaw, speed = take(yaw_all), take(speed_all)
+        rvx, rvy = speed * np.cos(yaw) - ev * c, speed * np.sin(yaw) - ev * s
+        rvx[:, 0], rvy[:, 0] = ev[:, 0] * c[:, 0], ev[:, 0] * s[:, 0]  # the ego row holds its own velocity
+        rel_yaw = yaw - eyaw
+        rel_yaw[:, 0] = eyaw[:, 0]
+        cur = np.stack([
+            c * dx + s * dy, -s * dx + c * dy,
+            c * rvx + s * rvy, -s * rvx + c * rvy,
+            rel_yaw, speed,
+            take(sim.lane[ids]).astype(np.float64), take(sim.target_lane[ids]).astype(np.float64),
+            np.ones_like(dx),
+        ], axis=-1)
+        cur *= present[..., None]
+        pos, valid = sim.history(nb, ids)  # (B, K, H, 2), (B, K, H)
+        hdx, hdy = pos[..., 0] - ex[:, :, None], pos[..., 1] - ey[:, :, None]
+        c3, s3 = c[:, :, None], s[:, :, None]
+        hist = np.stack([(c3 * hdx + s3 * hdy) * valid, (-s3 * hdx + c3 * hdy) * valid,
+                         valid.astype(np.float64)], axis=-1)
+        obs = {"current": cur.astype(np.float32), "history": hist.astype(np.float32)}
+        if self.renderer is not None:
+            obs["image"] = self.renderer.render(x, y, yaw_all, sim.length[ids], sim.width[ids])
+        return obs

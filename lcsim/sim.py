@@ -1,0 +1,378 @@
+"""The batched highway simulator: E environments x N vehicles advanced by one call.
+
+State lives in ``(E, N)`` arrays; vehicle 0 of every environment is the ego. One :meth:`HighwaySim.substep`
+advances every environment by ``dt_s``: neighbour search on the per-lane sorted order, IDM for the
+traffic, Traffic-Manager-like lane changes at the check period, the ego's PID controller on a kinematic
+bicycle model, then collision, lane-invasion and off-road sensors. No per-vehicle Python objects, no
+per-environment loops in the hot path.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Callable, Sequence
+
+import numpy as np
+
+from lcsim import rng
+from lcsim.collision import coarse_close, obb_overlap
+from lcsim.config import ScenarioConfig
+from lcsim.control import (
+    PIDState,
+    bicycle_step,
+    heading_error,
+    longitudinal_accel,
+    pid_step,
+    split_throttle_brake,
+)
+from lcsim.neighbours import LaneIndex, build_index, gather, leaders, neighbour_in_lane
+from lcsim.road import StraightRoad
+from lcsim.traffic import idm_accel, smoothstep5
+
+# Per-vehicle state arrays (E, N) and per-environment arrays (E,) frozen together when an episode ends.
+_VEHICLE_STATE = ("x", "y", "yaw", "speed", "accel", "lane", "target_lane", "lc_active", "lc_t0", "lc_y0",
+                  "lc_y1")
+_ENV_STATE = ("step", "t_s", "path_x0", "path_len", "path_y0", "path_y1", "ego_lc_active", "steer",
+              "throttle", "brake", "collision_with", "lane_invasion", "off_road")
+
+SubstepHook = Callable[["HighwaySim"], None]
+
+
+class HighwaySim:
+    """E independent highway environments stepped in lockstep.
+
+    Args:
+        config: the scenario.
+        num_envs: E.
+        autopilot_ego: drive the ego with the traffic's autopilot instead of the PID controller
+            (the corpus scenario records 20 autopilot vehicles).
+    """
+
+    def __init__(self, config: ScenarioConfig, num_envs: int, *, autopilot_ego: bool = False) -> None:
+        if num_envs < 1:
+            raise ValueError(f"num_envs must be >= 1, got {num_envs}")
+        self.config = config
+        self.road = StraightRoad(config.road)
+        self.autopilot_ego = autopilot_ego
+        self.num_envs = e = num_envs
+        self.num_vehicles = n = 1 + config.traffic.num_vehicles
+        self.dt = config.dt_s
+        tc, ec = config.traffic, config.ego
+        self.ids = np.arange(n, dtype=np.int64)
+        self.length = np.full((e, n), tc.length_m)
+        self.width = np.full((e, n), tc.width_m)
+        self.length[:, 0], self.width[:, 0] = ec.length_m, ec.width_m
+        self.half_width = 0.5 * self.width
+        self.radius = 0.5 * np.hypot(self.length, self.width)
+        self.is_traffic = np.ones((e, n), dtype=bool)
+        self.is_traffic[:, 0] = autopilot_ego
+        self.check_every = max(1, round(tc.lane_change_check_period_s / self.dt))
+        self.p_spontaneous = tc.random_lane_change_rate_per_min * tc.lane_change_check_period_s / 60.0
+
+        f64 = lambda shape: np.zeros(shape)  # noqa: E731
+        self.x, self.y, self.yaw, self.speed, self.accel = (f64((e, n)) for _ in range(5))
+        self.lane = np.zeros((e, n), dtype=np.int64)
+        self.target_lane = np.zeros((e, n), dtype=np.int64)
+        self.v0 = f64((e, n))
+        self.lc_active = np.zeros((e, n), dtype=bool)
+        self.lc_t0, self.lc_y0, self.lc_y1 = f64((e, n)), f64((e, n)), f64((e, n))
+        # Ego planner (BasicAgent-style lane-change path) and controller state, per environment.
+        self.path_x0, self.path_len, self.path_y0, self.path_y1 = (f64(e) for _ in range(4))
+        self.ego_lc_active = np.zeros(e, dtype=bool)
+        self.lon_pid = PIDState.zeros(e, ec.pid_window)
+        self.lat_pid = PIDState.zeros(e, ec.pid_window)
+        self.steer, self.throttle, self.brake = f64(e), f64(e), f64(e)
+        # Clock, sensors, seeds.
+        self.step = np.zeros(e, dtype=np.int64)
+        self.t_s = f64(e)
+        self.key = np.zeros(e, dtype=np.uint64)
+        self.collision_with = np.full(e, -1, dtype=np.int64)
+        self.lane_invasion = np.full(e, -1, dtype=np.int64)
+        self.off_road = np.zeros(e, dtype=bool)
+        self.traffic_collisions = np.zeros(e, dtype=np.int64)
+        # Position history ring buffer (E, H, N, 2) with a global write pointer.
+        self.history_len = config.history_steps
+        self.hist = np.zeros((e, self.history_len, n, 2))
+        self.hist_ptr = 0
+        self.hist_count = np.zeros(e, dtype=np.int64)
+        self.frozen = np.zeros(e, dtype=bool)
+        self.index: LaneIndex | None = None
+        self.hooks: list[SubstepHook] = []
+
+    # ------------------------------------------------------------------ reset
+    def reset(self, env_ids: Sequence[int] | np.ndarray, seeds: Sequence[int]) -> None:
+        """Spawn new episodes in environments ``env_ids``, each fully determined by its seed."""
+        env_ids = np.asarray(env_ids, dtype=np.int64)
+        for e, seed in zip(env_ids, seeds, strict=True):
+            self._spawn(int(e), np.random.default_rng(int(seed)))
+        self.frozen[env_ids] = False
+        self.lon_pid.reset(env_ids)
+        self.lat_pid.reset(env_ids)
+        self.index = self._build_index()
+        self.hist[env_ids] = np.stack([self.x[env_ids], self.y[env_ids]], axis=-1)[:, None]
+        self.hist_count[env_ids] = 1
+
+    def _spawn(self, e: int, gen: np.random.Generator) -> None:
+        cfg, tc, ec, road = self.config, self.config.traffic, self.config.ego, self.road
+        lanes = road.num_lanes
+        ego_lane = ec.start_lane if ec.start_lane >= 0 else int(gen.integers(lanes))
+        n_traffic = self.num_vehicles - 1
+        lane_of = gen.permutation(np.arange(n_traffic) % lanes)
+        xs = np.empty(n_traffic)
+        spacing = tc.length_m + tc.min_spawn_gap_m
+        lo_w, hi_w = -tc.spawn_behind_m, tc.spawn_ahead_m
+        for lane in range(lanes):
+            sel = np.flatnonzero(lane_of == lane)
+            k = sel.size
+            if k == 0:
+                continue
+            zone = 0.0
+            if lane == ego_lane:  # keep the ego's spot free: half the clearance behind, all of it ahead
+                zone_lo = -0.5 * tc.ego_clearance_m - 0.5 * (ec.length_m + tc.length_m)
+                zone = 1.5 * tc.ego_clearance_m + ec.length_m + tc.length_m
+            free = (hi_w - lo_w) - zone - k * spacing
+            if free < 0:
+                raise ValueError(f"TrafficConfig: {k} vehicles do not fit in lane {lane}; lower num_vehicles")
+            pos = lo_w + np.sort(gen.uniform(0.0, free, k)) + np.arange(k) * spacing + 0.5 * spacing
+            if zone:
+                pos = np.where(pos >= zone_lo, pos + zone, pos)
+            xs[sel] = pos
+        spread = np.clip(gen.standard_normal(self.num_vehicles), -2.5, 2.5) * tc.speed_spread_kmh
+        v0 = (tc.speed_kmh + spread) / 3.6
+        v0 = np.maximum(v0, 1.0)
+        if not self.autopilot_ego:
+            v0[0] = ec.target_speed_kmh / 3.6
+        self.x[e, 0], self.x[e, 1:] = 0.0, xs
+        all_lanes = np.concatenate([[ego_lane], lane_of]).astype(np.int64)
+        self.lane[e] = self.target_lane[e] = all_lanes
+        self.y[e] = road.lane_center(all_lanes)
+        self.yaw[e] = 0.0
+        self.v0[e] = v0
+        self.speed[e] = v0
+        if not self.autopilot_ego:
+            self.speed[e, 0] = ec.initial_speed_kmh / 3.6
+        self.accel[e] = 0.0
+        self.lc_active[e] = False
+        self.lc_t0[e] = 0.0
+        self.lc_y0[e] = self.lc_y1[e] = self.y[e]
+        y_c = float(road.lane_center(ego_lane))
+        self.path_x0[e], self.path_len[e], self.path_y0[e], self.path_y1[e] = 0.0, 1.0, y_c, y_c
+        self.ego_lc_active[e] = False
+        self.steer[e] = self.throttle[e] = self.brake[e] = 0.0
+        self.step[e], self.t_s[e] = 0, 0.0
+        self.key[e] = np.uint64(gen.integers(0, 2**63 - 1))
+        self.collision_with[e], self.lane_invasion[e], self.off_road[e] = -1, -1, False
+        self.traffic_collisions[e] = 0
+
+    # --------------------------------------------------------------- decisions
+    def start_lane_change(self, env_mask: np.ndarray, direction: np.ndarray) -> None:
+        """Plan a BasicAgent-style lane change for the ego where ``env_mask`` (E,) is set.
+
+        ``direction`` (E,) is +1 (left) or -1 (right). The path keeps the current lane for
+        ``same_lane_time_s * speed``, moves laterally over ``lane_change_time_s * speed`` metres, then
+        follows the target lane. A target beyond the edge lanes leads off the road, as in CARLA.
+        """
+        ec = self.config.ego
+        start = env_mask & ~self.ego_lc_active
+        if not start.any():
+            return
+        idx = np.flatnonzero(start)
+        v = self.speed[idx, 0]
+        cur = self.target_lane[idx, 0]
+        new = cur + direction[idx].astype(np.int64)
+        self.path_x0[idx] = self.x[idx, 0] + ec.same_lane_time_s * v
+        self.path_len[idx] = np.maximum(ec.lane_change_time_s * v, ec.waypoint_spacing_m)
+        self.path_y0[idx] = self.road.lane_center(cur)
+        self.path_y1[idx] = self.road.lane_center(new)
+        self.target_lane[idx, 0] = new
+        self.ego_lc_active[idx] = True
+
+    # ----------------------------------------------------------------- physics
+    def substep(self) -> None:
+        """Advance every environment by one simulation step (frozen environments stay as they are)."""
+        frozen = np.flatnonzero(self.frozen) if self.frozen.any() else None
+        saved = self._save(frozen) if frozen is not None else None
+        cfg, tc, dt = self.config, self.config.traffic, self.dt
+        index = self.index if self.index is not None else self._build_index()
+        x, y, speed, length = self.x, self.y, self.speed, self.length
+
+        lead = leaders(index)
+        gap = gather(x, lead, np.inf) - x - 0.5 * (length + gather(length, lead, 0.0))
+        lead_v = gather(speed, lead, 0.0)
+        acc = idm_accel(speed, self.v0, gap, speed - lead_v, tc)
+
+        if tc.lane_changes:
+            due = (self.step % self.check_every) == 0
+            if due.any():
+                self._traffic_lane_changes(index, lead, gap, lead_v, due)
+
+        # Traffic: ballistic longitudinal update, minimum-jerk lateral profile.
+        new_speed = np.maximum(speed + acc * dt, 0.0)
+        new_x = x + 0.5 * (speed + new_speed) * dt
+        t_now = self.t_s[:, None] + dt
+        tau = (t_now - self.lc_t0) / tc.lane_change_duration_s
+        prof, dprof = smoothstep5(tau)
+        dy = self.lc_y1 - self.lc_y0
+        new_y = np.where(self.lc_active, self.lc_y0 + dy * prof, y)
+        vy = np.where(self.lc_active, dy * dprof / tc.lane_change_duration_s, 0.0)
+        new_yaw = np.arctan2(vy, np.maximum(new_speed, 1e-3))
+        finished = self.lc_active & (tau >= 1.0)
+        if finished.any():
+            self.lc_active &= ~finished
+
+        ego_y_prev = y[:, 0].copy()
+        if not self.autopilot_ego:
+            ex, ey, eyaw, ev, ea = self._ego_step(gap[:, 0])
+            new_x[:, 0], new_y[:, 0], new_yaw[:, 0], new_speed[:, 0] = ex, ey, eyaw, ev
+            acc[:, 0] = ea
+        self.x, self.y, self.yaw, self.speed, self.accel = new_x, new_y, new_yaw, new_speed, acc
+        ego_target = self.target_lane[:, 0].copy()
+        self.lane = self.road.lane_of(new_y)
+        self.target_lane = np.where(self.lc_active, self.target_lane, self.lane)
+        if not self.autopilot_ego:
+            self.target_lane[:, 0] = np.where(self.ego_lc_active, ego_target, self.lane[:, 0])
+        self.step += 1
+        self.t_s += dt
+
+        self.index = self._build_index()
+        self._sensors(ego_y_prev)
+        if frozen is not None:
+            self._restore(frozen, saved)
+            self.index = self._build_index()
+        self.hist_ptr = (self.hist_ptr + 1) % self.history_len
+        self.hist[:, self.hist_ptr, :, 0] = self.x
+        self.hist[:, self.hist_ptr, :, 1] = self.y
+        np.minimum(self.hist_count + 1, self.history_len, out=self.hist_count)
+        for hook in self.hooks:
+            hook(self)
+
+    def _ego_step(self, lead_gap: np.ndarray) -> tuple[np.ndarray, ...]:
+        ec, dt = self.config.ego, self.dt
+        x, y, yaw, v = self.x[:, 0], self.y[:, 0], self.yaw[:, 0], self.speed[:, 0]
+        target = np.full_like(v, ec.target_speed_kmh / 3.6)
+        if ec.adaptive_cruise:
+            target = np.minimum(target, np.maximum((lead_gap - ec.acc_min_gap_m) / ec.acc_time_headway_s, 0.0))
+        u_lon = pid_step(self.lon_pid, (target - v) * 3.6, ec.longitudinal_pid)
+        throttle, brake = split_throttle_brake(u_lon, ec)
+        # Local planner: first waypoint (every waypoint_spacing_m along the path) beyond the look-ahead.
+        min_dist = ec.base_min_distance_m + ec.distance_ratio * v
+        sp = ec.waypoint_spacing_m
+        tx = self.path_x0 + np.ceil((x + min_dist - self.path_x0) / sp) * sp
+        frac = np.clip((tx - self.path_x0) / self.path_len, 0.0, 1.0)
+        ty = self.path_y0 + (self.path_y1 - self.path_y0) * frac
+        u_lat = pid_step(self.lat_pid, heading_error(x, y, yaw, tx, ty), ec.lateral_pid)
+        steer = np.clip(u_lat, self.steer - ec.max_steer_change, self.steer + ec.max_steer_change)
+        steer = np.clip(steer, -ec.max_steer, ec.max_steer)
+        accel = longitudinal_accel(throttle, brake, v, ec)
+        nx, ny, nyaw, nv = bicycle_step(x, y, yaw, v, accel, steer, ec, dt)
+        self.steer, self.throttle, self.brake = steer, throttle, brake
+        done = self.ego_lc_active & (nx >= self.path_x0 + self.path_len) & (
+            np.abs(ny - self.path_y1) < ec.lane_change_tolerance_m)
+        if done.any():
+            self.ego_lc_active &= ~done
+        return nx, ny, nyaw, nv, accel
+
+    def _traffic_lane_changes(self, index: LaneIndex, lead: np.ndarray, gap: np.ndarray, lead_v: np.ndarray,
+                              due: np.ndarray) -> None:
+        tc = self.config.traffic
+        cand = self.is_traffic & ~self.lc_active & due[:, None]
+        blocked = (lead >= 0) & (gap >= tc.blocked_gap_min_m) & (gap <= tc.blocked_gap_max_m) & (
+            lead_v < self.v0 - tc.blocked_speed_margin_kmh / 3.6)
+        spontaneous = rng.uniform(self.key, self.step, self.num_vehicles, stream=1) < self.p_spontaneous
+        want = cand & (blocked | spontaneous)
+        if not want.any():
+            return
+        # One side per check period (left on even periods) so that two vehicles never merge into one gap.
+        side = np.where((self.step // self.check_every) % 2 == 0, 1, -1)[:, None]
+        tl = self.lane + side
+        x, length, speed = self.x, self.length, self.speed
+        front = neighbour_in_lane(index, tl, ahead=True)
+        rear = neighbour_in_lane(index, tl, ahead=False)
+        front_gap = gather(x, front, np.inf) - x - 0.5 * (length + gather(length, front, 0.0))
+        rear_gap = x - gather(x, rear, -np.inf) - 0.5 * (length + gather(length, rear, 0.0))
+        rear_need = tc.lane_change_rear_gap_m + tc.lane_change_rear_headway_s * gather(speed, rear, 0.0)
+        ok = want & (tl >= 0) & (tl < self.road.num_lanes) & (front_gap >= tc.lane_change_front_gap_m) & (
+            rear_gap >= rear_need) & ((front_gap > gap + 5.0) | spontaneous)
+        if not ok.any():
+            return
+        self.lc_active |= ok
+        self.lc_t0 = np.where(ok, self.t_s[:, None], self.lc_t0)
+        self.lc_y0 = np.where(ok, self.y, self.lc_y0)
+        self.lc_y1 = np.where(ok, self.road.lane_center(tl), self.lc_y1)
+        self.target_lane = np.where(ok, tl, self.target_lane)
+
+    def _build_index(self) -> LaneIndex:
+        extra = np.where(self.lc_active, self.target_lane, -1)
+        return build_index(self.x, self.y, self.half_width, self.road.lane_width, self.road.num_lanes, extra)
+
+    def _sensors(self, ego_y_prev: np.ndarray) -> None:
+        """Collision (exact OBB on coarse candidates), lane invasion and off-road for the ego."""
+        index = self.index
+        assert index is not None
+        e, n = self.x.shape
+        pos_b = index.ahead  # (E, L, N) sorted position of the next member in each lane
+        cand = index.member & (pos_b < n)
+        self.collision_with[:] = -1
+        if cand.any():
+            ee, _, pa = np.nonzero(cand)
+            pb = pos_b[cand]
+            va, vb = index.order[ee, pa], index.order[ee, pb]
+            close = coarse_close(self.x[ee, va], self.y[ee, va], self.radius[ee, va],
+                                 self.x[ee, vb], self.y[ee, vb], self.radius[ee, vb])
+            if close.any():
+                ee, va, vb = ee[close], va[close], vb[close]
+                hit = obb_overlap(self.x[ee, va], self.y[ee, va], self.yaw[ee, va], self.length[ee, va],
+                                  self.width[ee, va], self.x[ee, vb], self.y[ee, vb], self.yaw[ee, vb],
+                                  self.length[ee, vb], self.width[ee, vb])
+                if hit.any():
+                    ee, va, vb = ee[hit], va[hit], vb[hit]
+                    ego_hit = (va == 0) | (vb == 0)
+                    other = np.where(va == 0, vb, va)
+                    # Reverse order so the first (nearest in sort order) collision wins the assignment.
+                    self.collision_with[ee[ego_hit][::-1]] = other[ego_hit][::-1]
+                    np.add.at(self.traffic_collisions, ee[~ego_hit], 1)
+        lw = self.road.lane_width
+        k_prev, k_new = np.floor(ego_y_prev / lw), np.floor(self.y[:, 0] / lw)
+        self.lane_invasion = np.where(k_prev != k_new, np.maximum(k_prev, k_new), -1).astype(np.int64)
+        self.off_road = ~self.road.on_road(self.y[:, 0])
+
+    # ------------------------------------------------------------- freezing
+    def _save(self, idx: np.ndarray) -> dict[str, np.ndarray]:
+        out = {name: getattr(self, name)[idx].copy() for name in _VEHICLE_STATE + _ENV_STATE}
+        out["lon"] = self.lon_pid.errors[idx].copy()
+        out["lat"] = self.lat_pid.errors[idx].copy()
+        return out
+
+    def _restore(self, idx: np.ndarray, saved: dict[str, np.ndarray] | None) -> None:
+        assert saved is not None
+        for name in _VEHICLE_STATE + _ENV_STATE:
+            getattr(self, name)[idx] = saved[name]
+        self.lon_pid.errors[idx] = saved["lon"]
+        self.lat_pid.errors[idx] = saved["lat"]
+
+    # ---------------------------------------------------------------- queries
+    def history(self, env_vehicles: np.ndarray, ids: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Positions of chosen vehicles over the last H steps, oldest first.
+
+        Args:
+            env_vehicles: ``(B, K)`` vehicle indices (-1 for an empty slot) of environments ``ids`` (B,).
+
+        Returns:
+            ``(B, K, H, 2)`` world positions and ``(B, K, H)`` validity.
+        """
+        h = self.history_len
+        slots = (self.hist_ptr - h + 1 + np.arange(h)) % h
+        veh = np.maximum(env_vehicles, 0)[:, :, None]
+        pos = self.hist[ids[:, None, None], slots[None, None, :], veh]  # (B, K, H, 2)
+        valid_t = np.arange(h)[None, :] >= (h - self.hist_count[ids])[:, None]  # (B, H)
+        valid = (env_vehicles >= 0)[:, :, None] & valid_t[:, None, :]
+        return pos, valid
+
+    @property
+    def ego_progress_m(self) -> np.ndarray:
+        """Distance along the route travelled by the ego (E,)."""
+        return self.x[:, 0].copy()
+
+
+def yaw_wrap(a: np.ndarray) -> np.ndarray:
+    return (a + math.pi) % (2 * math.pi) - math.pi
