@@ -1,0 +1,92 @@
+"""Checkpoints: weights, normalisation statistics (buffers) and config, loadable with ``weights_only=True``.
+
+Layout of the saved dict (tensors and primitive types only)::
+
+    {"format": "lc-toolkit/predictor", "version": 1,
+     "config": "<PredictorConfig JSON>", "state_dict": {name: tensor, ...}, "extra": "<JSON>"}
+"""
+
+from __future__ import annotations
+
+import json
+import os
+from pathlib import Path
+from typing import Any
+
+import torch
+
+from lcmodels.predictor.model import PredictorConfig, TrajectoryTransformer
+
+__all__ = ["CHECKPOINT_FORMAT", "load_model", "save_model"]
+
+CHECKPOINT_FORMAT = "lc-toolkit/predictor"
+CHECKPOINT_VERSION = 1
+
+
+def save_model(
+    model: TrajectoryTransformer, path: str | os.PathLike[str], *, extra: dict[str, Any] | None = None
+) -> Path:
+    """Write ``model`` (weights + normalisation buffers + config) to ``path`` atomically."""
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    payload = {
+        "format": CHECKPOINT_FORMAT,
+        "version": CHECKPOINT_VERSION,
+        "config": model.config.to_json(),
+        "state_dict": {k: v.detach().cpu().clone() for k, v in model.state_dict().items()},
+        "extra": json.dumps(extra or {}, sort_keys=True),
+    }
+    tmp = path.with_name(path.name + ".partial")
+    torch.save(payload, tmp)
+    tmp.replace(path)
+    return path
+
+
+def load_model(
+    path: str | os.PathLike[str], *, history_steps: int | None = None, future_steps: int | None = None
+) -> tuple[TrajectoryTransformer, dict[str, Any]]:
+    """Load a checkpoint written by :func:`save_model`.
+
+    Args:
+        path: checkpoint file.
+        history_steps, future_steps: if given, the horizons the caller needs; a checkpoint for other
+            horizons is refused.
+
+    Returns:
+        The model in eval mode and the ``extra`` dict stored with it.
+
+    Raises:
+        ValueError: unreadable or corrupt file, not a predictor checkpoint, or wrong horizons.
+    """
+    path = Path(path)
+    if not path.is_file():
+        raise ValueError(f"predictor checkpoint {path} does not exist")
+    try:
+        payload = torch.load(path, map_location="cpu", weights_only=True)
+    except Exception as exc:  # torch raises many types for truncated / foreign files
+        raise ValueError(
+            f"{path} is not a readable predictor checkpoint (corrupt or truncated?): {exc}"
+        ) from exc
+    if not isinstance(payload, dict) or payload.get("format") != CHECKPOINT_FORMAT:
+        raise ValueError(f"{path} is not an lc-toolkit predictor checkpoint")
+    if payload.get("version") != CHECKPOINT_VERSION:
+        raise ValueError(f"{path}: unsupported checkpoint version {payload.get('version')!r}")
+    try:
+        config = PredictorConfig.from_dict(json.loads(payload["config"]))
+        extra = json.loads(payload.get("extra", "{}"))
+    except (KeyError, TypeError, json.JSONDecodeError) as exc:
+        raise ValueError(f"{path}: checkpoint config is corrupt: {exc}") from exc
+    for name, wanted in (("history_steps", history_steps), ("future_steps", future_steps)):
+        have = getattr(config, name)
+        if wanted is not None and wanted != have:
+            raise ValueError(
+                f"{path} was trained with {name}={have}, but {name}={wanted} was requested; "
+                "train a predictor for these horizons or request the checkpoint's"
+            )
+    model = TrajectoryTransformer(config)
+    try:
+        model.load_state_dict(payload["state_dict"])
+    except (KeyError, RuntimeError) as exc:
+        raise ValueError(f"{path}: weights do not match the stored config: {exc}") from exc
+    model.eval()
+    return model, extra

@@ -1,0 +1,289 @@
+"""The trajectory transformer: one token per vehicle, residual over constant velocity.
+
+Input is a token set per sample, already in the agent-centric frame (see ``lcdata.corpus``):
+positions ``(N, T, H, 2)`` and presence ``(N, T, H)``, token 0 being the agent and tokens
+``1..T-1`` its neighbours (T = 1 + K). Each token embeds its own history (positions, backward-
+difference velocities and accelerations, presence) with a small MLP. Optional full self-attention
+layers (``num_context_layers``) let all tokens exchange information; then ``num_layers`` pre-norm
+transformer layers whose query is the agent token attend over all tokens (absent ones are padding)
+— the agent-query form costs a fraction of full self-attention, which matters for the policy-time
+throughput, since only the agent's output is needed. A head decodes all F future steps at once
+as a standardised residual over the agent's constant-velocity extrapolation. With the head's last
+layer at zero the model *is* the baseline (plus the training-set mean residual), so training starts
+from it.
+
+Normalisation statistics are buffers computed from the training split only
+(:meth:`TrajectoryTransformer.fit_normalisation`), so they travel with the weights.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+from dataclasses import dataclass
+from typing import Any
+
+import torch
+from torch import nn
+
+__all__ = [
+    "FEATURES_PER_STEP",
+    "AgentAttentionLayer",
+    "PredictorConfig",
+    "TrajectoryTransformer",
+    "cv_extrapolate",
+    "token_features",
+]
+
+#: Kinematic features per history step: x, y, vx, vy, ax, ay (frame metres, per step, per step²).
+FEATURES_PER_STEP = 6
+#: Lower bound of a standard deviation used for standardisation.
+MIN_STD = 1e-6
+#: Standardised inputs are clipped to this magnitude (robustness to out-of-distribution inputs).
+CLIP = 50.0
+
+
+@dataclass(frozen=True, slots=True, kw_only=True)
+class PredictorConfig:
+    """Architecture and horizons of the trajectory transformer."""
+
+    history_steps: int = 10
+    """H: observed steps, the current one included."""
+    future_steps: int = 10
+    """F: predicted steps."""
+    num_neighbours: int = 8
+    """K: context vehicles per agent."""
+    d_model: int = 64
+    """Token width."""
+    num_heads: int = 4
+    """Attention heads; must divide d_model."""
+    num_layers: int = 2
+    """Agent-query transformer layers (the agent token attends to all tokens)."""
+    num_context_layers: int = 0
+    """Full self-attention layers over all tokens before the agent-query layers (slower)."""
+    ff_dim: int = 256
+    """Feed-forward width inside each layer."""
+    dropout: float = 0.0
+    """Dropout inside the encoder (0 keeps training deterministic and fast)."""
+
+    def __post_init__(self) -> None:
+        ints = (
+            "history_steps",
+            "future_steps",
+            "num_neighbours",
+            "d_model",
+            "num_heads",
+            "num_layers",
+            "ff_dim",
+            "num_context_layers",
+        )
+        for name in ints:
+            value = getattr(self, name)
+            if not isinstance(value, int) or isinstance(value, bool):
+                raise ValueError(f"{name} must be an int, got {value!r}")
+        if self.history_steps < 3:
+            raise ValueError(f"history_steps must be >= 3, got {self.history_steps}")
+        for name in ("future_steps", "d_model", "num_heads", "num_layers", "ff_dim"):
+            if getattr(self, name) < 1:
+                raise ValueError(f"{name} must be >= 1, got {getattr(self, name)}")
+        if self.num_context_layers < 0:
+            raise ValueError(f"num_context_layers must be >= 0, got {self.num_context_layers}")
+        if self.num_neighbours < 0:
+            raise ValueError(f"num_neighbours must be >= 0, got {self.num_neighbours}")
+        if self.d_model % self.num_heads:
+            raise ValueError(f"num_heads ({self.num_heads}) must divide d_model ({self.d_model})")
+        if not 0.0 <= self.dropout < 1.0:
+            raise ValueError(f"dropout must be in [0, 1), got {self.dropout}")
+
+    def to_dict(self) -> dict[str, Any]:
+        return dataclasses.asdict(self)
+
+    def to_json(self) -> str:
+        return json.dumps(self.to_dict(), sort_keys=True)
+
+    @classmethod
+    def from_dict(cls, data: dict[str, Any]) -> PredictorConfig:
+        names = {f.name for f in dataclasses.fields(cls)}
+        unknown = set(data) - names
+        if unknown:
+            raise ValueError(f"unknown PredictorConfig fields: {sorted(unknown)}")
+        return cls(**data)
+
+
+def token_features(pos: torch.Tensor, mask: torch.Tensor) -> torch.Tensor:
+    """Per-step kinematic features of every token, zero where not available.
+
+    Args:
+        pos: ``(N, T, H, 2)`` positions.
+        mask: ``(N, T, H)`` bool presence.
+
+    Returns:
+        ``(N, T, H, 6)``: position, backward-difference velocity (both steps present, else 0),
+        backward-difference acceleration (three steps present, else 0).
+    """
+    m = mask.to(pos.dtype).unsqueeze(-1)
+    p = pos * m
+    v = torch.zeros_like(p)
+    mv = m[..., 1:, :] * m[..., :-1, :]
+    v[..., 1:, :] = (p[..., 1:, :] - p[..., :-1, :]) * mv
+    a = torch.zeros_like(p)
+    ma = mv[..., 1:, :] * mv[..., :-1, :]
+    a[..., 2:, :] = (v[..., 2:, :] - v[..., 1:-1, :]) * ma
+    return torch.cat((p, v, a), dim=-1)
+
+
+def cv_extrapolate(hist: torch.Tensor, mask: torch.Tensor, future_steps: int) -> torch.Tensor:
+    """Constant-velocity extrapolation (torch twin of ``baselines.constant_velocity``).
+
+    Args:
+        hist: ``(N, H, 2)``.
+        mask: ``(N, H)`` bool.
+        future_steps: F.
+
+    Returns:
+        ``(N, F, 2)``; for an invalid last step the velocity is 0.
+    """
+    h = hist.shape[-2]
+    earlier = mask[:, :-1].flip(-1)  # index 0 is step H-2
+    back = earlier.to(torch.int64).argmax(-1) + 1  # (N,)
+    ok = earlier.any(-1) & mask[:, -1]
+    j = (h - 1 - back).view(-1, 1, 1).expand(-1, 1, 2)
+    pj = hist.gather(1, j)[:, 0]
+    v = (hist[:, -1] - pj) / back.unsqueeze(-1).to(hist.dtype)
+    v = torch.where(ok.unsqueeze(-1), v, torch.zeros_like(v))
+    k = torch.arange(1, future_steps + 1, dtype=hist.dtype, device=hist.device).view(1, -1, 1)
+    return hist[:, -1:, :] + k * v.unsqueeze(1)
+
+
+class AgentAttentionLayer(nn.Module):
+    """Pre-norm transformer layer whose only query is the agent token.
+
+    ``forward(agent (N, d), tokens (N, T, d), keep (N, T) bool) -> (N, d)``; ``keep[:, 0]`` must be
+    True (the agent attends at least to itself, so no row is fully masked and no NaN can appear).
+    """
+
+    def __init__(self, d_model: int, num_heads: int, ff_dim: int, dropout: float) -> None:
+        super().__init__()
+        self.num_heads = num_heads
+        self.norm_q = nn.LayerNorm(d_model)
+        self.norm_kv = nn.LayerNorm(d_model)
+        self.q = nn.Linear(d_model, d_model)
+        self.kv = nn.Linear(d_model, 2 * d_model)
+        self.out = nn.Linear(d_model, d_model)
+        self.norm_ff = nn.LayerNorm(d_model)
+        self.ff = nn.Sequential(nn.Linear(d_model, ff_dim), nn.GELU(), nn.Linear(ff_dim, d_model))
+        self.dropout = nn.Dropout(dropout)
+
+    def forward(self, agent: torch.Tensor, tokens: torch.Tensor, keep: torch.Tensor) -> torch.Tensor:
+        n, t, d = tokens.shape
+        h = self.num_heads
+        dh = d // h
+        q = self.q(self.norm_q(agent)).view(n, 1, h, dh)
+        kv = self.kv(self.norm_kv(tokens)).view(n, t, 2, h, dh)
+        scores = (kv[:, :, 0] * q).sum(-1) * dh**-0.5  # (N, T, h)
+        scores = scores.masked_fill(~keep.unsqueeze(-1), float("-inf"))
+        weights = self.dropout(scores.softmax(dim=1))
+        attended = (weights.unsqueeze(-1) * kv[:, :, 1]).sum(1).reshape(n, d)
+        agent = agent + self.dropout(self.out(attended))
+        return agent + self.dropout(self.ff(self.norm_ff(agent)))
+
+
+class TrajectoryTransformer(nn.Module):
+    """``forward(pos (N, 1+K, H, 2), mask (N, 1+K, H)) -> (N, F, 2)`` agent future in the agent frame."""
+
+    def __init__(self, config: PredictorConfig) -> None:
+        super().__init__()
+        self.config = config
+        h, f, d = config.history_steps, config.future_steps, config.d_model
+        feat = h * (FEATURES_PER_STEP + 1)
+        self.embed = nn.Sequential(nn.Linear(feat, d), nn.GELU(), nn.Linear(d, d))
+        self.type_embedding = nn.Parameter(torch.zeros(2, d))  # 0: agent, 1: neighbour
+        self.context: nn.TransformerEncoder | None = None
+        if config.num_context_layers:
+            layer = nn.TransformerEncoderLayer(
+                d,
+                config.num_heads,
+                config.ff_dim,
+                config.dropout,
+                activation="gelu",
+                batch_first=True,
+                norm_first=True,
+            )
+            self.context = nn.TransformerEncoder(layer, config.num_context_layers, enable_nested_tensor=False)
+        self.layers = nn.ModuleList(
+            AgentAttentionLayer(d, config.num_heads, config.ff_dim, config.dropout)
+            for _ in range(config.num_layers)
+        )
+        self.head = nn.Sequential(nn.LayerNorm(d), nn.Linear(d, d), nn.GELU(), nn.Linear(d, f * 2))
+        nn.init.zeros_(self.head[-1].weight)
+        nn.init.zeros_(self.head[-1].bias)
+        # Normalisation statistics (training split only), see fit_normalisation.
+        self.register_buffer("agent_mean", torch.zeros(h, FEATURES_PER_STEP))
+        self.register_buffer("agent_std", torch.ones(h, FEATURES_PER_STEP))
+        self.register_buffer("neighbour_mean", torch.zeros(h, FEATURES_PER_STEP))
+        self.register_buffer("neighbour_std", torch.ones(h, FEATURES_PER_STEP))
+        self.register_buffer("residual_mean", torch.zeros(f, 2))
+        self.register_buffer("residual_std", torch.ones(f, 2))
+
+    @torch.no_grad()
+    def fit_normalisation(self, pos: torch.Tensor, mask: torch.Tensor, future: torch.Tensor) -> None:
+        """Set the standardisation buffers from training windows.
+
+        Args:
+            pos: ``(N, 1+K, H, 2)`` training token positions.
+            mask: ``(N, 1+K, H)`` bool.
+            future: ``(N, F, 2)`` agent futures.
+        """
+        feats = token_features(pos.double(), mask)
+        m = mask.unsqueeze(-1).double()
+
+        def masked_stats(x: torch.Tensor, w: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+            dims = tuple(range(x.dim() - 2))
+            cnt = w.sum(dims).clamp_min(1.0)
+            mean = (x * w).sum(dims) / cnt
+            var = (((x - mean) ** 2) * w).sum(dims) / cnt
+            return mean, var.sqrt().clamp_min(MIN_STD)
+
+        am, asd = masked_stats(feats[:, 0], m[:, 0])
+        nm, nsd = masked_stats(feats[:, 1:], m[:, 1:]) if pos.shape[1] > 1 else (am, asd)
+        residual = future.double() - cv_extrapolate(pos[:, 0].double(), mask[:, 0], self.config.future_steps)
+        self.agent_mean.copy_(am)
+        self.agent_std.copy_(asd)
+        self.neighbour_mean.copy_(nm)
+        self.neighbour_std.copy_(nsd)
+        self.residual_mean.copy_(residual.mean(0))
+        self.residual_std.copy_(residual.std(0).clamp_min(MIN_STD))
+
+    def forward(self, pos: torch.Tensor, mask: torch.Tensor) -> torch.Tensor:
+        """Predict the agent's (token 0) future.
+
+        Args:
+            pos: ``(N, 1+K, H, 2)`` float32 positions in the agent frame.
+            mask: ``(N, 1+K, H)`` bool presence.
+
+        Returns:
+            ``(N, F, 2)`` future positions in the agent frame.
+        """
+        n, t, h, _ = pos.shape
+        if h != self.config.history_steps:
+            raise ValueError(f"expected {self.config.history_steps} history steps, got {h}")
+        feats = token_features(pos, mask)
+        mean = torch.cat((self.agent_mean.unsqueeze(0), self.neighbour_mean.expand(t - 1, -1, -1)))
+        std = torch.cat((self.agent_std.unsqueeze(0), self.neighbour_std.expand(t - 1, -1, -1)))
+        m = mask.unsqueeze(-1).to(pos.dtype)
+        x = ((feats - mean) / std).clamp(-CLIP, CLIP) * m
+        x = torch.cat((x, m), dim=-1).reshape(n, t, -1)
+        tok = self.embed(x)
+        type_idx = torch.ones(t, dtype=torch.long, device=pos.device)
+        type_idx[0] = 0
+        tok = tok + self.type_embedding[type_idx]
+        pad = ~mask.any(-1)
+        pad[:, 0] = False  # the agent token is always attended to: no all-padding rows, no NaN
+        if self.context is not None:
+            tok = self.context(tok, src_key_padding_mask=pad)
+        agent = tok[:, 0]
+        for layer in self.layers:
+            agent = layer(agent, tok, ~pad)
+        out = self.head(agent).view(n, self.config.future_steps, 2)
+        residual = out * self.residual_std + self.residual_mean
+        return cv_extrapolate(pos[:, 0], mask[:, 0], self.config.future_steps) + residual
