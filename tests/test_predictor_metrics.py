@@ -1,0 +1,63 @@
+"""Metric functions on hand-made cases; baselines exact on their own motion models."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+import torch
+
+from lcmodels.predictor.baselines import constant_acceleration, constant_velocity, last_velocity
+from lcmodels.predictor.metrics import ade, displacement_errors, error_curve, fde, miss_rate, summary
+from lcmodels.predictor.model import cv_extrapolate
+
+
+def test_metrics_hand_made() -> None:
+    target = np.zeros((2, 3, 2))
+    pred = np.zeros((2, 3, 2))
+    pred[0, :, 0] = [3.0, 0.0, 0.0]  # errors 3, 0, 0
+    pred[1, :, :] = [[0.0, 0.0], [3.0, 4.0], [6.0, 8.0]]  # errors 0, 5, 10
+    np.testing.assert_allclose(displacement_errors(pred, target), [[3, 0, 0], [0, 5, 10]])
+    assert ade(pred, target) == pytest.approx(18 / 6)
+    assert fde(pred, target) == pytest.approx(5.0)
+    np.testing.assert_allclose(error_curve(pred, target), [1.5, 2.5, 5.0])
+    assert miss_rate(pred, target, 2.0) == pytest.approx(0.5)
+    assert miss_rate(pred, target, 10.0) == 0.0  # strictly greater than the threshold
+    s = summary(pred, target, miss_threshold_m=2.0)
+    assert s["ade"] == pytest.approx(3.0) and s["curve"] == [1.5, 2.5, 5.0] and s["count"] == 2
+
+
+def test_metric_input_checks() -> None:
+    with pytest.raises(ValueError, match="N, F, 2"):
+        ade(np.zeros((2, 3, 2)), np.zeros((2, 4, 2)))
+    with pytest.raises(ValueError, match="threshold_m"):
+        miss_rate(np.zeros((1, 1, 2)), np.zeros((1, 1, 2)), 0.0)
+
+
+def _track(h: int, f: int, v: np.ndarray, a: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    k = np.arange(-h + 1, f + 1, dtype=np.float64)[:, None]
+    p = np.array([5.0, -2.0]) + k * v + 0.5 * k**2 * a
+    return p[None, :h], p[None, h:]
+
+
+def test_constant_velocity_exact() -> None:
+    hist, fut = _track(10, 60, np.array([0.33, 0.05]), np.zeros(2))
+    np.testing.assert_allclose(constant_velocity(hist, 60), fut, atol=1e-12)
+    np.testing.assert_allclose(constant_acceleration(hist, 60), fut, atol=1e-12)
+
+
+def test_constant_acceleration_exact() -> None:
+    hist, fut = _track(10, 20, np.array([0.3, -0.02]), np.array([0.004, 0.001]))
+    np.testing.assert_allclose(constant_acceleration(hist, 20), fut, atol=1e-10)
+    assert np.abs(constant_velocity(hist, 20) - fut).max() > 0.1  # CV is not exact here
+
+
+def test_last_velocity_with_gaps_and_torch_twin() -> None:
+    hist, _ = _track(6, 1, np.array([1.0, 0.5]), np.zeros(2))
+    mask = np.array([[True, True, True, False, False, True]])
+    np.testing.assert_allclose(last_velocity(hist, mask), [[1.0, 0.5]])
+    np.testing.assert_allclose(last_velocity(hist, np.array([[False] * 5 + [True]])), [[0.0, 0.0]])
+    rng = np.random.default_rng(0)
+    h = rng.normal(size=(50, 8, 2))
+    m = rng.random((50, 8)) > 0.4
+    ours = cv_extrapolate(torch.from_numpy(h), torch.from_numpy(m), 5).numpy()
+    np.testing.assert_allclose(ours, constant_velocity(h, 5, m), atol=1e-12)
