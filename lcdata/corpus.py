@@ -27,6 +27,7 @@ from __future__ import annotations
 import dataclasses
 import hashlib
 import logging
+import os
 from collections.abc import Sequence
 from dataclasses import dataclass
 from typing import NamedTuple
@@ -42,6 +43,7 @@ __all__ = [
     "WindowOptions",
     "from_frame",
     "heading_from_positions",
+    "load_tracks",
     "split_episodes",
     "to_frame",
 ]
@@ -152,6 +154,28 @@ def from_frame(points: np.ndarray, origin: np.ndarray, heading: np.ndarray) -> n
     c, s = np.cos(heading)[..., None], np.sin(heading)[..., None]
     x, y = points[..., 0], points[..., 1]
     return np.stack((c * x - s * y, s * x + c * y), axis=-1) + origin[..., None, :]
+
+
+def load_tracks(source: str | os.PathLike[str] | Sequence[str | os.PathLike[str]]) -> list[pd.DataFrame]:
+    """Tracks of recorded episodes: a directory (every ``*.mcap`` below it) or a list of files.
+
+    Returns:
+        One long-form tracks DataFrame per episode file, ready for :meth:`Corpus.from_tracks`.
+
+    Raises:
+        ValueError: no episode files found.
+    """
+    from lcdata.reader import list_episodes, read_episode  # local: keeps this module light
+
+    if isinstance(source, str | os.PathLike):
+        paths = list_episodes(source) if os.path.isdir(source) else [source]
+    else:
+        paths = list(source)
+    if not paths:
+        raise ValueError(f"no .mcap episode files found in {source}")
+    frames = [read_episode(p).tracks for p in paths]
+    logger.info("loaded %d episodes, %d track rows", len(frames), sum(len(f) for f in frames))
+    return frames
 
 
 # --------------------------------------------------------------------------------------------------
@@ -314,7 +338,7 @@ class Corpus:
             missing = [c for c in REQUIRED_COLUMNS if c not in frame.columns]
             if missing:
                 raise ValueError(f"tracks lack columns {missing}; see docs/INTERFACES.md")
-            for name, group in frame.groupby("episode", sort=True):
+            for name, group in frame.groupby("episode", sort=True, observed=True):
                 episodes.append(EpisodeArrays.from_tracks(group, str(name)))
         return cls(episodes, options)
 

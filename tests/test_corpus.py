@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+from pathlib import Path
+
 import numpy as np
 import pandas as pd
 import pytest
@@ -145,3 +147,32 @@ def test_statistics(two_episodes: list[pd.DataFrame]) -> None:
     assert 0.0 < stats["lane_change_fraction"] < 0.5
     assert stats["accel_p1_mps2"] <= stats["accel_p50_mps2"] <= stats["accel_p99_mps2"]
     assert stats["accel_std_mps2"] > 0
+
+
+def test_load_tracks_from_recorded_mcap(tmp_path: Path) -> None:
+    from lcdata import EpisodeWriter
+    from lcdata.corpus import load_tracks
+
+    for i in range(2):
+        tracks = synthetic_tracks(episode=f"rec{i}", seed=i, num_vehicles=4, num_steps=30)
+        with EpisodeWriter(tmp_path / f"rec{i}.mcap", metadata={"seed": i}, background=False) as w:
+            for step, g in tracks.groupby("step"):
+                cols = {
+                    c: g[c].to_numpy() for c in ("x", "y", "yaw", "speed", "accel", "lane", "target_lane")
+                }
+                w.write_vehicles(
+                    int(step), float(g["t"].iloc[0]), g["vehicle_id"].to_numpy(), length=g["length"].to_numpy(),
+                    width=g["width"].to_numpy(), **cols,
+                )  # fmt: skip
+    frames = load_tracks(tmp_path)
+    assert len(frames) == 2
+    corpus = Corpus.from_tracks(frames, WindowOptions(history_steps=5, future_steps=5))
+    assert corpus.episode_ids == ["rec0", "rec1"]
+    direct = Corpus.from_tracks(
+        [synthetic_tracks(episode=f"rec{i}", seed=i, num_vehicles=4, num_steps=30) for i in range(2)],
+        WindowOptions(history_steps=5, future_steps=5),
+    )
+    np.testing.assert_allclose(corpus.gather().future, direct.gather().future, atol=1e-5)
+    (tmp_path / "empty").mkdir()
+    with pytest.raises(ValueError, match=r"no \.mcap"):
+        load_tracks(tmp_path / "empty")
