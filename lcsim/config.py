@@ -99,11 +99,12 @@ class TrafficConfig(_JsonMixin):
     """Standard deviation of the per-vehicle desired speed (clipped at 2.5 sigma)."""
     length_m: float = 5.37  # Ford Crown
     width_m: float = 1.80
-    spawn_behind_m: float = 150.0
+    spawn_behind_m: float = 300.0
     """Traffic is spawned from this far behind the ego's start ..."""
-    spawn_ahead_m: float = 400.0
+    spawn_ahead_m: float = 1300.0
     """... to this far ahead of it. The ego gains only ~1.7 m/s on the traffic, so ~200 m ahead already
-    keeps traffic around it for the whole 600 m route; the rest sets the density."""
+    keeps traffic around it for the whole 600 m route; the window sets the density (100 vehicles on
+    4 lanes over 1.6 km: about 64 m between vehicles; a saturated lane at 24 km/h has ~21 m)."""
     min_spawn_gap_m: float = 6.0
     ego_clearance_m: float = 20.0
     """Free space kept ahead of (and half of it behind) the ego in its lane at spawn."""
@@ -177,6 +178,10 @@ class EgoConfig(_JsonMixin):
     max_accel_mps2: float = 4.5
     """Acceleration at full throttle (Audi TT: 0-100 km/h in about 6 s)."""
     max_brake_decel_mps2: float = 8.0
+    powertrain_lag_s: float = 0.3
+    """First-order lag from pedal command to acceleration. It stands in for the engine and
+    transmission dynamics of CARLA's PhysX vehicle; without it the paper's longitudinal gains
+    (Kd 0.75 at dt 0.1) limit-cycle between full throttle and full brake."""
     rolling_resistance_mps2: float = 0.15
     drag_per_speed2: float = 4.0e-4
     lateral_pid: PIDGains = field(default_factory=lambda: PAPER_LATERAL)
@@ -205,7 +210,7 @@ class EgoConfig(_JsonMixin):
                   "max_accel_mps2", "max_brake_decel_mps2", "max_throttle", "max_brake", "max_steer",
                   "max_steer_change", "lane_change_time_s", "waypoint_spacing_m",
                   "lane_change_tolerance_m", "acc_time_headway_s")
-        _non_negative(self, "initial_speed_kmh", "rolling_resistance_mps2", "drag_per_speed2",
+        _non_negative(self, "initial_speed_kmh", "powertrain_lag_s", "rolling_resistance_mps2", "drag_per_speed2",
                       "same_lane_time_s", "base_min_distance_m", "distance_ratio", "acc_min_gap_m")
         _check(self.wheelbase_m < self.length_m, self, "wheelbase_m", "must be shorter than length_m",
                self.wheelbase_m)
@@ -268,8 +273,9 @@ class ScenarioConfig(_JsonMixin):
     """Simulation step (20 Hz)."""
     decision_period_s: float = 0.5
     route_length_m: float = 600.0
-    time_limit_s: float = 80.0
-    """Episode time limit (truncation). A lane keeper with adaptive cruise cannot make the route in it."""
+    time_limit_s: float = 75.0
+    """Episode time limit (truncation): the route takes 72 s at 30 km/h, so a lane keeper with
+    adaptive cruise, held up by slower traffic, almost never makes it (docs/simulator.md)."""
     history_steps: int = 10
     num_neighbours: int = 8
     sensing_range_m: float = 80.0

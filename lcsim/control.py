@@ -6,71 +6,83 @@ in a window of the last ``pid_window`` values (CARLA's ``deque(maxlen=10)``), th
 is in km/h; the lateral error is the signed angle between the heading and the vector to the target
 waypoint. ``VehiclePIDController.run_step`` then caps throttle and brake, rate-limits the steering
 command by ``max_steer_change`` per step and clips it to ``max_steer``.
+
+The longitudinal and lateral controllers of E vehicles are stepped together as ``(E, 2)`` arrays.
 """
 
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass
 
 import numpy as np
 
-from lcsim.config import EgoConfig, PIDGains
+from lcsim.config import EgoConfig
 
 
-@dataclass(slots=True)
-class PIDState:
-    """Error windows of E controllers: ``errors`` (E, W), ``count`` (E,) errors seen (capped at W)."""
+class PIDBank:
+    """E x C independent PID controllers (C = 2: longitudinal, lateral) with CARLA's error window."""
 
-    errors: np.ndarray
-    count: np.ndarray
-
-    @classmethod
-    def zeros(cls, num_envs: int, window: int) -> PIDState:
-        return cls(np.zeros((num_envs, window)), np.zeros(num_envs, dtype=np.int64))
+    def __init__(self, num_envs: int, gains: list, window: int) -> None:
+        self.kp = np.array([g.kp for g in gains])
+        self.ki = np.array([g.ki for g in gains])
+        self.kd = np.array([g.kd for g in gains])
+        self.dt = np.array([g.dt_s for g in gains])
+        self.kd_over_dt = self.kd / self.dt
+        self.ki_dt = self.ki * self.dt
+        self.window = window
+        self.errors = np.zeros((num_envs, window, len(gains)))
+        self.count = np.zeros((num_envs, 1), dtype=np.int64)
+        self.ptr = 0  # ring position shared by all controllers (they are stepped together)
 
     def reset(self, idx: np.ndarray) -> None:
         self.errors[idx] = 0.0
         self.count[idx] = 0
 
+    def step(self, error: np.ndarray) -> np.ndarray:
+        """Push ``error`` (E, C) and return ``clip(kp e + ki sum(window) dt + kd de/dt, -1, 1)``, (E, C).
 
-def pid_step(state: PIDState, error: np.ndarray, gains: PIDGains) -> np.ndarray:
-    """Push ``error`` (E,) into each window and return the clipped PID output in [-1, 1], shape (E,).
+        Integral and derivative are zero until a controller has seen two errors, as in CARLA.
+        """
+        prev = self.errors[:, self.ptr]
+        self.ptr = (self.ptr + 1) % self.window
+        self.errors[:, self.ptr] = error
+        self.count += 1
+        has_two = self.count >= 2
+        d_term = np.where(has_two, (error - prev) * self.kd_over_dt, 0.0)
+        i_term = np.where(has_two, self.errors.sum(axis=1) * self.ki_dt, 0.0)
+        return np.minimum(np.maximum(self.kp * error + d_term + i_term, -1.0), 1.0)
 
-    The window is kept newest-last, as a deque, so ``errors[:, -1]`` is the current error.
-    """
-    errs = state.errors
-    errs[:, :-1] = errs[:, 1:]
-    errs[:, -1] = error
-    np.minimum(state.count + 1, errs.shape[1], out=state.count)
-    has_two = state.count >= 2
-    de = np.where(has_two, (errs[:, -1] - errs[:, -2]) / gains.dt_s, 0.0)
-    ie = np.where(has_two, errs.sum(axis=1) * gains.dt_s, 0.0)
-    return np.clip(gains.kp * error + gains.kd * de + gains.ki * ie, -1.0, 1.0)
+
+def pid_reference(errors: list[float], kp: float, ki: float, kd: float, dt: float, window: int = 10) -> float:
+    """CARLA's PID law for one controller, written as CARLA writes it (a deque); for tests and docs."""
+    buf = errors[-window:]
+    if len(buf) >= 2:
+        de, ie = (buf[-1] - buf[-2]) / dt, sum(buf) * dt
+    else:
+        de = ie = 0.0
+    return min(max(kp * buf[-1] + kd * de + ki * ie, -1.0), 1.0)
 
 
 def split_throttle_brake(u: np.ndarray, cfg: EgoConfig) -> tuple[np.ndarray, np.ndarray]:
     """CARLA: a non-negative output is throttle (<= max_throttle), a negative one brake (<= max_brake)."""
-    throttle = np.where(u >= 0.0, np.minimum(u, cfg.max_throttle), 0.0)
-    brake = np.where(u < 0.0, np.minimum(-u, cfg.max_brake), 0.0)
-    return throttle, brake
+    return np.minimum(np.maximum(u, 0.0), cfg.max_throttle), np.minimum(np.maximum(-u, 0.0), cfg.max_brake)
 
 
 def limit_steer(steer: np.ndarray, past: np.ndarray, cfg: EgoConfig) -> np.ndarray:
     """Rate-limit to ``past +- max_steer_change`` then clip to ``+-max_steer``."""
-    steer = np.clip(steer, past - cfg.max_steer_change, past + cfg.max_steer_change)
-    return np.clip(steer, -cfg.max_steer, cfg.max_steer)
+    lo = np.maximum(past - cfg.max_steer_change, -cfg.max_steer)
+    hi = np.minimum(past + cfg.max_steer_change, cfg.max_steer)
+    return np.minimum(np.maximum(steer, lo), hi)
 
 
 def heading_error(x: np.ndarray, y: np.ndarray, yaw: np.ndarray, tx: np.ndarray, ty: np.ndarray) -> np.ndarray:
     """Signed angle (rad) from the heading to the vector (target - position); positive to the left."""
-    err = np.arctan2(ty - y, tx - x) - yaw
-    return (err + math.pi) % (2 * math.pi) - math.pi
+    return (np.arctan2(ty - y, tx - x) - yaw + math.pi) % (2 * math.pi) - math.pi
 
 
 def longitudinal_accel(throttle: np.ndarray, brake: np.ndarray, speed: np.ndarray, cfg: EgoConfig) -> np.ndarray:
-    """Acceleration (m/s^2) from pedal commands, with rolling resistance and drag that never reverse."""
-    resist = np.where(speed > 0.0, cfg.rolling_resistance_mps2 + cfg.drag_per_speed2 * speed * speed, 0.0)
+    """Acceleration (m/s^2) from pedal commands, with rolling resistance and drag (none at standstill)."""
+    resist = (cfg.rolling_resistance_mps2 + cfg.drag_per_speed2 * speed * speed) * (speed > 0.0)
     return throttle * cfg.max_accel_mps2 - brake * cfg.max_brake_decel_mps2 - resist
 
 
@@ -81,11 +93,11 @@ def bicycle_step(x: np.ndarray, y: np.ndarray, yaw: np.ndarray, speed: np.ndarra
     Shapes (E,); ``steer`` in [-1, 1] maps to ``steer * max_steer_angle_deg`` at the front wheels.
     Returns the new ``x, y, yaw, speed``.
     """
-    delta = steer * math.radians(cfg.max_steer_angle_deg)
-    beta = np.arctan(0.5 * np.tan(delta))
+    beta = np.arctan(0.5 * np.tan(steer * math.radians(cfg.max_steer_angle_deg)))
     heading = yaw + beta
-    x = x + speed * np.cos(heading) * dt
-    y = y + speed * np.sin(heading) * dt
-    yaw = yaw + speed / (0.5 * cfg.wheelbase_m) * np.sin(beta) * dt
+    vdt = speed * dt
+    x = x + vdt * np.cos(heading)
+    y = y + vdt * np.sin(heading)
+    yaw = yaw + vdt * (2.0 / cfg.wheelbase_m) * np.sin(beta)
     speed = np.maximum(speed + accel * dt, 0.0)
     return x, y, yaw, speed

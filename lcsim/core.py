@@ -128,6 +128,33 @@ class LaneChangeCore:
         self.outcome[timeout] = TIMEOUT
         return StepResult(reward, terminated.copy(), timeout, self.outcome.copy(), components)
 
+    def lane_gaps(self) -> dict[str, np.ndarray]:
+        """Exact gaps around the ego in the lanes right of, at and left of its (target) lane.
+
+        Privileged information (a planner with perfect perception), used by the rule-based driver.
+        Returns ``front_gap``, ``rear_gap`` (m, bumper to bumper; inf when the lane is empty that way,
+        -inf when the lane does not exist), ``front_speed``, ``rear_speed`` (m/s), each ``(E, 3)``.
+        """
+        sim = self.sim
+        index = sim.index
+        assert index is not None
+        e, num_lanes, n = index.member.shape
+        rows = np.arange(e)
+        p0 = np.argmax(index.order == 0, axis=1)  # sorted position of the ego
+        lanes = sim.target_lane[:, 0][:, None] + np.array([-1, 0, 1])[None, :]  # (E, 3)
+        valid = (lanes >= 0) & (lanes < num_lanes)
+        lc = np.clip(lanes, 0, num_lanes - 1)
+        out: dict[str, np.ndarray] = {}
+        ego_x, ego_len = sim.x[:, 0][:, None], sim.length[:, 0][:, None]
+        for name, table, sign in (("front", index.ahead, 1.0), ("rear", index.behind, -1.0)):
+            pos = table[rows[:, None], lc, p0[:, None]]  # (E, 3)
+            found = (pos >= 0) & (pos < n)
+            veh = index.order[rows[:, None], np.clip(pos, 0, n - 1)]
+            gap = sign * (sim.x[rows[:, None], veh] - ego_x) - 0.5 * (ego_len + sim.length[rows[:, None], veh])
+            out[f"{name}_gap"] = np.where(valid, np.where(found, gap, np.inf), -np.inf)
+            out[f"{name}_speed"] = np.where(found & valid, sim.speed[rows[:, None], veh], 0.0)
+        return out
+
     # ------------------------------------------------------------ observation
     def neighbours(self, ids: np.ndarray) -> np.ndarray:
         """``(len(ids), K)`` indices of the K nearest vehicles to the ego within sensing range, nearest first; -1."""

@@ -15,24 +15,17 @@ from collections.abc import Callable, Sequence
 import numpy as np
 
 from lcsim import rng
-from lcsim.collision import coarse_close, obb_overlap
+from lcsim.collision import obb_overlap
 from lcsim.config import ScenarioConfig
-from lcsim.control import (
-    PIDState,
-    bicycle_step,
-    heading_error,
-    longitudinal_accel,
-    pid_step,
-    split_throttle_brake,
-)
-from lcsim.neighbours import LaneIndex, build_index, gather, leaders, neighbour_in_lane
+from lcsim.control import PIDBank, bicycle_step, heading_error, limit_steer, longitudinal_accel, split_throttle_brake
+from lcsim.neighbours import LaneIndex, gather
 from lcsim.road import StraightRoad
 from lcsim.traffic import idm_accel, smoothstep5
 
 # Per-vehicle state arrays (E, N) and per-environment arrays (E,) frozen together when an episode ends.
 _VEHICLE_STATE = ("x", "y", "yaw", "speed", "accel", "lane", "target_lane", "lc_active", "lc_t0", "lc_y0",
                   "lc_y1")
-_ENV_STATE = ("step", "t_s", "path_x0", "path_len", "path_y0", "path_y1", "ego_lc_active", "steer",
+_ENV_STATE = ("step", "t_s", "ego_accel", "path_x0", "path_len", "path_y0", "path_y1", "ego_lc_active", "steer",
               "throttle", "brake", "collision_with", "lane_invasion", "off_road")
 
 SubstepHook = Callable[["HighwaySim"], None]
@@ -79,9 +72,9 @@ class HighwaySim:
         # Ego planner (BasicAgent-style lane-change path) and controller state, per environment.
         self.path_x0, self.path_len, self.path_y0, self.path_y1 = (f64(e) for _ in range(4))
         self.ego_lc_active = np.zeros(e, dtype=bool)
-        self.lon_pid = PIDState.zeros(e, ec.pid_window)
-        self.lat_pid = PIDState.zeros(e, ec.pid_window)
-        self.steer, self.throttle, self.brake = f64(e), f64(e), f64(e)
+        self.pid = PIDBank(e, [ec.longitudinal_pid, ec.lateral_pid], ec.pid_window)
+        self.steer, self.throttle, self.brake, self.ego_accel = f64(e), f64(e), f64(e), f64(e)
+        self.lag_alpha = min(1.0, self.dt / ec.powertrain_lag_s) if ec.powertrain_lag_s > 0 else 1.0
         # Clock, sensors, seeds.
         self.step = np.zeros(e, dtype=np.int64)
         self.t_s = f64(e)
@@ -96,6 +89,8 @@ class HighwaySim:
         self.hist_ptr = 0
         self.hist_count = np.zeros(e, dtype=np.int64)
         self.frozen = np.zeros(e, dtype=bool)
+        self.rows = np.arange(e)[:, None]
+        self.target_speed = ec.target_speed_kmh / 3.6
         self.index: LaneIndex | None = None
         self.hooks: list[SubstepHook] = []
 
@@ -106,8 +101,7 @@ class HighwaySim:
         for e, seed in zip(env_ids, seeds, strict=True):
             self._spawn(int(e), np.random.default_rng(int(seed)))
         self.frozen[env_ids] = False
-        self.lon_pid.reset(env_ids)
-        self.lat_pid.reset(env_ids)
+        self.pid.reset(env_ids)
         self.index = self._build_index()
         self.hist[env_ids] = np.stack([self.x[env_ids], self.y[env_ids]], axis=-1)[:, None]
         self.hist_count[env_ids] = 1
@@ -158,7 +152,7 @@ class HighwaySim:
         y_c = float(road.lane_center(ego_lane))
         self.path_x0[e], self.path_len[e], self.path_y0[e], self.path_y1[e] = 0.0, 1.0, y_c, y_c
         self.ego_lc_active[e] = False
-        self.steer[e] = self.throttle[e] = self.brake[e] = 0.0
+        self.steer[e] = self.throttle[e] = self.brake[e] = self.ego_accel[e] = 0.0
         self.step[e], self.t_s[e] = 0, 0.0
         self.key[e] = np.uint64(gen.integers(0, 2**63 - 1))
         self.collision_with[e], self.lane_invasion[e], self.off_road[e] = -1, -1, False
@@ -192,41 +186,34 @@ class HighwaySim:
         """Advance every environment by one simulation step (frozen environments stay as they are)."""
         frozen = np.flatnonzero(self.frozen) if self.frozen.any() else None
         saved = self._save(frozen) if frozen is not None else None
-        cfg, tc, dt = self.config, self.config.traffic, self.dt
+        tc, dt = self.config.traffic, self.dt
         index = self.index if self.index is not None else self._build_index()
-        x, y, speed, length = self.x, self.y, self.speed, self.length
-
-        lead = leaders(index)
-        gap = gather(x, lead, np.inf) - x - 0.5 * (length + gather(length, lead, 0.0))
-        lead_v = gather(speed, lead, 0.0)
-        acc = idm_accel(speed, self.v0, gap, speed - lead_v, tc)
-
+        speed = self.speed
+        acc = idm_accel(speed, self.v0, index.gap, speed - index.lead_speed, tc)
         if tc.lane_changes:
             due = (self.step % self.check_every) == 0
             if due.any():
-                self._traffic_lane_changes(index, lead, gap, lead_v, due)
+                self._traffic_lane_changes(index, due)
 
-        # Traffic: ballistic longitudinal update, minimum-jerk lateral profile.
+        # Traffic: ballistic longitudinal update, minimum-jerk lateral profile while changing lanes.
         new_speed = np.maximum(speed + acc * dt, 0.0)
-        new_x = x + 0.5 * (speed + new_speed) * dt
-        t_now = self.t_s[:, None] + dt
-        tau = (t_now - self.lc_t0) / tc.lane_change_duration_s
-        prof, dprof = smoothstep5(tau)
-        dy = self.lc_y1 - self.lc_y0
-        new_y = np.where(self.lc_active, self.lc_y0 + dy * prof, y)
-        vy = np.where(self.lc_active, dy * dprof / tc.lane_change_duration_s, 0.0)
-        new_yaw = np.arctan2(vy, np.maximum(new_speed, 1e-3))
-        finished = self.lc_active & (tau >= 1.0)
-        if finished.any():
-            self.lc_active &= ~finished
+        new_x = self.x + 0.5 * (speed + new_speed) * dt
+        if self.lc_active.any():
+            tau = (self.t_s[:, None] + (dt - self.lc_t0)) * (1.0 / tc.lane_change_duration_s)
+            prof, dprof = smoothstep5(tau)
+            dy = self.lc_y1 - self.lc_y0
+            new_y = np.where(self.lc_active, self.lc_y0 + dy * prof, self.y)
+            new_yaw = np.where(self.lc_active, np.arctan2(dy * dprof * (1.0 / tc.lane_change_duration_s),
+                                                          np.maximum(new_speed, 1e-3)), 0.0)
+            self.lc_active &= tau < 1.0
+        else:
+            new_y, new_yaw = self.y.copy(), np.zeros_like(self.yaw)
 
-        ego_y_prev = y[:, 0].copy()
-        if not self.autopilot_ego:
-            ex, ey, eyaw, ev, ea = self._ego_step(gap[:, 0])
-            new_x[:, 0], new_y[:, 0], new_yaw[:, 0], new_speed[:, 0] = ex, ey, eyaw, ev
-            acc[:, 0] = ea
-        self.x, self.y, self.yaw, self.speed, self.accel = new_x, new_y, new_yaw, new_speed, acc
+        ego_y_prev = self.y[:, 0].copy()
         ego_target = self.target_lane[:, 0].copy()
+        if not self.autopilot_ego:
+            self._ego_step(index.gap[:, 0], new_x, new_y, new_yaw, new_speed, acc)
+        self.x, self.y, self.yaw, self.speed, self.accel = new_x, new_y, new_yaw, new_speed, acc
         self.lane = self.road.lane_of(new_y)
         self.target_lane = np.where(self.lc_active, self.target_lane, self.lane)
         if not self.autopilot_ego:
@@ -242,42 +229,43 @@ class HighwaySim:
         self.hist_ptr = (self.hist_ptr + 1) % self.history_len
         self.hist[:, self.hist_ptr, :, 0] = self.x
         self.hist[:, self.hist_ptr, :, 1] = self.y
-        np.minimum(self.hist_count + 1, self.history_len, out=self.hist_count)
+        self.hist_count += 1
         for hook in self.hooks:
             hook(self)
 
-    def _ego_step(self, lead_gap: np.ndarray) -> tuple[np.ndarray, ...]:
-        ec, dt = self.config.ego, self.dt
+    def _ego_step(self, lead_gap: np.ndarray, x_out: np.ndarray, y_out: np.ndarray, yaw_out: np.ndarray,
+                  v_out: np.ndarray, a_out: np.ndarray) -> None:
+        """PID control on the planned path and a bicycle-model step; writes column 0 of the outputs."""
+        ec = self.config.ego
         x, y, yaw, v = self.x[:, 0], self.y[:, 0], self.yaw[:, 0], self.speed[:, 0]
-        target = np.full_like(v, ec.target_speed_kmh / 3.6)
+        target = self.target_speed
         if ec.adaptive_cruise:
             target = np.minimum(target, np.maximum((lead_gap - ec.acc_min_gap_m) / ec.acc_time_headway_s, 0.0))
-        u_lon = pid_step(self.lon_pid, (target - v) * 3.6, ec.longitudinal_pid)
-        throttle, brake = split_throttle_brake(u_lon, ec)
         # Local planner: first waypoint (every waypoint_spacing_m along the path) beyond the look-ahead.
-        min_dist = ec.base_min_distance_m + ec.distance_ratio * v
         sp = ec.waypoint_spacing_m
-        tx = self.path_x0 + np.ceil((x + min_dist - self.path_x0) / sp) * sp
-        frac = np.clip((tx - self.path_x0) / self.path_len, 0.0, 1.0)
+        tx = self.path_x0 + np.ceil((x + (ec.base_min_distance_m + ec.distance_ratio * v) - self.path_x0) / sp) * sp
+        frac = np.minimum(np.maximum((tx - self.path_x0) / self.path_len, 0.0), 1.0)
         ty = self.path_y0 + (self.path_y1 - self.path_y0) * frac
-        u_lat = pid_step(self.lat_pid, heading_error(x, y, yaw, tx, ty), ec.lateral_pid)
-        steer = np.clip(u_lat, self.steer - ec.max_steer_change, self.steer + ec.max_steer_change)
-        steer = np.clip(steer, -ec.max_steer, ec.max_steer)
-        accel = longitudinal_accel(throttle, brake, v, ec)
-        nx, ny, nyaw, nv = bicycle_step(x, y, yaw, v, accel, steer, ec, dt)
+        err = np.stack([(target - v) * 3.6, heading_error(x, y, yaw, tx, ty)], axis=1)
+        u = self.pid.step(err)
+        throttle, brake = split_throttle_brake(u[:, 0], ec)
+        steer = limit_steer(u[:, 1], self.steer, ec)
+        accel = self.ego_accel + (longitudinal_accel(throttle, brake, v, ec) - self.ego_accel) * self.lag_alpha
+        self.ego_accel = accel
+        nx, ny, nyaw, nv = bicycle_step(x, y, yaw, v, accel, steer, ec, self.dt)
         self.steer, self.throttle, self.brake = steer, throttle, brake
         done = self.ego_lc_active & (nx >= self.path_x0 + self.path_len) & (
             np.abs(ny - self.path_y1) < ec.lane_change_tolerance_m)
-        if done.any():
-            self.ego_lc_active &= ~done
-        return nx, ny, nyaw, nv, accel
+        self.ego_lc_active &= ~done
+        x_out[:, 0], y_out[:, 0], yaw_out[:, 0], v_out[:, 0], a_out[:, 0] = nx, ny, nyaw, nv, accel
 
-    def _traffic_lane_changes(self, index: LaneIndex, lead: np.ndarray, gap: np.ndarray, lead_v: np.ndarray,
-                              due: np.ndarray) -> None:
-        tc = self.config.traffic
+    def _traffic_lane_changes(self, index: LaneIndex, due: np.ndarray) -> None:
+        """Traffic-Manager-like lane changes: when blocked (or at random), into a free side lane."""
+        tc, rows = self.config.traffic, self.rows
         cand = self.is_traffic & ~self.lc_active & due[:, None]
-        blocked = (lead >= 0) & (gap >= tc.blocked_gap_min_m) & (gap <= tc.blocked_gap_max_m) & (
-            lead_v < self.v0 - tc.blocked_speed_margin_kmh / 3.6)
+        gap = index.gap
+        blocked = (index.lead >= 0) & (gap >= tc.blocked_gap_min_m) & (gap <= tc.blocked_gap_max_m) & (
+            index.lead_speed < self.v0 - tc.blocked_speed_margin_kmh / 3.6)
         spontaneous = rng.uniform(self.key, self.step, self.num_vehicles, stream=1) < self.p_spontaneous
         want = cand & (blocked | spontaneous)
         if not want.any():
@@ -286,11 +274,11 @@ class HighwaySim:
         side = np.where((self.step // self.check_every) % 2 == 0, 1, -1)[:, None]
         tl = self.lane + side
         x, length, speed = self.x, self.length, self.speed
-        front = neighbour_in_lane(index, tl, ahead=True)
-        rear = neighbour_in_lane(index, tl, ahead=False)
-        front_gap = gather(x, front, np.inf) - x - 0.5 * (length + gather(length, front, 0.0))
-        rear_gap = x - gather(x, rear, -np.inf) - 0.5 * (length + gather(length, rear, 0.0))
-        rear_need = tc.lane_change_rear_gap_m + tc.lane_change_rear_headway_s * gather(speed, rear, 0.0)
+        front = index.neighbour_in_lane(tl, ahead=True)
+        rear = index.neighbour_in_lane(tl, ahead=False)
+        front_gap = gather(x, front, rows, np.inf) - x - 0.5 * (length + gather(length, front, rows, 0.0))
+        rear_gap = x - gather(x, rear, rows, -np.inf) - 0.5 * (length + gather(length, rear, rows, 0.0))
+        rear_need = tc.lane_change_rear_gap_m + tc.lane_change_rear_headway_s * gather(speed, rear, rows, 0.0)
         ok = want & (tl >= 0) & (tl < self.road.num_lanes) & (front_gap >= tc.lane_change_front_gap_m) & (
             rear_gap >= rear_need) & ((front_gap > gap + 5.0) | spontaneous)
         if not ok.any():
@@ -303,34 +291,32 @@ class HighwaySim:
 
     def _build_index(self) -> LaneIndex:
         extra = np.where(self.lc_active, self.target_lane, -1)
-        return build_index(self.x, self.y, self.half_width, self.road.lane_width, self.road.num_lanes, extra)
+        return LaneIndex(self.x, self.y, self.yaw, self.speed, self.length, self.width, extra,
+                         self.road.lane_width, self.road.num_lanes, self.rows)
 
     def _sensors(self, ego_y_prev: np.ndarray) -> None:
-        """Collision (exact OBB on coarse candidates), lane invasion and off-road for the ego."""
+        """Collisions, lane invasion and off-road.
+
+        Collision candidates are the pairs (vehicle, leader) whose gap along x is under a metre: the
+        leader is the nearest vehicle ahead in any lane the body overlaps, so any contact shows up as
+        such a pair. Candidates are then decided exactly by the oriented-rectangle test.
+        """
         index = self.index
         assert index is not None
-        e, n = self.x.shape
-        pos_b = index.ahead  # (E, L, N) sorted position of the next member in each lane
-        cand = index.member & (pos_b < n)
         self.collision_with[:] = -1
+        cand = index.gap < 1.0
         if cand.any():
-            ee, _, pa = np.nonzero(cand)
-            pb = pos_b[cand]
-            va, vb = index.order[ee, pa], index.order[ee, pb]
-            close = coarse_close(self.x[ee, va], self.y[ee, va], self.radius[ee, va],
-                                 self.x[ee, vb], self.y[ee, vb], self.radius[ee, vb])
-            if close.any():
-                ee, va, vb = ee[close], va[close], vb[close]
-                hit = obb_overlap(self.x[ee, va], self.y[ee, va], self.yaw[ee, va], self.length[ee, va],
-                                  self.width[ee, va], self.x[ee, vb], self.y[ee, vb], self.yaw[ee, vb],
-                                  self.length[ee, vb], self.width[ee, vb])
-                if hit.any():
-                    ee, va, vb = ee[hit], va[hit], vb[hit]
-                    ego_hit = (va == 0) | (vb == 0)
-                    other = np.where(va == 0, vb, va)
-                    # Reverse order so the first (nearest in sort order) collision wins the assignment.
-                    self.collision_with[ee[ego_hit][::-1]] = other[ego_hit][::-1]
-                    np.add.at(self.traffic_collisions, ee[~ego_hit], 1)
+            ee, va = np.nonzero(cand)
+            vb = index.lead[ee, va]
+            hit = obb_overlap(self.x[ee, va], self.y[ee, va], self.yaw[ee, va], self.length[ee, va],
+                              self.width[ee, va], self.x[ee, vb], self.y[ee, vb], self.yaw[ee, vb],
+                              self.length[ee, vb], self.width[ee, vb])
+            if hit.any():
+                ee, va, vb = ee[hit], va[hit], vb[hit]
+                ego_hit = (va == 0) | (vb == 0)
+                other = np.where(va == 0, vb, va)
+                self.collision_with[ee[ego_hit][::-1]] = other[ego_hit][::-1]
+                np.add.at(self.traffic_collisions, ee[~ego_hit], 1)
         lw = self.road.lane_width
         k_prev, k_new = np.floor(ego_y_prev / lw), np.floor(self.y[:, 0] / lw)
         self.lane_invasion = np.where(k_prev != k_new, np.maximum(k_prev, k_new), -1).astype(np.int64)
@@ -339,16 +325,16 @@ class HighwaySim:
     # ------------------------------------------------------------- freezing
     def _save(self, idx: np.ndarray) -> dict[str, np.ndarray]:
         out = {name: getattr(self, name)[idx].copy() for name in _VEHICLE_STATE + _ENV_STATE}
-        out["lon"] = self.lon_pid.errors[idx].copy()
-        out["lat"] = self.lat_pid.errors[idx].copy()
+        out["pid"] = self.pid.errors[idx].copy()
+        out["pid_count"] = self.pid.count[idx].copy()
         return out
 
     def _restore(self, idx: np.ndarray, saved: dict[str, np.ndarray] | None) -> None:
         assert saved is not None
         for name in _VEHICLE_STATE + _ENV_STATE:
             getattr(self, name)[idx] = saved[name]
-        self.lon_pid.errors[idx] = saved["lon"]
-        self.lat_pid.errors[idx] = saved["lat"]
+        self.pid.errors[idx] = saved["pid"]
+        self.pid.count[idx] = saved["pid_count"]
 
     # ---------------------------------------------------------------- queries
     def history(self, env_vehicles: np.ndarray, ids: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -364,7 +350,7 @@ class HighwaySim:
         slots = (self.hist_ptr - h + 1 + np.arange(h)) % h
         veh = np.maximum(env_vehicles, 0)[:, :, None]
         pos = self.hist[ids[:, None, None], slots[None, None, :], veh]  # (B, K, H, 2)
-        valid_t = np.arange(h)[None, :] >= (h - self.hist_count[ids])[:, None]  # (B, H)
+        valid_t = np.arange(h)[None, :] >= (h - np.minimum(self.hist_count[ids], h))[:, None]  # (B, H)
         valid = (env_vehicles >= 0)[:, :, None] & valid_t[:, None, :]
         return pos, valid
 

@@ -1,0 +1,123 @@
+"""Non-learning drivers: a rule-based gap-acceptance lane changer, keep-lane, and random.
+
+A driver is called once per decision as ``driver(obs, action_mask, core) -> actions (E,)`` with the
+batched observation, the ``(E, 3)`` action mask and the :class:`~lcsim.core.LaneChangeCore` (for
+drivers that use privileged state), so one driver serves the single env, the vector env and the
+recorder, and is evaluated exactly like a learned policy.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Protocol
+
+import numpy as np
+
+from lcsim.config import _non_negative, _positive
+from lcsim.core import KEEP, LaneChangeCore
+
+
+
+class Driver(Protocol):
+    name: str
+
+    def __call__(self, obs: dict[str, np.ndarray], action_mask: np.ndarray,
+                 core: LaneChangeCore) -> np.ndarray: ...
+
+
+@dataclass(frozen=True, slots=True, kw_only=True)
+class RuleDriverConfig:
+    """Gap acceptance as a cost-function baseline would do it (all distances bumper to bumper)."""
+
+    horizon_s: float = 60.0
+    """Times to reach a leader beyond this count as this (no preference among free lanes)."""
+    trigger_time_s: float = 15.0
+    """Look for another lane once we would reach the leader within this time ..."""
+    trigger_gap_m: float = 30.0
+    """... or once it is closer than this."""
+    min_front_gap_m: float = 12.0
+    min_front_time_s: float = 5.0
+    """Time to reach the new leader at the current closing speed must be at least this."""
+    min_rear_gap_m: float = 5.0
+    rear_time_s: float = 2.5
+    """Required rear gap grows with the closing speed of the follower in the target lane."""
+    gain_s: float = 4.0
+    """A lane must give this many more seconds before reaching its leader to be worth a change."""
+    urgent_time_s: float = 2.5
+    urgent_rear_gap_m: float = 1.0
+
+    def __post_init__(self) -> None:
+        _positive(self, "horizon_s", "trigger_time_s", "trigger_gap_m", "min_front_gap_m", "min_front_time_s",
+                  "rear_time_s")
+        _non_negative(self, "min_rear_gap_m", "gain_s", "urgent_time_s", "urgent_rear_gap_m")
+
+
+class RuleBasedDriver:
+    """Changes lane when the leader gets close and a side lane offers a safe, larger gap.
+
+    Works on the exact lane gaps around the ego (:meth:`LaneChangeCore.lane_gaps`): the perception a
+    cost-function planner is usually given. It never brakes (the ego does not, by default).
+    """
+
+    name = "rule"
+
+    def __init__(self, config: RuleDriverConfig | None = None) -> None:
+        self.config = config or RuleDriverConfig()
+
+    def __call__(self, obs: dict[str, np.ndarray], action_mask: np.ndarray, core: LaneChangeCore) -> np.ndarray:
+        c = self.config
+        g = core.lane_gaps()
+        v = core.sim.speed[:, 0][:, None]
+        front, rear = g["front_gap"], g["rear_gap"]
+        closing = np.maximum(v - g["front_speed"], 0.05)
+        reach = np.minimum(front / closing, c.horizon_s)  # seconds until we reach each lane's leader
+        own_front, own_reach = front[:, 1], reach[:, 1]
+        pressed = (own_front < c.trigger_gap_m) | (own_reach < c.trigger_time_s)
+        rear_need = np.maximum(c.min_rear_gap_m, c.rear_time_s * np.maximum(g["rear_speed"] - v, 0.0))
+        safe = (front >= c.min_front_gap_m) & (reach >= c.min_front_time_s) & (rear >= rear_need)
+        # About to hit the leader: a tighter rear gap is acceptable (the follower brakes for us).
+        urgent = (own_reach < c.urgent_time_s)[:, None]
+        safe |= urgent & (front >= own_front[:, None] + 2.0) & (rear >= c.urgent_rear_gap_m)
+        better = reach >= own_reach[:, None] + c.gain_s
+        ok = safe & better & np.asarray(action_mask, dtype=bool)
+        ok[:, KEEP] = False
+        # Prefer the lane whose leader we reach last; overtake on the left on a tie.
+        score = np.where(ok, reach + np.array([0.0, 0.0, 0.01]), -np.inf)
+        go = pressed & np.isfinite(score.max(axis=1))
+        actions = np.full(len(front), KEEP, dtype=np.int64)
+        actions[go] = score.argmax(axis=1)[go]
+        return actions
+
+
+class KeepLaneDriver:
+    """Never changes lane (with ``adaptive_cruise`` on, the lane-keeping reference)."""
+
+    name = "keep"
+
+    def __call__(self, obs: dict[str, np.ndarray], action_mask: np.ndarray, core: LaneChangeCore) -> np.ndarray:
+        return np.full(np.asarray(action_mask).reshape(-1, 3).shape[0], KEEP, dtype=np.int64)
+
+
+class RandomDriver:
+    """Uniformly random among the valid actions, from its own seeded generator."""
+
+    name = "random"
+
+    def __init__(self, seed: int = 0) -> None:
+        self.rng = np.random.default_rng(seed)
+
+    def __call__(self, obs: dict[str, np.ndarray], action_mask: np.ndarray, core: LaneChangeCore) -> np.ndarray:
+        mask = np.asarray(action_mask, dtype=bool).reshape(-1, 3)
+        u = self.rng.random(mask.shape) * mask
+        return u.argmax(axis=1).astype(np.int64)
+
+
+def make_driver(name: str, seed: int = 0) -> Driver:
+    """``rule``, ``keep`` or ``random`` (``autopilot`` is a simulator mode, not a policy)."""
+    if name == "rule":
+        return RuleBasedDriver()
+    if name == "keep":
+        return KeepLaneDriver()
+    if name == "random":
+        return RandomDriver(seed)
+    raise ValueError(f"unknown driver {name!r}; choose rule, keep or random")
