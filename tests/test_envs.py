@@ -1,0 +1,90 @@
+"""Every registered env passes gymnasium's and stable-baselines3's checkers; vector envs work."""
+
+import gymnasium as gym
+import numpy as np
+import pytest
+from gymnasium.utils.env_checker import check_env as gym_check_env
+from stable_baselines3.common.env_checker import check_env as sb3_check_env
+
+import lcsim
+from lcsim.envs import LaneChangeVectorEnv
+from lcsim.sb3 import LaneChangeSB3VecEnv
+
+from .conftest import small_config
+
+
+@pytest.mark.parametrize("env_id", lcsim.ENV_IDS)
+def test_registered_envs_pass_checkers(env_id):
+    env = gym.make(env_id)
+    gym_check_env(env.unwrapped, skip_render_check=False)
+    sb3_check_env(gym.make(env_id).unwrapped, warn=True)
+
+
+def test_step_info_and_spaces():
+    env = gym.make("lcsim/LaneChangeLight-v0")
+    obs, info = env.reset(seed=1)
+    assert set(obs) == {"current", "history", "image"}
+    assert obs["current"].shape == (9, 9) and obs["history"].shape == (8, 10, 3)
+    assert info["action_mask"].dtype == bool and info["action_mask"][1]
+    obs, reward, terminated, truncated, info = env.step(1)
+    assert set(info["reward_components"]) == {"collision", "off_road", "forward", "success"}
+    assert reward == pytest.approx(sum(info["reward_components"].values()))
+    assert info["reward_components"]["forward"] > 0
+    frame = env.unwrapped.render() if env.unwrapped.render_mode else None
+    assert frame is None
+    with pytest.raises(ValueError, match="action"):
+        env.step(3)
+
+
+def test_make_vec_uses_native_batched_env():
+    venv = gym.make_vec("lcsim/LaneChangeLight-v0", num_envs=3, vectorization_mode="vector_entry_point")
+    assert isinstance(venv.unwrapped, LaneChangeVectorEnv)
+    obs, info = venv.reset(seed=0)
+    assert obs["image"].shape == (3, 3, 120, 120)
+    for _ in range(3):
+        obs, reward, term, trunc, info = venv.step(np.array([1, 2, 0]))
+    assert reward.shape == (3,) and info["action_mask"].shape == (3, 3)
+
+
+def test_registered_ids_work_in_subprocess_vector_envs():
+    venv = gym.vector.AsyncVectorEnv([lambda: gym.make("lcsim/LaneChangeLight-v0")] * 2)
+    try:
+        obs, _ = venv.reset(seed=3)
+        obs, reward, *_ = venv.step(np.array([1, 1]))
+        assert obs["current"].shape == (2, 9, 9) and np.all(reward > 0)
+    finally:
+        venv.close()
+
+
+def test_registered_ids_work_in_fresh_interpreters():
+    """SB3 starts subprocesses with forkserver/spawn: ``"lcsim:<id>"`` imports lcsim there first."""
+    from stable_baselines3.common.env_util import make_vec_env
+    from stable_baselines3.common.vec_env import SubprocVecEnv
+
+    venv = make_vec_env("lcsim:lcsim/LaneChangeLight-v0", n_envs=2, seed=5, vec_env_cls=SubprocVecEnv,
+                        vec_env_kwargs={"start_method": "spawn"})
+    try:
+        obs = venv.reset()
+        obs, reward, done, infos = venv.step(np.array([1, 1]))
+        assert obs["image"].shape == (2, 3, 120, 120) and reward.shape == (2,)
+    finally:
+        venv.close()
+
+
+def test_sb3_adapter_autoreset_and_masks():
+    cfg = small_config(time_limit_s=3.0)
+    venv = LaneChangeSB3VecEnv(4, cfg)
+    venv.seed(11)
+    obs = venv.reset()
+    assert obs["current"].shape == (4, 9, 9)
+    masks = np.stack(venv.env_method("action_masks"))
+    assert masks.shape == (4, 3) and masks[:, 1].all()
+    done_seen = False
+    for _ in range(8):
+        obs, reward, dones, infos = venv.step_async(np.ones(4, dtype=int)) or venv.step_wait()
+        for d, info in zip(dones, infos, strict=True):
+            if d:
+                done_seen = True
+                assert "terminal_observation" in info and "is_success" in info
+                assert info["TimeLimit.truncated"] == (info["outcome"] == "timeout")
+    assert done_seen

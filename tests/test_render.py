@@ -1,0 +1,49 @@
+"""The bird's-eye image: never blank, ego at the centre, vehicles where they are."""
+
+import numpy as np
+import pytest
+
+from lcsim.config import ScenarioConfig
+from lcsim.core import LaneChangeCore
+from lcsim.render import CLASS_NAMES, EGO, MARKING, OFF_ROAD, PALETTE, ROAD, VEHICLE, BevRenderer
+
+
+def _classes(img: np.ndarray) -> np.ndarray:
+    """(3, S, S) image -> (S, S) class ids via the palette."""
+    flat = img.transpose(1, 2, 0).reshape(-1, 1, 3)
+    match = (flat == PALETTE[None]).all(axis=-1)
+    assert match.any(axis=1).all(), "every pixel has a palette colour"
+    return match.argmax(axis=1).reshape(img.shape[1:])
+
+
+@pytest.mark.parametrize("seed", [0, 1, 2, 3])
+def test_image_never_blank_and_ego_centred(seed):
+    core = LaneChangeCore(ScenarioConfig(), 1)
+    core.reset([0], [seed])
+    for action in (1, 2, 1, 1, 0, 1):
+        core.step(np.array([action]))
+        img = core.observe()["image"][0]
+        assert img.shape == (3, 120, 120) and img.dtype == np.uint8
+        cls = _classes(img)
+        present = set(np.unique(cls).tolist())
+        assert {ROAD, MARKING, EGO} <= present, present
+        assert img.std() > 10  # never blank
+        assert cls[59:61, 59:61].tolist() == [[EGO, EGO], [EGO, EGO]]  # the ego covers the centre
+        if core.outcome[0]:
+            break
+
+
+def test_vehicle_drawn_where_it_is_and_off_road_outside():
+    cfg = ScenarioConfig()
+    r = BevRenderer(cfg.road, cfg.render)
+    # Ego in lane 1 (y = 5.25), one car 10 m ahead in lane 2 (3.5 m to the left).
+    x = np.array([[0.0, 10.0]])
+    y = np.array([[5.25, 8.75]])
+    z = np.zeros_like(x)
+    img = r.render(x, y, z, np.array([[4.18, 5.37]]), np.array([[1.99, 1.80]]))[0]
+    cls = _classes(img)
+    row = 60 - int(10.0 / 0.5)  # 10 m ahead at 0.5 m/px
+    col = 60 - int(3.5 / 0.5)  # 3.5 m to the left
+    assert cls[row - 2:row + 2, col - 1:col + 1].min() == VEHICLE
+    assert cls[60, 0] == OFF_ROAD  # 30 m to the left of lane 1 is beyond the road
+    assert set(CLASS_NAMES) == {OFF_ROAD, ROAD, MARKING, VEHICLE, EGO}
