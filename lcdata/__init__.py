@@ -6,6 +6,10 @@ Writing::
         w.write_vehicles(step, t_s, ids, x, y, yaw, speed, accel, lane, target_lane, length, width)
         w.write_ego(step, t_s, speed=v, lane=k, collision_with=-1)
 
+Recording a simulated episode (any driver loop can attach an ``EpisodeRecorder`` instead)::
+
+    result = record_episode(lcsim.paper_scenario(), seed=1, driver="rule", path="runs/ep0001.mcap")
+
 Reading::
 
     episode = read_episode("runs/ep0001.mcap")
@@ -15,14 +19,19 @@ Regenerate the protobuf module after editing ``lcdata/proto/lc.proto``: ``python
 """
 
 from lcdata.reader import Episode, TruncatedFileWarning, iter_episodes, list_episodes, read_episode
+from lcdata.record import EpisodeRecorder, RecordResult, episode_seed, record_episode
 from lcdata.writer import EpisodeWriter, partial_path
 
 __all__ = [
     "Episode",
+    "EpisodeRecorder",
     "EpisodeWriter",
+    "RecordResult",
     "TruncatedFileWarning",
+    "episode_seed",
     "iter_episodes",
     "list_episodes",
     "partial_path",
     "read_episode",
+    "record_episode",
 ]

@@ -322,6 +322,11 @@ class EpisodeWriter:
         self._write(topics.PREDICTION, t_s, data)
 
     # -- life cycle -------------------------------------------------------------------------------
+    @property
+    def message_count(self) -> int:
+        """Messages written so far (all topics)."""
+        return sum(self._mcap._counts.values())
+
     def close(self) -> pathlib.Path:
         """Finish the file and rename ``.partial`` to the final name; return the final path."""
         if not self._closed:

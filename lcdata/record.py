@@ -1,0 +1,300 @@
+"""Record simulated episodes to MCAP: a per-step recorder any driver loop can use, and whole episodes.
+
+:class:`EpisodeRecorder` is a ``HighwaySim.hooks`` entry for one environment index. It writes
+``/vehicles`` and ``/ego/state`` (plus ``/ego/collision`` and ``/log`` events) after every simulation
+step, and, when the driver loop calls :meth:`~EpisodeRecorder.before_step` and
+:meth:`~EpisodeRecorder.after_step` around ``core.step``, ``/tf``, ``/scene``, the bird's-eye image
+and ``/rl/step`` at the decision rate. It keeps no history, so memory stays flat however long the run::
+
+    core = LaneChangeCore(config, num_envs)
+    with EpisodeWriter(path, metadata=episode_metadata(config, seed, ...)) as writer:
+        recorder = EpisodeRecorder(writer, core, env=0)
+        core.reset([0], [episode_seed(seed)])
+        recorder.attach()                      # writes step 0, registers the hook
+        obs = core.observe()
+        while not recorder.done:
+            mask = core.action_mask()
+            actions = driver(obs, mask, core)
+            recorder.before_step(obs, mask, actions)
+            result = core.step(actions)        # the hook records every simulation step
+            recorder.after_step(result)
+            obs = core.observe()
+        recorder.detach()
+
+:func:`record_episode` does exactly that for one seed and one driver.
+"""
+
+from __future__ import annotations
+
+import logging
+import os
+import pathlib
+from collections.abc import Mapping
+from dataclasses import dataclass
+from typing import Any
+
+import numpy as np
+from gymnasium.utils import seeding
+
+from lcdata.writer import EpisodeWriter, package_version
+from lcsim.config import ScenarioConfig
+from lcsim.core import KEEP, RUNNING, SUCCESS, LaneChangeCore, StepResult
+from lcsim.drivers import Driver, make_driver
+from lcsim.sim import HighwaySim
+
+log = logging.getLogger(__name__)
+
+DRIVERS = ("autopilot", "rule", "keep", "random")
+"""Driver names :func:`record_episode` accepts (``autopilot``: the ego is driven by the traffic autopilot)."""
+
+
+def episode_seed(seed: int) -> int:
+    """The episode seed ``LaneChangeEnv.reset(seed=seed)`` derives (it fully determines the episode)."""
+    gen, _ = seeding.np_random(int(seed))
+    return int(gen.integers(0, 2**63 - 1))
+
+
+def episode_filename(scenario: str, driver: str, seed: int) -> str:
+    """Deterministic file name of an episode, e.g. ``lane-change_rule_s0000123.mcap``."""
+    return f"{scenario or 'episode'}_{driver}_s{int(seed):07d}.mcap"
+
+
+class EpisodeRecorder:
+    """Write environment ``env`` of ``core`` to ``writer`` (see the module docstring for the loop).
+
+    Args:
+        writer: an open :class:`~lcdata.writer.EpisodeWriter`.
+        core: the :class:`~lcsim.core.LaneChangeCore` being stepped (any number of environments).
+        env: index of the environment to record.
+        images: write the observation's bird's-eye image (when it has one) at every decision.
+        scene: write ``/tf`` and ``/scene`` at every decision and the lane markings once.
+    """
+
+    def __init__(
+        self, writer: EpisodeWriter, core: LaneChangeCore, env: int = 0, *, images: bool = True, scene: bool = True
+    ) -> None:
+        if not 0 <= env < core.num_envs:
+            raise ValueError(f"env must be in [0, {core.num_envs}), got {env}")
+        self.writer, self.core, self.env = writer, core, env
+        self.images, self.scene = images, scene
+        self.done = False
+        self.decisions = 0
+        self.total_reward = 0.0
+        self.outcome = RUNNING
+        self._lc_active = False
+        self._off_road = False
+        self._pending: tuple[int, float, int, np.ndarray, np.ndarray] | None = None
+
+    # -- life cycle -------------------------------------------------------------------------------
+    def attach(self) -> None:
+        """Record the state right after ``core.reset`` (step 0) and register the per-step hook."""
+        sim, e = self.core.sim, self.env
+        self.done, self.decisions, self.total_reward, self.outcome = False, 0, 0.0, RUNNING
+        self._lc_active = self._lane_change_active(sim)
+        self._off_road = bool(sim.off_road[e])
+        t0 = float(sim.t_s[e])
+        if self.scene:
+            self._write_lane_markings(t0)
+        self.writer.write_event(int(sim.step[e]), t0, "episode_start",
+                                f"env {e}, episode seed {int(self.core.seeds[e])}")  # fmt: skip
+        self._write_sim_step(sim)
+        if self not in sim.hooks:
+            sim.hooks.append(self)
+
+    def detach(self) -> None:
+        """Stop recording (remove the hook). Safe to call twice."""
+        if self in self.core.sim.hooks:
+            self.core.sim.hooks.remove(self)
+
+    # -- per simulation step (the hook) -----------------------------------------------------------
+    def __call__(self, sim: HighwaySim) -> None:
+        if not sim.frozen[self.env] and not self.done:
+            self._write_sim_step(sim)
+
+    def _lane_change_active(self, sim: HighwaySim) -> bool:
+        e = self.env
+        return bool(sim.lc_active[e, 0] if sim.autopilot_ego else sim.ego_lc_active[e])
+
+    def _write_sim_step(self, sim: HighwaySim) -> None:
+        w, e = self.writer, self.env
+        step, t = int(sim.step[e]), float(sim.t_s[e])
+        w.write_vehicles(step, t, sim.ids, sim.x[e], sim.y[e], sim.yaw[e], sim.speed[e], sim.accel[e], sim.lane[e],
+                         sim.target_lane[e], sim.length[e], sim.width[e])  # fmt: skip
+        collision_with, invasion, off_road = int(sim.collision_with[e]), int(sim.lane_invasion[e]), bool(sim.off_road[e])
+        w.write_ego(step, t, speed=float(sim.speed[e, 0]), lane=int(sim.lane[e, 0]), collision_with=collision_with,
+                    lane_invasion=invasion, off_road=off_road, steer=float(sim.steer[e]),
+                    throttle=float(sim.throttle[e]), brake=float(sim.brake[e]))  # fmt: skip
+        if collision_with >= 0:
+            w.write_collision(step, t, other_id=collision_with, ego_x=float(sim.x[e, 0]), ego_y=float(sim.y[e, 0]),
+                              ego_speed=float(sim.speed[e, 0]), other_speed=float(sim.speed[e, collision_with]))  # fmt: skip
+            w.write_event(step, t, "collision", f"ego hit vehicle {collision_with}", "warning")
+        if invasion >= 0:
+            w.write_event(step, t, "lane_invasion", f"ego crossed marking {invasion}", "debug")
+        if off_road != self._off_road:
+            w.write_event(step, t, "off_road" if off_road else "on_road",
+                          "ego left the road" if off_road else "ego back on the road",
+                          "warning" if off_road else "info")  # fmt: skip
+            self._off_road = off_road
+        active = self._lane_change_active(sim)
+        if active != self._lc_active:
+            lane, target = int(sim.lane[e, 0]), int(sim.target_lane[e, 0])
+            if active:
+                w.write_event(step, t, "lane_change_start", f"lane {lane} -> {target}")
+            else:
+                w.write_event(step, t, "lane_change_end", f"in lane {lane}")
+            self._lc_active = active
+
+    # -- per decision -----------------------------------------------------------------------------
+    def before_step(self, obs: Mapping[str, np.ndarray], action_mask: np.ndarray, actions: np.ndarray) -> None:
+        """Call just before ``core.step(actions)``: writes ``/tf``, ``/scene`` and the image of this decision.
+
+        Args:
+            obs: the batched observation of all environments (``core.observe()``), e.g. ``current`` (E, 9, 9).
+            action_mask: (E, 3) bool. actions: (E,) int.
+        """
+        sim, e, w = self.core.sim, self.env, self.writer
+        step, t = int(sim.step[e]), float(sim.t_s[e])
+        if self.scene:
+            w.write_transform(step, t, float(sim.x[e, 0]), float(sim.y[e, 0]), float(sim.yaw[e, 0]))
+            w.write_scene(step, t, sim.ids, sim.x[e], sim.y[e], sim.yaw[e], sim.length[e], sim.width[e])
+        if self.images and "image" in obs:
+            w.write_image(step, t, obs["image"][e])
+        action = int(np.asarray(actions).reshape(-1)[e])
+        mask = np.asarray(action_mask, dtype=bool).reshape(-1, 3)[e].copy()
+        self._pending = (step, t, action, mask, np.asarray(obs["current"][e]).copy())
+
+    def after_step(self, result: StepResult) -> None:
+        """Call right after ``core.step``: writes ``/rl/step`` (and the outcome event when the episode ends)."""
+        if self._pending is None:
+            raise RuntimeError("after_step() without before_step()")
+        step, t, action, mask, current = self._pending
+        self._pending = None
+        e = self.env
+        outcome = str(result.outcome[e])
+        reward = float(result.reward[e])
+        self.writer.write_rl_step(
+            step, t, action=action, action_mask=mask, reward=reward,
+            reward_components={k: float(v[e]) for k, v in result.components.items()},
+            terminated=bool(result.terminated[e]), truncated=bool(result.truncated[e]), outcome=outcome,
+            decision=self.decisions, obs_current=current,
+        )  # fmt: skip
+        self.decisions += 1
+        self.total_reward += reward
+        if outcome != RUNNING:
+            sim = self.core.sim
+            end_step, end_t = int(sim.step[e]), float(sim.t_s[e])
+            level = "info" if outcome == SUCCESS else "warning"
+            self.writer.write_event(end_step, end_t, "outcome", outcome, level)
+            self.outcome, self.done = outcome, True
+
+    def _write_lane_markings(self, t_s: float) -> None:
+        cfg = self.core.config
+        x0 = -cfg.traffic.spawn_behind_m - 50.0
+        x1 = cfg.route_length_m + cfg.traffic.spawn_ahead_m + 50.0
+        marks = self.core.sim.road.markings()
+        lines = [np.array([[x0, y], [x1, y]]) for y, _ in marks]
+        self.writer.write_lane_markings(t_s, lines, [kind == 0 for _, kind in marks])
+
+
+# ---------------------------------------------------------------------------------------------------
+@dataclass(frozen=True, slots=True)
+class RecordResult:
+    """What :func:`record_episode` wrote."""
+
+    path: pathlib.Path
+    outcome: str
+    seed: int
+    episode_seed: int
+    steps: int
+    """Simulation steps recorded after step 0."""
+    decisions: int
+    total_reward: float
+    messages: int
+    bytes: int
+
+
+def _keep_driver(obs: Mapping[str, np.ndarray], action_mask: np.ndarray, core: LaneChangeCore) -> np.ndarray:
+    return np.full(core.num_envs, KEEP, dtype=np.int64)
+
+
+def resolve_driver(driver: str | Driver, seed: int) -> tuple[Any, bool, str, str]:
+    """``(callable, autopilot_ego, name, description)`` for a driver name or a driver object."""
+    if isinstance(driver, str):
+        if driver == "autopilot":
+            return _keep_driver, True, "autopilot", "autopilot: the ego is driven by the traffic autopilot"
+        if driver not in DRIVERS:
+            raise ValueError(f"unknown driver {driver!r}; choose one of {', '.join(DRIVERS)}")
+        driver = make_driver(driver, seed)
+    name = str(getattr(driver, "name", type(driver).__name__))
+    config = getattr(driver, "config", None)
+    desc = f"{name}: {type(driver).__module__}.{type(driver).__qualname__}"
+    if config is not None:
+        desc += f" {config!r}"
+    if name == "random":
+        desc += f" (seed {seed})"
+    return driver, False, name, desc
+
+
+def episode_metadata(config: ScenarioConfig, seed: int, *, driver: str, driver_description: str = "",
+                     scenario: str = "", autopilot: bool = False) -> dict[str, Any]:  # fmt: skip
+    """The metadata record of an episode: full config JSON, user and episode seeds, driver, version."""
+    return {
+        "config": config.to_json(), "seed": int(seed), "episode_seed": str(episode_seed(seed)),
+        "driver": driver, "driver_description": driver_description or driver, "scenario": scenario,
+        "autopilot": bool(autopilot), "version": package_version(),
+        "steps_per_decision": config.steps_per_decision,
+    }  # fmt: skip
+
+
+def record_episode(
+    config: ScenarioConfig,
+    seed: int,
+    driver: str | Driver,
+    path: str | os.PathLike[str],
+    *,
+    scenario: str = "",
+    overwrite: bool = False,
+    images: bool = True,
+    start_time_ns: int | None = None,
+) -> RecordResult:
+    """Run one episode (``LaneChangeEnv.reset(seed=seed)`` semantics) and write it to ``path``.
+
+    Args:
+        config: the scenario.
+        seed: user seed; the episode seed is derived from it as the gymnasium environment does.
+        driver: ``autopilot``, ``rule``, ``keep``, ``random`` or a driver object
+            (``driver(obs, action_mask, core) -> actions (E,)``).
+        path: the ``.mcap`` file (written as ``.partial`` and renamed at the end).
+        scenario: scenario name stored in the metadata.
+        overwrite: replace an existing file instead of raising ``FileExistsError``.
+        images: record the bird's-eye image at every decision (when the scenario renders one).
+        start_time_ns: time of ``t = 0`` in the file (default: now).
+
+    Returns:
+        A :class:`RecordResult` with the final path and the outcome.
+    """
+    policy, autopilot, name, desc = resolve_driver(driver, seed)
+    core = LaneChangeCore(config, 1, autopilot_ego=autopilot)
+    metadata = episode_metadata(config, seed, driver=name, driver_description=desc, scenario=scenario,
+                                autopilot=autopilot)  # fmt: skip
+    with EpisodeWriter(path, metadata=metadata, overwrite=overwrite, start_time_ns=start_time_ns) as writer:
+        recorder = EpisodeRecorder(writer, core, 0, images=images)
+        core.reset([0], [int(metadata["episode_seed"])])
+        recorder.attach()
+        obs = core.observe()
+        while not recorder.done:
+            mask = core.action_mask()
+            actions = np.asarray(policy(obs, mask, core), dtype=np.int64).reshape(1)
+            recorder.before_step(obs, mask, actions)
+            recorder.after_step(core.step(actions))
+            if not recorder.done:
+                obs = core.observe()
+        recorder.detach()
+        messages = writer.message_count
+    final = writer.path
+    log.info("%s: %s after %d decisions", final, recorder.outcome, recorder.decisions)
+    return RecordResult(
+        path=final, outcome=recorder.outcome, seed=int(seed), episode_seed=int(metadata["episode_seed"]),
+        steps=int(core.sim.step[0]), decisions=recorder.decisions, total_reward=recorder.total_reward,
+        messages=messages, bytes=final.stat().st_size,
+    )  # fmt: skip
