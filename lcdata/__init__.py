@@ -10,6 +10,10 @@ Recording a simulated episode (any driver loop can attach an ``EpisodeRecorder``
 
     result = record_episode(lcsim.paper_scenario(), seed=1, driver="rule", path="runs/ep0001.mcap")
 
+Offline data first: ``rebuild_observations(episode)`` recomputes what the driver saw at every decision
+from the recorded tracks (with the simulator's own ``observe``); ``replay(path)`` re-simulates an episode
+from its config, episode seed and actions and reports whether the tracks match bit for bit.
+
 Reading::
 
     episode = read_episode("runs/ep0001.mcap")
@@ -18,6 +22,7 @@ Reading::
 Regenerate the protobuf module after editing ``lcdata/proto/lc.proto``: ``python tools/gen_protos.py``.
 """
 
+from lcdata.offline import ObservationRebuilder, ReplayReport, rebuild_observations, replay
 from lcdata.reader import Episode, TruncatedFileWarning, iter_episodes, list_episodes, read_episode
 from lcdata.record import EpisodeRecorder, RecordResult, episode_seed, record_episode
 from lcdata.writer import EpisodeWriter, partial_path
@@ -26,12 +31,16 @@ __all__ = [
     "Episode",
     "EpisodeRecorder",
     "EpisodeWriter",
+    "ObservationRebuilder",
     "RecordResult",
+    "ReplayReport",
     "TruncatedFileWarning",
     "episode_seed",
     "iter_episodes",
     "list_episodes",
     "partial_path",
     "read_episode",
+    "rebuild_observations",
     "record_episode",
+    "replay",
 ]

@@ -65,7 +65,9 @@ class Episode:
     Attributes:
         path: the file read.
         metadata: ``config`` (dict), ``seed`` (int), ``driver``, ``scenario``, ``version``,
-            ``episode_id`` (str), ``start_time_ns`` (int) and any extra keys (str).
+            ``episode_id`` (str), ``start_time_ns`` (int); from :func:`lcdata.record_episode` also
+            ``episode_seed`` (int), ``autopilot`` (bool), ``steps_per_decision`` (int) and
+            ``driver_description`` (str); any other keys as str.
         complete: False when the file was truncated and only complete chunks were recovered.
         message_count: messages read.
     """
@@ -317,6 +319,12 @@ def _parse_metadata(raw: dict[str, str], path: pathlib.Path) -> dict[str, Any]:
         raise ValueError(f"{path}: metadata 'config' is not valid JSON ({exc})") from None
     meta["seed"] = int(raw.get("seed", "-1"))
     meta["start_time_ns"] = int(raw.get("start_time_ns", "0"))
+    if "episode_seed" in raw:
+        meta["episode_seed"] = int(raw["episode_seed"])
+    if "autopilot" in raw:
+        meta["autopilot"] = raw["autopilot"] == "true"
+    if "steps_per_decision" in raw:
+        meta["steps_per_decision"] = int(raw["steps_per_decision"])
     for key in ("driver", "scenario", "version"):
         meta.setdefault(key, "")
     meta.setdefault("episode_id", path.name.removesuffix(".partial").removesuffix(".mcap"))
