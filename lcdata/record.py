@@ -27,9 +27,11 @@ and ``/rl/step`` at the decision rate. It keeps no history, so memory stays flat
 from __future__ import annotations
 
 import logging
+import multiprocessing
 import os
 import pathlib
-from collections.abc import Mapping
+from collections.abc import Iterator, Mapping, Sequence
+from concurrent.futures import ProcessPoolExecutor, as_completed
 from dataclasses import dataclass
 from typing import Any
 
@@ -298,3 +300,60 @@ def record_episode(
         steps=int(core.sim.step[0]), decisions=recorder.decisions, total_reward=recorder.total_reward,
         messages=messages, bytes=final.stat().st_size,
     )  # fmt: skip
+
+
+def _record_one(config_json: str, seed: int, driver: str | Driver, path: str, scenario: str, overwrite: bool,
+                images: bool) -> RecordResult:  # fmt: skip
+    """Worker entry point (module level so that a process pool can pickle it)."""
+    config = ScenarioConfig.from_json(config_json)
+    return record_episode(config, seed, driver, path, scenario=scenario, overwrite=overwrite, images=images)
+
+
+def iter_record_episodes(
+    config: ScenarioConfig,
+    seeds: Sequence[int],
+    driver: str | Driver,
+    out_dir: str | os.PathLike[str],
+    *,
+    scenario: str = "",
+    workers: int = 1,
+    overwrite: bool = False,
+    images: bool = True,
+) -> Iterator[RecordResult]:
+    """Record one episode per seed into ``out_dir`` (file names from :func:`episode_filename`).
+
+    Results come in completion order. With ``workers > 1`` episodes run in that many processes;
+    every episode depends only on its seed, so the files do not depend on ``workers``.
+    Existing files raise ``FileExistsError`` before anything runs unless ``overwrite``.
+    """
+    if workers < 1:
+        raise ValueError(f"workers must be >= 1, got {workers}")
+    out = pathlib.Path(out_dir)
+    name = driver if isinstance(driver, str) else resolve_driver(driver, 0)[2]
+    paths = [out / episode_filename(scenario, name, s) for s in seeds]
+    existing = [p for p in paths if p.exists()]
+    if existing and not overwrite:
+        raise FileExistsError(f"{len(existing)} of {len(paths)} episode files already exist in {out} "
+                              f"(e.g. {existing[0].name}); pass overwrite=True to replace them")  # fmt: skip
+    out.mkdir(parents=True, exist_ok=True)
+    args = [(config.to_json(), int(s), driver, str(p), scenario, overwrite, images)
+            for s, p in zip(seeds, paths, strict=True)]  # fmt: skip
+    if workers == 1 or len(args) <= 1:
+        for a in args:
+            yield _record_one(*a)
+        return
+    ctx = multiprocessing.get_context("spawn")  # no fork of a process that may hold writer threads
+    with ProcessPoolExecutor(max_workers=min(workers, len(args)), mp_context=ctx) as pool:
+        futures = [pool.submit(_record_one, *a) for a in args]
+        try:
+            for future in as_completed(futures):
+                yield future.result()
+        finally:
+            for future in futures:
+                future.cancel()
+
+
+def record_episodes(config: ScenarioConfig, seeds: Sequence[int], driver: str | Driver,
+                    out_dir: str | os.PathLike[str], **kwargs: Any) -> list[RecordResult]:  # fmt: skip
+    """:func:`iter_record_episodes`, collected and sorted by seed."""
+    return sorted(iter_record_episodes(config, seeds, driver, out_dir, **kwargs), key=lambda r: r.seed)

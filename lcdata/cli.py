@@ -1,0 +1,160 @@
+"""``lc-record``: run the simulator with a driver and write one MCAP file per episode."""
+
+from __future__ import annotations
+
+import argparse
+import collections
+import dataclasses
+import logging
+import os
+import pathlib
+import sys
+import time
+from collections.abc import Sequence
+
+from tqdm import tqdm
+
+from lcdata.record import DRIVERS, episode_filename, iter_record_episodes
+from lcsim.config import ScenarioConfig, corpus_scenario, paper_scenario
+
+SCENARIOS = ("lane-change", "corpus")
+DEFAULT_DRIVER = {"lane-change": "rule", "corpus": "autopilot"}
+
+EXAMPLES = """\
+examples:
+  lc-record --scenario lane-change --episodes 100 --seed 0 --driver rule --out runs/rule --workers 2
+  lc-record --scenario corpus --episodes 50 --out data/corpus      # 20 autopilot vehicles, 2000 steps
+
+Episode i uses seed S+i and is written to OUT/<scenario>_<driver>_s<seed>.mcap (7-digit seed), e.g.
+runs/rule/lane-change_rule_s0000003.mcap, so the files do not depend on --workers. Files are written
+as .mcap.partial and renamed when the episode ends.
+"""
+
+
+class UsageError(Exception):
+    """Bad command-line input: reported as one line on stderr, exit code 2."""
+
+
+class _Parser(argparse.ArgumentParser):
+    def error(self, message: str) -> None:  # type: ignore[override]
+        raise UsageError(message)
+
+
+def _positive_int(text: str) -> int:
+    try:
+        value = int(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected an integer, got {text!r}") from None
+    if value < 1:
+        raise argparse.ArgumentTypeError(f"must be >= 1, got {value}")
+    return value
+
+
+def _non_negative_int(text: str) -> int:
+    try:
+        value = int(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected an integer, got {text!r}") from None
+    if value < 0:
+        raise argparse.ArgumentTypeError(f"must be >= 0, got {value}")
+    return value
+
+
+def build_parser() -> argparse.ArgumentParser:
+    p = _Parser(
+        prog="lc-record",
+        description="Run the lane-change simulator with a driver and record one MCAP file per episode\n"
+        "(tracks and ego sensors at 20 Hz; image, scene and RL step per decision).",
+        epilog=EXAMPLES,
+        formatter_class=argparse.RawDescriptionHelpFormatter,
+    )
+    p.add_argument("--scenario", choices=SCENARIOS, default="lane-change",
+                   help="lane-change: the paper's task (100 vehicles, 600 m route); corpus: the trajectory "
+                   "corpus (20 autopilot vehicles, 2000 steps, no image). Default: %(default)s")  # fmt: skip
+    p.add_argument("--episodes", type=_positive_int, default=1, help="number of episodes (default: 1)")
+    p.add_argument("--seed", type=_non_negative_int, default=0, help="seed of the first episode (default: 0)")
+    p.add_argument("--driver", choices=DRIVERS, default=None,
+                   help="who drives the ego (default: rule for lane-change, autopilot for corpus)")  # fmt: skip
+    p.add_argument("--out", type=pathlib.Path, required=True, help="output directory (created if missing)")
+    p.add_argument("--workers", type=_positive_int, default=1, help="parallel processes (default: 1)")
+    p.add_argument("--overwrite", action="store_true", help="replace episode files that already exist")
+    p.add_argument("--vehicles", type=_non_negative_int, default=None,
+                   help="override the number of traffic vehicles (default: the scenario's)")  # fmt: skip
+    p.add_argument("--steps", type=_positive_int, default=None,
+                   help="override the episode time limit, in simulation steps (default: the scenario's)")  # fmt: skip
+    p.add_argument("--no-images", action="store_true", help="do not record the bird's-eye image")
+    p.add_argument("-v", "--verbose", action="store_true", help="log every episode")
+    return p
+
+
+def scenario_config(name: str, *, vehicles: int | None = None, steps: int | None = None) -> ScenarioConfig:
+    """The named scenario with optional overrides (ValueError names an impossible value)."""
+    config = paper_scenario() if name == "lane-change" else corpus_scenario()
+    if vehicles is not None:
+        config = dataclasses.replace(config, traffic=dataclasses.replace(config.traffic, num_vehicles=vehicles))
+    if steps is not None:
+        config = dataclasses.replace(config, time_limit_s=steps * config.dt_s)
+    return config
+
+
+def _check_out_dir(out: pathlib.Path) -> None:
+    if out.exists() and not out.is_dir():
+        raise UsageError(f"--out {out} exists and is not a directory")
+    try:
+        out.mkdir(parents=True, exist_ok=True)
+    except OSError as exc:
+        raise UsageError(f"cannot create output directory {out}: {exc.strerror or exc}") from None
+    if not os.access(out, os.W_OK | os.X_OK):
+        raise UsageError(f"output directory {out} is not writable")
+
+
+def record_main(argv: Sequence[str] | None = None) -> int:
+    """Entry point of ``lc-record``; returns the exit code (2 for bad input)."""
+    parser = build_parser()
+    try:
+        args = parser.parse_args(argv)
+        driver = args.driver or DEFAULT_DRIVER[args.scenario]
+        try:
+            config = scenario_config(args.scenario, vehicles=args.vehicles, steps=args.steps)
+        except ValueError as exc:
+            raise UsageError(str(exc)) from None
+        seeds = [args.seed + i for i in range(args.episodes)]
+        paths = [args.out / episode_filename(args.scenario, driver, s) for s in seeds]
+        if args.out.is_dir() and not args.overwrite:
+            existing = [p for p in paths if p.exists()]
+            if existing:
+                raise UsageError(f"{len(existing)} of {len(paths)} episodes already exist in {args.out} "
+                                 f"(e.g. {existing[0].name}); pass --overwrite to replace them")  # fmt: skip
+        _check_out_dir(args.out)
+    except UsageError as exc:
+        print(f"lc-record: error: {exc}", file=sys.stderr)
+        return 2
+    except SystemExit as exc:  # --help
+        return int(exc.code or 0)
+    logging.basicConfig(level=logging.INFO if args.verbose else logging.WARNING, format="%(message)s")
+    outcomes: collections.Counter[str] = collections.Counter()
+    messages = size = 0
+    start = time.perf_counter()
+    results = iter_record_episodes(config, seeds, driver, args.out, scenario=args.scenario, workers=args.workers,
+                                   overwrite=args.overwrite, images=not args.no_images)  # fmt: skip
+    try:
+        with tqdm(total=len(seeds), unit="ep", desc=f"{args.scenario}/{driver}", disable=None) as bar:
+            for result in results:
+                outcomes[result.outcome] += 1
+                messages += result.messages
+                size += result.bytes
+                bar.set_postfix_str(", ".join(f"{k} {v}" for k, v in sorted(outcomes.items())))
+                bar.update()
+    except KeyboardInterrupt:
+        print("lc-record: interrupted; unfinished episodes are left as .partial files", file=sys.stderr)
+        return 130
+    seconds = time.perf_counter() - start
+    done = sum(outcomes.values())
+    summary = ", ".join(f"{k} {v} ({100 * v / done:.1f}%)" for k, v in sorted(outcomes.items()))
+    print(f"recorded {done} episodes to {args.out}: {summary}")
+    print(f"{messages} messages, {size / 1e6:.1f} MB, {seconds:.1f} s ({done / seconds:.2f} episodes/s)")
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(record_main())
