@@ -1,5 +1,21 @@
 """Trajectory prediction: corpus windows in, future positions out.
 
+Design choices (where the paper is silent):
+
+- Samples are agent-centric (``lcdata.corpus``): origin at the agent's position at the last observed
+  step, x axis along its heading estimated from positions only (backward difference, skipping
+  standing points). The policy-time API re-centres every neighbour with the same functions.
+- The model predicts the residual over the constant-velocity extrapolation, standardised with
+  training-split statistics (stored as buffers, so they travel with the weights); its output layer
+  starts at zero, so an untrained model is the CV baseline.
+- One token per vehicle (the agent + K = 8 nearest at t0), each an MLP embedding of its H-step
+  history (position, backward-difference velocity and acceleration, presence). The agent token is
+  the query of ``num_layers`` transformer layers attending over all tokens (absent ones masked);
+  full self-attention among all tokens is available (``num_context_layers``, off by default) but
+  costs several times more at inference. All F steps are decoded at once.
+- Loss and early stopping use the ADE in metres (validation split); splits are by episode.
+- Miss rate counts final errors above ``TrainConfig.miss_threshold_m`` (0.5 m by default).
+
 Public API::
 
     PredictorConfig, TrajectoryTransformer          # model.py

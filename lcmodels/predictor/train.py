@@ -62,8 +62,8 @@ class TrainConfig:
     """Gradient norm clip."""
     max_train_windows: int | None = 200_000
     """Deterministic subsample of the training windows per run (None: all)."""
-    max_eval_windows: int | None = None
-    """Deterministic subsample of validation windows (None: all); test always uses all."""
+    max_eval_windows: int | None = 50_000
+    """Deterministic subsample of validation windows per epoch (None: all); test always uses all."""
     miss_threshold_m: float = 0.5
     """Final-step error above which a prediction counts as a miss, metres."""
     seed: int = 0
