@@ -1,0 +1,201 @@
+"""lcdata.record / lcdata.offline: round trip, rebuilt observations, bit-exact replay, crash safety."""
+
+from __future__ import annotations
+
+import dataclasses
+import pathlib
+import signal
+import subprocess
+import sys
+import textwrap
+import warnings
+
+import numpy as np
+import pytest
+
+from lcdata import (
+    EpisodeRecorder,
+    EpisodeWriter,
+    ObservationRebuilder,
+    TruncatedFileWarning,
+    episode_seed,
+    read_episode,
+    rebuild_observations,
+    record_episode,
+    replay,
+)
+from lcdata.offline import STATE_COLUMNS, track_arrays
+from lcdata.record import episode_metadata
+from lcsim.config import ScenarioConfig
+from lcsim.core import LaneChangeCore
+from lcsim.drivers import make_driver
+from lcsim.envs import LaneChangeEnv
+from tests.conftest import small_config
+
+ROOT = pathlib.Path(__file__).resolve().parents[1]
+
+
+def test_episode_seed_is_the_environments() -> None:
+    env = LaneChangeEnv(small_config())
+    for seed in (0, 7, 123456):
+        env.reset(seed=seed)
+        assert int(env.core.seeds[0]) == episode_seed(seed)
+
+
+def test_round_trip_tracks_ego_steps_metadata(tmp_path: pathlib.Path, small: ScenarioConfig) -> None:
+    """Record env 1 of a 2-env batch; what the simulator did == what read_episode returns, bit for bit."""
+    core = LaneChangeCore(small, 2)
+    driver = make_driver("random", 3)
+    seen: list[dict[str, np.ndarray]] = []
+
+    def collect(sim) -> None:
+        if not sim.frozen[1]:
+            seen.append({name: np.array(getattr(sim, name)[1]) for name in STATE_COLUMNS}
+                        | {"step": sim.step[1].copy(), "off_road": sim.off_road[1].copy()})  # fmt: skip
+
+    meta = episode_metadata(small, 11, driver="random", scenario="test")
+    results, actions = [], []
+    with EpisodeWriter(tmp_path / "ep.mcap", metadata=meta) as writer:
+        recorder = EpisodeRecorder(writer, core, env=1)
+        core.reset([0, 1], [5, episode_seed(11)])
+        collect(core.sim)
+        recorder.attach()
+        core.sim.hooks.append(collect)
+        obs = core.observe()
+        while not recorder.done:
+            mask = core.action_mask()
+            a = driver(obs, mask, core)
+            recorder.before_step(obs, mask, a)
+            res = core.step(a)
+            recorder.after_step(res)
+            results.append(res)
+            actions.append(int(a[1]))
+            obs = core.observe()
+        recorder.detach()
+    assert recorder not in core.sim.hooks
+    ep = read_episode(tmp_path / "ep.mcap")
+    assert ep.complete
+    tracks = track_arrays(ep)
+    np.testing.assert_array_equal(tracks.steps, [s["step"] for s in seen])
+    for name in STATE_COLUMNS:
+        expected = np.stack([s[name] for s in seen])
+        assert tracks.columns[name].tobytes() == expected.astype(tracks.columns[name].dtype).tobytes(), name
+    assert (ep.ego["off_road"].to_numpy() == [bool(s["off_road"]) for s in seen]).all()
+    steps = ep.steps
+    assert steps["action"].tolist() == actions
+    assert steps["decision"].tolist() == list(range(len(actions)))
+    assert steps["reward"].to_numpy().tobytes() == np.array([r.reward[1] for r in results]).tobytes()
+    assert steps["outcome"].iloc[-1] == recorder.outcome != ""
+    assert ep.events["kind"].iloc[0] == "episode_start" and "outcome" in set(ep.events["kind"])
+    if recorder.outcome == "collision":
+        assert len(ep.collisions) == 1 and ep.collisions["step"].iloc[0] == tracks.steps[-1]
+    if recorder.outcome == "off_road":
+        assert "off_road" in set(ep.events["kind"])
+    md = ep.metadata
+    assert ScenarioConfig.from_dict(md["config"]) == small
+    assert (md["seed"], md["episode_seed"], md["driver"], md["autopilot"]) == (11, episode_seed(11), "random", False)
+    assert len(ep.image_steps) == len(actions)
+
+
+def test_rebuilt_observations_equal_the_environments(tmp_path: pathlib.Path, small: ScenarioConfig) -> None:
+    result = record_episode(small, 5, "rule", tmp_path / "ep.mcap")
+    ep = read_episode(result.path)
+    env, driver = LaneChangeEnv(small), make_driver("rule", 5)
+    obs, info = env.reset(seed=5)
+    seen, done = [], False
+    while not done:
+        seen.append((int(env.core.sim.step[0]), obs))
+        a = driver({k: v[None] for k, v in obs.items()}, info["action_mask"][None], env.core)[0]
+        obs, _, terminated, truncated, info = env.step(a)
+        done = terminated or truncated
+    rebuilt = list(rebuild_observations(ep))
+    assert [s for s, _ in rebuilt] == [s for s, _ in seen]
+    stored = ep.observations()
+    for (step, want), (_, got) in zip(seen, rebuilt, strict=True):
+        assert want.keys() == got.keys() == {"current", "history", "image"}
+        for key in want:
+            assert want[key].dtype == got[key].dtype and want[key].tobytes() == got[key].tobytes(), (step, key)
+        assert stored[step].tobytes() == want["current"].tobytes()
+    # the final observation of an episode that ended inside a decision period (frozen steps)
+    end, last = result.steps, int(ep.steps["step"].iloc[-1])
+    final = ObservationRebuilder(ep).observe(end, frozen_steps=last + small.steps_per_decision - end)
+    assert all(final[k].tobytes() == obs[k].tobytes() for k in obs)
+
+
+@pytest.mark.parametrize("driver", ["rule", "autopilot"])
+def test_replay_is_bit_exact_and_finds_differences(tmp_path: pathlib.Path, small: ScenarioConfig, driver: str) -> None:
+    result = record_episode(small, 2, driver, tmp_path / "ep.mcap", images=False)
+    report = replay(result.path)
+    assert report.matches, str(report)
+    assert report.steps_compared == result.steps + 1 and report.decisions == result.decisions
+    assert report.replayed_outcome == report.recorded_outcome == result.outcome
+    other = dataclasses.replace(small, traffic=dataclasses.replace(small.traffic, speed_kmh=25.0))
+    bad = replay(result.path, config=other)
+    assert not bad.matches and bad.first_difference is not None
+    assert bad.first_difference.step == 0 and bad.first_difference.column == "speed"
+    assert "differs at step 0" in str(bad)
+
+
+CHILD = """
+import os, signal, sys, time
+import numpy as np
+from lcdata import EpisodeRecorder, EpisodeWriter, episode_seed
+from lcdata.record import episode_metadata
+from lcsim.core import LaneChangeCore
+from lcsim.drivers import make_driver
+from tests.conftest import small_config
+
+cfg = small_config(time_limit_s=200.0, route_length_m=1000.0)
+core, driver = LaneChangeCore(cfg, 1), make_driver("rule")
+writer = EpisodeWriter(sys.argv[1], metadata=episode_metadata(cfg, 4, driver="rule"), chunk_size=8192)
+recorder = EpisodeRecorder(writer, core)
+core.reset([0], [episode_seed(4)])
+recorder.attach()
+obs = core.observe()
+for _ in range(30):
+    mask = core.action_mask()
+    a = driver(obs, mask, core)
+    recorder.before_step(obs, mask, a)
+    recorder.after_step(core.step(a))
+    obs = core.observe()
+time.sleep(0.5)  # let the writer thread flush the finished chunks
+os.kill(os.getpid(), signal.SIGKILL)
+"""
+
+
+def test_sigkill_leaves_a_recoverable_partial(tmp_path: pathlib.Path, small: ScenarioConfig) -> None:
+    other = record_episode(small, 1, "keep", tmp_path / "other.mcap", images=False).path
+    before = other.read_bytes()
+    target = tmp_path / "killed.mcap"
+    proc = subprocess.run([sys.executable, "-c", textwrap.dedent(CHILD), str(target)], cwd=ROOT, timeout=60,
+                          capture_output=True)  # fmt: skip
+    assert proc.returncode == -signal.SIGKILL, proc.stderr.decode()
+    assert not target.exists()
+    partial = target.with_name(target.name + ".partial")
+    with pytest.warns(TruncatedFileWarning, match="recovered"):
+        ep = read_episode(partial)
+    assert not ep.complete
+    tracks = track_arrays(ep)  # complete chunks only: consecutive steps from 0
+    assert tracks.steps[0] == 0 and len(tracks.steps) >= 100
+    assert other.read_bytes() == before and sorted(p.name for p in tmp_path.iterdir()) == [
+        "killed.mcap.partial", "other.mcap"]  # fmt: skip
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", TruncatedFileWarning)
+        report = replay(partial)
+    assert report.matches, str(report)
+
+
+def test_recorder_rejects_bad_env(tmp_path: pathlib.Path, small: ScenarioConfig) -> None:
+    core = LaneChangeCore(small, 1)
+    with EpisodeWriter(tmp_path / "x.mcap", metadata={}) as writer:
+        with pytest.raises(ValueError, match="env must be in"):
+            EpisodeRecorder(writer, core, env=1)
+        with pytest.raises(RuntimeError, match="before_step"):
+            EpisodeRecorder(writer, core).after_step(None)  # type: ignore[arg-type]
+
+
+def test_replay_needs_an_episode_seed(tmp_path: pathlib.Path) -> None:
+    with EpisodeWriter(tmp_path / "x.mcap", metadata={"seed": 1}) as writer:
+        writer.write_ego(0, 0.0, speed=1.0, lane=0)
+    with pytest.raises(ValueError, match="episode_seed"):
+        replay(tmp_path / "x.mcap")

@@ -1,0 +1,102 @@
+"""lc-record in-process: both scenarios at tiny sizes, deterministic names, overwrite rules, bad input."""
+
+from __future__ import annotations
+
+import pathlib
+
+import numpy as np
+import pytest
+
+from lcdata import read_episode, replay
+from lcdata.cli import record_main, scenario_config
+from lcsim import corpus_scenario, paper_scenario
+
+TINY = ["--vehicles", "6", "--steps", "30"]
+
+
+def names(directory: pathlib.Path) -> list[str]:
+    return sorted(p.name for p in directory.iterdir())
+
+
+def test_lane_change_and_overwrite(tmp_path: pathlib.Path, capsys: pytest.CaptureFixture[str]) -> None:
+    argv = ["--episodes", "2", "--seed", "3", "--out", str(tmp_path), *TINY]
+    assert record_main(argv) == 0
+    out = capsys.readouterr().out
+    assert "recorded 2 episodes" in out and "timeout 2" in out and "MB" in out
+    assert names(tmp_path) == ["lane-change_rule_s0000003.mcap", "lane-change_rule_s0000004.mcap"]
+    ep = read_episode(tmp_path / "lane-change_rule_s0000004.mcap")
+    md = ep.metadata
+    assert (md["seed"], md["driver"], md["scenario"], md["autopilot"]) == (4, "rule", "lane-change", False)
+    assert md["config"]["traffic"]["num_vehicles"] == 6 and ep.tracks["vehicle_id"].max() == 6
+    assert ep.tracks["step"].max() == 30 and len(ep.image_steps) == 3
+    assert replay(ep.path).matches
+    mtime = (tmp_path / "lane-change_rule_s0000003.mcap").stat().st_mtime_ns
+    assert record_main(argv) == 2  # refuses to overwrite
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1 and "--overwrite" in err and "2 of 2" in err
+    assert (tmp_path / "lane-change_rule_s0000003.mcap").stat().st_mtime_ns == mtime
+    assert record_main([*argv, "--overwrite"]) == 0
+
+
+def test_corpus_defaults_to_autopilot(tmp_path: pathlib.Path, capsys: pytest.CaptureFixture[str]) -> None:
+    assert record_main(["--scenario", "corpus", "--out", str(tmp_path / "c"), "--vehicles", "4", "--steps", "40"]) == 0
+    assert names(tmp_path / "c") == ["corpus_autopilot_s0000000.mcap"]
+    ep = read_episode(tmp_path / "c" / "corpus_autopilot_s0000000.mcap")
+    assert ep.metadata["autopilot"] is True and ep.metadata["driver"] == "autopilot"
+    assert "/camera/bev_semantic" not in ep.topics and len(ep.tracks) == 41 * 5
+    assert "recorded 1 episodes" in capsys.readouterr().out
+
+
+def test_workers_do_not_change_results(tmp_path: pathlib.Path) -> None:
+    common = ["--episodes", "2", "--driver", "random", "--no-images", *TINY]
+    assert record_main([*common, "--out", str(tmp_path / "w1")]) == 0
+    assert record_main([*common, "--out", str(tmp_path / "w2"), "--workers", "2"]) == 0
+    assert names(tmp_path / "w1") == names(tmp_path / "w2")
+    for name in names(tmp_path / "w1"):
+        a, b = read_episode(tmp_path / "w1" / name), read_episode(tmp_path / "w2" / name)
+        assert a.tracks.drop(columns="episode").equals(b.tracks.drop(columns="episode"))
+        np.testing.assert_array_equal(a.steps["action"], b.steps["action"])
+
+
+def test_defaults_are_the_papers() -> None:
+    assert scenario_config("lane-change") == paper_scenario()
+    assert scenario_config("corpus") == corpus_scenario()
+    assert scenario_config("corpus").max_steps == 2000
+
+
+@pytest.mark.parametrize(
+    ("argv", "message"),
+    [
+        (["--episodes", "0"], "--episodes: must be >= 1"),
+        (["--episodes", "two"], "expected an integer"),
+        (["--seed", "-1"], "--seed: must be >= 0"),
+        (["--workers", "0"], "--workers: must be >= 1"),
+        (["--steps", "0"], "--steps: must be >= 1"),
+        (["--driver", "fast"], "invalid choice"),
+        (["--scenario", "town06"], "invalid choice"),
+        (["--vehicles", "100000"], "does not fit"),
+        (["--bogus"], "unrecognized arguments"),
+    ],
+)
+def test_bad_options(tmp_path: pathlib.Path, capsys: pytest.CaptureFixture[str], argv: list[str], message: str) -> None:
+    assert record_main(["--out", str(tmp_path), *argv]) == 2
+    err = capsys.readouterr().err
+    assert err.startswith("lc-record: error:") and message in err and err.count("\n") == 1
+    assert "Traceback" not in err and not list(tmp_path.iterdir())
+
+
+def test_bad_output_directory(tmp_path: pathlib.Path, capsys: pytest.CaptureFixture[str]) -> None:
+    file = tmp_path / "file"
+    file.write_text("x")
+    assert record_main(["--out", str(file)]) == 2
+    assert "not a directory" in capsys.readouterr().err
+    assert record_main(["--out", str(file / "sub")]) == 2
+    assert "cannot create output directory" in capsys.readouterr().err
+    assert record_main([]) == 2
+    assert "--out" in capsys.readouterr().err
+
+
+def test_help_has_an_example(capsys: pytest.CaptureFixture[str]) -> None:
+    assert record_main(["--help"]) == 0
+    out = capsys.readouterr().out
+    assert "lc-record --scenario lane-change --episodes" in out and "--workers" in out
