@@ -1,0 +1,55 @@
+"""Recorded episodes (MCAP) -> Rerun: entities, time lines and the layout used by ``lc-view``.
+
+``log_episode(rec, episode)`` logs one :class:`~lcdata.reader.Episode` with columnar calls
+(:func:`rerun.send_columns`), one function per data stream (:mod:`lcdata.viewer.streams`):
+
+=============================  ==============================================================
+entity                         content
+=============================  ==============================================================
+``world/road/*``               lane edges, broken markings, shoulders, lane centres (static)
+``world/vehicles/boxes``       every traffic vehicle as an oriented box (closed line strip)
+``world/vehicles/trails``      the last 2 s of every vehicle, the ego's included
+``world/ego``                  the ego frame (translation per step), followed by the scene view
+``world/ego/box``              the ego's box, highlighted
+``world/prediction/*``         predicted vs. actual trajectories of the nearest vehicles
+``camera/bev``                 bird's-eye semantic image (SegmentationImage, named classes)
+``plots/speed|reward|return|lane``  time series
+``log/events``, ``log/decisions``   text logs
+=============================  ==============================================================
+
+Time lines: ``step`` (simulation step) and ``sim_time`` (simulation time). The scene is drawn
+top-down with x to the right and the road's left (+y) upwards (see :mod:`lcdata.viewer.geometry`).
+"""
+
+from __future__ import annotations
+
+import rerun as rr
+
+from lcdata.reader import Episode
+from lcdata.viewer import streams
+from lcdata.viewer.geometry import TrackGrid
+from lcdata.viewer.layout import blueprint, episode_views
+from lcdata.viewer.streams import SIM_TIME, STEP, describe
+
+__all__ = ["SIM_TIME", "STEP", "blueprint", "describe", "episode_views", "log_episode"]
+
+_ROAD_MARGIN_M = 100.0
+
+
+def log_episode(rec: rr.RecordingStream, episode: Episode, prefix: str = "") -> None:
+    """Log every stream of ``episode`` to ``rec`` under the entity prefix ``prefix``."""
+    grid, tracks = TrackGrid.from_tracks(episode.tracks)
+    if len(tracks):
+        x = tracks["x"].to_numpy()
+        x_range = (float(x.min()) - _ROAD_MARGIN_M, float(x.max()) + _ROAD_MARGIN_M)
+    else:
+        x_range = (-_ROAD_MARGIN_M, _ROAD_MARGIN_M)
+    streams.log_road(rec, episode, prefix, x_range)
+    streams.log_vehicles(rec, episode, prefix, grid, tracks)
+    streams.log_ego(rec, episode, prefix, grid, tracks)
+    streams.log_predictions(rec, episode, prefix, grid)
+    streams.log_camera(rec, episode, prefix)
+    streams.log_speed(rec, episode, prefix, grid, tracks)
+    streams.log_rewards(rec, episode, prefix)
+    streams.log_lanes(rec, episode, prefix, tracks)
+    streams.log_events(rec, episode, prefix)

@@ -1,0 +1,327 @@
+"""One function per data stream: a recorded :class:`~lcdata.reader.Episode` -> Rerun entities.
+
+Every function takes the recording stream, the episode and the entity-path prefix of the episode
+(``""`` when it has a recording of its own, ``episodes/<id>`` when episodes are shown side by side),
+and logs whole columns with :func:`rerun.send_columns`: one call per entity for the whole episode.
+Two time lines: ``step`` (simulation step, a sequence) and ``sim_time`` (simulation time, a duration).
+"""
+
+from __future__ import annotations
+
+import logging
+from typing import Any
+
+import numpy as np
+import pandas as pd
+import rerun as rr
+
+from lcdata.reader import Episode
+from lcdata.viewer.geometry import TrackGrid, box_corners, screen
+from lcsim.core import ACTION_NAMES
+from lcsim.render import CLASS_NAMES, PALETTE
+
+log = logging.getLogger(__name__)
+
+STEP, SIM_TIME = "step", "sim_time"
+EGO_RGB = tuple(int(c) for c in PALETTE[4])  # the bird's-eye image's ego colour
+TRAFFIC_RGB = (90, 150, 255)
+PREDICTED_RGB = (255, 120, 40)
+ACTUAL_RGB = (60, 220, 120)
+UNKNOWN_CLASS = 255
+SERIES_RGB = {
+    "ego": EGO_RGB, "target": (200, 200, 200), "traffic_mean": TRAFFIC_RGB, "total": (240, 240, 240),
+    "forward": (60, 220, 120), "collision": (240, 60, 60), "off_road": (240, 160, 40), "success": (120, 160, 255),
+    "return": (240, 240, 240), "target_lane": (200, 200, 200), "action": (255, 120, 40),
+}  # fmt: skip
+
+
+def path(prefix: str, *parts: str) -> str:
+    """Entity path under an episode prefix."""
+    return "/".join(p for p in (prefix, *parts) if p)
+
+
+def times(steps: np.ndarray, t: np.ndarray) -> list[rr.TimeColumn]:
+    """The two time columns for rows at simulation ``steps`` (int) and times ``t`` (s)."""
+    return [
+        rr.TimeColumn(STEP, sequence=np.asarray(steps, dtype=np.int64)),
+        rr.TimeColumn(SIM_TIME, duration=np.asarray(t, dtype=np.float64)),
+    ]
+
+
+def _series(rec: rr.RecordingStream, entity: str, steps: np.ndarray, t: np.ndarray, values: np.ndarray,
+            name: str, key: str | None = None) -> None:  # fmt: skip
+    """A named, coloured scalar time series (one row per step)."""
+    key = key or name
+    episode_prefix = entity.split("/plots/")[0] if "/plots/" in entity else ""
+    if episode_prefix:  # side by side: say which episode a line belongs to
+        name = f"{episode_prefix.rsplit('/', 1)[-1]}: {name}"
+    rec.log(entity, rr.SeriesLines(names=name, colors=[SERIES_RGB.get(key, (200, 200, 200))], widths=2.0),
+            static=True)  # fmt: skip
+    if len(steps):
+        rec.send_columns(entity, indexes=times(steps, t), columns=rr.Scalars.columns(scalars=values))
+
+
+# -- world ------------------------------------------------------------------------------------------
+def log_road(rec: rr.RecordingStream, episode: Episode, prefix: str, x_range: tuple[float, float]) -> None:
+    """Static road: solid edges, broken lane markings (dash by dash), shoulders, faint lane centres."""
+    road = episode.metadata["config"].get("road", {})
+    num_lanes = int(road.get("num_lanes", 4))
+    w = float(road.get("lane_width_m", 3.5))
+    shoulder = float(road.get("shoulder_width_m", 2.5))
+    dash, gap = float(road.get("dash_length_m", 3.0)), float(road.get("dash_gap_m", 6.0))
+    x0, x1 = x_range
+    edges = [screen(np.array([x0, x1]), np.full(2, y)) for y in (0.0, num_lanes * w)]
+    rec.log(path(prefix, "world/road/edges"), rr.LineStrips2D(edges, colors=[(235, 235, 235)], radii=0.1,
+                                                             draw_order=2.0), static=True)  # fmt: skip
+    shoulders = [screen(np.array([x0, x1]), np.full(2, y)) for y in (-shoulder, num_lanes * w + shoulder)]
+    rec.log(path(prefix, "world/road/shoulders"), rr.LineStrips2D(shoulders, colors=[(110, 110, 110)],
+                                                                  radii=0.05, draw_order=1.0), static=True)  # fmt: skip
+    starts = np.arange(np.floor(x0 / (dash + gap)) * (dash + gap), x1, dash + gap)
+    inner = np.arange(1, num_lanes) * w
+    if len(inner) and len(starts):
+        xs = np.stack([starts, starts + dash], axis=-1)  # (D, 2) dash ends
+        sx = np.broadcast_to(xs[None], (len(inner), *xs.shape)).reshape(-1, 2)
+        sy = np.repeat(inner, len(starts))[:, None].repeat(2, axis=1)
+        rec.log(path(prefix, "world/road/markings"), rr.LineStrips2D(screen(sx, sy), colors=[(220, 220, 220)],
+                                                                     radii=0.075, draw_order=2.0), static=True)  # fmt: skip
+    centres = [screen(np.array([x0, x1]), np.full(2, (k + 0.5) * w)) for k in range(num_lanes)]
+    rec.log(path(prefix, "world/road/lane_centres"), rr.LineStrips2D(centres, colors=[(90, 90, 90)], radii=0.03,
+                                                                     draw_order=1.0), static=True)  # fmt: skip
+
+
+def log_vehicles(rec: rr.RecordingStream, episode: Episode, prefix: str, grid: TrackGrid,
+                 tracks: pd.DataFrame) -> None:  # fmt: skip
+    """Traffic as oriented boxes (line strips of the 4 corners) and every vehicle's short trail.
+
+    ``world/vehicles/boxes``: one strip per traffic vehicle per step; ``world/vehicles/trails``: the
+    last 2 s of every vehicle, the ego's included.
+    """
+    if not len(tracks):
+        return
+    traffic = ~tracks["is_ego"].to_numpy()
+    corners = box_corners(*(tracks[c].to_numpy()[traffic] for c in ("x", "y", "yaw", "length", "width")))
+    per_step = np.bincount(grid.row[traffic], minlength=len(grid.steps))
+    rec.log(path(prefix, "world/vehicles/boxes"), rr.LineStrips2D.from_fields(colors=[TRAFFIC_RGB], radii=0.12,
+                                                                             draw_order=4.0), static=True)  # fmt: skip
+    rec.send_columns(path(prefix, "world/vehicles/boxes"), indexes=times(grid.steps, grid.t),
+                     columns=rr.LineStrips2D.columns(strips=corners).partition(per_step))  # fmt: skip
+    trails = grid.trails(np.ones(len(tracks), dtype=bool))
+    rec.log(path(prefix, "world/vehicles/trails"), rr.LineStrips2D.from_fields(colors=[(150, 150, 170, 150)],
+                                                                              radii=0.08, draw_order=3.0), static=True)  # fmt: skip
+    rec.send_columns(path(prefix, "world/vehicles/trails"), indexes=times(grid.steps, grid.t),
+                     columns=rr.LineStrips2D.columns(strips=trails).partition(grid.counts))  # fmt: skip
+
+
+def log_ego(
+    rec: rr.RecordingStream, episode: Episode, prefix: str, grid: TrackGrid, tracks: pd.DataFrame
+) -> None:
+    """The ego frame ``world/ego`` (a translation per step, followed by the scene view) and its box.
+
+    The box ``world/ego/box`` is drawn in that frame (rotated, not translated), filled-looking with a
+    thick outline in the ego colour of the bird's-eye image.
+    """
+    ego = tracks[tracks["is_ego"].to_numpy()]
+    if not len(ego):
+        return
+    steps, t = ego["step"].to_numpy(), ego["t"].to_numpy()
+    xy = screen(ego["x"].to_numpy(), ego["y"].to_numpy())
+    translation = np.concatenate([xy, np.zeros((len(ego), 1), dtype=np.float32)], axis=1)
+    rec.send_columns(path(prefix, "world/ego"), indexes=times(steps, t),
+                     columns=rr.Transform3D.columns(translation=translation))  # fmt: skip
+    zeros = np.zeros(len(ego))
+    corners = box_corners(
+        zeros, zeros, ego["yaw"].to_numpy(), ego["length"].to_numpy(), ego["width"].to_numpy()
+    )
+    rec.log(path(prefix, "world/ego/box"), rr.LineStrips2D.from_fields(colors=[EGO_RGB], radii=0.25, labels=["ego"],
+                                                                       draw_order=6.0), static=True)  # fmt: skip
+    rec.send_columns(path(prefix, "world/ego/box"), indexes=times(steps, t),
+                     columns=rr.LineStrips2D.columns(strips=corners).partition(np.ones(len(ego), dtype=np.int64)))  # fmt: skip
+
+
+def log_predictions(rec: rr.RecordingStream, episode: Episode, prefix: str, grid: TrackGrid) -> None:
+    """Predicted trajectories of the nearest vehicles next to what they really did (``/prediction`` only).
+
+    At every decision with a prediction: ``world/prediction/predicted`` (from the current position
+    through the F predicted points) and ``world/prediction/actual`` (the recorded positions over the
+    same F steps; the prediction's k-th point is k simulation steps ahead).
+    """
+    pred = episode.predictions
+    if not len(pred) or not len(grid.steps):
+        return
+    pred = pred[pred["vehicle_id"].to_numpy() >= 0].sort_values(["step", "slot", "k"], kind="stable")
+    horizon = int(pred["k"].max())
+    whole = pred.groupby(["step", "slot"], sort=False)["k"].transform("size").to_numpy() == horizon
+    if not whole.all():
+        log.warning("%s: skipping predictions with missing horizon points", episode.path)
+        pred = pred[whole]
+    heads = pred.iloc[::horizon]
+    xy = pred[["x", "y"]].to_numpy().reshape(-1, horizon, 2)
+    hs, hv = heads["step"].to_numpy(), heads["vehicle_id"].to_numpy()
+    step_index = np.clip(np.searchsorted(grid.steps, hs), 0, len(grid.steps) - 1)
+    col = np.clip(np.searchsorted(grid.ids, hv), 0, len(grid.ids) - 1)
+    known = (grid.steps[step_index] == hs) & (grid.ids[col] == hv)
+    step_index, col, xy = step_index[known], col[known], xy[known]
+    if not len(xy):
+        return
+    actual, valid = grid.future(step_index, col, horizon)
+    start = actual[:, :1]
+    predicted = screen(*np.concatenate([start, xy], axis=1).transpose(2, 0, 1))
+    actual = np.where(valid[..., None], actual, start)  # past the end of the recording: stay put
+    actual_pts = screen(actual[..., 0], actual[..., 1])
+    pred_steps, per_step = np.unique(step_index, return_counts=True)
+    idx = times(grid.steps[pred_steps], grid.t[pred_steps])
+    for name, pts, rgb in (("predicted", predicted, PREDICTED_RGB), ("actual", actual_pts, ACTUAL_RGB)):
+        entity = path(prefix, "world/prediction", name)
+        rec.log(entity, rr.LineStrips2D.from_fields(colors=[rgb], radii=0.15, draw_order=5.0), static=True)
+        rec.send_columns(entity, indexes=idx, columns=rr.LineStrips2D.columns(strips=pts).partition(per_step))
+
+
+# -- camera -----------------------------------------------------------------------------------------
+def class_ids(chw: np.ndarray) -> np.ndarray:
+    """``(..., 3, H, W)`` palette image -> ``(..., H, W)`` uint8 class ids (255 for other colours)."""
+    code = (
+        (chw[..., 0, :, :].astype(np.int32) << 16)
+        | (chw[..., 1, :, :].astype(np.int32) << 8)
+        | chw[..., 2, :, :]
+    )
+    palette = (PALETTE[:, 0].astype(np.int32) << 16) | (PALETTE[:, 1].astype(np.int32) << 8) | PALETTE[:, 2]
+    order = np.argsort(palette)
+    pos = np.clip(np.searchsorted(palette[order], code), 0, len(palette) - 1)
+    ids = order[pos].astype(np.uint8)
+    ids[palette[order][pos] != code] = UNKNOWN_CLASS
+    return ids
+
+
+def log_camera(rec: rr.RecordingStream, episode: Episode, prefix: str) -> None:
+    """The bird's-eye semantic image as a ``SegmentationImage`` whose classes are named and coloured.
+
+    ``camera`` holds the ``AnnotationContext`` (CARLA palette, :data:`lcsim.render.CLASS_NAMES`);
+    ``camera/bev`` one image per decision, logged as one column of buffers.
+    """
+    steps = episode.image_steps
+    if not len(steps):
+        return
+    context = [rr.AnnotationInfo(id=k, label=name, color=tuple(int(c) for c in PALETTE[k]))
+               for k, name in CLASS_NAMES.items()] + [rr.AnnotationInfo(id=UNKNOWN_CLASS, label="unknown",
+                                                                         color=(255, 0, 255))]  # fmt: skip
+    rec.log(path(prefix, "camera"), rr.AnnotationContext(context), static=True)
+    images = np.stack([episode.image(int(s)) for s in steps])  # (M, 3, H, W)
+    ids = class_ids(images)
+    m, h, w = ids.shape
+    fmt = rr.components.ImageFormat(width=w, height=h, channel_datatype=rr.ChannelDatatype.U8)
+    entity = path(prefix, "camera/bev")
+    rec.log(entity, rr.SegmentationImage.from_fields(format=fmt, opacity=1.0), static=True)
+    t = _step_times(episode, steps)
+    rec.send_columns(
+        entity, indexes=times(steps, t), columns=rr.SegmentationImage.columns(buffer=ids.reshape(m, -1))
+    )
+
+
+def _step_times(episode: Episode, steps: np.ndarray) -> np.ndarray:
+    """Simulation time of ``steps`` from the ego table (or the config's dt when a step is missing)."""
+    ego = episode.ego
+    dt = float(episode.metadata["config"].get("dt_s", 0.05))
+    if len(ego):
+        s, t = ego["step"].to_numpy(), ego["t"].to_numpy()
+        i = np.clip(np.searchsorted(s, steps), 0, len(s) - 1)
+        return np.where(s[i] == steps, t[i], steps * dt)
+    return steps * dt
+
+
+# -- plots ------------------------------------------------------------------------------------------
+def log_speed(
+    rec: rr.RecordingStream, episode: Episode, prefix: str, grid: TrackGrid, tracks: pd.DataFrame
+) -> None:
+    """``plots/speed``: ego speed, its target speed and the mean traffic speed (km/h)."""
+    ego = episode.ego
+    if len(ego):
+        _series(rec, path(prefix, "plots/speed/ego"), ego["step"].to_numpy(), ego["t"].to_numpy(),
+                ego["speed"].to_numpy() * 3.6, "ego", "ego")  # fmt: skip
+        target = episode.metadata["config"].get("ego", {}).get("target_speed_kmh")
+        if target is not None:
+            ends = np.array([0, len(ego) - 1])
+            _series(rec, path(prefix, "plots/speed/target"), ego["step"].to_numpy()[ends], ego["t"].to_numpy()[ends],
+                    np.full(2, float(target)), "ego target", "target")  # fmt: skip
+    traffic = ~tracks["is_ego"].to_numpy()
+    if traffic.any():
+        n = np.bincount(grid.row[traffic], minlength=len(grid.steps))
+        total = np.bincount(
+            grid.row[traffic], weights=tracks["speed"].to_numpy()[traffic], minlength=len(grid.steps)
+        )
+        has = n > 0
+        _series(rec, path(prefix, "plots/speed/traffic_mean"), grid.steps[has], grid.t[has],
+                total[has] / n[has] * 3.6, "traffic mean", "traffic_mean")  # fmt: skip
+
+
+def log_rewards(rec: rr.RecordingStream, episode: Episode, prefix: str) -> None:
+    """``plots/reward/*``: reward and its components per decision; ``plots/return``: cumulative return."""
+    steps = episode.steps
+    if not len(steps):
+        return
+    s, t = steps["step"].to_numpy(), steps["t"].to_numpy()
+    _series(rec, path(prefix, "plots/reward/total"), s, t, steps["reward"].to_numpy(), "reward", "total")
+    for name in ("forward", "collision", "off_road", "success"):
+        _series(rec, path(prefix, "plots/reward", name), s, t, steps[f"r_{name}"].to_numpy(), name)
+    _series(rec, path(prefix, "plots/return"), s, t, np.cumsum(steps["reward"].to_numpy()), "return")
+
+
+def log_lanes(rec: rr.RecordingStream, episode: Episode, prefix: str, tracks: pd.DataFrame) -> None:
+    """``plots/lane``: the ego's lane and target lane per step, and each decision's action (0 right, 2 left)."""
+    ego = tracks[tracks["is_ego"].to_numpy()]
+    if len(ego):
+        s, t = ego["step"].to_numpy(), ego["t"].to_numpy()
+        _series(
+            rec,
+            path(prefix, "plots/lane/ego"),
+            s,
+            t,
+            ego["lane"].to_numpy().astype(np.float64),
+            "lane",
+            "ego",
+        )
+        _series(rec, path(prefix, "plots/lane/target"), s, t, ego["target_lane"].to_numpy().astype(np.float64),
+                "target lane", "target_lane")  # fmt: skip
+    steps = episode.steps
+    if len(steps):
+        rec.log(path(prefix, "plots/lane/action"), rr.SeriesPoints(names="action", colors=[SERIES_RGB["action"]],
+                                                                   marker_sizes=2.0), static=True)  # fmt: skip
+        rec.send_columns(path(prefix, "plots/lane/action"), indexes=times(steps["step"], steps["t"]),
+                         columns=rr.Scalars.columns(scalars=steps["action"].to_numpy().astype(np.float64)))  # fmt: skip
+
+
+# -- text -------------------------------------------------------------------------------------------
+_LEVELS = {"debug": "DEBUG", "info": "INFO", "warning": "WARN", "error": "ERROR", "fatal": "CRITICAL"}
+
+
+def log_events(rec: rr.RecordingStream, episode: Episode, prefix: str) -> None:
+    """``log/events``: recorded ``/log`` events (lane-change start and end, collision, off-road, outcome).
+
+    ``log/decisions``: every decision (lane changes at INFO, keep-lane at DEBUG) with its reward.
+    """
+    events = episode.events
+    if len(events):
+        text = [f"[{k}] {x}" if x else f"[{k}]" for k, x in zip(events["kind"], events["text"], strict=True)]
+        levels = [_LEVELS.get(str(v), "INFO") for v in events["level"]]
+        rec.send_columns(path(prefix, "log/events"), indexes=times(events["step"], events["t"]),
+                         columns=rr.TextLog.columns(text=text, level=levels))  # fmt: skip
+    steps = episode.steps
+    if len(steps):
+        names = np.asarray(ACTION_NAMES, dtype=object)[np.clip(steps["action"].to_numpy(), 0, 2)]
+        text = [f"decision {d}: {a} (reward {r:+.1f}){' -> ' + o if o else ''}"
+                for d, a, r, o in zip(steps["decision"], names, steps["reward"], steps["outcome"], strict=True)]  # fmt: skip
+        levels = np.where(steps["action"].to_numpy() == ACTION_NAMES.index("keep"), "DEBUG", "INFO").tolist()
+        rec.send_columns(path(prefix, "log/decisions"), indexes=times(steps["step"], steps["t"]),
+                         columns=rr.TextLog.columns(text=text, level=levels))  # fmt: skip
+
+
+def describe(episode: Episode) -> dict[str, Any]:
+    """Short summary of an episode for the recording's properties and the command line."""
+    steps = episode.steps
+    outcome = str(steps["outcome"].iloc[-1]) if len(steps) else ""
+    return {
+        "episode_id": episode.episode_id,
+        "driver": str(episode.metadata.get("driver", "")),
+        "seed": int(episode.metadata.get("seed", -1)),
+        "outcome": outcome or ("incomplete" if not episode.complete else "running"),
+        "return": float(steps["reward"].sum()) if len(steps) else 0.0,
+    }
