@@ -1,0 +1,266 @@
+"""lc-view: MCAP episodes -> Rerun, checked by reading the saved .rrd back (no screen needed)."""
+
+from __future__ import annotations
+
+import dataclasses
+import pathlib
+from collections import defaultdict
+
+import numpy as np
+import pyarrow as pa
+import pytest
+from mcap.writer import Writer as McapWriter
+from rerun.chunk import RrdReader
+
+from lcdata import EpisodeWriter, read_episode
+from lcdata.view import main
+from lcdata.viewer.geometry import box_corners
+from lcdata.viewer.streams import UNKNOWN_CLASS, class_ids
+from lcsim.config import paper_scenario
+from lcsim.core import KEEP, LaneChangeCore
+from lcsim.drivers import RuleBasedDriver
+from lcsim.render import PALETTE
+
+N_TRAFFIC = 6
+HORIZON = 5
+
+
+def record(
+    path: pathlib.Path,
+    *,
+    seed: int = 1,
+    decisions: int = 12,
+    predictions: bool = True,
+    chunk_size: int = 1 << 20,
+) -> pathlib.Path:
+    """A small real episode: the simulator (6 traffic vehicles, 60 x 60 image) written with EpisodeWriter.
+
+    Vehicles and ego state every simulation step (through the simulator's sub-step hook); image,
+    RL step, lane-change events and a constant-velocity "prediction" of the nearest vehicles at
+    every decision.
+    """
+    base = paper_scenario()
+    config = dataclasses.replace(
+        base, traffic=dataclasses.replace(base.traffic, num_vehicles=N_TRAFFIC, spawn_behind_m=60.0,
+                                          spawn_ahead_m=120.0),
+        render=dataclasses.replace(base.render, image_size_px=60),
+    )  # fmt: skip
+    core = LaneChangeCore(config, 1)
+    sim = core.sim
+    with EpisodeWriter(path, metadata={"config": config.to_dict(), "seed": seed, "driver": "rule"},
+                       start_time_ns=10**18, chunk_size=chunk_size) as w:  # fmt: skip
+
+        def write_step(s: object = None) -> None:
+            step, t = int(sim.step[0]), float(sim.t_s[0])
+            w.write_vehicles(step, t, sim.ids, sim.x[0], sim.y[0], sim.yaw[0], sim.speed[0], sim.accel[0],
+                             sim.lane[0], sim.target_lane[0], sim.length[0], sim.width[0])  # fmt: skip
+            w.write_ego(step, t, speed=float(sim.speed[0, 0]), lane=int(sim.lane[0, 0]))
+
+        core.reset([0], [seed])
+        write_step()
+        sim.hooks.append(write_step)
+        driver = RuleBasedDriver()
+        obs = core.observe()
+        for d in range(decisions):
+            step, t = int(sim.step[0]), float(sim.t_s[0])
+            mask = core.action_mask()
+            action = (
+                int(driver(obs, mask, core)[0]) if d != 2 else 2 if mask[0, 2] else 0
+            )  # one forced change
+            w.write_image(step, t, obs["image"][0])
+            if predictions:
+                ids = core.neighbours(np.array([0]))[0]
+                v = np.stack([np.cos(sim.yaw[0]), np.sin(sim.yaw[0])], -1) * sim.speed[0][:, None]
+                k = np.arange(1, HORIZON + 1)[None, :, None] * config.dt_s
+                xy = np.stack([sim.x[0], sim.y[0]], -1)[ids][:, None, :] + v[ids][:, None, :] * k
+                w.write_prediction(step, t, ids, xy)
+            if action != KEEP:
+                w.write_event(step, t, "lane_change_start", f"lane {int(sim.lane[0, 0])}")
+            result = core.step(np.array([action]))
+            w.write_rl_step(step, t, action=action, action_mask=mask[0], reward=float(result.reward[0]),
+                            reward_components={k: float(v[0]) for k, v in result.components.items()},
+                            outcome=str(result.outcome[0]), decision=d)  # fmt: skip
+            obs = core.observe()
+        w.write_event(int(sim.step[0]), float(sim.t_s[0]), "outcome", "timeout", "warning")
+    return path
+
+
+def read_rrd(path: pathlib.Path) -> dict[str, list[tuple[bool, pa.RecordBatch]]]:
+    """Entity path -> [(is_static, record batch)] of every chunk of the first recording in ``path``."""
+    out: dict[str, list[tuple[bool, pa.RecordBatch]]] = defaultdict(list)
+    for chunk in RrdReader(path).stream():
+        out[chunk.entity_path.lstrip("/")].append((chunk.is_static, chunk.to_record_batch()))
+    return out
+
+
+def temporal(chunks: list[tuple[bool, pa.RecordBatch]], column: str) -> dict[str, np.ndarray]:
+    """``step``, ``sim_time`` and the per-row length of list ``column`` over the temporal chunks, by step."""
+    steps, times, lengths = [], [], []
+    for static, batch in chunks:
+        if static or column not in batch.schema.names:
+            continue
+        steps.append(batch.column("step").to_numpy())
+        times.append(batch.column("sim_time").cast(pa.int64()).to_numpy() / 1e9)
+        lengths.append(np.asarray(batch.column(column).value_lengths().fill_null(0)))
+    order = np.argsort(np.concatenate(steps), kind="stable")
+    return {"step": np.concatenate(steps)[order], "sim_time": np.concatenate(times)[order],
+            "count": np.concatenate(lengths)[order]}  # fmt: skip
+
+
+@pytest.fixture(scope="module")
+def episode_file(tmp_path_factory: pytest.TempPathFactory) -> pathlib.Path:
+    return record(tmp_path_factory.mktemp("view") / "ep.mcap")
+
+
+@pytest.fixture(scope="module")
+def saved(episode_file: pathlib.Path) -> dict[str, list[tuple[bool, pa.RecordBatch]]]:
+    out = episode_file.with_suffix(".rrd")
+    assert main([str(episode_file), "--save", str(out)]) == 0
+    return read_rrd(out)
+
+
+def test_entities(saved: dict[str, list[tuple[bool, pa.RecordBatch]]]) -> None:
+    expected = {
+        "world/road/edges", "world/road/markings", "world/road/shoulders", "world/road/lane_centres",
+        "world/vehicles/boxes", "world/vehicles/trails", "world/ego", "world/ego/box",
+        "world/prediction/predicted", "world/prediction/actual", "camera", "camera/bev",
+        "plots/speed/ego", "plots/speed/target", "plots/speed/traffic_mean", "plots/reward/total",
+        "plots/reward/forward", "plots/reward/collision", "plots/reward/off_road", "plots/reward/success",
+        "plots/return", "plots/lane/ego", "plots/lane/target", "plots/lane/action", "log/events", "log/decisions",
+    }  # fmt: skip
+    assert expected <= set(saved), sorted(expected - set(saved))
+    for entity in ("world/road/edges", "world/road/markings", "camera"):
+        assert all(static for static, _ in saved[entity]), entity
+
+
+def test_vehicle_boxes_per_step(
+    saved: dict[str, list[tuple[bool, pa.RecordBatch]]], episode_file: pathlib.Path
+) -> None:
+    episode = read_episode(episode_file)
+    tracks = episode.tracks
+    per_step = tracks[~tracks["is_ego"]].groupby("step").size()
+    boxes = temporal(saved["world/vehicles/boxes"], "LineStrips2D:strips")
+    np.testing.assert_array_equal(boxes["step"], per_step.index.to_numpy())
+    np.testing.assert_array_equal(boxes["count"], per_step.to_numpy())
+    assert (boxes["count"] == N_TRAFFIC).all()
+    # time lines: simulation step and simulation time, one row per recorded step
+    ego = episode.ego
+    np.testing.assert_array_equal(boxes["step"], ego["step"].to_numpy())
+    np.testing.assert_allclose(boxes["sim_time"], ego["t"].to_numpy(), atol=1e-9)
+    trails = temporal(saved["world/vehicles/trails"], "LineStrips2D:strips")
+    assert (trails["count"] == N_TRAFFIC + 1).all()
+    ego_box = temporal(saved["world/ego/box"], "LineStrips2D:strips")
+    assert (ego_box["count"] == 1).all() and len(ego_box["step"]) == len(ego)
+
+
+def test_other_streams(
+    saved: dict[str, list[tuple[bool, pa.RecordBatch]]], episode_file: pathlib.Path
+) -> None:
+    episode = read_episode(episode_file)
+    images = temporal(saved["camera/bev"], "SegmentationImage:buffer")
+    np.testing.assert_array_equal(images["step"], episode.image_steps)
+    assert (images["count"] == 1).all()  # one blob per image, one class id per pixel in it
+    blobs = [b.column("SegmentationImage:buffer").flatten() for s, b in saved["camera/bev"] if not s]
+    assert all((np.asarray(blob.value_lengths()) == 60 * 60).all() for blob in blobs)
+    pred = temporal(saved["world/prediction/predicted"], "LineStrips2D:strips")
+    actual = temporal(saved["world/prediction/actual"], "LineStrips2D:strips")
+    expected = episode.predictions.query("k == 1 and vehicle_id >= 0").groupby("step").size()
+    np.testing.assert_array_equal(pred["step"], expected.index.to_numpy())
+    np.testing.assert_array_equal(pred["count"], expected.to_numpy())
+    np.testing.assert_array_equal(actual["count"], pred["count"])
+    rewards = temporal(saved["plots/return"], "Scalars:scalars")
+    np.testing.assert_array_equal(rewards["step"], episode.steps["step"].to_numpy())
+    ret = np.concatenate(
+        [b.column("Scalars:scalars").flatten().to_numpy() for s, b in saved["plots/return"] if not s]
+    )
+    np.testing.assert_allclose(np.sort(ret) if (np.diff(ret) >= 0).all() else ret,
+                               np.cumsum(episode.steps["reward"].to_numpy()), rtol=1e-9)  # fmt: skip
+    events = temporal(saved["log/events"], "TextLog:text")
+    assert len(events["step"]) == len(episode.events)
+    texts = [
+        t for s, b in saved["log/events"] if not s for t in b.column("TextLog:text").flatten().to_pylist()
+    ]
+    assert any("lane_change_start" in t for t in texts) and any("[outcome] timeout" in t for t in texts)
+    decisions = temporal(saved["log/decisions"], "TextLog:text")
+    assert len(decisions["step"]) == len(episode.steps)
+
+
+def test_no_prediction_topic_no_prediction_entities(tmp_path: pathlib.Path) -> None:
+    path = record(tmp_path / "nopred.mcap", decisions=3, predictions=False)
+    out = tmp_path / "nopred.rrd"
+    assert main([str(path), "--save", str(out)]) == 0
+    entities = read_rrd(out)
+    assert "world/vehicles/boxes" in entities and not any(e.startswith("world/prediction") for e in entities)
+
+
+def test_several_episodes(tmp_path: pathlib.Path) -> None:
+    a = record(tmp_path / "a.mcap", seed=1, decisions=3)
+    b = record(tmp_path / "b.mcap", seed=2, decisions=4)
+    # side by side: one recording, one prefix per episode
+    assert main([str(a), str(b), "--side-by-side", "--save", str(tmp_path / "both.rrd")]) == 0
+    both = read_rrd(tmp_path / "both.rrd")
+    assert {"episodes/a/world/vehicles/boxes", "episodes/b/world/vehicles/boxes"} <= set(both)
+    steps_a = temporal(both["episodes/a/world/ego/box"], "LineStrips2D:strips")["step"]
+    steps_b = temporal(both["episodes/b/world/ego/box"], "LineStrips2D:strips")["step"]
+    assert len(steps_a) == len(read_episode(a).ego) and len(steps_b) == len(read_episode(b).ego)
+    # separate recordings: one file (and recording id) per episode
+    assert main([str(a), str(b), "--save", str(tmp_path / "sep.rrd")]) == 0
+    for name in ("a", "b"):
+        reader = RrdReader(tmp_path / f"sep.{name}.rrd")
+        assert [r.recording_id for r in reader.recordings()] == [name]
+        assert "world/vehicles/boxes" in read_rrd(tmp_path / f"sep.{name}.rrd")
+
+
+def test_truncated_file_shows_recovered_part(
+    tmp_path: pathlib.Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    full = record(tmp_path / "full.mcap", decisions=40, predictions=False, chunk_size=16 << 10)
+    data = full.read_bytes()
+    cut = tmp_path / "cut.mcap"
+    cut.write_bytes(data[: len(data) * 2 // 3])
+    out = tmp_path / "cut.rrd"
+    assert main([str(cut), "--save", str(out)]) == 0
+    err = capsys.readouterr().err
+    assert "warning" in err and "truncated" in err and "Traceback" not in err
+    boxes = temporal(read_rrd(out)["world/vehicles/boxes"], "LineStrips2D:strips")
+    assert 0 < len(boxes["step"]) < len(read_episode(full).ego)
+
+
+def test_bad_input_one_line_error(tmp_path: pathlib.Path, capsys: pytest.CaptureFixture[str]) -> None:
+    not_mcap = tmp_path / "notes.mcap"
+    not_mcap.write_text("hello\n")
+    foreign = tmp_path / "foreign.mcap"
+    with open(foreign, "wb") as f:
+        writer = McapWriter(f)
+        writer.start()
+        schema = writer.register_schema("other.Thing", "jsonschema", b"{}")
+        channel = writer.register_channel("/thing", "json", schema)
+        writer.add_message(channel, log_time=1, data=b"{}", publish_time=1)
+        writer.finish()
+    for path in (tmp_path / "missing.mcap", not_mcap, foreign, tmp_path):
+        assert main([str(path), "--headless"]) == 2, path
+        err = capsys.readouterr().err
+        assert err.startswith("lc-view: error: ") and err.count("\n") == 1 and "Traceback" not in err, err
+    assert main([str(foreign), "--save", str(tmp_path / "x.txt")]) == 2
+
+
+def test_help_has_example(capsys: pytest.CaptureFixture[str]) -> None:
+    with pytest.raises(SystemExit) as exc:
+        main(["--help"])
+    assert exc.value.code == 0
+    text = capsys.readouterr().out
+    assert "lc-view runs/" in text and "--side-by-side" in text and "--web" in text
+
+
+def test_class_ids_and_box_corners() -> None:
+    img = PALETTE[np.array([[0, 1], [3, 4]])].transpose(2, 0, 1).copy()  # (3, 2, 2)
+    img[:, 0, 0] = (1, 2, 3)  # not a palette colour
+    np.testing.assert_array_equal(class_ids(img), [[UNKNOWN_CLASS, 1], [3, 4]])
+    c = box_corners(
+        np.array([10.0]), np.array([2.0]), np.array([np.pi / 2]), np.array([4.0]), np.array([2.0])
+    )
+    assert c.shape == (1, 5, 2)
+    np.testing.assert_allclose(c[0, 0], c[0, 4])
+    # heading +y (left of the road): the nose is 2 m further left, drawn 2 m higher on screen (y mirrored)
+    np.testing.assert_allclose(c[0, :4].mean(axis=0), [10.0, -2.0], atol=1e-6)
+    np.testing.assert_allclose(c[0, :4, 1].min(), -4.0, atol=1e-6)
