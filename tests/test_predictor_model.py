@@ -104,3 +104,16 @@ def test_predict_neighbours_matches_corpus_windows() -> None:
     out = pred.predict_neighbours(obs, np.ones(hist.shape[:3], dtype=bool), ego_history=ego)
     got = from_frame(out[:, 0].astype(np.float64), origin, heading)
     np.testing.assert_allclose(got, expected, atol=2e-3)
+
+
+def test_forward_ignores_garbage_behind_the_mask() -> None:
+    model = _predictor().model
+    pos = torch.from_numpy(_moving_histories(3, 9, 10).astype(np.float32))
+    mask = torch.ones(3, 9, 10, dtype=torch.bool)
+    mask[:, 4:, :5] = False
+    clean = pos.clone()
+    clean[~mask] = 0.0
+    dirty = pos.clone()
+    dirty[~mask] = float("nan")
+    with torch.no_grad():
+        torch.testing.assert_close(model(dirty, mask), model(clean, mask))

@@ -122,7 +122,7 @@ def token_features(pos: torch.Tensor, mask: torch.Tensor) -> torch.Tensor:
         backward-difference acceleration (three steps present, else 0).
     """
     m = mask.to(pos.dtype).unsqueeze(-1)
-    p = pos * m
+    p = torch.where(mask.unsqueeze(-1), pos, torch.zeros_like(pos))  # NaN-safe, unlike pos * m
     v = torch.zeros_like(p)
     mv = m[..., 1:, :] * m[..., :-1, :]
     v[..., 1:, :] = (p[..., 1:, :] - p[..., :-1, :]) * mv
@@ -267,6 +267,7 @@ class TrajectoryTransformer(nn.Module):
         n, t, h, _ = pos.shape
         if h != self.config.history_steps:
             raise ValueError(f"expected {self.config.history_steps} history steps, got {h}")
+        pos = torch.where(mask.unsqueeze(-1), pos, torch.zeros_like(pos))  # whatever hides behind the mask
         feats = token_features(pos, mask)
         mean = torch.cat((self.agent_mean.unsqueeze(0), self.neighbour_mean.expand(t - 1, -1, -1)))
         std = torch.cat((self.agent_std.unsqueeze(0), self.neighbour_std.expand(t - 1, -1, -1)))
