@@ -8,6 +8,8 @@ import rerun.blueprint as rrb
 
 from lcdata.viewer.streams import STEP, path
 
+SHOWN_LEVELS = ["INFO", "WARN", "ERROR", "CRITICAL"]
+"""Text-log levels shown at first (keep-lane decisions and lane invasions are DEBUG: one click away)."""
 FOLLOW_X_M = (-45.0, 75.0)
 """Road shown behind / ahead of the ego in the scene view (m)."""
 FOLLOW_Y_M = (-16.0, 16.0)
@@ -35,7 +37,11 @@ def episode_views(prefix: str, title: str = "") -> rrb.Container:
         rrb.TimeSeriesView(name="lane / target lane / action", origin=path(prefix, "plots/lane")),
         grid_columns=2,
     )
-    logs = rrb.TextLogView(name=f"{name}events and decisions", origin=path(prefix, "log"))
+    logs = rrb.TextLogView(
+        name=f"{name}events and decisions",
+        origin=path(prefix, "log"),
+        rows=rrb.TextLogRows(filter_by_log_level=SHOWN_LEVELS),
+    )
     return rrb.Horizontal(
         rrb.Vertical(rrb.Tabs(follow, overview), plots, row_shares=[3, 2]),
         rrb.Vertical(camera, logs, row_shares=[1, 1]),
@@ -71,5 +77,5 @@ def blueprint(prefixes: Sequence[str], titles: Sequence[str] = ()) -> rrb.Bluepr
         body,
         rrb.BlueprintPanel(state="collapsed"),
         rrb.SelectionPanel(state="collapsed"),
-        rrb.TimePanel(state="expanded", timeline=STEP),
+        rrb.TimePanel(state="collapsed", timeline=STEP),
     )
