@@ -80,7 +80,7 @@ class VehicleEncoder:
     ) -> bytes:
         """Serialized ``lc.VehicleTracks``; every array (N,), any numeric dtype."""
         n = len(x)
-        head = f_varint(1, step) + f_double(2, t_s)
+        head = _step_field(step) + f_double(2, t_s)
         if n == 0:
             return head
         if n != self._n:
@@ -117,18 +117,33 @@ def encode_ego(
     throttle: float,
     brake: float,
 ) -> bytes:
-    """``lc.EgoState`` from scalars."""
+    """``lc.EgoState`` from scalars (small ints come from precomputed field bytes: this runs every step)."""
+    lane_b = _SINT_4.get(lane)
+    collision_b = _SINT_5.get(collision_with)
+    invasion_b = _SINT_6.get(lane_invasion)
     return b"".join(
         (
-            f_varint(1, step),
+            _step_field(step),
             _T_SPEED.pack(0x11, t_s, 0x19, speed),
-            f_sint(4, lane),
-            f_sint(5, collision_with),
-            f_sint(6, lane_invasion),
+            f_sint(4, lane) if lane_b is None else lane_b,
+            f_sint(5, collision_with) if collision_b is None else collision_b,
+            f_sint(6, lane_invasion) if invasion_b is None else invasion_b,
             b"\x38\x01" if off_road else b"",
             _CONTROLS.pack(0x41, steer, 0x49, throttle, 0x51, brake),
         )
     )
+
+
+_SINT_4, _SINT_5, _SINT_6 = ({v: f_sint(f, v) for v in range(-1, 1024)} for f in (4, 5, 6))
+
+
+def _step_field(step: int) -> bytes:
+    """``int64 step = 1`` (fast path for steps below 2**14)."""
+    if 0 < step < 0x80:
+        return bytes((0x08, step))
+    if 0x80 <= step < 0x4000:
+        return bytes((0x08, (step & 0x7F) | 0x80, step >> 7))
+    return f_varint(1, step)
 
 
 def encode_timestamp(field: int, time_ns: int) -> bytes:

@@ -23,6 +23,7 @@ from foxglove_schemas_protobuf.Log_pb2 import Log
 from foxglove_schemas_protobuf.RawImage_pb2 import RawImage
 
 from lcdata import topics
+from lcdata.fast_tracks import decode_tracks_fast
 from lcdata.mcap_scan import ChannelData, ScanResult, scan_mcap
 from lcdata.proto import lc_pb2
 from lcdata.wire import WIRE_I32, WIRE_I64, WIRE_LEN, WIRE_VARINT, iter_fields, to_int64
@@ -273,6 +274,9 @@ def _frame(data: dict[str, list[Any]], columns: list[str], *, ints: tuple[str, .
 
 def _decode_tracks(payloads: list[memoryview], path: pathlib.Path) -> dict[str, np.ndarray]:
     """Decode ``lc.VehicleTracks`` payloads into column arrays of total length R (rows)."""
+    fast = decode_tracks_fast(payloads)
+    if fast is not None:
+        return fast
     pieces: dict[str, list[bytes | memoryview]] = {name: [] for name, _ in _TRACK_FIELDS.values()}
     steps = np.zeros(len(payloads), dtype=np.int64)
     times = np.zeros(len(payloads), dtype=np.float64)
