@@ -27,7 +27,7 @@ def test_fast_equals_slow(tmp_path: pathlib.Path, sizes: list[int]) -> None:
     rng = np.random.default_rng(0)
     with EpisodeWriter(tmp_path / "e.mcap", metadata={}) as w:
         for k, n in enumerate(sizes):
-            f = lambda: rng.normal(size=n)  # noqa: E731
+            f = lambda n=n: rng.normal(size=n)  # noqa: E731
             w.write_vehicles(k * 70, k * 3.5, np.arange(n), f(), f(), f(), f(), f(), rng.integers(-1, 5, n),
                              rng.integers(-1, 5, n), f(), f())  # fmt: skip
     ep = read_episode(tmp_path / "e.mcap")
