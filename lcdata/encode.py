@@ -152,6 +152,11 @@ def encode_timestamp(field: int, time_ns: int) -> bytes:
     return f_bytes(field, f_varint(1, seconds) + f_varint(2, nanos))
 
 
+_TF_FRAMES = f_string(2, WORLD_FRAME) + f_string(3, EGO_FRAME)
+_TF_POSITION = tag(4, WIRE_LEN) + varint(_VEC3.size)
+_TF_ROTATION = tag(5, WIRE_LEN) + varint(_QUAT.size)
+
+
 def encode_image(time_ns: int, chw: np.ndarray, frame_id: str = EGO_FRAME) -> bytes:
     """``foxglove.RawImage`` (rgb8) from a (3, H, W) uint8 array."""
     if chw.ndim != 3 or chw.shape[0] != 3 or chw.dtype != np.uint8:
@@ -180,10 +185,11 @@ def encode_transform(time_ns: int, x: float, y: float, yaw: float, z: float = 0.
     return b"".join(
         (
             encode_timestamp(1, time_ns),
-            f_string(2, WORLD_FRAME),
-            f_string(3, EGO_FRAME),
-            f_bytes(4, _VEC3.pack(0x09, x, 0x11, y, 0x19, z)),
-            f_bytes(5, _quaternion_z(yaw)),
+            _TF_FRAMES,
+            _TF_POSITION,
+            _VEC3.pack(0x09, x, 0x11, y, 0x19, z),
+            _TF_ROTATION,
+            _quaternion_z(yaw),
         )
     )
 
@@ -252,6 +258,35 @@ def encode_cubes(
     return records.tobytes()
 
 
+class CubeEncoder:
+    """:func:`encode_cubes` with the record array and the colours kept between calls (one per writer).
+
+    The per-call work is six column assignments (position, heading, size) and one ``tobytes``.
+    """
+
+    def __init__(self) -> None:
+        self._records = np.zeros(0, dtype=_CUBE_DTYPE)
+        self._key: tuple[int, float, bytes] | None = None
+
+    def encode(self, x: np.ndarray, y: np.ndarray, yaw: np.ndarray, length: np.ndarray, width: np.ndarray,
+               height: float, rgba: np.ndarray) -> bytes:  # fmt: skip
+        """Same arguments and bytes as :func:`encode_cubes`."""
+        n = len(x)
+        colour = np.broadcast_to(np.asarray(rgba, dtype=np.float64), (n, 4))
+        key = (n, float(height), colour.tobytes())
+        if key != self._key:
+            records = np.tile(_CUBE_TEMPLATE, n).view(_CUBE_DTYPE)
+            records["pz"], records["sz"] = height / 2, height
+            records["cr"], records["cg"], records["cb"], records["ca"] = colour.T
+            self._records, self._key = records, key
+        records = self._records
+        half = np.asarray(yaw, dtype=np.float64) / 2
+        records["px"], records["py"] = x, y
+        records["qz"], records["qw"] = np.sin(half), np.cos(half)
+        records["sx"], records["sy"] = length, width
+        return records.tobytes()
+
+
 def encode_entity(time_ns: int, entity_id: str, primitives: bytes, frame_id: str = WORLD_FRAME) -> bytes:
     """A ``foxglove.SceneEntity`` (lifetime 0 = until replaced) holding already-encoded primitives."""
     return encode_timestamp(1, time_ns) + f_string(2, frame_id) + f_string(3, entity_id) + primitives
@@ -275,6 +310,7 @@ def encode_line_strip(points: np.ndarray, thickness: float, rgba: tuple[float, f
 
 
 __all__ = [
+    "CubeEncoder",
     "encode_cubes",
     "encode_ego",
     "encode_entity",

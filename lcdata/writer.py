@@ -121,6 +121,10 @@ class EpisodeWriter:
         self._mcap.add_metadata(topics.METADATA_NAME, self.metadata)
         self._channels: dict[str, int] = {}
         self._vehicle_encoder = encode.VehicleEncoder()
+        self._cube_encoder = encode.CubeEncoder()
+        self._scene_ids: np.ndarray | None = None
+        self._scene_ego = 0
+        self._scene_rgba = np.zeros((0, 4))
         self._closed = False
 
     def _metadata_record(self, metadata: Mapping[str, Any]) -> dict[str, str]:
@@ -248,8 +252,11 @@ class EpisodeWriter:
     ) -> None:
         """``/scene``: vehicles as cubes (entity ``vehicles``, replaced at every call). Arrays (N,)."""
         del step
-        rgba = np.where((np.asarray(ids) == ego_id)[:, None], EGO_RGBA, TRAFFIC_RGBA)
-        cubes = encode.encode_cubes(x, y, yaw, length, width, height_m, rgba)
+        ids = np.asarray(ids)
+        if self._scene_ids is None or self._scene_ego != ego_id or not np.array_equal(self._scene_ids, ids):
+            self._scene_ids, self._scene_ego = ids.copy(), ego_id
+            self._scene_rgba = np.where((ids == ego_id)[:, None], EGO_RGBA, TRAFFIC_RGBA)
+        cubes = self._cube_encoder.encode(x, y, yaw, length, width, height_m, self._scene_rgba)
         entity = encode.encode_entity(self._time_ns(t_s), "vehicles", cubes)
         self._write(topics.SCENE, t_s, encode.encode_scene_update([entity]))
 
