@@ -162,18 +162,25 @@ def encode_image(time_ns: int, chw: np.ndarray, frame_id: str = EGO_FRAME) -> by
     if chw.ndim != 3 or chw.shape[0] != 3 or chw.dtype != np.uint8:
         raise ValueError(f"image must be a (3, H, W) uint8 array, got {chw.shape} {chw.dtype}")
     _, h, w = chw.shape
-    data = np.ascontiguousarray(chw.transpose(1, 2, 0)).tobytes()
-    return b"".join(
+    size = 3 * h * w
+    head = b"".join(
         (
             encode_timestamp(1, time_ns),
             _FIXED32.pack(0x15, w),  # width: fixed32, field 2
             _FIXED32.pack(0x1D, h),  # height: fixed32, field 3
             f_string(4, "rgb8"),
             _FIXED32.pack(0x2D, 3 * w),  # step (row stride): fixed32, field 5
-            f_bytes(6, data),
-            f_string(7, frame_id),
+            tag(6, WIRE_LEN) + varint(size),  # data: bytes, field 6 (filled below)
         )
     )
+    tail = f_string(7, frame_id)
+    out = np.empty(len(head) + size + len(tail), dtype=np.uint8)
+    out[: len(head)] = np.frombuffer(head, dtype=np.uint8)
+    hwc = out[len(head) : len(head) + size].reshape(h, w, 3)
+    for c in range(3):  # one channel at a time: ~4x faster than a transposed copy
+        hwc[..., c] = chw[c]
+    out[len(head) + size :] = np.frombuffer(tail, dtype=np.uint8)
+    return out.tobytes()
 
 
 def _quaternion_z(yaw: float) -> bytes:
