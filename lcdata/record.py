@@ -120,12 +120,13 @@ class EpisodeRecorder:
     def _write_sim_step(self, sim: HighwaySim) -> None:
         w, e = self.writer, self.env
         step, t = int(sim.step[e]), float(sim.t_s[e])
-        w.write_vehicles(step, t, sim.ids, sim.x[e], sim.y[e], sim.yaw[e], sim.speed[e], sim.accel[e], sim.lane[e],
-                         sim.target_lane[e], sim.length[e], sim.width[e])  # fmt: skip
+        speed = sim.speed[e]
         collision_with, invasion, off_road = int(sim.collision_with[e]), int(sim.lane_invasion[e]), bool(sim.off_road[e])
-        w.write_ego(step, t, speed=float(sim.speed[e, 0]), lane=int(sim.lane[e, 0]), collision_with=collision_with,
-                    lane_invasion=invasion, off_road=off_road, steer=float(sim.steer[e]),
-                    throttle=float(sim.throttle[e]), brake=float(sim.brake[e]))  # fmt: skip
+        w.write_sim_step(
+            step, t, sim.ids, sim.x[e], sim.y[e], sim.yaw[e], speed, sim.accel[e], sim.lane[e], sim.target_lane[e],
+            sim.length[e], sim.width[e], float(speed[0]), int(sim.lane[e, 0]), collision_with, invasion, off_road,
+            float(sim.steer[e]), float(sim.throttle[e]), float(sim.brake[e]),
+        )  # fmt: skip
         if collision_with >= 0:
             w.write_collision(step, t, other_id=collision_with, ego_x=float(sim.x[e, 0]), ego_y=float(sim.y[e, 0]),
                               ego_speed=float(sim.speed[e, 0]), other_speed=float(sim.speed[e, collision_with]))  # fmt: skip

@@ -203,6 +203,26 @@ class EpisodeWriter:
         )
         self._write(topics.EGO_STATE, t_s, data)
 
+    def write_sim_step(
+        self, step: int, t_s: float, ids: np.ndarray, x: np.ndarray, y: np.ndarray, yaw: np.ndarray,
+        speed: np.ndarray, accel: np.ndarray, lane: np.ndarray, target_lane: np.ndarray, length: np.ndarray,
+        width: np.ndarray, ego_speed: float, ego_lane: int, collision_with: int, lane_invasion: int,
+        off_road: bool, steer: float, throttle: float, brake: float,
+    ) -> None:  # fmt: skip
+        """:meth:`write_vehicles` and :meth:`write_ego` of one simulation step in one call (the recorder's hot path)."""
+        if self._closed:
+            raise RuntimeError(f"{self.path}: writer is closed")
+        time_ns = self.start_time_ns + round(t_s * 1e9)
+        vehicles = self._vehicle_encoder.encode(step, t_s, ids, x, y, yaw, speed, accel, lane, target_lane, length,
+                                                width)  # fmt: skip
+        ego = encode.encode_ego(step, t_s, ego_speed, ego_lane, collision_with, lane_invasion, off_road, steer,
+                                throttle, brake)  # fmt: skip
+        channels = self._channels
+        vehicles_id = channels.get(topics.VEHICLES) or self._channel(topics.VEHICLES)
+        ego_id = channels.get(topics.EGO_STATE) or self._channel(topics.EGO_STATE)
+        self._mcap.add_message(vehicles_id, time_ns, vehicles, time_ns)
+        self._mcap.add_message(ego_id, time_ns, ego, time_ns)
+
     def write_collision(
         self,
         step: int,
