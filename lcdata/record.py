@@ -36,12 +36,12 @@ from dataclasses import dataclass
 from typing import Any
 
 import numpy as np
-from gymnasium.utils import seeding
 
 from lcdata.writer import EpisodeWriter, package_version
 from lcsim.config import ScenarioConfig
 from lcsim.core import KEEP, RUNNING, SUCCESS, LaneChangeCore, StepResult
 from lcsim.drivers import Driver, make_driver
+from lcsim.envs import episode_seed as lcsim_episode_seed
 from lcsim.sim import HighwaySim
 
 log = logging.getLogger(__name__)
@@ -52,8 +52,7 @@ DRIVERS = ("autopilot", "rule", "keep", "random")
 
 def episode_seed(seed: int) -> int:
     """The episode seed ``LaneChangeEnv.reset(seed=seed)`` derives (it fully determines the episode)."""
-    gen, _ = seeding.np_random(int(seed))
-    return int(gen.integers(0, 2**63 - 1))
+    return lcsim_episode_seed(int(seed))
 
 
 def episode_filename(scenario: str, driver: str, seed: int) -> str:

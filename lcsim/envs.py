@@ -9,7 +9,7 @@ vector environment, environment ``i`` gets seed ``s + i`` and then equals ``Lane
 
 from __future__ import annotations
 
-from typing import Any
+from typing import Any, ClassVar
 
 import gymnasium as gym
 import numpy as np
@@ -42,6 +42,11 @@ def _episode_seed(gen: np.random.Generator) -> int:
     return int(gen.integers(0, 2**63 - 1))
 
 
+def episode_seed(seed: int) -> int:
+    """The episode seed ``reset(seed=seed)`` hands to the simulator (what a recording stores)."""
+    return _episode_seed(seeding.np_random(seed)[0])
+
+
 def _info(res: StepResult | None, mask: np.ndarray, i: int, sim_t: float) -> dict[str, Any]:
     info: dict[str, Any] = {"action_mask": mask[i], "t_s": sim_t}
     if res is not None:
@@ -60,7 +65,7 @@ class LaneChangeEnv(gym.Env):
         render_mode: ``"rgb_array"`` returns a 480x480 RGB bird's-eye view for people.
     """
 
-    metadata = {"render_modes": ["rgb_array"], "render_fps": 2}
+    metadata: ClassVar[dict[str, Any]] = {"render_modes": ["rgb_array"], "render_fps": 2}
 
     def __init__(self, config: ScenarioConfig | None = None, render_mode: str | None = None) -> None:
         self.config = config or ScenarioConfig()
@@ -108,7 +113,7 @@ class LaneChangeEnv(gym.Env):
 class LaneChangeVectorEnv(VectorEnv):
     """E lane-change episodes advanced together in numpy (not a loop over single environments)."""
 
-    metadata = {"autoreset_mode": AutoresetMode.SAME_STEP, "render_modes": []}
+    metadata: ClassVar[dict[str, Any]] = {"autoreset_mode": AutoresetMode.SAME_STEP, "render_modes": []}
 
     def __init__(self, num_envs: int = 8, config: ScenarioConfig | None = None, **kwargs: Any) -> None:
         if kwargs:

@@ -3,7 +3,14 @@
 import numpy as np
 import pytest
 
-from lcsim.config import SWAPPED_LATERAL, SWAPPED_LONGITUDINAL, EgoConfig, PIDGains, ScenarioConfig, TrafficConfig
+from lcsim.config import (
+    SWAPPED_LATERAL,
+    SWAPPED_LONGITUDINAL,
+    EgoConfig,
+    PIDGains,
+    ScenarioConfig,
+    TrafficConfig,
+)
 from lcsim.control import PIDBank, limit_steer, pid_reference, split_throttle_brake
 from lcsim.core import KEEP, LEFT, LaneChangeCore
 from lcsim.traffic import idm_accel

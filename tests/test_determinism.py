@@ -52,7 +52,7 @@ def test_batch_equals_single_envs():
     for t in range(steps):
         obs_v, r_v, term_v, trunc_v, info_v = venv.step(actions[t])
         for i, env in enumerate(singles):
-            o, r, term, trunc, info = env.step(int(actions[t, i]))
+            o, r, term, trunc, _info = env.step(int(actions[t, i]))
             assert r == r_v[i] and term == term_v[i] and trunc == trunc_v[i], (t, i)
             if term or trunc:  # the vector env reset in the same step; its final obs is in the info
                 assert all(np.array_equal(info_v["final_obs"][i][k], o[k]) for k in o)

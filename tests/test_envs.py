@@ -26,7 +26,7 @@ def test_step_info_and_spaces():
     assert set(obs) == {"current", "history", "image"}
     assert obs["current"].shape == (9, 9) and obs["history"].shape == (8, 10, 3)
     assert info["action_mask"].dtype == bool and info["action_mask"][1]
-    obs, reward, terminated, truncated, info = env.step(1)
+    obs, reward, _terminated, _truncated, info = env.step(1)
     assert set(info["reward_components"]) == {"collision", "off_road", "forward", "success"}
     assert reward == pytest.approx(sum(info["reward_components"].values()))
     assert info["reward_components"]["forward"] > 0
@@ -42,7 +42,7 @@ def test_make_vec_uses_native_batched_env():
     obs, info = venv.reset(seed=0)
     assert obs["image"].shape == (3, 3, 120, 120)
     for _ in range(3):
-        obs, reward, term, trunc, info = venv.step(np.array([1, 2, 0]))
+        obs, reward, _term, _trunc, info = venv.step(np.array([1, 2, 0]))
     assert reward.shape == (3,) and info["action_mask"].shape == (3, 3)
 
 
@@ -65,7 +65,7 @@ def test_registered_ids_work_in_fresh_interpreters():
                         vec_env_kwargs={"start_method": "spawn"})
     try:
         obs = venv.reset()
-        obs, reward, done, infos = venv.step(np.array([1, 1]))
+        obs, reward, _done, _infos = venv.step(np.array([1, 1]))
         assert obs["image"].shape == (2, 3, 120, 120) and reward.shape == (2,)
     finally:
         venv.close()
@@ -81,7 +81,7 @@ def test_sb3_adapter_autoreset_and_masks():
     assert masks.shape == (4, 3) and masks[:, 1].all()
     done_seen = False
     for _ in range(8):
-        obs, reward, dones, infos = venv.step_async(np.ones(4, dtype=int)) or venv.step_wait()
+        obs, _reward, dones, infos = venv.step_async(np.ones(4, dtype=int)) or venv.step_wait()
         for d, info in zip(dones, infos, strict=True):
             if d:
                 done_seen = True

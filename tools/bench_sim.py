@@ -33,29 +33,29 @@ def _actions(rng: np.random.Generator, mask: np.ndarray) -> np.ndarray:
 def bench_single(seconds: float, config: ScenarioConfig) -> float:
     env = LaneChangeEnv(config)
     rng = np.random.default_rng(0)
-    obs, info = env.reset(seed=0)
+    _, info = env.reset(seed=0)
     for _ in range(20):  # warm-up
-        obs, _, term, trunc, info = env.step(int(_actions(rng, info["action_mask"])[0]))
+        _, _, term, trunc, info = env.step(int(_actions(rng, info["action_mask"])[0]))
         if term or trunc:
-            obs, info = env.reset()
+            _, info = env.reset()
     decisions, t0 = 0, time.perf_counter()
     while time.perf_counter() - t0 < seconds:
-        obs, _, term, trunc, info = env.step(int(_actions(rng, info["action_mask"])[0]))
+        _, _, term, trunc, info = env.step(int(_actions(rng, info["action_mask"])[0]))
         decisions += 1
         if term or trunc:
-            obs, info = env.reset()
+            _obs, info = env.reset()
     return decisions * config.decision_period_s / (time.perf_counter() - t0)
 
 
 def bench_batch(seconds: float, config: ScenarioConfig, num_envs: int = 64) -> float:
     env = LaneChangeVectorEnv(num_envs, config)
     rng = np.random.default_rng(0)
-    obs, info = env.reset(seed=0)
+    _, info = env.reset(seed=0)
     for _ in range(3):
-        obs, *_, info = env.step(_actions(rng, info["action_mask"]))
+        *_, info = env.step(_actions(rng, info["action_mask"]))
     steps, t0 = 0, time.perf_counter()
     while time.perf_counter() - t0 < seconds:
-        obs, *_, info = env.step(_actions(rng, info["action_mask"]))
+        _obs, *_, info = env.step(_actions(rng, info["action_mask"]))
         steps += 1
     return steps * num_envs * config.decision_period_s / (time.perf_counter() - t0)
 

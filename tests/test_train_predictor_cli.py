@@ -1,0 +1,48 @@
+"""lc-train-predictor in-process on a tiny corpus recorded by lc-record."""
+
+import json
+
+import pytest
+import torch
+
+from lcdata.cli import record_main
+from lcmodels.cli import train_predictor_main
+
+
+@pytest.fixture(scope="module")
+def corpus_dir(tmp_path_factory):
+    out = tmp_path_factory.mktemp("corpus")
+    rc = record_main(["--scenario", "corpus", "--episodes", "4", "--seed", "3", "--vehicles", "6",
+                      "--steps", "160", "--out", str(out)])
+    assert rc == 0
+    return out
+
+
+def test_trains_and_writes_checkpoint_and_metrics(corpus_dir, tmp_path, capsys):
+    out = tmp_path / "pred"
+    rc = train_predictor_main(["--data", str(corpus_dir), "--out", str(out), "--epochs", "2", "-q"])
+    assert rc == 0
+    metrics = json.loads((out / "metrics.json").read_text())
+    for key in ("model", "constant_velocity", "constant_acceleration"):
+        assert metrics[key]["ade"] >= 0 and metrics[key]["fde"] >= metrics[key]["ade"] * 0.5
+        assert len(metrics[key]["curve"]) == 10
+    assert metrics["corpus"]
+    state = torch.load(out / "predictor.pt", weights_only=True)
+    assert state
+    printed = capsys.readouterr().out
+    assert "constant velocity" in printed and "ADE" in printed
+    # Nothing already written is overwritten silently.
+    assert train_predictor_main(["--data", str(corpus_dir), "--out", str(out), "-q"]) == 2
+    assert "already exists" in capsys.readouterr().err
+
+
+def test_bad_inputs_give_one_line_errors(tmp_path, capsys):
+    assert train_predictor_main(["--data", str(tmp_path / "missing")]) == 2
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1 and "not a directory" in err
+    (tmp_path / "empty").mkdir()
+    assert train_predictor_main(["--data", str(tmp_path / "empty"), "--out", str(tmp_path / "o")]) == 2
+    err = capsys.readouterr().err
+    assert err.startswith("lc-train-predictor: error:") and err.count("\n") == 1
+    with pytest.raises(SystemExit):
+        train_predictor_main(["--data", str(tmp_path), "--history", "0"])
