@@ -17,7 +17,6 @@ from lcsim.config import _non_negative, _positive
 from lcsim.core import KEEP, LaneChangeCore
 
 
-
 class Driver(Protocol):
     name: str
 

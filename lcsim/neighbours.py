@@ -81,7 +81,7 @@ class LaneIndex:
         ``lane`` may hold lanes that do not exist (< 0 or >= L); those give -1.
         """
         rows, order = self.rows, self.order
-        e, num_lanes, n = self.member.shape
+        _e, num_lanes, n = self.member.shape
         valid = (lane >= 0) & (lane < num_lanes)
         lane_s = np.clip(lane, 0, num_lanes - 1)[rows, order]
         table = self.ahead if ahead else self.behind

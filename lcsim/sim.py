@@ -17,7 +17,14 @@ import numpy as np
 from lcsim import rng
 from lcsim.collision import obb_overlap
 from lcsim.config import ScenarioConfig
-from lcsim.control import PIDBank, bicycle_step, heading_error, limit_steer, longitudinal_accel, split_throttle_brake
+from lcsim.control import (
+    PIDBank,
+    bicycle_step,
+    heading_error,
+    limit_steer,
+    longitudinal_accel,
+    split_throttle_brake,
+)
 from lcsim.neighbours import LaneIndex, gather
 from lcsim.road import StraightRoad
 from lcsim.traffic import idm_accel, smoothstep5
@@ -107,7 +114,7 @@ class HighwaySim:
         self.hist_count[env_ids] = 1
 
     def _spawn(self, e: int, gen: np.random.Generator) -> None:
-        cfg, tc, ec, road = self.config, self.config.traffic, self.config.ego, self.road
+        _cfg, tc, ec, road = self.config, self.config.traffic, self.config.ego, self.road
         lanes = road.num_lanes
         ego_lane = ec.start_lane if ec.start_lane >= 0 else int(gen.integers(lanes))
         n_traffic = self.num_vehicles - 1
