@@ -46,6 +46,7 @@ def main(argv: list[str] | None = None) -> int:
     )
     parser.add_argument("--history-steps", type=int, default=10)
     parser.add_argument("--future-steps", type=int, default=10)
+    parser.add_argument("--d-model", type=int, default=PredictorConfig().d_model, help="untrained model width")
     parser.add_argument("--batch", type=int, default=512, help="observations per call (x 8 neighbours)")
     parser.add_argument(
         "--absent-fraction",
@@ -63,7 +64,9 @@ def main(argv: list[str] | None = None) -> int:
         predictor = Predictor.load(args.checkpoint)
     else:
         torch.manual_seed(0)
-        cfg = PredictorConfig(history_steps=args.history_steps, future_steps=args.future_steps)
+        cfg = PredictorConfig(
+            history_steps=args.history_steps, future_steps=args.future_steps, d_model=args.d_model
+        )
         predictor = Predictor(TrajectoryTransformer(cfg))
     cfg = predictor.config
     hist, mask, ego = make_inputs(
