@@ -15,6 +15,7 @@ from collections.abc import Sequence
 from tqdm import tqdm
 
 from lcdata.record import DRIVERS, episode_filename, iter_record_episodes
+from lcsim.cli import int_at_least
 from lcsim.config import ScenarioConfig, corpus_scenario, paper_scenario
 
 SCENARIOS = ("lane-change", "corpus")
@@ -40,24 +41,8 @@ class _Parser(argparse.ArgumentParser):
         raise UsageError(message)
 
 
-def _positive_int(text: str) -> int:
-    try:
-        value = int(text)
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"expected an integer, got {text!r}") from None
-    if value < 1:
-        raise argparse.ArgumentTypeError(f"must be >= 1, got {value}")
-    return value
-
-
-def _non_negative_int(text: str) -> int:
-    try:
-        value = int(text)
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"expected an integer, got {text!r}") from None
-    if value < 0:
-        raise argparse.ArgumentTypeError(f"must be >= 0, got {value}")
-    return value
+_positive_int = int_at_least(1)
+_non_negative_int = int_at_least(0)
 
 
 def build_parser() -> argparse.ArgumentParser:

@@ -12,6 +12,8 @@ import logging
 import sys
 from pathlib import Path
 
+from lcsim.cli import int_at_least
+
 TRAIN_PREDICTOR_EPILOG = """examples:
   lc-record --scenario corpus --episodes 24 --seed 100 --out runs/corpus --workers 2
   lc-train-predictor --data runs/corpus --out runs/predictor-10-10
@@ -23,14 +25,7 @@ constant velocity and constant acceleration on the same windows, corpus statisti
 """
 
 
-def _positive_int(text: str) -> int:
-    try:
-        value = int(text)
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"expected an integer, got {text!r}") from None
-    if value < 1:
-        raise argparse.ArgumentTypeError(f"must be >= 1, got {value}")
-    return value
+_positive_int = int_at_least(1)
 
 
 def train_predictor_parser() -> argparse.ArgumentParser:

@@ -1,4 +1,6 @@
-"""``make demo``: the main job, end to end, on the built-in simulator.
+"""Command-line pieces of lcsim: ``make demo`` and argument types shared by the project's commands.
+
+``python -m lcsim.cli`` is ``make demo``: the main job, end to end, on the built-in simulator.
 
 Today it drives one episode of the paper's scenario with the rule-based lane-change driver, records it
 to MCAP, and prints the outcome and the file's path. (The full pipeline, ``lc-experiment --preset
@@ -16,8 +18,24 @@ from pathlib import Path
 from lcsim.config import ScenarioConfig
 
 
+def int_at_least(minimum: int):
+    """An argparse ``type`` accepting integers >= ``minimum`` with a one-line message otherwise."""
+
+    def parse(text: str) -> int:
+        try:
+            value = int(text)
+        except ValueError:
+            raise argparse.ArgumentTypeError(f"expected an integer, got {text!r}") from None
+        if value < minimum:
+            raise argparse.ArgumentTypeError(f"must be >= {minimum}, got {value}")
+        return value
+
+    parse.__name__ = f"int>={minimum}"
+    return parse
+
+
 def main(argv: list[str] | None = None) -> int:
-    parser = argparse.ArgumentParser(prog="python -m lcsim.demo", description=__doc__,
+    parser = argparse.ArgumentParser(prog="python -m lcsim.cli", description=__doc__,
                                      formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--out", type=Path, default=Path("runs/demo"), help="output directory (default runs/demo)")
     parser.add_argument("--seed", type=int, default=0, help="episode seed (default 0)")
