@@ -1,8 +1,7 @@
-"""Collision checks: a conservative coarse test on candidate pairs, then exact oriented rectangles.
+"""Exact collision test for oriented rectangles (separating-axis theorem).
 
-Candidate pairs come from the per-lane sorted order (each vehicle and the next member ahead in each
-lane it belongs to), so no all-pairs work is done. The coarse test (bounding circles) never misses a
-contact; the separating-axis test on the four rectangle axes decides exactly.
+The simulator only calls it on candidate pairs: a vehicle and its leader (the nearest vehicle ahead
+in any lane its body overlaps) when their gap along x is under a metre, so no all-pairs work is done.
 """
 
 from __future__ import annotations
@@ -28,9 +27,3 @@ def obb_overlap(xa: np.ndarray, ya: np.ndarray, yawa: np.ndarray, la: np.ndarray
         overlap &= dist <= ra + rb
     return overlap
 
-
-def coarse_close(xa: np.ndarray, ya: np.ndarray, ra: np.ndarray, xb: np.ndarray, yb: np.ndarray,
-                 rb: np.ndarray) -> np.ndarray:
-    """Bounding-circle test (``r`` = half diagonal): False guarantees no overlap."""
-    dx, dy, r = xb - xa, yb - ya, ra + rb
-    return dx * dx + dy * dy <= r * r

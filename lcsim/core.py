@@ -49,8 +49,6 @@ class LaneChangeCore:
         self.milestone_r = np.asarray(config.reward.milestone_rewards)
         self.next_milestone = np.zeros(num_envs, dtype=np.int64)
         self.outcome = np.full(num_envs, RUNNING, dtype=object)
-        self.last_action = np.full(num_envs, KEEP, dtype=np.int64)
-        self.event_step = np.full(num_envs, -1, dtype=np.int64)
         self.seeds = np.zeros(num_envs, dtype=np.int64)
 
     # ---------------------------------------------------------------- episode
@@ -59,8 +57,6 @@ class LaneChangeCore:
         self.sim.reset(env_ids, seeds)
         self.next_milestone[env_ids] = 0
         self.outcome[env_ids] = RUNNING
-        self.last_action[env_ids] = KEEP
-        self.event_step[env_ids] = -1
         self.seeds[env_ids] = seeds
 
     def action_mask(self) -> np.ndarray:
@@ -84,7 +80,6 @@ class LaneChangeCore:
         actions = np.asarray(actions, dtype=np.int64).reshape(self.num_envs)
         if ((actions < 0) | (actions > 2)).any():
             raise ValueError(f"actions must be in {{0, 1, 2}} (right, keep, left), got {actions.tolist()}")
-        self.last_action = actions.copy()
         if not sim.autopilot_ego:
             sim.start_lane_change(actions != KEEP, np.where(actions == LEFT, 1, -1))
         x_before = sim.x[:, 0].copy()
@@ -104,7 +99,6 @@ class LaneChangeCore:
                 self.outcome[new_col] = COLLISION
                 self.outcome[new_off] = OFF_ROAD
                 self.outcome[new_succ] = SUCCESS
-                self.event_step[ended] = sim.step[ended]
                 done |= ended
                 sim.frozen[:] = done
         sim.frozen[:] = False

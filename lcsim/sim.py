@@ -9,7 +9,6 @@ per-environment loops in the hot path.
 
 from __future__ import annotations
 
-import math
 from collections.abc import Callable, Sequence
 
 import numpy as np
@@ -361,11 +360,3 @@ class HighwaySim:
         valid = (env_vehicles >= 0)[:, :, None] & valid_t[:, None, :]
         return pos, valid
 
-    @property
-    def ego_progress_m(self) -> np.ndarray:
-        """Distance along the route travelled by the ego (E,)."""
-        return self.x[:, 0].copy()
-
-
-def yaw_wrap(a: np.ndarray) -> np.ndarray:
-    return (a + math.pi) % (2 * math.pi) - math.pi

@@ -4,7 +4,7 @@ import math
 
 import numpy as np
 
-from lcsim.collision import coarse_close, obb_overlap
+from lcsim.collision import obb_overlap
 from lcsim.config import EgoConfig, ScenarioConfig, TrafficConfig
 from lcsim.core import COLLISION, KEEP, LaneChangeCore
 
@@ -24,11 +24,11 @@ def test_rotated_corner_contact_missed_by_yaw_free_check():
 
 
 def test_close_but_separated_rotated_boxes():
-    # Bounding circles overlap (the coarse test says "close"), the rectangles do not touch.
+    # Bounding circles overlap (a coarse test says "close"), the rectangles do not touch.
     a = (0.0, 0.0, math.radians(45), 5.0, 1.0)
     b = (2.6, -2.6, math.radians(45), 5.0, 1.0)
     ra = rb = 0.5 * math.hypot(5.0, 1.0)
-    assert coarse_close(np.array(a[0]), np.array(a[1]), np.array(ra), np.array(b[0]), np.array(b[1]), np.array(rb))
+    assert math.hypot(b[0] - a[0], b[1] - a[1]) <= ra + rb
     assert not obb_overlap(*map(np.array, a), *map(np.array, b))
     # Touching edges count as contact.
     assert obb_overlap(np.array(0.0), np.array(0.0), np.array(0.0), np.array(4.0), np.array(2.0),
