@@ -280,12 +280,18 @@ class ScenarioConfig(_JsonMixin):
     num_neighbours: int = 8
     sensing_range_m: float = 80.0
     render_image: bool = True
+    invalid_lane_change: str = "refuse"
+    """A change towards a lane that does not exist: ``refuse`` (not carried out, rewarded ``reward.off_road``,
+    the episode goes on: CARLA's agent finds no waypoint there, and the paper's outcomes have no off-road)
+    or ``leave_road`` (carried out; the ego leaves the road and the episode ends ``off_road``)."""
 
     def __post_init__(self) -> None:
         _positive(self, "dt_s", "decision_period_s", "route_length_m", "time_limit_s", "sensing_range_m")
         ratio = self.decision_period_s / self.dt_s
         _check(abs(ratio - round(ratio)) < 1e-9, self, "decision_period_s", "must be a multiple of dt_s",
                self.decision_period_s)
+        _check(self.invalid_lane_change in ("refuse", "leave_road"), self, "invalid_lane_change",
+               "must be 'refuse' or 'leave_road'", self.invalid_lane_change)
         _check(isinstance(self.history_steps, int) and self.history_steps >= 1, self, "history_steps",
                "must be an integer >= 1", self.history_steps)
         _check(isinstance(self.num_neighbours, int) and self.num_neighbours >= 1, self, "num_neighbours",

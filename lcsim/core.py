@@ -73,15 +73,24 @@ class LaneChangeCore:
         """Apply one decision per environment and simulate until the next decision.
 
         An action during a lane change in progress is ignored (the change runs to its end). A change
-        towards a lane that does not exist is carried out and leaves the road (reward ``off_road``).
+        towards a lane that does not exist is refused with the ``off_road`` reward, or, with
+        ``invalid_lane_change="leave_road"``, carried out: the ego leaves the road and the episode ends.
         Environments whose episode ends inside the decision period are frozen at that simulation step.
         """
         sim, cfg = self.sim, self.config
         actions = np.asarray(actions, dtype=np.int64).reshape(self.num_envs)
         if ((actions < 0) | (actions > 2)).any():
             raise ValueError(f"actions must be in {{0, 1, 2}} (right, keep, left), got {actions.tolist()}")
+        refused = np.zeros(self.num_envs, dtype=bool)
         if not sim.autopilot_ego:
-            sim.start_lane_change(actions != KEEP, np.where(actions == LEFT, 1, -1))
+            change = actions != KEEP
+            direction = np.where(actions == LEFT, 1, -1)
+            if cfg.invalid_lane_change == "refuse":
+                target = sim.target_lane[:, 0] + direction
+                refused = change & ~sim.ego_lc_active & (self.outcome == RUNNING) & (
+                    (target < 0) | (target >= sim.road.num_lanes))
+                change &= ~refused
+            sim.start_lane_change(change, direction)
         x_before = sim.x[:, 0].copy()
         done = self.outcome != RUNNING  # environments already finished stay frozen
         sim.frozen[:] = done
@@ -112,7 +121,7 @@ class LaneChangeCore:
             self.next_milestone += hit
         components = {
             "collision": np.where(collided, rc.collision, 0.0),
-            "off_road": np.where(left_road, rc.off_road, 0.0),
+            "off_road": np.where(left_road | refused, rc.off_road, 0.0),
             "forward": rc.forward_per_m * progress,
             "success": milestone_reward,
         }
