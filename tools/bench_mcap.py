@@ -2,18 +2,23 @@
 """Recording overhead and read throughput of real simulator episodes.
 
 Overhead: the same episodes (same seeds, same driver) run through the driver loop of
-:func:`lcdata.record_episode` once bare and once recorded to MCAP; overhead = recorded / bare - 1,
-best of ``--repeats`` per episode, bare and recorded runs interleaved. Time is the process CPU time
-(``time.process_time``: the simulation, the recorder and the writer's compression thread), which a
-shared machine disturbs far less than wall-clock time; wall-clock figures are printed as well. Scenarios: the
+:func:`lcdata.record_episode` once bare and once recorded to MCAP; overhead = recorded / bare - 1.
+Runs come in ``--pairs`` interleaved (bare, recorded) pairs per seed, the order inside a pair
+alternating so that a drift of the machine's load hits both sides alike, after one warm-up pair that
+is not counted. Each pair gives one overhead figure (times summed over the seeds); the result is the
+median over the pairs, with the spread (min, quartiles, max) next to it, for wall-clock time
+(``time.perf_counter``, the target) and for process CPU time (``time.process_time``: the simulation,
+the recorder and the writer's compression thread; a shared machine disturbs it less). Scenarios: the
 paper's lane-change scenario with the rule-based driver (100 vehicles, image at every decision) and
-the corpus scenario (20 autopilot vehicles, 2000 steps). Read throughput: ``read_episode(path).tracks``
-on the recorded files, vehicle rows per second into pandas (best of ``--repeats``).
+the corpus scenario (20 autopilot vehicles, 2000 steps). Read throughput:
+``read_episode(path).tracks`` on the recorded files, vehicle rows per second into pandas (best of
+``--pairs``).
 
     python tools/bench_mcap.py           # human-readable
-    python tools/bench_mcap.py --json    # one JSON object: overhead_lane_change, overhead_corpus, read_rows_per_s
+    python tools/bench_mcap.py --json    # one JSON object: overhead_lane_change, overhead_corpus (median
+                                         # wall), *_cpu (median CPU), *_spread, read_rows_per_s
 
-Targets: overhead <= 0.20, reading >= 1,000,000 rows/s.
+Targets: overhead <= 0.20 (wall), reading >= 1,000,000 rows/s.
 """
 
 from __future__ import annotations
@@ -66,19 +71,34 @@ def run_recorded(config: ScenarioConfig, seed: int, driver: str, path: pathlib.P
     return _since(start)
 
 
-def overhead(config: ScenarioConfig, driver: str, seeds: list[int], repeats: int, out: pathlib.Path,
+def overhead(config: ScenarioConfig, driver: str, seeds: list[int], pairs: int, out: pathlib.Path,
              name: str) -> tuple[np.ndarray, np.ndarray, list[pathlib.Path]]:  # fmt: skip
-    """((CPU, wall) bare s, (CPU, wall) recorded s, files) summed over ``seeds``, best of ``repeats`` each."""
-    bare, rec, paths = np.zeros(2), np.zeros(2), []
-    for seed in seeds:
-        path = out / f"{name}_{seed}.mcap"
-        b = r = np.full(2, np.inf)
-        for _ in range(repeats):
-            b = np.minimum(b, run_bare(config, seed, driver))
-            r = np.minimum(r, run_recorded(config, seed, driver, path))
-        bare, rec = bare + b, rec + r
-        paths.append(path)
+    """Times of ``pairs`` interleaved (bare, recorded) runs, each summed over ``seeds``.
+
+    Returns ``(bare, recorded, files)``; bare and recorded are ``(pairs, 2)`` arrays of (CPU, wall)
+    seconds. One uncounted warm-up pair runs first.
+    """
+    paths = [out / f"{name}_{seed}.mcap" for seed in seeds]
+    bare, rec = np.zeros((pairs, 2)), np.zeros((pairs, 2))
+    for i in range(-1, pairs):
+        for seed, path in zip(seeds, paths, strict=True):
+            if i % 2:  # alternate which of the two runs first
+                b = run_bare(config, seed, driver)
+                r = run_recorded(config, seed, driver, path)
+            else:
+                r = run_recorded(config, seed, driver, path)
+                b = run_bare(config, seed, driver)
+            if i >= 0:
+                bare[i] += b
+                rec[i] += r
     return bare, rec, paths
+
+
+def spread(bare: np.ndarray, rec: np.ndarray, column: int) -> dict[str, float]:
+    """Overhead quantiles over the pairs (``column`` 0: CPU, 1: wall): min, q25, median, q75, max."""
+    ratio = rec[:, column] / bare[:, column] - 1
+    q = np.quantile(ratio, [0.0, 0.25, 0.5, 0.75, 1.0])
+    return {k: round(float(v), 4) for k, v in zip(("min", "q25", "median", "q75", "max"), q, strict=True)}
 
 
 def read_throughput(paths: list[pathlib.Path], repeats: int) -> tuple[float, int]:
@@ -94,30 +114,42 @@ def read_throughput(paths: list[pathlib.Path], repeats: int) -> tuple[float, int
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--episodes", type=int, default=2, help="episodes per scenario (seeds 0..n-1)")
-    parser.add_argument("--repeats", type=int, default=3, help="timing repeats (best of)")
+    parser.add_argument("--pairs", type=int, default=5, help="interleaved (bare, recorded) pairs, median of")
     parser.add_argument("--json", action="store_true", help="print one JSON object")
     args = parser.parse_args(argv)
-    if args.episodes < 1 or args.repeats < 1:
-        parser.error("--episodes and --repeats must be >= 1")
+    if args.episodes < 1 or args.pairs < 1:
+        parser.error("--episodes and --pairs must be >= 1")
     seeds = list(range(args.episodes))
     with tempfile.TemporaryDirectory(prefix="bench_mcap_") as tmp:
         out = pathlib.Path(tmp)
-        lc = overhead(paper_scenario(), "rule", seeds, args.repeats, out, "lane-change")
-        corpus = overhead(corpus_scenario(), "autopilot", seeds, args.repeats, out, "corpus")
-        rows_per_s, rows = read_throughput(lc[2] + corpus[2], args.repeats)
+        lc = overhead(paper_scenario(), "rule", seeds, args.pairs, out, "lane-change")
+        corpus = overhead(corpus_scenario(), "autopilot", seeds, args.pairs, out, "corpus")
+        rows_per_s, rows = read_throughput(lc[2] + corpus[2], args.pairs)
         size_mb = sum(p.stat().st_size for p in lc[2] + corpus[2]) / 1e6
-    result = {
-        "overhead_lane_change": round(float(lc[1][0] / lc[0][0] - 1), 4),
-        "overhead_corpus": round(float(corpus[1][0] / corpus[0][0] - 1), 4),
-        "read_rows_per_s": round(rows_per_s),
-    }
+    result: dict[str, object] = {}
+    spreads = {}
+    for key, (bare, rec, _) in (("overhead_lane_change", lc), ("overhead_corpus", corpus)):
+        wall, cpu = spreads[key, 1], spreads[key, 0] = spread(bare, rec, 1), spread(bare, rec, 0)
+        result[key] = wall["median"]
+        result[f"{key}_cpu"] = cpu["median"]
+        result[f"{key}_spread"] = wall
+        result[f"{key}_cpu_spread"] = cpu
+    result["pairs"] = args.pairs
+    result["episodes"] = args.episodes
+    result["read_rows_per_s"] = round(rows_per_s)
     if args.json:
         print(json.dumps(result))
         return 0
-    for label, (bare, rec, _) in (("lane-change (rule, 100 veh)", lc), ("corpus (autopilot, 20 veh)", corpus)):
-        cpu, wall = rec / bare - 1
-        print(f"{label:28s} CPU bare {bare[0]:5.2f} s recorded {rec[0]:5.2f} s overhead {100 * cpu:5.1f}% "
-              f"(target <= 20%) | wall {bare[1]:5.2f} s -> {rec[1]:5.2f} s ({100 * wall:+.1f}%)")
+    print(f"{args.pairs} interleaved pairs x {args.episodes} episodes; overhead = recorded / bare - 1, "
+          "median [min, q25, q75, max] over the pairs")  # fmt: skip
+    for label, key, (bare, rec, _) in (("lane-change (rule, 100 veh)", "overhead_lane_change", lc),
+                                       ("corpus (autopilot, 20 veh)", "overhead_corpus", corpus)):  # fmt: skip
+        for kind, column in (("wall", 1), ("CPU ", 0)):
+            s = spreads[key, column]
+            print(f"{label:28s} {kind} bare {np.median(bare[:, column]):5.2f} s recorded "
+                  f"{np.median(rec[:, column]):5.2f} s overhead {100 * s['median']:5.1f}% "
+                  f"[{100 * s['min']:.1f}, {100 * s['q25']:.1f}, {100 * s['q75']:.1f}, {100 * s['max']:.1f}]"
+                  + ("  (target <= 20%)" if column == 1 else ""))  # fmt: skip
     print(f"read {rows} vehicle rows from {size_mb:.1f} MB: {rows_per_s / 1e6:.2f} M rows/s  (target >= 1 M rows/s)")
     return 0
 
