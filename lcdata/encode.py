@@ -26,6 +26,7 @@ from lcdata.wire import (
     varint,
 )
 
+_T_FIELD = struct.Struct("<Bd")  # double t = 2
 _T_SPEED = struct.Struct("<BdBd")  # EgoState t (2) and speed (3)
 _CONTROLS = struct.Struct("<BdBdBd")  # EgoState steer (8), throttle (9), brake (10)
 _VEC3 = struct.Struct("<BdBdBd")
@@ -43,25 +44,77 @@ class VehicleEncoder:
 
     For a given N every packed field has a fixed position, so the key and length prefixes are
     written once and each call only copies the arrays into numpy views of the buffer (casting to
-    the wire dtype). One instance per writer: the buffer is reused between calls.
+    the wire dtype), then puts the ``step`` and ``t`` fields right before them. The buffer keeps
+    :attr:`HEAD_ROOM` bytes in front of the packed fields, so a container can also write its own
+    record header in front of the message (:meth:`fill`) and take both with one copy. One instance
+    per writer: the buffer is reused between calls.
     """
+
+    HEAD_ROOM = 64
+    """Bytes before the packed fields: the step (<= 11) and t (9) fields and >= 44 bytes to spare."""
 
     def __init__(self) -> None:
         self._n = -1
-        self._buffer = np.zeros(0, dtype=np.uint8)
+        self.buffer = bytearray(self.HEAD_ROOM)
         self._views: list[np.ndarray] = []
 
     def _layout(self, n: int) -> None:
-        template = bytearray()
+        template = bytearray(self.HEAD_ROOM)
         offsets = []
-        for field, dtype in _VEHICLE_FIELDS:
+        for field, dtype in _VEHICLE_FIELDS if n else ():
             size = np.dtype(dtype).itemsize * n
             template += tag(field, WIRE_LEN) + varint(size)
             offsets.append((len(template), size, dtype))
             template += bytes(size)
-        self._buffer = np.frombuffer(bytes(template), dtype=np.uint8).copy()
-        self._views = [self._buffer[o : o + size].view(dtype) for o, size, dtype in offsets]
+        array = np.frombuffer(template, dtype=np.uint8)  # a writable view of the bytearray
+        self.buffer = template
+        self._views = [array[o : o + size].view(dtype) for o, size, dtype in offsets]
         self._n = n
+
+    def fill(
+        self,
+        step: int,
+        t_s: float,
+        ids: np.ndarray,
+        x: np.ndarray,
+        y: np.ndarray,
+        yaw: np.ndarray,
+        speed: np.ndarray,
+        accel: np.ndarray,
+        lane: np.ndarray,
+        target_lane: np.ndarray,
+        length: np.ndarray,
+        width: np.ndarray,
+    ) -> int:
+        """Write the message into :attr:`buffer`; return its offset (the message is ``buffer[offset:]``,
+        and at least ``HEAD_ROOM - 20`` bytes before ``offset`` are free for the caller)."""
+        n = len(x)
+        if n != self._n:
+            self._layout(n)
+        if n:
+            v = self._views
+            v[0][...] = ids
+            v[1][...] = x
+            v[2][...] = y
+            v[3][...] = yaw
+            v[4][...] = speed
+            v[5][...] = accel
+            v[6][...] = lane
+            v[7][...] = target_lane
+            v[8][...] = length
+            v[9][...] = width
+        buffer = self.buffer
+        start = self.HEAD_ROOM - 9
+        _T_FIELD.pack_into(buffer, start, 0x11, t_s)
+        if 0 < step < 0x80:
+            start -= 2
+            buffer[start] = 0x08
+            buffer[start + 1] = step
+        elif step:
+            head = _step_field(step)
+            start -= len(head)
+            buffer[start : start + len(head)] = head
+        return start
 
     def encode(
         self,
@@ -79,24 +132,8 @@ class VehicleEncoder:
         width: np.ndarray,
     ) -> bytes:
         """Serialized ``lc.VehicleTracks``; every array (N,), any numeric dtype."""
-        n = len(x)
-        head = _step_field(step) + f_double(2, t_s)
-        if n == 0:
-            return head
-        if n != self._n:
-            self._layout(n)
-        v = self._views
-        v[0][...] = ids
-        v[1][...] = x
-        v[2][...] = y
-        v[3][...] = yaw
-        v[4][...] = speed
-        v[5][...] = accel
-        v[6][...] = lane
-        v[7][...] = target_lane
-        v[8][...] = length
-        v[9][...] = width
-        return head + self._buffer.tobytes()
+        start = self.fill(step, t_s, ids, x, y, yaw, speed, accel, lane, target_lane, length, width)
+        return bytes(memoryview(self.buffer)[start:])
 
 
 def encode_vehicles(step: int, t_s: float, *columns: np.ndarray) -> bytes:

@@ -60,6 +60,16 @@ def _string_map(mapping: dict[str, str]) -> bytes:
     return _U32.pack(len(body)) + body
 
 
+MESSAGE_HEADER_SIZE = _MESSAGE_HEADER.size  # 31 bytes before the message data
+
+
+def pack_message_header(buffer: bytearray | memoryview, offset: int, channel_id: int, log_time: int,
+                        data_size: int) -> None:  # fmt: skip
+    """Write a message record header (sequence 0, publish time = log time) into ``buffer`` at ``offset``;
+    the ``data_size`` bytes of message data must follow it."""
+    _MESSAGE_HEADER.pack_into(buffer, offset, OP_MESSAGE, 22 + data_size, channel_id, 0, log_time, log_time)
+
+
 def _record(opcode: int, body: bytes) -> bytes:
     return struct.pack("<BQ", opcode, len(body)) + body
 
@@ -140,17 +150,27 @@ class McapStreamWriter:
         self, channel_id: int, log_time: int, data: bytes, publish_time: int, sequence: int = 0
     ) -> None:
         """Append one message record (times in ns) to the current chunk."""
-        offset = self._chunk_bytes
         self._chunk.append(
             _MESSAGE_HEADER.pack(OP_MESSAGE, 22 + len(data), channel_id, sequence, log_time, publish_time)
         )
+        self._add(channel_id, log_time, data, 31 + len(data))
+
+    def add_message_record(self, channel_id: int, log_time: int, record: bytes) -> None:
+        """Append a complete message record (``MESSAGE_HEADER`` + data, see :func:`pack_message_header`).
+
+        For callers that build the record header in their own buffer, which saves a copy per message.
+        ``channel_id`` and ``log_time`` must be the ones packed into the header.
+        """
+        self._add(channel_id, log_time, record, len(record))
+
+    def _add(self, channel_id: int, log_time: int, data: bytes, size: int) -> None:
+        offset = self._chunk_bytes
         self._chunk.append(data)
-        self._chunk_bytes = offset + 31 + len(data)
+        self._chunk_bytes = offset + size
         index = self._message_index.get(channel_id)
         if index is None:
             index = self._message_index[channel_id] = []
-        index.append(log_time)
-        index.append(offset)
+        index += (log_time, offset)
         self._counts[channel_id] += 1
         if self._chunk_messages == 0:
             self._chunk_start = self._chunk_end = log_time

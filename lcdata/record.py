@@ -109,22 +109,23 @@ class EpisodeRecorder:
 
     # -- per simulation step (the hook) -----------------------------------------------------------
     def __call__(self, sim: HighwaySim) -> None:
-        if not sim.frozen[self.env] and not self.done:
+        if not (self.done or sim.frozen.item(self.env)):
             self._write_sim_step(sim)
 
     def _lane_change_active(self, sim: HighwaySim) -> bool:
         e = self.env
-        return bool(sim.lc_active[e, 0] if sim.autopilot_ego else sim.ego_lc_active[e])
+        return bool(sim.lc_active.item(e, 0) if sim.autopilot_ego else sim.ego_lc_active.item(e))
 
     def _write_sim_step(self, sim: HighwaySim) -> None:
+        # Runs after every simulation step: scalars via ndarray.item (no numpy scalar objects).
         w, e = self.writer, self.env
-        step, t = int(sim.step[e]), float(sim.t_s[e])
-        speed = sim.speed[e]
-        collision_with, invasion, off_road = int(sim.collision_with[e]), int(sim.lane_invasion[e]), bool(sim.off_road[e])
+        step, t = sim.step.item(e), sim.t_s.item(e)
+        speed, lane = sim.speed[e], sim.lane[e]
+        collision_with, invasion, off_road = sim.collision_with.item(e), sim.lane_invasion.item(e), sim.off_road.item(e)
         w.write_sim_step(
-            step, t, sim.ids, sim.x[e], sim.y[e], sim.yaw[e], speed, sim.accel[e], sim.lane[e], sim.target_lane[e],
-            sim.length[e], sim.width[e], float(speed[0]), int(sim.lane[e, 0]), collision_with, invasion, off_road,
-            float(sim.steer[e]), float(sim.throttle[e]), float(sim.brake[e]),
+            step, t, sim.ids, sim.x[e], sim.y[e], sim.yaw[e], speed, sim.accel[e], lane, sim.target_lane[e],
+            sim.length[e], sim.width[e], speed.item(0), lane.item(0), collision_with, invasion, off_road,
+            sim.steer.item(e), sim.throttle.item(e), sim.brake.item(e),
         )  # fmt: skip
         if collision_with >= 0:
             w.write_collision(step, t, other_id=collision_with, ego_x=float(sim.x[e, 0]), ego_y=float(sim.y[e, 0]),

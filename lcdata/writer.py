@@ -41,7 +41,7 @@ from google.protobuf.message import Message
 from mcap_protobuf.schema import build_file_descriptor_set
 
 from lcdata import encode, topics
-from lcdata.mcap_write import McapStreamWriter
+from lcdata.mcap_write import MESSAGE_HEADER_SIZE, McapStreamWriter, pack_message_header
 from lcdata.proto import lc_pb2
 from lcdata.wire import f_double, f_packed, f_varint
 
@@ -213,14 +213,19 @@ class EpisodeWriter:
         if self._closed:
             raise RuntimeError(f"{self.path}: writer is closed")
         time_ns = self.start_time_ns + round(t_s * 1e9)
-        vehicles = self._vehicle_encoder.encode(step, t_s, ids, x, y, yaw, speed, accel, lane, target_lane, length,
-                                                width)  # fmt: skip
-        ego = encode.encode_ego(step, t_s, ego_speed, ego_lane, collision_with, lane_invasion, off_road, steer,
-                                throttle, brake)  # fmt: skip
         channels = self._channels
         vehicles_id = channels.get(topics.VEHICLES) or self._channel(topics.VEHICLES)
         ego_id = channels.get(topics.EGO_STATE) or self._channel(topics.EGO_STATE)
-        self._mcap.add_message(vehicles_id, time_ns, vehicles, time_ns)
+        # /vehicles: the MCAP record header goes into the encoder's buffer right before the message,
+        # so that the record leaves it with one copy.
+        encoder = self._vehicle_encoder
+        start = encoder.fill(step, t_s, ids, x, y, yaw, speed, accel, lane, target_lane, length, width)
+        buffer = encoder.buffer
+        record = start - MESSAGE_HEADER_SIZE
+        pack_message_header(buffer, record, vehicles_id, time_ns, len(buffer) - start)
+        self._mcap.add_message_record(vehicles_id, time_ns, buffer[record:])
+        ego = encode.encode_ego(step, t_s, ego_speed, ego_lane, collision_with, lane_invasion, off_road, steer,
+                                throttle, brake)  # fmt: skip
         self._mcap.add_message(ego_id, time_ns, ego, time_ns)
 
     def write_collision(
