@@ -122,6 +122,7 @@ class EpisodeWriter:
         self._channels: dict[str, int] = {}
         self._vehicle_encoder = encode.VehicleEncoder()
         self._cube_encoder = encode.CubeEncoder()
+        self._image_encoder = encode.ImageEncoder()
         self._scene_ids: np.ndarray | None = None
         self._scene_ego = 0
         self._scene_rgba = np.zeros((0, 4))
@@ -259,7 +260,7 @@ class EpisodeWriter:
         The step is recovered from the timestamp by the reader (images share the time of the step).
         """
         del step
-        self._write(topics.CAMERA_BEV, t_s, encode.encode_image(self._time_ns(t_s), chw))
+        self._write(topics.CAMERA_BEV, t_s, self._image_encoder.encode(self._time_ns(t_s), chw))
 
     def write_scene(
         self,
@@ -282,8 +283,7 @@ class EpisodeWriter:
             self._scene_ids, self._scene_ego = ids.copy(), ego_id
             self._scene_rgba = np.where((ids == ego_id)[:, None], EGO_RGBA, TRAFFIC_RGBA)
         cubes = self._cube_encoder.encode(x, y, yaw, length, width, height_m, self._scene_rgba)
-        entity = encode.encode_entity(self._time_ns(t_s), "vehicles", cubes)
-        self._write(topics.SCENE, t_s, encode.encode_scene_update([entity]))
+        self._write(topics.SCENE, t_s, encode.encode_scene_entity_update(self._time_ns(t_s), "vehicles", cubes))
 
     def write_lane_markings(
         self, t_s: float, lines: Sequence[np.ndarray], solid: Sequence[bool], *, thickness_m: float = 0.15
@@ -325,20 +325,14 @@ class EpisodeWriter:
         unknown = set(reward_components) - {"collision", "off_road", "forward", "success"}
         if unknown:
             raise ValueError(f"unknown reward components {sorted(unknown)}")
-        msg = lc_pb2.RLStep(
-            step=int(step), t=float(t_s), decision=int(decision), action=int(action),
-            action_mask=np.asarray(action_mask, dtype=bool).tolist(), reward=float(reward),
-            r_collision=float(reward_components.get("collision", 0.0)),
-            r_off_road=float(reward_components.get("off_road", 0.0)),
-            r_forward=float(reward_components.get("forward", 0.0)),
-            r_success=float(reward_components.get("success", 0.0)),
-            terminated=bool(terminated), truncated=bool(truncated), outcome=outcome,
+        data = encode.encode_rl_step(
+            int(step), float(t_s), int(decision), int(action), np.asarray(action_mask, dtype=bool).tolist(),
+            float(reward), float(reward_components.get("collision", 0.0)),
+            float(reward_components.get("off_road", 0.0)), float(reward_components.get("forward", 0.0)),
+            float(reward_components.get("success", 0.0)), bool(terminated), bool(truncated), outcome,
+            None if obs_current is None else np.asarray(obs_current, dtype=np.float32),
         )  # fmt: skip
-        if obs_current is not None:
-            current = np.asarray(obs_current, dtype=np.float32)
-            msg.obs_current.extend(current.ravel().tolist())
-            msg.obs_current_shape.extend(current.shape)
-        self._write(topics.RL_STEP, t_s, msg.SerializeToString())
+        self._write(topics.RL_STEP, t_s, data)
 
     def write_prediction(self, step: int, t_s: float, vehicle_ids: np.ndarray, xy: np.ndarray) -> None:
         """``/prediction``: ``vehicle_ids`` (S,) (-1 = empty slot), ``xy`` (S, F, 2) world frame."""
