@@ -141,21 +141,20 @@ class LaneChangeCore:
         sim = self.sim
         index = sim.index
         assert index is not None
-        e, num_lanes, n = index.member.shape
-        rows = np.arange(e)
-        p0 = np.argmax(index.order == 0, axis=1)  # sorted position of the ego
+        num_lanes = sim.road.num_lanes
+        rows = np.arange(self.num_envs)[:, None]
         lanes = sim.target_lane[:, 0][:, None] + np.array([-1, 0, 1])[None, :]  # (E, 3)
         valid = (lanes >= 0) & (lanes < num_lanes)
-        lc = np.clip(lanes, 0, num_lanes - 1)
+        ego = np.zeros(3, dtype=np.int64)
         out: dict[str, np.ndarray] = {}
         ego_x, ego_len = sim.x[:, 0][:, None], sim.length[:, 0][:, None]
-        for name, table, sign in (("front", index.ahead, 1.0), ("rear", index.behind, -1.0)):
-            pos = table[rows[:, None], lc, p0[:, None]]  # (E, 3)
-            found = (pos >= 0) & (pos < n)
-            veh = index.order[rows[:, None], np.clip(pos, 0, n - 1)]
-            gap = sign * (sim.x[rows[:, None], veh] - ego_x) - 0.5 * (ego_len + sim.length[rows[:, None], veh])
+        for name, ahead, sign in (("front", True, 1.0), ("rear", False, -1.0)):
+            veh = index.neighbour_in_lane(lanes, ahead, vehicles=ego)  # (E, 3), -1 when none or no lane
+            found = veh >= 0
+            v = np.maximum(veh, 0)
+            gap = sign * (sim.x[rows, v] - ego_x) - 0.5 * (ego_len + sim.length[rows, v])
             out[f"{name}_gap"] = np.where(valid, np.where(found, gap, np.inf), -np.inf)
-            out[f"{name}_speed"] = np.where(found & valid, sim.speed[rows[:, None], veh], 0.0)
+            out[f"{name}_speed"] = np.where(found & valid, sim.speed[rows, v], 0.0)
         return out
 
     # ------------------------------------------------------------ observation

@@ -297,8 +297,9 @@ class HighwaySim:
 
     def _build_index(self) -> LaneIndex:
         extra = np.where(self.lc_active, self.target_lane, -1)
+        previous = self.index.order if self.index is not None else None
         return LaneIndex(self.x, self.y, self.yaw, self.speed, self.length, self.width, extra,
-                         self.road.lane_width, self.road.num_lanes, self.rows)
+                         self.road.lane_width, self.road.num_lanes, self.rows, previous_order=previous)
 
     def _sensors(self, ego_y_prev: np.ndarray) -> None:
         """Collisions, lane invasion and off-road.
