@@ -45,6 +45,12 @@ _positive_int = int_at_least(1)
 _non_negative_int = int_at_least(0)
 
 
+def _driver_spec(text: str) -> str:
+    if text in DRIVERS or (text.startswith("policy:") and len(text) > len("policy:")):
+        return text
+    raise argparse.ArgumentTypeError(f"expected one of {', '.join(DRIVERS)} or policy:CKPT, got {text!r}")
+
+
 def build_parser() -> argparse.ArgumentParser:
     p = _Parser(
         prog="lc-record",
@@ -58,8 +64,9 @@ def build_parser() -> argparse.ArgumentParser:
                    "corpus (20 autopilot vehicles, 2000 steps, no image). Default: %(default)s")  # fmt: skip
     p.add_argument("--episodes", type=_positive_int, default=1, help="number of episodes (default: 1)")
     p.add_argument("--seed", type=_non_negative_int, default=0, help="seed of the first episode (default: 0)")
-    p.add_argument("--driver", choices=DRIVERS, default=None,
-                   help="who drives the ego (default: rule for lane-change, autopilot for corpus)")  # fmt: skip
+    p.add_argument("--driver", type=_driver_spec, default=None, metavar="{" + ",".join(DRIVERS) + ",policy:CKPT}",
+                   help="who drives the ego (default: rule for lane-change, autopilot for corpus); "
+                   "policy:CKPT drives with a trained policy (a policy.zip from lc-train-policy)")  # fmt: skip
     p.add_argument("--out", type=pathlib.Path, required=True, help="output directory (created if missing)")
     p.add_argument("--workers", type=_positive_int, default=1, help="parallel processes (default: 1)")
     p.add_argument("--overwrite", action="store_true", help="replace episode files that already exist")
@@ -93,6 +100,24 @@ def _check_out_dir(out: pathlib.Path) -> None:
         raise UsageError(f"output directory {out} is not writable")
 
 
+def _policy_driver(spec: str, args: argparse.Namespace, config: ScenarioConfig):
+    """A trained policy as the driver, and the scenario it was trained on (images as asked)."""
+    if args.scenario != "lane-change":
+        raise UsageError("--driver policy:CKPT needs --scenario lane-change")
+    if args.vehicles is not None or args.steps is not None:
+        raise UsageError("a policy drives in the scenario it was trained on; drop --vehicles / --steps")
+    path = pathlib.Path(spec.removeprefix("policy:"))
+    if not path.is_file():
+        raise UsageError(f"policy checkpoint {path} does not exist")
+    from lcmodels.policy.evaluate import driver_for  # lcmodels builds on lcdata: import only when asked
+
+    try:
+        policy, policy_config = driver_for(str(path))
+    except ValueError as exc:
+        raise UsageError(str(exc).splitlines()[0]) from None
+    return policy, dataclasses.replace(policy_config, render_image=policy_config.render_image or not args.no_images)
+
+
 def record_main(argv: Sequence[str] | None = None) -> int:
     """Entry point of ``lc-record``; returns the exit code (2 for bad input)."""
     parser = build_parser()
@@ -103,8 +128,11 @@ def record_main(argv: Sequence[str] | None = None) -> int:
             config = scenario_config(args.scenario, vehicles=args.vehicles, steps=args.steps)
         except ValueError as exc:
             raise UsageError(str(exc)) from None
+        if driver.startswith("policy:"):
+            driver, config = _policy_driver(driver, args, config)
         seeds = [args.seed + i for i in range(args.episodes)]
-        paths = [args.out / episode_filename(args.scenario, driver, s) for s in seeds]
+        name = driver if isinstance(driver, str) else driver.name
+        paths = [args.out / episode_filename(args.scenario, name, s) for s in seeds]
         if args.out.is_dir() and not args.overwrite:
             existing = [p for p in paths if p.exists()]
             if existing:
@@ -120,10 +148,11 @@ def record_main(argv: Sequence[str] | None = None) -> int:
     outcomes: collections.Counter[str] = collections.Counter()
     messages = size = 0
     start = time.perf_counter()
-    results = iter_record_episodes(config, seeds, driver, args.out, scenario=args.scenario, workers=args.workers,
+    workers = args.workers if isinstance(driver, str) else 1  # a loaded policy stays in this process
+    results = iter_record_episodes(config, seeds, driver, args.out, scenario=args.scenario, workers=workers,
                                    overwrite=args.overwrite, images=not args.no_images)  # fmt: skip
     try:
-        with tqdm(total=len(seeds), unit="ep", desc=f"{args.scenario}/{driver}", disable=None) as bar:
+        with tqdm(total=len(seeds), unit="ep", desc=f"{args.scenario}/{name}", disable=None) as bar:
             for result in results:
                 outcomes[result.outcome] += 1
                 messages += result.messages

@@ -1,4 +1,4 @@
-"""Command lines of lcmodels: ``lc-train-predictor``.
+"""Command lines of lcmodels: ``lc-train-predictor``, ``lc-train-policy``, ``lc-eval``.
 
 A console script is a thin ``main(argv) -> int`` that turns flags into a config and calls the library,
 so tests call it in-process. Bad input ends with one line on stderr and exit status 2.
@@ -127,5 +127,235 @@ def train_predictor_main(argv: list[str] | None = None) -> int:
     return 0
 
 
-if __name__ == "__main__":
-    sys.exit(train_predictor_main())
+
+
+# --------------------------------------------------------------------------------------- lc-train-policy
+TRAIN_POLICY_EPILOG = """examples:
+  lc-train-policy --algo ppo --obs pure --timesteps 100000 --out runs/ppo-pure
+  lc-train-policy --algo ppo --obs hybrid --predictor runs/predictor/predictor.pt --out runs/hybrid-ppo
+  lc-record --episodes 40 --seed 5000 --out runs/rule-demos --no-images   # then:
+  lc-train-policy --obs pure --warm-start runs/rule-demos --out runs/ppo-pure-warm
+
+Rerunning with the same --out resumes from the last checkpoint (the step count continues) or, when
+training is complete, only redoes a missing evaluation. A different config in --out is refused.
+
+outputs (in --out): policy.zip (the policy; lc-eval and lc-record --driver policy:PATH load it),
+checkpoints/latest.zip, progress.csv (outcome rates, return, safe forward distance over the last 100
+episodes at each log step), tb/ (TensorBoard), eval/metrics.json and eval/episodes/*.mcap (held-out
+evaluation), metrics.json (training summary + evaluation), run.json (config, predictor, versions).
+"""
+
+
+def train_policy_parser() -> argparse.ArgumentParser:
+    from lcmodels.policy.checkpoint import ALGOS
+    from lcmodels.policy.extractor import IMAGE_NETS
+    from lcmodels.policy.obs import OBS_MODES
+    from lcmodels.policy.train import POLICY_SCENARIOS, PolicyConfig
+
+    d = PolicyConfig()
+    p = argparse.ArgumentParser(
+        prog="lc-train-policy",
+        description="Train the lane-change policy online on the batched simulator (PPO, A2C or DQN with the "
+        "hybrid features extractor), optionally warm-started from recorded episodes, then evaluate it "
+        "on held-out seeds.",
+        epilog=TRAIN_POLICY_EPILOG,
+        formatter_class=argparse.RawDescriptionHelpFormatter,
+    )
+    p.add_argument("--algo", choices=list(ALGOS), default=d.algo, help="default %(default)s")
+    p.add_argument("--obs", choices=OBS_MODES, default=d.obs,
+                   help="observation mode (Table IV): pure, image, prediction, hybrid (default %(default)s)")
+    p.add_argument("--predictor", type=Path, help="predictor.pt from lc-train-predictor (prediction, hybrid)")
+    p.add_argument("--scenario", choices=list(POLICY_SCENARIOS), default=d.scenario,
+                   help="paper: 100 vehicles, 600 m route; light: 30 vehicles, 300 m; tiny: 8 vehicles, 150 m, "
+                   "for smoke tests (default %(default)s)")
+    p.add_argument("--timesteps", type=_positive_int, default=d.timesteps,
+                   help="online decisions over all envs (default %(default)s)")
+    p.add_argument("--n-envs", type=_positive_int, default=d.n_envs, help="parallel episodes (default %(default)s)")
+    p.add_argument("--seed", type=int_at_least(0), default=d.seed, help="training seed (default %(default)s)")
+    p.add_argument("--image-net", choices=IMAGE_NETS, default=d.image_net,
+                   help="image branch: compact VGG-style (CPU) or the paper's VGG-16 (default %(default)s)")
+    p.add_argument("--lr", type=float, default=None, help="learning rate (default 3e-4; A2C 7e-4; DQN 1e-4)")
+    p.add_argument("--n-steps", type=_positive_int, default=None,
+                   help="PPO/A2C rollout steps per env (default 128; A2C 8)")
+    p.add_argument("--warm-start", type=Path, default=None,
+                   help="directory of recorded MCAP episodes to pretrain on (behaviour cloning)")
+    p.add_argument("--warm-start-epochs", type=_positive_int, default=d.warm_start_epochs,
+                   help="behaviour-cloning epochs (default %(default)s)")
+    p.add_argument("--checkpoint-every", type=_positive_int, default=d.checkpoint_every,
+                   help="timesteps between checkpoints (default %(default)s)")
+    p.add_argument("--eval-episodes", type=int_at_least(0), default=d.eval_episodes,
+                   help="held-out evaluation episodes at the end, 0 to skip (default %(default)s)")
+    p.add_argument("--eval-seed", type=int_at_least(0), default=d.eval_seed, help="evaluation seed (default 0)")
+    p.add_argument("--no-record-eval", action="store_true", help="do not record the evaluation episodes")
+    p.add_argument("--threads", type=_positive_int, default=2, help="torch threads (default 2)")
+    p.add_argument("--device", default="cpu", help="torch device (default cpu; cuda for the GPU)")
+    p.add_argument("--out", type=Path, required=True, help="run directory (resumed when it holds this run)")
+    p.add_argument("--overwrite", action="store_true", help="delete a different run in --out first")
+    p.add_argument("-q", "--quiet", action="store_true", help="no progress lines")
+    return p
+
+
+def _fmt_row(row: dict) -> str:
+    return (f"step {int(row['timesteps']):>8d}  {row['wall_s'] / 60:6.1f} min  episodes {int(row['episodes_total']):>5d}  "
+            f"success {row['success_rate']:.2f}  collision {row['collision_rate']:.2f}  "
+            f"timeout {row['timeout_rate']:.2f}  return {row['mean_return']:8.1f}  "
+            f"safe forward {row['mean_safe_forward_m']:6.1f} m")
+
+
+def train_policy_main(argv: list[str] | None = None) -> int:
+    args = train_policy_parser().parse_args(argv)
+
+    def fail(msg: str) -> int:
+        print(f"lc-train-policy: error: {msg}", file=sys.stderr)
+        return 2
+
+    import shutil
+
+    import torch
+
+    from lcmodels.policy.obs import needs_predictor
+    from lcmodels.policy.train import PolicyConfig, train_policy
+
+    if needs_predictor(args.obs) and args.predictor is None:
+        return fail(f"--obs {args.obs} needs --predictor (a predictor.pt from lc-train-predictor)")
+    if args.predictor is not None and not args.predictor.is_file():
+        return fail(f"--predictor {args.predictor} does not exist")
+    if args.warm_start is not None and not args.warm_start.exists():
+        return fail(f"--warm-start {args.warm_start} does not exist")
+    defaults = {"a2c": (7e-4, 8), "dqn": (1e-4, 128)}.get(args.algo, (3e-4, 128))
+    try:
+        cfg = PolicyConfig(
+            algo=args.algo, obs=args.obs, scenario=args.scenario, timesteps=args.timesteps, n_envs=args.n_envs,
+            seed=args.seed, image_net=args.image_net, learning_rate=args.lr or defaults[0],
+            n_steps=args.n_steps or defaults[1], checkpoint_every=args.checkpoint_every,
+            eval_episodes=args.eval_episodes, eval_seed=args.eval_seed, record_eval=not args.no_record_eval,
+            warm_start=str(args.warm_start or ""), warm_start_epochs=args.warm_start_epochs,
+        )  # fmt: skip
+    except ValueError as exc:
+        return fail(str(exc))
+    if args.overwrite and args.out.exists():
+        shutil.rmtree(args.out)
+    torch.set_num_threads(args.threads)
+    logging.basicConfig(level=logging.WARNING if args.quiet else logging.INFO, format="%(message)s")
+    show = None if args.quiet else (lambda row: print(_fmt_row(row), flush=True))
+    show_eval = None if args.quiet else (lambda k, n: print(f"evaluating: {k}/{n} episodes", flush=True))
+    try:
+        res = train_policy(cfg, args.out, predictor=args.predictor, device=args.device, progress=show,
+                           eval_progress=show_eval)  # fmt: skip
+    except (ValueError, OSError) as exc:
+        return fail(str(exc).splitlines()[0])
+    ev = res.metrics.get("eval")
+    print(f"trained {res.timesteps} steps in {res.wall_s / 60:.1f} min -> {args.out / 'policy.zip'}")
+    if ev:
+        print(_fmt_eval(ev))
+    print(f"wrote {args.out / 'metrics.json'}")
+    return 0
+
+
+def _fmt_eval(ev: dict) -> str:
+    def rate(k: str) -> str:
+        lo, hi = ev[f"{k}_rate_ci95"]
+        return f"{k} {100 * ev[f'{k}_rate']:.1f}% [{100 * lo:.1f}, {100 * hi:.1f}]"
+
+    lo, hi = ev["mean_safe_forward_m_ci95"]
+    rlo, rhi = ev["mean_return_ci95"]
+    return (f"held-out evaluation, {ev['episodes']} episodes: " + ", ".join(rate(k) for k in
+            ("success", "collision", "off_road", "timeout")) +
+            f"; safe forward {ev['mean_safe_forward_m']:.1f} m [{lo:.1f}, {hi:.1f}]"
+            f"; return {ev['mean_return']:.1f} [{rlo:.1f}, {rhi:.1f}]")
+
+
+# --------------------------------------------------------------------------------------------- lc-eval
+EVAL_EPILOG = """examples:
+  lc-eval runs/hybrid-ppo/policy.zip --episodes 200 --seed 0 --json-out runs/hybrid-ppo/eval200.json
+  lc-eval rule --episodes 200 --out runs/rule-eval
+
+Evaluation episode i uses the user seed 1000000000 + 100000 * SEED + i, disjoint from training seeds.
+Prints outcome rates (fractions) and means with 95% intervals; --json-out writes them as JSON; every
+episode is recorded to MCAP under --out (actions, reward components, predictions the policy saw).
+"""
+
+
+def eval_parser() -> argparse.ArgumentParser:
+    p = argparse.ArgumentParser(
+        prog="lc-eval",
+        description="Evaluate a trained policy (or a non-learning driver) on fixed held-out seeds.",
+        epilog=EVAL_EPILOG,
+        formatter_class=argparse.RawDescriptionHelpFormatter,
+    )
+    p.add_argument("policy", help="policy checkpoint (policy.zip), or rule / keep / random")
+    p.add_argument("--episodes", type=_positive_int, default=200, help="episodes (default %(default)s)")
+    p.add_argument("--seed", type=int_at_least(0), default=0, help="evaluation seed (default %(default)s)")
+    p.add_argument("--predictor", type=Path, default=None,
+                   help="predictor checkpoint (default: the one the policy was trained with)")
+    p.add_argument("--scenario", choices=("paper", "light", "tiny"), default=None,
+                   help="scenario for rule/keep/random (default paper); a policy uses its own")
+    p.add_argument("--out", type=Path, default=None,
+                   help="record every episode here (default: eval-<name>-s<seed> next to the checkpoint, "
+                   "or runs/eval-<driver> for a driver)")
+    p.add_argument("--no-record", action="store_true", help="do not record episodes")
+    p.add_argument("--overwrite", action="store_true", help="replace existing episode files")
+    p.add_argument("--json-out", type=Path, default=None, help="write the summary as JSON here")
+    p.add_argument("--batch", type=_positive_int, default=20, help="episodes simulated together (default 20)")
+    p.add_argument("--threads", type=_positive_int, default=2, help="torch threads (default 2)")
+    p.add_argument("-q", "--quiet", action="store_true", help="no progress lines")
+    return p
+
+
+def eval_main(argv: list[str] | None = None) -> int:
+    args = eval_parser().parse_args(argv)
+
+    def fail(msg: str) -> int:
+        print(f"lc-eval: error: {msg}", file=sys.stderr)
+        return 2
+
+    import numpy as np
+    import torch
+
+    from lcmodels.policy.evaluate import driver_for, evaluate
+    from lcmodels.policy.train import POLICY_SCENARIOS
+
+    is_driver = args.policy in ("rule", "keep", "random")
+    if not is_driver and not Path(args.policy.removeprefix("policy:")).is_file():
+        return fail(f"{args.policy} does not exist (expected a policy.zip, or rule / keep / random)")
+    if args.json_out is not None and args.json_out.exists() and not args.overwrite:
+        return fail(f"{args.json_out} already exists; pass --overwrite or choose another --json-out")
+    torch.set_num_threads(args.threads)
+    try:
+        driver, config = driver_for(args.policy, predictor=str(args.predictor) if args.predictor else None)
+    except ValueError as exc:
+        return fail(str(exc).splitlines()[0])
+    if config is None:
+        config = POLICY_SCENARIOS[args.scenario or "paper"]()
+    elif args.scenario is not None:
+        return fail("--scenario applies to rule / keep / random; a policy is evaluated in its own scenario")
+    out = None
+    if not args.no_record:
+        if args.out is not None:
+            out = args.out
+        elif is_driver:
+            out = Path("runs") / f"eval-{args.policy}-s{args.seed}"
+        else:
+            ckpt = Path(args.policy.removeprefix("policy:"))
+            out = ckpt.parent / f"eval-{ckpt.stem}-s{args.seed}"
+    train_seeds = None
+    if not is_driver:
+        seeds_file = Path(args.policy.removeprefix("policy:")).parent / "train_episode_seeds.npy"
+        train_seeds = np.load(seeds_file) if seeds_file.exists() else None
+    show = None if args.quiet else (lambda k, n: print(f"evaluating: {k}/{n} episodes", flush=True))
+    try:
+        summary, _ = evaluate(driver, config, episodes=args.episodes, seed=args.seed, out_dir=out,
+                              batch=args.batch, overwrite=args.overwrite, train_seeds=train_seeds,
+                              progress=show)  # fmt: skip
+    except (ValueError, OSError) as exc:
+        return fail(str(exc).splitlines()[0])
+    print(_fmt_eval(summary))
+    if "overlap_with_training" in summary:
+        print(f"evaluation episodes also seen in training: {summary['overlap_with_training']}")
+    if out is not None:
+        print(f"recorded {args.episodes} episodes in {out}")
+    if args.json_out is not None:
+        args.json_out.parent.mkdir(parents=True, exist_ok=True)
+        args.json_out.write_text(json.dumps(summary, indent=2, sort_keys=True) + "\n")
+        print(f"wrote {args.json_out}")
+    return 0

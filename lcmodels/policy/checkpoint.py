@@ -1,0 +1,156 @@
+"""Policy checkpoints: a stable-baselines3 ``.zip`` that also carries what the policy was trained for.
+
+The zip's ``data`` record holds ``lc_meta`` (plain JSON): format and version, algorithm, observation
+mode, image network, the full scenario config, the predictor's file name and SHA-256, and the training
+config. :func:`load_policy` reads it before loading any weights and refuses a checkpoint whose
+observation mode, predictor or scenario differ from what the caller asks for, saying what differs.
+SB3 loads the weights with ``torch.load(weights_only=True)``.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import json
+import os
+import zipfile
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+from stable_baselines3 import A2C, DQN, PPO
+from stable_baselines3.common.base_class import BaseAlgorithm
+
+from lcmodels.predictor.inference import Predictor
+from lcsim.config import ScenarioConfig
+
+META_FORMAT = "lc-toolkit/policy"
+META_VERSION = 1
+ALGOS: dict[str, type[BaseAlgorithm]] = {"ppo": PPO, "a2c": A2C, "dqn": DQN}
+
+
+def file_sha256(path: str | os.PathLike[str]) -> str:
+    h = hashlib.sha256()
+    with open(path, "rb") as f:
+        for chunk in iter(lambda: f.read(1 << 20), b""):
+            h.update(chunk)
+    return h.hexdigest()
+
+
+def save_policy(model: BaseAlgorithm, path: str | os.PathLike[str], meta: dict[str, Any]) -> Path:
+    """Save ``model`` with ``meta`` to ``path`` (a ``.zip``), atomically (``.partial`` then rename)."""
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    model.lc_meta = {"format": META_FORMAT, "version": META_VERSION, **meta}  # type: ignore[attr-defined]
+    tmp = path.with_name(path.stem + ".partial.zip")
+    model.save(tmp, include=["lc_meta"])
+    tmp.replace(path)
+    return path
+
+
+def read_meta(path: str | os.PathLike[str]) -> dict[str, Any]:
+    """The ``lc_meta`` of a policy checkpoint; ``ValueError`` for a missing, corrupt or foreign file."""
+    path = Path(path)
+    if not path.is_file():
+        raise ValueError(f"policy checkpoint {path} does not exist")
+    try:
+        with zipfile.ZipFile(path) as zf:
+            data = json.loads(zf.read("data"))
+    except (zipfile.BadZipFile, KeyError, json.JSONDecodeError, OSError, EOFError) as exc:
+        raise ValueError(f"{path} is not a readable policy checkpoint (corrupt or truncated?): {exc}") from exc
+    meta = data.get("lc_meta")
+    if not isinstance(meta, dict) or meta.get("format") != META_FORMAT:
+        raise ValueError(f"{path} is a stable-baselines3 file but not an lc-toolkit policy checkpoint")
+    if meta.get("version") != META_VERSION:
+        raise ValueError(f"{path}: unsupported policy checkpoint version {meta.get('version')!r}")
+    return meta
+
+
+def _diff(a: Any, b: Any, prefix: str = "") -> list[str]:
+    if isinstance(a, dict) and isinstance(b, dict):
+        out: list[str] = []
+        for k in sorted(set(a) | set(b)):
+            out += _diff(a.get(k), b.get(k), f"{prefix}{k}.")
+        return out
+    if a != b:
+        return [f"{prefix.rstrip('.')}: checkpoint {a!r}, requested {b!r}"]
+    return []
+
+
+def compatibility_problems(meta: dict[str, Any], *, obs_mode: str | None = None,
+                           predictor_sha256: str | None = None,
+                           scenario: ScenarioConfig | None = None) -> list[str]:
+    """What differs between a checkpoint and the requested mode, predictor and scenario (empty: compatible)."""
+    problems: list[str] = []
+    if obs_mode is not None and meta.get("obs_mode") != obs_mode:
+        problems.append(f"observation mode: checkpoint {meta.get('obs_mode')!r}, requested {obs_mode!r}")
+    pred = meta.get("predictor") or {}
+    if predictor_sha256 is not None and pred.get("sha256") != predictor_sha256:
+        problems.append(
+            f"predictor: checkpoint trained with {pred.get('file', 'none')!r} (sha256 "
+            f"{str(pred.get('sha256'))[:12]}), requested one has sha256 {predictor_sha256[:12]}"
+        )
+    if scenario is not None:
+        have = dict(meta.get("scenario") or {})
+        want = scenario.to_dict()
+        have.pop("render_image", None)  # decided by the observation mode
+        want.pop("render_image", None)
+        problems += [f"scenario {d}" for d in _diff(have, want)]
+    return problems
+
+
+@dataclass
+class LoadedPolicy:
+    model: BaseAlgorithm
+    meta: dict[str, Any]
+    predictor: Predictor | None
+    scenario: ScenarioConfig
+
+    @property
+    def obs_mode(self) -> str:
+        return str(self.meta["obs_mode"])
+
+    @property
+    def algo(self) -> str:
+        return str(self.meta["algo"])
+
+
+def load_policy(path: str | os.PathLike[str], *, obs_mode: str | None = None,
+                predictor: str | os.PathLike[str] | None = None, scenario: ScenarioConfig | None = None,
+                device: str = "cpu") -> LoadedPolicy:
+    """Load a policy checkpoint and the predictor it was trained with, checking compatibility.
+
+    Args:
+        path: the ``.zip``.
+        obs_mode, scenario: when given, must match the checkpoint's.
+        predictor: the predictor checkpoint to use; by default the one recorded in the checkpoint
+            (its path, checked by SHA-256). Must be the same file content the policy was trained with.
+
+    Raises:
+        ValueError: unreadable file or an incompatibility (the message lists every difference).
+    """
+    from lcmodels.policy.obs import needs_predictor
+
+    meta = read_meta(path)
+    algo = meta.get("algo")
+    if algo not in ALGOS:
+        raise ValueError(f"{path}: unknown algorithm {algo!r} in the checkpoint")
+    sha = None
+    pred_path: Path | None = None
+    if needs_predictor(str(meta.get("obs_mode"))):
+        stored = (meta.get("predictor") or {}).get("path")
+        pred_path = Path(predictor) if predictor is not None else (Path(stored) if stored else None)
+        if pred_path is None or not pred_path.is_file():
+            raise ValueError(
+                f"{path} needs the predictor it was trained with ({stored or 'unknown'}), which is not there; "
+                "pass its path with --predictor"
+            )
+        sha = file_sha256(pred_path)
+    problems = compatibility_problems(meta, obs_mode=obs_mode, predictor_sha256=sha, scenario=scenario)
+    if problems:
+        raise ValueError(f"{path} does not match: " + "; ".join(problems))
+    loaded_predictor = Predictor.load(pred_path) if pred_path is not None else None
+    try:
+        model = ALGOS[algo].load(path, device=device)
+    except Exception as exc:  # SB3 raises many types for damaged archives
+        raise ValueError(f"{path}: could not load the weights (corrupt?): {exc}") from exc
+    return LoadedPolicy(model, meta, loaded_predictor, ScenarioConfig.from_dict(meta["scenario"]))

@@ -1,0 +1,231 @@
+"""Evaluation on fixed held-out seeds, with 95% intervals, recording every episode to MCAP.
+
+Evaluation episode ``i`` of evaluation seed ``S`` is the episode ``LaneChangeEnv.reset(seed=u)`` gives
+for the user seed ``u = EVAL_SEED_BASE + S * 100_000 + i``. Training resets use user seeds below
+``EVAL_SEED_BASE`` and then draw episode seeds from those streams; the simulator seeds of every
+training episode are stored with the run (``train_episode_seeds.npy``) and :func:`evaluate` reports
+how many evaluation episodes coincide with one (``overlap_with_training``, expected 0).
+
+Episodes run batched (``batch`` at a time in one :class:`~lcsim.core.LaneChangeCore`), each recorded
+by its own :class:`~lcdata.record.EpisodeRecorder` with actions, reward components and, for policies
+that use them, the predictions the policy saw (``/prediction``, world frame).
+"""
+
+from __future__ import annotations
+
+import math
+import os
+from collections.abc import Callable, Sequence
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from lcdata.record import EpisodeRecorder, episode_filename, episode_metadata, episode_seed
+from lcdata.writer import EpisodeWriter
+from lcmodels.policy.checkpoint import LoadedPolicy
+from lcmodels.policy.obs import EpisodeStats, build_observation, mode_keys, scenario_for_mode
+from lcsim.config import ScenarioConfig
+from lcsim.core import COLLISION, OFF_ROAD, OUTCOMES, RUNNING, LaneChangeCore
+from lcsim.drivers import Driver
+
+EVAL_SEED_BASE = 1_000_000_000
+EVAL_SEED_STRIDE = 100_000
+
+
+def eval_user_seeds(episodes: int, seed: int = 0) -> list[int]:
+    """User seeds of the held-out evaluation episodes (disjoint from training's, see the module doc)."""
+    if episodes > EVAL_SEED_STRIDE:
+        raise ValueError(f"at most {EVAL_SEED_STRIDE} evaluation episodes per seed, got {episodes}")
+    return [EVAL_SEED_BASE + seed * EVAL_SEED_STRIDE + i for i in range(episodes)]
+
+
+class PolicyDriver:
+    """A trained policy as a driver (``driver(obs, action_mask, core) -> actions``), deterministic actions.
+
+    After each call, :attr:`last_prediction` holds the ``(E, K, F, 2)`` ego-frame predictions the policy
+    saw (``None`` when its mode has none).
+    """
+
+    def __init__(self, policy: LoadedPolicy, *, deterministic: bool = True) -> None:
+        self.policy = policy
+        self.name = f"{policy.algo}-{policy.obs_mode}"
+        self.deterministic = deterministic
+        self.last_prediction: np.ndarray | None = None
+
+    @property
+    def config(self) -> ScenarioConfig:
+        """The scenario the policy expects (rendering on only when it uses the image)."""
+        return scenario_for_mode(self.policy.scenario, self.policy.obs_mode)
+
+    def __call__(self, obs: dict[str, np.ndarray], action_mask: np.ndarray, core: LaneChangeCore) -> np.ndarray:
+        pobs = build_observation(obs, self.policy.obs_mode, self.policy.predictor)
+        self.last_prediction = pobs.get("prediction")
+        actions, _ = self.policy.model.predict(pobs, deterministic=self.deterministic)
+        return np.asarray(actions, dtype=np.int64).reshape(-1)
+
+
+def wilson_interval(k: int, n: int, z: float = 1.959964) -> tuple[float, float]:
+    """95% Wilson score interval of a proportion ``k / n``."""
+    if n == 0:
+        return (float("nan"), float("nan"))
+    p = k / n
+    denom = 1 + z * z / n
+    centre = (p + z * z / (2 * n)) / denom
+    half = z * math.sqrt(p * (1 - p) / n + z * z / (4 * n * n)) / denom
+    return (max(0.0, centre - half), min(1.0, centre + half))
+
+
+def mean_interval(values: Sequence[float], z: float = 1.959964) -> tuple[float, float]:
+    """95% normal-approximation interval of the mean."""
+    v = np.asarray(values, dtype=np.float64)
+    if len(v) < 2:
+        return (float("nan"), float("nan"))
+    half = z * float(v.std(ddof=1)) / math.sqrt(len(v))
+    m = float(v.mean())
+    return (m - half, m + half)
+
+
+def summarize_with_intervals(episodes: Sequence[EpisodeStats]) -> dict[str, Any]:
+    """``{outcome}_rate`` fractions, mean return and safe forward distance, each with ``*_ci95``."""
+    n = len(episodes)
+    out: dict[str, Any] = {"episodes": n}
+    for o in OUTCOMES:
+        k = sum(e.outcome == o for e in episodes)
+        out[f"{o}_rate"] = k / n if n else float("nan")
+        out[f"{o}_rate_ci95"] = list(wilson_interval(k, n))
+    for key, attr in (("mean_return", "ret"), ("mean_safe_forward_m", "safe_forward_m"),
+                      ("mean_forward_m", "forward_m")):  # fmt: skip
+        vals = [getattr(e, attr) for e in episodes]
+        out[key] = float(np.mean(vals)) if n else float("nan")
+        out[f"{key}_ci95"] = list(mean_interval(vals))
+    return out
+
+
+def _to_world(pred: np.ndarray, x: float, y: float, yaw: float) -> np.ndarray:
+    c, s = math.cos(yaw), math.sin(yaw)
+    out = np.empty(pred.shape, dtype=np.float64)
+    out[..., 0] = x + c * pred[..., 0] - s * pred[..., 1]
+    out[..., 1] = y + s * pred[..., 0] + c * pred[..., 1]
+    return out
+
+
+def evaluate(
+    driver: Driver | Callable[..., np.ndarray],
+    config: ScenarioConfig,
+    *,
+    episodes: int = 200,
+    seed: int = 0,
+    out_dir: str | os.PathLike[str] | None = None,
+    scenario: str = "lane-change",
+    batch: int = 16,
+    overwrite: bool = False,
+    images: bool = True,
+    train_seeds: np.ndarray | None = None,
+    progress: Callable[[int, int], None] | None = None,
+) -> tuple[dict[str, Any], list[EpisodeStats]]:
+    """Run ``episodes`` held-out episodes with ``driver`` and summarise them.
+
+    Args:
+        driver: ``driver(obs, action_mask, core) -> actions`` (a lcsim driver or :class:`PolicyDriver`).
+        config: the scenario (for a policy, ``PolicyDriver.config``).
+        out_dir: when given, every episode is recorded there as MCAP (existing files are refused unless
+            ``overwrite``).
+        batch: episodes simulated together.
+        train_seeds: simulator seeds seen in training, for the overlap check.
+        progress: called with (done, total) after each batch.
+
+    Returns:
+        ``(summary, per-episode statistics)``; the summary has the keys of
+        :func:`summarize_with_intervals` plus ``seeds``, ``overlap_with_training`` and ``driver``.
+    """
+    user_seeds = eval_user_seeds(episodes, seed)
+    name = str(getattr(driver, "name", type(driver).__name__))
+    out_path = Path(out_dir) if out_dir is not None else None
+    if out_path is not None:
+        out_path.mkdir(parents=True, exist_ok=True)
+        if not overwrite:
+            existing = [p for u in user_seeds if (p := out_path / episode_filename(scenario, name, u)).exists()]
+            if existing:
+                raise FileExistsError(f"{existing[0]} exists ({len(existing)} evaluation files); use --overwrite "
+                                      "or another output directory")  # fmt: skip
+    results: list[EpisodeStats] = []
+    forward_per_m = config.reward.forward_per_m or 1.0
+    for start in range(0, episodes, batch):
+        chunk = user_seeds[start : start + batch]
+        e = len(chunk)
+        core = LaneChangeCore(config, e)
+        ep_seeds = [episode_seed(u) for u in chunk]
+        core.reset(np.arange(e), ep_seeds)
+        writers: list[EpisodeWriter] = []
+        recorders: list[EpisodeRecorder] = []
+        if out_path is not None:
+            for i, u in enumerate(chunk):
+                meta = episode_metadata(config, u, driver=name, scenario=scenario,
+                                        driver_description=f"{name}: evaluation episode {start + i}")  # fmt: skip
+                w = EpisodeWriter(out_path / episode_filename(scenario, name, u), metadata=meta, overwrite=overwrite)
+                writers.append(w)
+                rec = EpisodeRecorder(w, core, i, images=images)
+                rec.attach()
+                recorders.append(rec)
+        ret, fwd, length = np.zeros(e), np.zeros(e), np.zeros(e, dtype=np.int64)
+        try:
+            while (core.outcome == RUNNING).any():
+                running = core.outcome == RUNNING
+                obs = core.observe()
+                mask = core.action_mask()
+                actions = np.asarray(driver(obs, mask, core), dtype=np.int64).reshape(e)
+                pred = getattr(driver, "last_prediction", None)
+                for i in np.flatnonzero(running) if recorders else ():
+                    recorders[i].before_step(obs, mask, actions)
+                    if pred is not None:
+                        sim = core.sim
+                        nb = core.neighbours(np.array([i]))[0]
+                        ids = np.where(nb >= 0, sim.ids[np.maximum(nb, 0)], -1)
+                        xy = _to_world(pred[i], float(sim.x[i, 0]), float(sim.y[i, 0]), float(sim.yaw[i, 0]))
+                        recorders[i].writer.write_prediction(int(sim.step[i]), float(sim.t_s[i]), ids, xy)
+                res = core.step(actions)
+                ret += np.where(running, res.reward, 0.0)
+                fwd += np.where(running, res.components["forward"], 0.0)
+                length += running
+                for i in np.flatnonzero(running) if recorders else ():
+                    recorders[i].after_step(res)
+        finally:
+            for rec in recorders:
+                rec.detach()
+            for w in writers:
+                w.close()
+        for i in range(e):
+            outcome = str(core.outcome[i])
+            f = float(fwd[i]) / forward_per_m
+            safe = 0.0 if outcome in (COLLISION, OFF_ROAD) else f
+            results.append(EpisodeStats(outcome, float(ret[i]), int(length[i]), f, safe, int(ep_seeds[i])))
+        if progress is not None:
+            progress(len(results), episodes)
+    summary = summarize_with_intervals(results)
+    summary["driver"] = name
+    summary["eval_seed"] = seed
+    summary["user_seeds"] = [user_seeds[0], user_seeds[-1]] if user_seeds else []
+    if train_seeds is not None:
+        summary["overlap_with_training"] = int(np.isin([r.seed for r in results], train_seeds).sum())
+    return summary, results
+
+
+def driver_for(spec: str, *, predictor: str | None = None, device: str = "cpu") -> tuple[Any, ScenarioConfig | None]:
+    """A driver from ``rule`` / ``keep`` / ``random`` or a policy checkpoint path (``policy:`` prefix optional).
+
+    Returns the driver and, for a policy, the scenario it was trained on (``None`` for lcsim drivers).
+    """
+    from lcmodels.policy.checkpoint import load_policy
+    from lcsim.drivers import make_driver
+
+    if spec in ("rule", "keep", "random"):
+        return make_driver(spec), None
+    path = spec.removeprefix("policy:")
+    policy = load_policy(path, predictor=predictor, device=device)
+    drv = PolicyDriver(policy)
+    return drv, drv.config
+
+
+__all__ = ["EVAL_SEED_BASE", "PolicyDriver", "driver_for", "eval_user_seeds", "evaluate", "mean_interval",
+           "mode_keys", "summarize_with_intervals", "wilson_interval"]

@@ -1,0 +1,437 @@
+"""Online training of the lane-change policy on the batched simulator, resumable, then evaluation.
+
+A run directory holds::
+
+    run.json                  the PolicyConfig, predictor identity, versions (a rerun must match it)
+    checkpoints/latest.zip    the last periodic checkpoint (policy checkpoint format) + latest.json
+    progress.csv              one row per log interval: timesteps, wall_s and the outcome rates,
+                              mean return and safe forward distance over the last 100 episodes
+    tb/                       TensorBoard (SB3's scalars plus lc/*)
+    train_episode_seeds.npy   simulator seeds of every training episode (for the held-out check)
+    warm_start.json           behaviour-cloning losses, when warm-started
+    policy.zip                the final policy
+    eval/metrics.json         held-out evaluation (see lcmodels.policy.evaluate); eval/episodes/*.mcap
+    metrics.json              training summary + evaluation, what lc-experiment reads
+
+Rerunning with the same ``--out`` resumes from ``checkpoints/latest.zip`` (the step count continues),
+skips training when ``policy.zip`` is complete, and only evaluates what is missing.
+"""
+
+from __future__ import annotations
+
+import csv
+import json
+import logging
+import os
+import platform
+import time
+from collections import deque
+from collections.abc import Callable
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import torch
+from stable_baselines3.common.base_class import BaseAlgorithm
+from stable_baselines3.common.callbacks import BaseCallback
+from stable_baselines3.common.logger import configure
+
+from lcmodels.policy.checkpoint import ALGOS, LoadedPolicy, file_sha256, save_policy
+from lcmodels.policy.evaluate import EVAL_SEED_BASE, PolicyDriver, evaluate
+from lcmodels.policy.extractor import IMAGE_NETS, HybridExtractor
+from lcmodels.policy.obs import OBS_MODES, EpisodeStats, PolicyVecEnv, needs_predictor, scenario_for_mode
+from lcmodels.predictor.inference import Predictor
+from lcsim import light_scenario
+from lcsim.config import (
+    ScenarioConfig,
+    TrafficConfig,
+    _check,
+    _JsonMixin,
+    _non_negative,
+    _positive,
+    paper_scenario,
+)
+from lcsim.sb3 import LaneChangeSB3VecEnv
+
+log = logging.getLogger(__name__)
+
+
+
+def tiny_scenario() -> ScenarioConfig:
+    """8 vehicles on a 150 m route (25 s): for tests and smoke runs, not for results."""
+    return ScenarioConfig(traffic=TrafficConfig(num_vehicles=8, spawn_behind_m=40.0, spawn_ahead_m=100.0),
+                          route_length_m=150.0, time_limit_s=25.0)
+
+
+POLICY_SCENARIOS: dict[str, Callable[[], ScenarioConfig]] = {"paper": paper_scenario, "light": light_scenario,
+                                                             "tiny": tiny_scenario}
+PROGRESS_COLUMNS = ("timesteps", "wall_s", "episodes_total", "window", "success_rate", "collision_rate",
+                    "off_road_rate", "timeout_rate", "mean_return", "mean_safe_forward_m", "mean_forward_m")  # fmt: skip
+# Fields that may change between a run and its continuation.
+_RESUMABLE_FIELDS = ("timesteps", "checkpoint_every", "eval_episodes", "eval_seed", "eval_batch", "record_eval")
+
+
+@dataclass(frozen=True, slots=True, kw_only=True)
+class PolicyConfig(_JsonMixin):
+    """Everything that defines a policy training run (stored in ``run.json``)."""
+
+    algo: str = "ppo"
+    obs: str = "hybrid"
+    scenario: str = "paper"
+    timesteps: int = 100_000
+    """Online decisions (environment steps summed over environments)."""
+    n_envs: int = 16
+    seed: int = 0
+    image_net: str = "compact"
+    image_features: int = 10
+    learning_rate: float = 3e-4
+    gamma: float = 0.99
+    n_steps: int = 128
+    """PPO / A2C rollout length per environment (A2C default 8)."""
+    batch_size: int = 256
+    n_epochs: int = 10
+    ent_coef: float = 0.01
+    reward_scale: float = 0.01
+    """Rewards handed to the learner are scaled by this (returns in the logs are unscaled)."""
+    buffer_size: int = 50_000
+    """DQN replay buffer (transitions)."""
+    learning_starts: int = 2_000
+    exploration_fraction: float = 0.3
+    target_update_interval: int = 2_000
+    checkpoint_every: int = 20_000
+    eval_episodes: int = 200
+    eval_seed: int = 0
+    eval_batch: int = 20
+    record_eval: bool = True
+    warm_start: str = ""
+    """Directory of recorded MCAP episodes to pretrain on ('' = none)."""
+    warm_start_epochs: int = 10
+
+    def __post_init__(self) -> None:
+        _check(self.algo in ALGOS, self, "algo", f"must be one of {', '.join(ALGOS)}", self.algo)
+        _check(self.obs in OBS_MODES, self, "obs", f"must be one of {', '.join(OBS_MODES)}", self.obs)
+        _check(self.scenario in POLICY_SCENARIOS, self, "scenario", f"must be one of {', '.join(POLICY_SCENARIOS)}",
+               self.scenario)  # fmt: skip
+        _check(self.image_net in IMAGE_NETS, self, "image_net", f"must be one of {', '.join(IMAGE_NETS)}",
+               self.image_net)  # fmt: skip
+        _positive(self, "timesteps", "n_envs", "image_features", "learning_rate", "n_steps", "batch_size",
+                  "n_epochs", "reward_scale", "buffer_size", "target_update_interval", "checkpoint_every",
+                  "eval_batch", "warm_start_epochs")
+        _non_negative(self, "ent_coef", "learning_starts", "eval_episodes", "seed", "eval_seed")
+        _check(0 < self.gamma <= 1, self, "gamma", "must be in (0, 1]", self.gamma)
+        _check(0 < self.exploration_fraction <= 1, self, "exploration_fraction", "must be in (0, 1]",
+               self.exploration_fraction)  # fmt: skip
+        _check(self.seed < 1_000_000, self, "seed", "must be < 1000000 (keeps training seeds off evaluation's)",
+               self.seed)  # fmt: skip
+
+    def scenario_config(self) -> ScenarioConfig:
+        return scenario_for_mode(POLICY_SCENARIOS[self.scenario](), self.obs)
+
+
+def build_model(cfg: PolicyConfig, env: PolicyVecEnv, tensorboard: str | None = None,
+                device: str = "cpu") -> BaseAlgorithm:
+    """A fresh SB3 model of ``cfg.algo`` with the hybrid extractor."""
+    policy_kwargs: dict[str, Any] = {
+        "features_extractor_class": HybridExtractor,
+        "features_extractor_kwargs": {"image_net": cfg.image_net, "image_features": cfg.image_features},
+        "net_arch": [128, 64] if cfg.algo == "dqn" else {"pi": [64, 64], "vf": [64, 64]},
+    }
+    common: dict[str, Any] = {"policy_kwargs": policy_kwargs, "seed": cfg.seed, "device": device,
+                              "gamma": cfg.gamma, "tensorboard_log": tensorboard, "verbose": 0}  # fmt: skip
+    if cfg.algo == "ppo":
+        return ALGOS["ppo"]("MultiInputPolicy", env, learning_rate=cfg.learning_rate, n_steps=cfg.n_steps,
+                            batch_size=cfg.batch_size, n_epochs=cfg.n_epochs, ent_coef=cfg.ent_coef, **common)
+    if cfg.algo == "a2c":
+        return ALGOS["a2c"]("MultiInputPolicy", env, learning_rate=cfg.learning_rate, n_steps=cfg.n_steps,
+                            ent_coef=cfg.ent_coef, **common)
+    return ALGOS["dqn"]("MultiInputPolicy", env, learning_rate=cfg.learning_rate, buffer_size=cfg.buffer_size,
+                        learning_starts=cfg.learning_starts, batch_size=cfg.batch_size,
+                        train_freq=max(1, 4 // cfg.n_envs), gradient_steps=max(1, cfg.n_envs // 4),
+                        target_update_interval=cfg.target_update_interval,
+                        exploration_fraction=cfg.exploration_fraction, exploration_final_eps=0.02, **common)
+
+
+def train_seed_base(seed: int, start_timesteps: int) -> int:
+    """User seed of environment 0 at a (re)start: ``1000 * seed`` fresh, a hash of (seed, step) on resume."""
+    if start_timesteps == 0:
+        return 1000 * seed
+    state = np.random.SeedSequence([seed, start_timesteps]).generate_state(1, dtype=np.uint32)[0]
+    return int(state) % (EVAL_SEED_BASE - 10_000)
+
+
+@dataclass
+class TrainResult:
+    out: Path
+    timesteps: int
+    wall_s: float
+    metrics: dict[str, Any] = field(default_factory=dict)
+
+
+class _Logger(BaseCallback):
+    """Outcome statistics to TensorBoard and progress.csv; periodic checkpoints."""
+
+    def __init__(self, run: _Run, env: PolicyVecEnv, log_every: int) -> None:
+        super().__init__()
+        self.run, self.env, self.log_every = run, env, log_every
+        self.window: deque[EpisodeStats] = deque(maxlen=100)
+        self.episodes_total = run.episodes_total
+        self.last_log = run.start_timesteps
+        self.last_ckpt = run.start_timesteps
+
+    def _on_step(self) -> bool:
+        finished = self.env.pop_finished()
+        self.window.extend(finished)
+        self.episodes_total += len(finished)
+        t = self.num_timesteps
+        if t - self.last_log >= self.log_every:
+            self.last_log = t
+            self._log(t)
+        if t - self.last_ckpt >= self.run.cfg.checkpoint_every:
+            self.last_ckpt = t
+            self.run.checkpoint(self.model, t, self.episodes_total)
+        return True
+
+    def _log(self, t: int) -> None:
+        w = list(self.window)
+        n = len(w)
+        row: dict[str, float] = {"timesteps": t, "wall_s": round(self.run.wall_s(), 3),
+                                 "episodes_total": self.episodes_total, "window": n}  # fmt: skip
+        for o in ("success", "collision", "off_road", "timeout"):
+            row[f"{o}_rate"] = sum(e.outcome == o for e in w) / n if n else float("nan")
+        row["mean_return"] = float(np.mean([e.ret for e in w])) if n else float("nan")
+        row["mean_safe_forward_m"] = float(np.mean([e.safe_forward_m for e in w])) if n else float("nan")
+        row["mean_forward_m"] = float(np.mean([e.forward_m for e in w])) if n else float("nan")
+        for k, v in row.items():
+            if k not in ("timesteps", "wall_s"):
+                self.logger.record(f"lc/{k}", v)
+        self.run.append_progress(row)
+        if self.run.progress is not None:
+            self.run.progress(row)
+
+
+class _Run:
+    """The run directory: config check, checkpoints, progress rows, wall time across resumes."""
+
+    def __init__(self, cfg: PolicyConfig, out: Path, predictor_path: Path | None,
+                 progress: Callable[[dict[str, Any]], None] | None) -> None:
+        self.cfg, self.out, self.progress = cfg, out, progress
+        self.predictor_path = predictor_path
+        self.ckpt = out / "checkpoints" / "latest.zip"
+        self.ckpt_state = out / "checkpoints" / "latest.json"
+        self.start_timesteps = 0
+        self.episodes_total = 0
+        self.wall_before = 0.0
+        self.t_start = time.perf_counter()
+        self.seeds_path = out / "train_episode_seeds.npy"
+        self.prior_seeds = np.zeros(0, dtype=np.int64)
+        self.env: PolicyVecEnv | None = None
+
+    def wall_s(self) -> float:
+        return self.wall_before + time.perf_counter() - self.t_start
+
+    def meta(self, timesteps: int) -> dict[str, Any]:
+        pred = None
+        if self.predictor_path is not None:
+            pred = {"path": str(self.predictor_path.resolve()), "file": self.predictor_path.name,
+                    "sha256": file_sha256(self.predictor_path)}  # fmt: skip
+        return {"algo": self.cfg.algo, "obs_mode": self.cfg.obs, "image_net": self.cfg.image_net,
+                "scenario_name": self.cfg.scenario, "scenario": self.cfg.scenario_config().to_dict(),
+                "predictor": pred, "train_config": self.cfg.to_dict(), "timesteps": timesteps}  # fmt: skip
+
+    def all_seeds(self) -> np.ndarray:
+        new = np.asarray(self.env.episode_seeds if self.env is not None else [], dtype=np.int64)
+        return np.concatenate([self.prior_seeds, new])
+
+    def checkpoint(self, model: BaseAlgorithm, t: int, episodes_total: int) -> None:
+        save_policy(model, self.ckpt, self.meta(t))
+        np.save(self.seeds_path, self.all_seeds())
+        _write_json(self.ckpt_state, {"timesteps": t, "wall_s": self.wall_s(), "episodes_total": episodes_total})
+
+    def append_progress(self, row: dict[str, Any]) -> None:
+        path = self.out / "progress.csv"
+        new = not path.exists()
+        with path.open("a", newline="") as f:
+            w = csv.DictWriter(f, fieldnames=PROGRESS_COLUMNS)
+            if new:
+                w.writeheader()
+            w.writerow(row)
+
+    def truncate_progress(self, t: int) -> None:
+        """Drop progress rows logged after the checkpoint we resume from (they will be redone)."""
+        path = self.out / "progress.csv"
+        if not path.exists():
+            return
+        with path.open(newline="") as f:
+            rows = [r for r in csv.DictReader(f) if int(float(r["timesteps"])) <= t]
+        with path.open("w", newline="") as f:
+            w = csv.DictWriter(f, fieldnames=PROGRESS_COLUMNS)
+            w.writeheader()
+            w.writerows(rows)
+
+
+def _write_json(path: Path, data: Any) -> None:
+    path.parent.mkdir(parents=True, exist_ok=True)
+    tmp = path.with_name(path.name + ".partial")
+    tmp.write_text(json.dumps(data, indent=2, sort_keys=True, default=float) + "\n")
+    tmp.replace(path)
+
+
+def versions() -> dict[str, str]:
+    import gymnasium
+    import stable_baselines3
+
+    import lcsim
+
+    return {"python": platform.python_version(), "torch": torch.__version__, "numpy": np.__version__,
+            "stable_baselines3": stable_baselines3.__version__, "gymnasium": gymnasium.__version__,
+            "lc_toolkit": lcsim.__version__, "platform": platform.platform()}  # fmt: skip
+
+
+def check_run_dir(cfg: PolicyConfig, out: Path, predictor_path: Path | None) -> None:
+    """``ValueError`` when ``out`` holds a run with another config or predictor (says what differs)."""
+    run_json = out / "run.json"
+    if not run_json.exists():
+        if out.exists() and any(out.iterdir()):
+            raise ValueError(f"{out} exists and is not a policy run directory; choose another --out")
+        return
+    try:
+        prev = json.loads(run_json.read_text())
+        prev_cfg = prev["config"]
+    except (json.JSONDecodeError, KeyError) as exc:
+        raise ValueError(f"{run_json} is corrupt: {exc}") from exc
+    now = cfg.to_dict()
+    diffs = [f"{k}: {prev_cfg.get(k)!r} -> {now[k]!r}" for k in now
+             if k not in _RESUMABLE_FIELDS and prev_cfg.get(k) != now[k]]  # fmt: skip
+    prev_sha = (prev.get("predictor") or {}).get("sha256")
+    sha = file_sha256(predictor_path) if predictor_path is not None else None
+    if prev_sha != sha:
+        diffs.append("predictor file content differs")
+    if diffs:
+        raise ValueError(f"{out} holds a run with another configuration ({'; '.join(diffs)}); "
+                         "use another --out or --overwrite")  # fmt: skip
+
+
+def train_policy(
+    cfg: PolicyConfig,
+    out: str | os.PathLike[str],
+    *,
+    predictor: str | os.PathLike[str] | None = None,
+    device: str = "cpu",
+    progress: Callable[[dict[str, Any]], None] | None = None,
+    eval_progress: Callable[[int, int], None] | None = None,
+    log_every: int | None = None,
+) -> TrainResult:
+    """Train (or resume, or just finish evaluating) the run in ``out``; see the module docstring.
+
+    Args:
+        cfg: the run's configuration.
+        predictor: predictor checkpoint, required by the ``prediction`` and ``hybrid`` modes.
+        progress: called with each progress row (a dict of :data:`PROGRESS_COLUMNS`).
+        log_every: timesteps between progress rows (default: one PPO/A2C rollout, 2048 for DQN).
+
+    Raises:
+        ValueError: bad input (missing predictor, a different run in ``out``).
+    """
+    out = Path(out)
+    pred_path = Path(predictor) if predictor is not None and needs_predictor(cfg.obs) else None
+    if needs_predictor(cfg.obs) and pred_path is None:
+        raise ValueError(f"observation mode {cfg.obs!r} needs a trained predictor (--predictor)")
+    pred = Predictor.load(pred_path) if pred_path is not None else None
+    check_run_dir(cfg, out, pred_path)
+    out.mkdir(parents=True, exist_ok=True)
+    run = _Run(cfg, out, pred_path, progress)
+    _write_json(out / "run.json", {"config": cfg.to_dict(), "predictor": run.meta(0)["predictor"],
+                                   "scenario": cfg.scenario_config().to_dict(), "versions": versions()})  # fmt: skip
+    final = out / "policy.zip"
+    train_info: dict[str, Any] = {}
+    if (out / "metrics.json").exists():
+        train_info = json.loads((out / "metrics.json").read_text()).get("train", {})
+    done_steps = int(train_info.get("timesteps", 0)) if final.exists() else 0
+    torch.manual_seed(cfg.seed)
+    if not final.exists() or done_steps < cfg.timesteps:
+        train_info = _train(cfg, run, pred, device, log_every, final)
+    config = cfg.scenario_config()
+    metrics: dict[str, Any] = {"config": cfg.to_dict(), "train": train_info}
+    eval_json = out / "eval" / "metrics.json"
+    if cfg.eval_episodes > 0:
+        if eval_json.exists() and json.loads(eval_json.read_text()).get("episodes") == cfg.eval_episodes and \
+                json.loads(eval_json.read_text()).get("eval_seed") == cfg.eval_seed:
+            summary = json.loads(eval_json.read_text())
+        else:
+            from lcmodels.policy.checkpoint import load_policy
+
+            loaded: LoadedPolicy = load_policy(final, predictor=pred_path, device=device)
+            train_seeds = np.load(run.seeds_path) if run.seeds_path.exists() else None
+            t0 = time.perf_counter()
+            summary, _ = evaluate(PolicyDriver(loaded), config, episodes=cfg.eval_episodes, seed=cfg.eval_seed,
+                                  out_dir=out / "eval" / "episodes" if cfg.record_eval else None,
+                                  batch=cfg.eval_batch, overwrite=True, train_seeds=train_seeds,
+                                  progress=eval_progress)  # fmt: skip
+            summary["wall_s"] = time.perf_counter() - t0
+            _write_json(eval_json, summary)
+        metrics["eval"] = summary
+    _write_json(out / "metrics.json", metrics)
+    return TrainResult(out, int(train_info.get("timesteps", 0)), float(train_info.get("wall_s", 0.0)), metrics)
+
+
+def _train(cfg: PolicyConfig, run: _Run, pred: Predictor | None, device: str, log_every: int | None,
+           final: Path) -> dict[str, Any]:
+    out = run.out
+    resume = run.ckpt.exists() and run.ckpt_state.exists()
+    if resume:
+        state = json.loads(run.ckpt_state.read_text())
+        run.start_timesteps = int(state["timesteps"])
+        run.wall_before = float(state["wall_s"])
+        run.episodes_total = int(state["episodes_total"])
+        if run.seeds_path.exists():
+            run.prior_seeds = np.load(run.seeds_path)
+        run.truncate_progress(run.start_timesteps)
+        log.info("resuming %s from step %d", out, run.start_timesteps)
+    elif (out / "progress.csv").exists():
+        (out / "progress.csv").unlink()  # a previous attempt died before its first checkpoint
+    config = cfg.scenario_config()
+    base = LaneChangeSB3VecEnv(cfg.n_envs, config)
+    env = PolicyVecEnv(base, cfg.obs, pred, reward_scale=cfg.reward_scale)
+    run.env = env
+    tb = str(out / "tb")
+    warm: dict[str, Any] | None = None
+    if resume:
+        model = ALGOS[cfg.algo].load(run.ckpt, env=env, device=device, tensorboard_log=tb)
+    else:
+        model = build_model(cfg, env, tb, device)
+        if cfg.warm_start:
+            warm = _warm_start(cfg, model, pred, config)
+            _write_json(out / "warm_start.json", warm)
+    env.seed(train_seed_base(cfg.seed, run.start_timesteps))
+    model.set_logger(configure(tb, ["tensorboard"]))
+    every = log_every or (cfg.n_envs * cfg.n_steps if cfg.algo != "dqn" else 2048)
+    callback = _Logger(run, env, every)
+    remaining = cfg.timesteps - run.start_timesteps
+    if remaining > 0:
+        model.learn(total_timesteps=remaining, callback=callback, reset_num_timesteps=False,
+                    tb_log_name=f"{cfg.algo}_{cfg.obs}")  # fmt: skip
+    t = int(model.num_timesteps)
+    if callback.last_log != t:
+        callback._log(t)
+    run.checkpoint(model, t, callback.episodes_total)
+    save_policy(model, final, run.meta(t))
+    info = {"timesteps": t, "wall_s": run.wall_s(), "episodes": callback.episodes_total,
+            "resumed_from": run.start_timesteps, "warm_start": warm}  # fmt: skip
+    env.close()
+    return info
+
+
+def _warm_start(cfg: PolicyConfig, model: BaseAlgorithm, pred: Predictor | None,
+                config: ScenarioConfig) -> dict[str, Any]:
+    from lcmodels.policy.warmstart import bc_loss, load_demonstrations, pretrain
+
+    t0 = time.perf_counter()
+    demos = load_demonstrations(cfg.warm_start, cfg.obs, pred, gamma=cfg.gamma, reward_scale=cfg.reward_scale,
+                                scenario=config)  # fmt: skip
+    before = bc_loss(model, demos)
+    losses = pretrain(model, demos, epochs=cfg.warm_start_epochs, seed=cfg.seed)
+    after = bc_loss(model, demos)
+    log.info("warm start on %d decisions of %d episodes: NLL %.3f -> %.3f", len(demos), demos.episodes, before, after)
+    return {"data": cfg.warm_start, "episodes": demos.episodes, "decisions": len(demos), "nll_before": before,
+            "nll_after": after, "epoch_losses": losses, "wall_s": time.perf_counter() - t0}  # fmt: skip

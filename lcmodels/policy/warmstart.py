@@ -1,0 +1,180 @@
+"""Offline warm start: pretrain a policy on recorded MCAP episodes before online training.
+
+The recorded decisions are replayed into observations (:func:`lcdata.offline.rebuild_observations`,
+bit-exact with what the driver saw), turned into the policy's observation mode (with the predictor
+run on the rebuilt histories), and paired with the recorded actions and the discounted returns of the
+recorded rewards. The objective:
+
+- PPO / A2C: behaviour cloning (negative log-likelihood of the recorded action) plus a value
+  regression on the Monte-Carlo return, so online training starts with a critic that agrees with the
+  actor instead of one that pulls it back to random.
+- DQN: the large-margin loss of DQfD (``max_a Q(s, a) + margin * [a != a_E] - Q(s, a_E)``) plus Q
+  regression of the demonstrated action on the Monte-Carlo return; the target network is synced after.
+"""
+
+from __future__ import annotations
+
+import os
+from collections.abc import Callable
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+import torch
+from stable_baselines3 import DQN
+from stable_baselines3.common.base_class import BaseAlgorithm
+from stable_baselines3.common.utils import obs_as_tensor
+
+from lcdata.offline import episode_config, rebuild_observations
+from lcdata.reader import list_episodes, read_episode
+from lcmodels.policy.obs import build_observation, mode_keys
+from lcmodels.predictor.inference import Predictor
+from lcsim.config import ScenarioConfig
+
+
+@dataclass
+class Demonstrations:
+    """Recorded decisions: policy observations ``(M, ...)``, actions ``(M,)`` and returns ``(M,)``."""
+
+    obs: dict[str, np.ndarray]
+    actions: np.ndarray
+    returns: np.ndarray
+    episodes: int
+
+    def __len__(self) -> int:
+        return len(self.actions)
+
+
+def _discounted(rewards: np.ndarray, gamma: float) -> np.ndarray:
+    out = np.zeros(len(rewards))
+    acc = 0.0
+    for i in range(len(rewards) - 1, -1, -1):
+        acc = rewards[i] + gamma * acc
+        out[i] = acc
+    return out
+
+
+def load_demonstrations(
+    data: str | os.PathLike[str],
+    mode: str,
+    predictor: Predictor | None,
+    *,
+    gamma: float = 0.99,
+    reward_scale: float = 1.0,
+    scenario: ScenarioConfig | None = None,
+    max_episodes: int | None = None,
+) -> Demonstrations:
+    """Read every ``.mcap`` in ``data`` (a directory or one file) into demonstrations for ``mode``.
+
+    ``scenario``, when given, must equal the recorded episodes' (apart from rendering); ``ValueError``
+    otherwise, and when there are no recorded decisions.
+    """
+    data = Path(data)
+    paths = [data] if data.is_file() else list_episodes(data)
+    if not paths:
+        raise ValueError(f"no .mcap episodes in {data}")
+    paths = paths[:max_episodes] if max_episodes else paths
+    keys = mode_keys(mode)
+    chunks: dict[str, list[np.ndarray]] = {k: [] for k in keys}
+    actions: list[np.ndarray] = []
+    returns: list[np.ndarray] = []
+    used = 0
+    for path in paths:
+        episode = read_episode(path)
+        if episode.steps.empty:
+            continue
+        config = episode_config(episode)
+        if scenario is not None:
+            a, b = config.to_dict(), scenario.to_dict()
+            a.pop("render_image"), b.pop("render_image")
+            if a != b:
+                raise ValueError(f"{path} was recorded in another scenario than the one being trained")
+        if "image" in keys and not config.render_image:
+            raise ValueError(f"{path} was recorded without the bird's-eye image, which mode {mode!r} needs")
+        rows = [obs for _step, obs in rebuild_observations(episode)]
+        batched = {k: np.stack([r[k] for r in rows]) for k in rows[0]}
+        pobs = build_observation(batched, mode, predictor)
+        for k in keys:
+            chunks[k].append(pobs[k])
+        actions.append(episode.steps["action"].to_numpy(dtype=np.int64))
+        returns.append(_discounted(episode.steps["reward"].to_numpy(dtype=np.float64) * reward_scale, gamma))
+        used += 1
+    if not actions:
+        raise ValueError(f"no recorded decisions in {data}")
+    return Demonstrations({k: np.concatenate(v) for k, v in chunks.items()}, np.concatenate(actions),
+                          np.concatenate(returns).astype(np.float32), used)  # fmt: skip
+
+
+def pretrain(
+    model: BaseAlgorithm,
+    demos: Demonstrations,
+    *,
+    epochs: int = 10,
+    batch_size: int = 256,
+    learning_rate: float = 1e-3,
+    value_coef: float = 0.5,
+    margin: float = 0.8,
+    seed: int = 0,
+    progress: Callable[[int, float], None] | None = None,
+) -> list[float]:
+    """Pretrain ``model``'s policy on ``demos``; returns the mean loss of each epoch.
+
+    Args:
+        progress: called with (epoch, mean loss) after each epoch.
+    """
+    policy = model.policy
+    policy.set_training_mode(True)
+    optimizer = torch.optim.Adam(policy.parameters(), lr=learning_rate)
+    gen = np.random.default_rng(seed)
+    n = len(demos)
+    is_dqn = isinstance(model, DQN)
+    losses: list[float] = []
+    for epoch in range(epochs):
+        perm = gen.permutation(n)
+        total, count = 0.0, 0
+        for start in range(0, n, batch_size):
+            idx = perm[start : start + batch_size]
+            obs = obs_as_tensor({k: v[idx] for k, v in demos.obs.items()}, policy.device)
+            act = torch.as_tensor(demos.actions[idx], device=policy.device)
+            ret = torch.as_tensor(demos.returns[idx], device=policy.device)
+            if is_dqn:
+                q = policy.q_net(obs)  # type: ignore[attr-defined]
+                q_e = q.gather(1, act[:, None]).squeeze(1)
+                margins = torch.full_like(q, margin).scatter(1, act[:, None], 0.0)
+                loss = ((q + margins).max(dim=1).values - q_e).mean()
+                loss = loss + value_coef * torch.nn.functional.mse_loss(q_e, ret)
+            else:
+                values, log_prob, _entropy = policy.evaluate_actions(obs, act)  # type: ignore[attr-defined]
+                loss = -log_prob.mean() + value_coef * torch.nn.functional.mse_loss(values.flatten(), ret)
+            optimizer.zero_grad()
+            loss.backward()
+            torch.nn.utils.clip_grad_norm_(policy.parameters(), 0.5)
+            optimizer.step()
+            total += float(loss) * len(idx)
+            count += len(idx)
+        losses.append(total / max(count, 1))
+        if progress is not None:
+            progress(epoch + 1, losses[-1])
+    if is_dqn:
+        model.q_net_target.load_state_dict(model.q_net.state_dict())  # type: ignore[attr-defined]
+    policy.set_training_mode(False)
+    return losses
+
+
+def bc_loss(model: BaseAlgorithm, demos: Demonstrations, batch_size: int = 1024) -> float:
+    """Mean negative log-likelihood (PPO/A2C) or cross-entropy of Q logits (DQN) of the recorded actions."""
+    policy = model.policy
+    policy.set_training_mode(False)
+    total = 0.0
+    with torch.no_grad():
+        for start in range(0, len(demos), batch_size):
+            sl = slice(start, start + batch_size)
+            obs = obs_as_tensor({k: v[sl] for k, v in demos.obs.items()}, policy.device)
+            act = torch.as_tensor(demos.actions[sl], device=policy.device)
+            if isinstance(model, DQN):
+                logits = policy.q_net(obs)  # type: ignore[attr-defined]
+                total += float(torch.nn.functional.cross_entropy(logits, act, reduction="sum"))
+            else:
+                _v, log_prob, _e = policy.evaluate_actions(obs, act)  # type: ignore[attr-defined]
+                total += float(-log_prob.sum())
+    return total / len(demos)

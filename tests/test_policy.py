@@ -1,0 +1,225 @@
+"""The policy stack: extractor shapes, the prediction wrapper, short training runs, resume, warm start, eval."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import numpy as np
+import pytest
+import torch
+from gymnasium import spaces
+from stable_baselines3.common.env_checker import check_env
+
+from lcdata.record import record_episodes
+from lcmodels.cli import eval_main, train_policy_main
+from lcmodels.policy import (
+    VGG16,
+    CompactVGG,
+    HybridExtractor,
+    PolicyConfig,
+    PolicyVecEnv,
+    bc_loss,
+    load_demonstrations,
+    load_policy,
+    pretrain,
+    read_meta,
+    train_policy,
+)
+from lcmodels.policy.evaluate import PolicyDriver, evaluate, wilson_interval
+from lcmodels.policy.obs import OBS_MODES, policy_observation_space, scenario_for_mode
+from lcmodels.policy.train import build_model, tiny_scenario
+from lcmodels.predictor import Predictor, PredictorConfig, TrajectoryTransformer
+from lcsim.sb3 import LaneChangeSB3VecEnv
+
+EVAL_KEYS = {"success_rate", "collision_rate", "off_road_rate", "timeout_rate", "mean_safe_forward_m",
+             "mean_return", "success_rate_ci95", "collision_rate_ci95", "off_road_rate_ci95",
+             "timeout_rate_ci95", "mean_safe_forward_m_ci95", "mean_return_ci95", "episodes"}  # fmt: skip
+
+
+@pytest.fixture(scope="module")
+def predictor_path(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    """A small predictor (untrained: exactly the constant-velocity baseline, which is what it starts as)."""
+    torch.manual_seed(0)
+    path = tmp_path_factory.mktemp("pred") / "predictor.pt"
+    Predictor(TrajectoryTransformer(PredictorConfig(d_model=16, ff_dim=32, num_layers=1))).save(path)
+    return path
+
+
+def _tiny(**kw) -> PolicyConfig:
+    base = dict(scenario="tiny", timesteps=256, n_envs=4, n_steps=32, batch_size=64, n_epochs=2,
+                eval_episodes=4, eval_batch=4, checkpoint_every=128, buffer_size=1000, learning_starts=64)
+    base.update(kw)
+    return PolicyConfig(**base)
+
+
+@pytest.mark.parametrize("mode", OBS_MODES)
+def test_extractor_output_size_per_mode(mode: str) -> None:
+    space = policy_observation_space(tiny_scenario(), mode)
+    ext = HybridExtractor(space)
+    batch = {k: torch.as_tensor(np.stack([s.sample() for _ in range(3)])).float() for k, s in space.spaces.items()}
+    out = ext(batch)
+    widths = {"current": 64, "image": 10, "prediction": 64}
+    assert out.shape == (3, sum(widths[k] for k in space.spaces)) == (3, ext.features_dim)
+    assert set(ext.keys) == set(space.spaces)
+
+
+def test_vgg16_and_compact_on_a_120px_batch() -> None:
+    x = torch.rand(2, 3, 120, 120)
+    vgg = VGG16()
+    assert vgg(x).shape == (2, 10)
+    assert sum(isinstance(m, torch.nn.Conv2d) for m in vgg.modules()) == 13
+    assert CompactVGG()(x).shape == (2, 10)
+    space = spaces.Dict({"current": spaces.Box(-1, 1, (9, 9)), "image": spaces.Box(0, 255, (3, 120, 120), np.uint8)})
+    assert HybridExtractor(space, image_net="vgg16").features_dim == 74
+
+
+def test_prediction_wrapper_equals_the_predictor(predictor_path: Path) -> None:
+    config = tiny_scenario()
+    pred = Predictor.load(predictor_path)
+    base = LaneChangeSB3VecEnv(3, scenario_for_mode(config, "hybrid"))
+    env = PolicyVecEnv(base, "hybrid", pred)
+    env.seed(5)
+    obs = env.reset()
+    assert set(obs) == {"current", "image", "prediction"} and obs["prediction"].shape == (3, 8, 10, 2)
+    for _ in range(6):
+        obs, _r, _d, _i = env.step(np.ones(3, dtype=np.int64))
+    raw = base.venv.core.observe()
+    h = raw["history"]
+    direct = pred.predict_neighbours(h[..., :2], h[..., 2] > 0.5)
+    np.testing.assert_array_equal(obs["prediction"], direct)
+    np.testing.assert_array_equal(obs["current"], raw["current"])
+    assert np.abs(direct).sum() > 0  # neighbours are there and predicted
+
+
+def test_pure_mode_drops_the_image_and_skips_rendering() -> None:
+    env = PolicyVecEnv(LaneChangeSB3VecEnv(2, scenario_for_mode(tiny_scenario(), "pure")), "pure")
+    assert set(env.reset()) == {"current"}
+    with pytest.raises(ValueError, match="predictor"):
+        PolicyVecEnv(LaneChangeSB3VecEnv(2, tiny_scenario()), "prediction")
+
+
+@pytest.mark.parametrize(("algo", "mode"), [("ppo", "pure"), ("ppo", "image"), ("ppo", "prediction"),
+                                            ("ppo", "hybrid"), ("a2c", "hybrid"), ("dqn", "hybrid")])
+def test_short_training_saves_loads_and_evaluates(tmp_path: Path, predictor_path: Path, algo: str, mode: str) -> None:
+    cfg = _tiny(algo=algo, obs=mode, n_steps=8 if algo == "a2c" else 32)
+    res = train_policy(cfg, tmp_path, predictor=predictor_path)
+    assert res.timesteps >= 256
+    meta = read_meta(tmp_path / "policy.zip")
+    assert (meta["algo"], meta["obs_mode"]) == (algo, mode)
+    loaded = load_policy(tmp_path / "policy.zip")
+    assert loaded.model.num_timesteps == res.timesteps
+    ev = json.loads((tmp_path / "eval" / "metrics.json").read_text())
+    assert EVAL_KEYS <= set(ev) and ev["episodes"] == 4
+    assert abs(sum(ev[f"{o}_rate"] for o in ("success", "collision", "off_road", "timeout")) - 1.0) < 1e-9
+    assert len(list((tmp_path / "eval" / "episodes").glob("*.mcap"))) == 4
+    rows = (tmp_path / "progress.csv").read_text().splitlines()
+    assert rows[0].startswith("timesteps,wall_s") and len(rows) >= 2
+
+
+def test_same_seed_same_policy(tmp_path: Path) -> None:
+    a = train_policy(_tiny(obs="pure", eval_episodes=0), tmp_path / "a")
+    b = train_policy(_tiny(obs="pure", eval_episodes=0), tmp_path / "b")
+    assert a.timesteps == b.timesteps
+    pa, pb = load_policy(tmp_path / "a" / "policy.zip"), load_policy(tmp_path / "b" / "policy.zip")
+    for (ka, va), (kb, vb) in zip(pa.model.policy.state_dict().items(), pb.model.policy.state_dict().items(),
+                                  strict=True):
+        assert ka == kb and torch.equal(va, vb), ka
+
+
+def test_resume_continues_the_step_count(tmp_path: Path) -> None:
+    first = train_policy(_tiny(obs="pure", timesteps=128, eval_episodes=0), tmp_path)
+    assert first.timesteps == 128
+    second = train_policy(_tiny(obs="pure", timesteps=384, eval_episodes=0), tmp_path)
+    assert second.timesteps == 384
+    assert second.metrics["train"]["resumed_from"] == 128
+    steps = [int(r.split(",")[0]) for r in (tmp_path / "progress.csv").read_text().splitlines()[1:]]
+    assert steps == sorted(steps) and steps[-1] == 384
+    # a run with another config in the same directory is refused, saying what differs
+    with pytest.raises(ValueError, match="algo"):
+        train_policy(_tiny(obs="pure", algo="a2c"), tmp_path)
+
+
+def test_checkpoint_refuses_another_predictor(tmp_path: Path, predictor_path: Path) -> None:
+    train_policy(_tiny(obs="prediction", timesteps=64, eval_episodes=0, n_steps=16), tmp_path / "run",
+                 predictor=predictor_path)
+    torch.manual_seed(1)
+    other = tmp_path / "other.pt"
+    Predictor(TrajectoryTransformer(PredictorConfig(d_model=16, ff_dim=32, num_layers=1))).save(other)
+    with pytest.raises(ValueError, match="predictor"):
+        load_policy(tmp_path / "run" / "policy.zip", predictor=other)
+    with pytest.raises(ValueError, match="observation mode"):
+        load_policy(tmp_path / "run" / "policy.zip", obs_mode="pure")
+    bad = tmp_path / "bad.zip"
+    bad.write_bytes((tmp_path / "run" / "policy.zip").read_bytes()[:500])
+    with pytest.raises(ValueError, match="corrupt or truncated"):
+        read_meta(bad)
+
+
+def test_warm_start_lowers_the_behaviour_cloning_loss(tmp_path: Path) -> None:
+    config = tiny_scenario()
+    record_episodes(config, [1, 2, 3], "rule", tmp_path / "demos", scenario="tiny")
+    demos = load_demonstrations(tmp_path / "demos", "image", None, scenario=config)
+    assert len(demos) > 20 and demos.obs["image"].shape[1:] == (3, 120, 120)
+    env = PolicyVecEnv(LaneChangeSB3VecEnv(2, config), "image")
+    model = build_model(_tiny(obs="image"), env)
+    before = bc_loss(model, demos)
+    losses = pretrain(model, demos, epochs=4, batch_size=32)
+    after = bc_loss(model, demos)
+    assert after < before * 0.8, (before, after, losses)
+
+
+def test_rule_driver_evaluation_is_reproducible_and_recorded(tmp_path: Path) -> None:
+    from lcsim.drivers import RuleBasedDriver
+
+    config = scenario_for_mode(tiny_scenario(), "pure")
+    s1, eps1 = evaluate(RuleBasedDriver(), config, episodes=6, seed=2, out_dir=tmp_path / "a", batch=4)
+    s2, eps2 = evaluate(RuleBasedDriver(), config, episodes=6, seed=2, batch=6)
+    assert [e.outcome for e in eps1] == [e.outcome for e in eps2]
+    assert [e.ret for e in eps1] == [e.ret for e in eps2]  # batching does not change episodes
+    assert s1["success_rate"] == s2["success_rate"]
+    assert len(list((tmp_path / "a").glob("*.mcap"))) == 6
+    lo, hi = wilson_interval(3, 6)
+    assert 0 < lo < 0.5 < hi < 1
+
+
+def test_policy_driver_records_predictions(tmp_path: Path, predictor_path: Path) -> None:
+    from lcdata.reader import read_episode
+
+    train_policy(_tiny(obs="prediction", timesteps=64, n_steps=16, eval_episodes=0), tmp_path / "run",
+                 predictor=predictor_path)
+    drv = PolicyDriver(load_policy(tmp_path / "run" / "policy.zip"))
+    evaluate(drv, drv.config, episodes=2, out_dir=tmp_path / "ev", batch=2)
+    ep = read_episode(sorted((tmp_path / "ev").glob("*.mcap"))[0])
+    assert len(ep.predictions) > 0 and len(ep.steps) > 0
+    assert set(ep.predictions["k"]) == set(range(1, 11))
+
+
+def test_cli_train_and_eval_json(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    out = tmp_path / "run"
+    assert train_policy_main(["--obs", "pure", "--scenario", "tiny", "--timesteps", "128", "--n-envs", "2",
+                              "--n-steps", "32", "--eval-episodes", "2", "--out", str(out), "-q"]) == 0
+    js = tmp_path / "eval.json"
+    assert eval_main([str(out / "policy.zip"), "--episodes", "3", "--seed", "1", "--json-out", str(js),
+                      "--no-record", "-q"]) == 0
+    data = json.loads(js.read_text())
+    assert EVAL_KEYS <= set(data) and data["episodes"] == 3 and data["overlap_with_training"] == 0
+    assert "success" in capsys.readouterr().out
+    # bad input: one line, exit 2
+    assert eval_main([str(tmp_path / "missing.zip")]) == 2
+    assert train_policy_main(["--obs", "hybrid", "--out", str(tmp_path / "x")]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 2 and all(line.startswith(("lc-eval: error", "lc-train-policy: error")) for line in err)
+
+
+def test_policy_obs_env_passes_sb3_check_on_single_view(predictor_path: Path) -> None:
+    """The wrapped observation space matches what the wrapper returns (a batch of one env)."""
+    from lcsim.envs import LaneChangeEnv
+
+    env = LaneChangeEnv(tiny_scenario())
+    check_env(env, warn=False)
+    space = policy_observation_space(tiny_scenario(), "hybrid")
+    penv = PolicyVecEnv(LaneChangeSB3VecEnv(1, tiny_scenario()), "hybrid", Predictor.load(predictor_path))
+    obs = penv.reset()
+    for k, s in space.spaces.items():
+        assert s.contains(obs[k][0]), k
