@@ -5,7 +5,8 @@ bit-exact with what the driver saw), turned into the policy's observation mode (
 run on the rebuilt histories), and paired with the recorded actions and the discounted returns of the
 recorded rewards. The objective:
 
-- PPO / A2C: behaviour cloning (negative log-likelihood of the recorded action) plus a value
+- PPO / A2C: behaviour cloning (negative log-likelihood of the recorded action, each action weighted by
+  the inverse square root of its frequency, as lane changes are rare) plus a value
   regression on the Monte-Carlo return, so online training starts with a critic that agrees with the
   actor instead of one that pulls it back to random.
 - DQN: the large-margin loss of DQfD (``max_a Q(s, a) + margin * [a != a_E] - Q(s, a_E)``) plus Q
@@ -128,6 +129,11 @@ def pretrain(
     gen = np.random.default_rng(seed)
     n = len(demos)
     is_dqn = isinstance(model, DQN)
+    # Lane changes are rare in driving data (about 2% of a rule driver's decisions): weight each action
+    # by the inverse square root of its frequency, or cloning learns "always keep" (which collides).
+    counts = np.bincount(demos.actions, minlength=3).astype(np.float64)
+    weights = np.where(counts > 0, 1.0 / np.sqrt(np.maximum(counts, 1.0) / n), 0.0)
+    weights = torch.as_tensor(weights / weights[demos.actions].mean(), dtype=torch.float32, device=policy.device)
     losses: list[float] = []
     for epoch in range(epochs):
         perm = gen.permutation(n)
@@ -141,16 +147,16 @@ def pretrain(
                 q = policy.q_net(obs)  # type: ignore[attr-defined]
                 q_e = q.gather(1, act[:, None]).squeeze(1)
                 margins = torch.full_like(q, margin).scatter(1, act[:, None], 0.0)
-                loss = ((q + margins).max(dim=1).values - q_e).mean()
+                loss = (weights[act] * ((q + margins).max(dim=1).values - q_e)).mean()
                 loss = loss + value_coef * torch.nn.functional.mse_loss(q_e, ret)
             else:
                 values, log_prob, _entropy = policy.evaluate_actions(obs, act)  # type: ignore[attr-defined]
-                loss = -log_prob.mean() + value_coef * torch.nn.functional.mse_loss(values.flatten(), ret)
+                loss = -(weights[act] * log_prob).mean() + value_coef * torch.nn.functional.mse_loss(values.flatten(), ret)
             optimizer.zero_grad()
             loss.backward()
             torch.nn.utils.clip_grad_norm_(policy.parameters(), 0.5)
             optimizer.step()
-            total += float(loss) * len(idx)
+            total += float(loss.detach()) * len(idx)
             count += len(idx)
         losses.append(total / max(count, 1))
         if progress is not None:
