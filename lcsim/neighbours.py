@@ -9,7 +9,7 @@ cost a handful of array operations and no all-pairs work.
 Speed notes (the index is rebuilt every simulation step): the sort re-uses the previous step's order
 when it is still strictly increasing (vehicles rarely overtake within 50 ms) and re-sorts only the rows
 where it is not; gathers and scatters use flat indices (``np.take`` / ``put`` on raveled arrays, about
-twice as fast as 2-D fancy indexing); the lane tables are small integers in an ``(L, E, N)`` layout,
+twice as fast as 2-D fancy indexing); the lane tables are small integers in an ``(L, N, E)`` layout,
 filled by multiplying the membership mask rather than by ``np.where`` (whose random mask defeats
 branch prediction), and scanned by a log-step running max on large batches, where
 ``ufunc.accumulate`` is slow.
@@ -23,6 +23,8 @@ import numpy as np
 
 # Above this many table elements a log-step (Hillis-Steele) scan beats ``np.maximum.accumulate``.
 _DOUBLING_SCAN_MIN = 4096
+# From this many vehicles in all, the body extent is computed only where the yaw is not zero.
+_SPARSE_YAW_MIN = 1024
 # Below this many environments a fresh argsort is cheaper than checking the previous order.
 _REUSE_ORDER_MIN_ENVS = 4
 
@@ -32,11 +34,12 @@ class _Consts:
 
     def __init__(self, e: int, n: int, num_lanes: int) -> None:
         self.dtype = np.int16 if 2 * n < np.iinfo(np.int16).max else np.int32  # (tables hold <= N; lookups add N)
-        self.rn = np.arange(e, dtype=np.int64)[:, None] * n  # row offsets into (E, N)
-        self.rnp = np.arange(e, dtype=np.int64)[:, None] * (n + 1)  # row offsets into (E, N + 1)
-        self.pos = np.arange(n, dtype=np.int64)
-        self.rank_ahead = (n - np.arange(n)).astype(self.dtype)  # larger = further back: a max-scan finds the nearest
-        self.rank_behind = np.arange(1, n + 1).astype(self.dtype)
+        self.env = np.arange(e, dtype=np.int64)
+        self.rn = self.env[:, None] * n  # row offsets into (E, N)
+        self.pos = np.arange(n, dtype=np.int64)[:, None]
+        # Ranks in (N, 1): the nearest member wins a running max.
+        self.rank_ahead = (n - np.arange(n)).astype(self.dtype)[:, None]
+        self.rank_behind = np.arange(1, n + 1).astype(self.dtype)[:, None]
         self.lanes = np.arange(num_lanes, dtype=np.float64)[:, None, None]
         self.sentinel = e * n  # flat index standing for "no vehicle"
 
@@ -47,18 +50,35 @@ def _consts(e: int, n: int, num_lanes: int) -> _Consts:
 
 
 def _scan_max(w: np.ndarray, reverse: bool) -> None:
-    """In-place inclusive running maximum along the last axis (from the right when ``reverse``)."""
+    """In-place inclusive running maximum along axis 1 of ``(L, N, E)`` (from the end when ``reverse``)."""
     if w.size < _DOUBLING_SCAN_MIN:
-        v = w[..., ::-1] if reverse else w
-        np.maximum.accumulate(v, axis=-1, out=v)
+        v = w[:, ::-1] if reverse else w
+        np.maximum.accumulate(v, axis=1, out=v)
         return
-    n, s = w.shape[-1], 1
+    n, s = w.shape[1], 1
     while s < n:
         if reverse:
-            np.maximum(w[..., :-s], w[..., s:], out=w[..., :-s])
+            np.maximum(w[:, :-s], w[:, s:], out=w[:, :-s])
         else:
-            np.maximum(w[..., s:], w[..., :-s], out=w[..., s:])
+            np.maximum(w[:, s:], w[:, :-s], out=w[:, s:])
         s *= 2
+
+
+def _half_lateral_extent(yaw: np.ndarray, length: np.ndarray, width: np.ndarray, margin: float) -> np.ndarray:
+    """Half the lateral extent of each body plus ``margin``: ``0.5 (|sin| l + |cos| w) + margin``.
+
+    On large batches the trigonometry is done only where the yaw is not zero (vehicles changing lanes
+    and the ego); elsewhere the formula reduces exactly to ``0.5 w + margin``.
+    """
+    if yaw.size < _SPARSE_YAW_MIN:
+        sy = np.abs(np.sin(yaw))
+        return 0.5 * (sy * length + np.sqrt(1.0 - sy * sy) * width) + margin
+    half = 0.5 * width + margin
+    tilted = np.flatnonzero(yaw != 0.0)
+    if tilted.size:
+        sy = np.abs(np.sin(yaw.take(tilted)))
+        half.put(tilted, 0.5 * (sy * length.take(tilted) + np.sqrt(1.0 - sy * sy) * width.take(tilted)) + margin)
+    return half
 
 
 def sorted_order(x: np.ndarray, previous: np.ndarray | None = None) -> np.ndarray:
@@ -85,7 +105,7 @@ class LaneIndex:
 
     Attributes:
         order: ``(E, N)`` vehicle index at each sorted position (ascending x).
-        member: ``(L, E, N)`` lane membership in sorted order.
+        member: ``(L, N, E)`` lane membership by sorted position.
         gap: ``(E, N)`` bumper-to-bumper gap to the leader along x (m), inf when none.
         lead_speed: ``(E, N)`` leader speed (m/s), 0 when none.
         lead: ``(E, N)`` each vehicle's leader (nearest vehicle ahead in any lane it belongs to), -1.
@@ -102,32 +122,32 @@ class LaneIndex:
         self.num_lanes = num_lanes
         self._c = c = _consts(e, n, num_lanes)
         self.order = order = sorted_order(x, previous_order)
-        # Flat index of the vehicle at each sorted position, with a "no vehicle" column at position N.
-        flat = np.empty((e, n + 1), dtype=np.int64)
-        fi = flat[:, :n]
-        np.add(order, c.rn, out=fi)
-        flat[:, n] = c.sentinel
+        # Tables are (positions, environments): flat[p, e] is the flat index (into E x N) of the vehicle at
+        # sorted position p, with a "no vehicle" row at position N.
+        flat = np.empty((n + 1, e), dtype=np.int64)
+        fi = flat[:n]
+        np.add(order.T, c.rn.T, out=fi)
+        flat[n] = c.sentinel
         self._flat = flat
-        sy = np.abs(np.sin(yaw))
-        half_lat = 0.5 * (sy * length + np.sqrt(1.0 - sy * sy) * width) + margin  # lateral half extent of the body
+        half_lat = _half_lateral_extent(yaw, length, width, margin)
         inv = 1.0 / lane_width
         lo = np.floor((y - half_lat) * inv).take(fi)
         hi = np.floor((y + half_lat) * inv).take(fi)
         lanes = c.lanes
-        member = (lanes >= lo) & (lanes <= hi)
+        member = (lanes >= lo) & (lanes <= hi)  # (L, N, E)
         member |= lanes == extra_lane.take(fi)
         self.member = member
-        # ahead[l, e, p]: N - (sorted position of the first member of lane l at or after p), 0 when none.
-        ahead = np.empty((num_lanes, e, n + 1), dtype=c.dtype)
-        ahead[..., n] = 0
-        np.multiply(member, c.rank_ahead, out=ahead[..., :n])
-        _scan_max(ahead[..., :n], reverse=True)
+        # ahead[l, p, e]: N - (sorted position of the first member of lane l at or after p), 0 when none.
+        ahead = np.empty((num_lanes, n + 1, e), dtype=c.dtype)
+        ahead[:, n] = 0
+        np.multiply(member, c.rank_ahead, out=ahead[:, :n])
+        _scan_max(ahead[:, :n], reverse=True)
         self._ahead = ahead
         self._behind: np.ndarray | None = None
         # The leader: the nearest member strictly ahead in any lane the vehicle belongs to.
-        lead_pos = n - (member * ahead[..., 1:]).max(axis=0)  # (E, N) sorted position, N when none
+        lead_pos = np.subtract(n, (member * ahead[:, 1:]).max(axis=0), dtype=np.int64)  # (N, E); N when none
         lead_flat = np.empty(e * n, dtype=np.int64)
-        lead_flat[fi] = flat.take(lead_pos + c.rnp)
+        lead_flat[fi] = flat.take(lead_pos * e + c.env)
         lead_flat = lead_flat.reshape(e, n)
         self._lead_flat = lead_flat
         self._lead: np.ndarray | None = None
@@ -136,6 +156,11 @@ class LaneIndex:
         self.gap = np.where(none, np.inf, x.take(lead_flat, mode="clip") - x - 0.5 * (
             length + length.take(lead_flat, mode="clip")))
         self.lead_speed = np.where(none, 0.0, speed.take(lead_flat, mode="clip"))
+
+    @property
+    def lead_flat(self) -> np.ndarray:
+        """``(E, N)`` the leader's flat index into an ``(E, N)`` array; ``E * N`` when none."""
+        return self._lead_flat
 
     @property
     def lead(self) -> np.ndarray:
@@ -150,18 +175,18 @@ class LaneIndex:
         if self._pos_of is None:
             e, n = self.order.shape
             pos = np.empty(e * n, dtype=np.int64)
-            pos[self._flat[:, :n]] = self._c.pos
+            pos[self._flat[:n]] = self._c.pos
             self._pos_of = pos.reshape(e, n)
         return self._pos_of
 
     def _behind_table(self) -> np.ndarray:
-        """``(L, E, N + 1)``: at p, 1 + the sorted position of the last member of lane l before p, 0 when none."""
+        """``(L, N + 1, E)``: at p, 1 + the sorted position of the last member of lane l before p, 0 when none."""
         if self._behind is None:
-            num_lanes, e, n = self.member.shape
-            behind = np.empty((num_lanes, e, n + 1), dtype=self._c.dtype)
-            behind[..., 0] = 0
-            np.multiply(self.member, self._c.rank_behind, out=behind[..., 1:])
-            _scan_max(behind[..., 1:], reverse=False)
+            num_lanes, n, e = self.member.shape
+            behind = np.empty((num_lanes, n + 1, e), dtype=self._c.dtype)
+            behind[:, 0] = 0
+            np.multiply(self.member, self._c.rank_behind, out=behind[:, 1:])
+            _scan_max(behind[:, 1:], reverse=False)
             self._behind = behind
         return self._behind
 
@@ -172,24 +197,38 @@ class LaneIndex:
             lane: ``(E, N)`` a lane per vehicle, or ``(E, K)`` a lane per entry of ``vehicles``. Lanes that
                 do not exist (< 0 or >= L) give -1.
             ahead: search ahead (larger x) or behind.
-            vehicles: ``(K,)`` vehicle indices the rows of ``lane`` refer to (default: all N vehicles).
+            vehicles: ``(K,)`` vehicle indices the columns of ``lane`` refer to (default: all N vehicles).
 
         Returns:
             Vehicle indices, shaped like ``lane``.
         """
+        c = self._c
+        pos = self.pos_of if vehicles is None else self.pos_of[:, vehicles]
+        veh = self._nearest(lane, pos, c.env[:, None], ahead)
+        out = veh - c.rn
+        out[veh < 0] = -1
+        return out
+
+    def neighbour_flat(self, flat: np.ndarray, lane: np.ndarray, ahead: bool) -> np.ndarray:
+        """As :meth:`neighbour_in_lane` for a few vehicles given by flat index ``flat`` (into E x N).
+
+        Returns the neighbours' flat indices (-1 when none or the lane does not exist).
+        """
+        return self._nearest(lane, self.pos_of.take(flat), flat // self.order.shape[1], ahead)
+
+    def _nearest(self, lane: np.ndarray, pos: np.ndarray, env: np.ndarray, ahead: bool) -> np.ndarray:
+        """Flat index of the nearest member of ``lane`` ahead of / behind sorted position ``pos``; -1."""
         c, num_lanes = self._c, self.num_lanes
         e, n = self.order.shape
-        pos = self.pos_of if vehicles is None else self.pos_of[:, vehicles]
         lane_c = np.minimum(np.maximum(lane, 0), num_lanes - 1)
-        base = lane_c * (e * (n + 1)) + c.rnp + pos
+        base = (lane_c * (n + 1) + pos) * e + env
         if ahead:  # the first member at or after p + 1
-            nearest = n - self._ahead.take(base + 1)
+            nearest = np.subtract(n, self._ahead.take(base + e), dtype=np.int64)
         else:  # the last member at or before p - 1; 0 (none) maps to position N
-            nearest = (self._behind_table().take(base) + n) % (n + 1)
-        veh = self._flat.take(nearest + c.rnp)
-        out = veh - c.rn
-        out[(veh == c.sentinel) | (lane < 0) | (lane >= num_lanes)] = -1
-        return out
+            nearest = (self._behind_table().take(base).astype(np.int64) + n) % (n + 1)
+        veh = self._flat.take(nearest * e + env)
+        veh[(veh == c.sentinel) | (lane < 0) | (lane >= num_lanes)] = -1
+        return veh
 
 
 def gather(values: np.ndarray, idx: np.ndarray, rows: np.ndarray, fill: float) -> np.ndarray:
