@@ -19,11 +19,10 @@ def obb_overlap(xa: np.ndarray, ya: np.ndarray, yawa: np.ndarray, la: np.ndarray
     dx, dy = xb - xa, yb - ya
     ca, sa, cb, sb = np.cos(yawa), np.sin(yawa), np.cos(yawb), np.sin(yawb)
     hla, hwa, hlb, hwb = 0.5 * la, 0.5 * wa, 0.5 * lb, 0.5 * wb
-    overlap = np.ones(np.broadcast(dx, dy).shape, dtype=bool)
-    for ux, uy in ((ca, sa), (-sa, ca), (cb, sb), (-sb, cb)):
-        dist = np.abs(dx * ux + dy * uy)
-        ra = hla * np.abs(ca * ux + sa * uy) + hwa * np.abs(-sa * ux + ca * uy)
-        rb = hlb * np.abs(cb * ux + sb * uy) + hwb * np.abs(-sb * ux + cb * uy)
-        overlap &= dist <= ra + rb
-    return overlap
-
+    # The four edge normals stacked on a leading axis: one pass instead of a loop over axes.
+    ux = np.stack(np.broadcast_arrays(ca, -sa, cb, -sb))
+    uy = np.stack(np.broadcast_arrays(sa, ca, sb, cb))
+    dist = np.abs(dx * ux + dy * uy)
+    ra = hla * np.abs(ca * ux + sa * uy) + hwa * np.abs(-sa * ux + ca * uy)
+    rb = hlb * np.abs(cb * ux + sb * uy) + hwb * np.abs(-sb * ux + cb * uy)
+    return (dist <= ra + rb).all(axis=0)

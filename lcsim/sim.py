@@ -24,7 +24,7 @@ from lcsim.control import (
     longitudinal_accel,
     split_throttle_brake,
 )
-from lcsim.neighbours import LaneIndex, gather
+from lcsim.neighbours import LaneIndex
 from lcsim.road import StraightRoad
 from lcsim.traffic import idm_accel, smoothstep5
 
@@ -33,6 +33,7 @@ _VEHICLE_STATE = ("x", "y", "yaw", "speed", "accel", "lane", "target_lane", "lc_
                   "lc_y1")
 _ENV_STATE = ("step", "t_s", "ego_accel", "path_x0", "path_len", "path_y0", "path_y1", "ego_lc_active", "steer",
               "throttle", "brake", "collision_with", "lane_invasion", "off_road")
+_SENSOR_STATE = ("collision_with", "lane_invasion", "off_road")
 
 SubstepHook = Callable[["HighwaySim"], None]
 
@@ -190,8 +191,8 @@ class HighwaySim:
     # ----------------------------------------------------------------- physics
     def substep(self) -> None:
         """Advance every environment by one simulation step (frozen environments stay as they are)."""
-        frozen = np.flatnonzero(self.frozen) if self.frozen.any() else None
-        saved = self._save(frozen) if frozen is not None else None
+        frozen = np.flatnonzero(self.frozen)
+        saved = self._save(frozen) if frozen.size else None
         tc, dt = self.config.traffic, self.dt
         index = self.index if self.index is not None else self._build_index()
         speed = self.speed
@@ -201,37 +202,42 @@ class HighwaySim:
             if due.any():
                 self._traffic_lane_changes(index, due)
 
-        # Traffic: ballistic longitudinal update, minimum-jerk lateral profile while changing lanes.
+        # Traffic: ballistic longitudinal update, minimum-jerk lateral profile while changing lanes
+        # (computed for the few vehicles changing lanes only).
         new_speed = np.maximum(speed + acc * dt, 0.0)
         new_x = self.x + 0.5 * (speed + new_speed) * dt
-        if self.lc_active.any():
-            tau = (self.t_s[:, None] + (dt - self.lc_t0)) * (1.0 / tc.lane_change_duration_s)
+        new_y, new_yaw = self.y.copy(), np.zeros_like(self.yaw)
+        changing = np.flatnonzero(self.lc_active)
+        if changing.size:
+            inv_dur = 1.0 / tc.lane_change_duration_s
+            tau = (self.t_s.take(changing // self.num_vehicles) + (dt - self.lc_t0.take(changing))) * inv_dur
             prof, dprof = smoothstep5(tau)
-            dy = self.lc_y1 - self.lc_y0
-            new_y = np.where(self.lc_active, self.lc_y0 + dy * prof, self.y)
-            new_yaw = np.where(self.lc_active, np.arctan2(dy * dprof * (1.0 / tc.lane_change_duration_s),
-                                                          np.maximum(new_speed, 1e-3)), 0.0)
-            self.lc_active &= tau < 1.0
-        else:
-            new_y, new_yaw = self.y.copy(), np.zeros_like(self.yaw)
+            y0 = self.lc_y0.take(changing)
+            dy = self.lc_y1.take(changing) - y0
+            new_y.put(changing, y0 + dy * prof)
+            new_yaw.put(changing, np.arctan2(dy * dprof * inv_dur, np.maximum(new_speed.take(changing), 1e-3)))
+            self.lc_active.put(changing, tau < 1.0)
 
         ego_y_prev = self.y[:, 0].copy()
         ego_target = self.target_lane[:, 0].copy()
         if not self.autopilot_ego:
             self._ego_step(index.gap[:, 0], new_x, new_y, new_yaw, new_speed, acc)
         self.x, self.y, self.yaw, self.speed, self.accel = new_x, new_y, new_yaw, new_speed, acc
-        self.lane = self.road.lane_of(new_y)
+        lane = np.floor(new_y / self.road.lane_width)  # as road.lane_of, inlined
+        self.lane = np.minimum(np.maximum(lane, 0), self.road.num_lanes - 1).astype(np.int64)
         self.target_lane = np.where(self.lc_active, self.target_lane, self.lane)
         if not self.autopilot_ego:
             self.target_lane[:, 0] = np.where(self.ego_lc_active, ego_target, self.lane[:, 0])
         self.step += 1
         self.t_s += dt
 
-        self.index = self._build_index()
-        self._sensors(ego_y_prev)
-        if frozen is not None:
+        if saved is not None:  # frozen environments get their state back before the index is built
             self._restore(frozen, saved)
-            self.index = self._build_index()
+        self.index = self._build_index()
+        self._sensors(ego_y_prev, frozen if saved is not None else None)
+        if saved is not None:
+            for name in _SENSOR_STATE:
+                getattr(self, name)[frozen] = saved[name]
         self.hist_ptr = (self.hist_ptr + 1) % self.history_len
         self.hist[:, self.hist_ptr, :, 0] = self.x
         self.hist[:, self.hist_ptr, :, 1] = self.y
@@ -267,33 +273,42 @@ class HighwaySim:
 
     def _traffic_lane_changes(self, index: LaneIndex, due: np.ndarray) -> None:
         """Traffic-Manager-like lane changes: when blocked (or at random), into a free side lane."""
-        tc, rows = self.config.traffic, self.rows
+        tc, n = self.config.traffic, self.num_vehicles
         cand = self.is_traffic & ~self.lc_active & due[:, None]
         gap = index.gap
-        blocked = (index.lead >= 0) & (gap >= tc.blocked_gap_min_m) & (gap <= tc.blocked_gap_max_m) & (
+        # A leader exists exactly where the gap is finite.
+        blocked = (gap < np.inf) & (gap >= tc.blocked_gap_min_m) & (gap <= tc.blocked_gap_max_m) & (
             index.lead_speed < self.v0 - tc.blocked_speed_margin_kmh / 3.6)
-        spontaneous = rng.uniform(self.key, self.step, self.num_vehicles, stream=1) < self.p_spontaneous
-        want = cand & (blocked | spontaneous)
-        if not want.any():
+        spontaneous = rng.uniform(self.key, self.step, n, stream=1) < self.p_spontaneous
+        want = np.flatnonzero(cand & (blocked | spontaneous))  # flat (E * N) indices of the few that want to
+        if not want.size:
             return
         # One side per check period (left on even periods) so that two vehicles never merge into one gap.
-        side = np.where((self.step // self.check_every) % 2 == 0, 1, -1)[:, None]
-        tl = self.lane + side
-        x, length, speed = self.x, self.length, self.speed
-        front = index.neighbour_in_lane(tl, ahead=True)
-        rear = index.neighbour_in_lane(tl, ahead=False)
-        front_gap = gather(x, front, rows, np.inf) - x - 0.5 * (length + gather(length, front, rows, 0.0))
-        rear_gap = x - gather(x, rear, rows, -np.inf) - 0.5 * (length + gather(length, rear, rows, 0.0))
-        rear_need = tc.lane_change_rear_gap_m + tc.lane_change_rear_headway_s * gather(speed, rear, rows, 0.0)
-        ok = want & (tl >= 0) & (tl < self.road.num_lanes) & (front_gap >= tc.lane_change_front_gap_m) & (
-            rear_gap >= rear_need) & ((front_gap > gap + 5.0) | spontaneous)
+        env = want // n
+        tl = self.lane.take(want) + np.where((self.step.take(env) // self.check_every) % 2 == 0, 1, -1)
+        x, length = self.x.take(want), self.length.take(want)
+        front = index.neighbour_flat(want, tl, ahead=True)
+        rear = index.neighbour_flat(want, tl, ahead=False)
+        no_front, no_rear = front < 0, rear < 0
+        front_x = np.where(no_front, np.inf, self.x.take(front, mode="clip"))
+        front_len = np.where(no_front, 0.0, self.length.take(front, mode="clip"))
+        rear_x = np.where(no_rear, -np.inf, self.x.take(rear, mode="clip"))
+        rear_len = np.where(no_rear, 0.0, self.length.take(rear, mode="clip"))
+        rear_speed = np.where(no_rear, 0.0, self.speed.take(rear, mode="clip"))
+        front_gap = front_x - x - 0.5 * (length + front_len)
+        rear_gap = x - rear_x - 0.5 * (length + rear_len)
+        rear_need = tc.lane_change_rear_gap_m + tc.lane_change_rear_headway_s * rear_speed
+        ok = (tl >= 0) & (tl < self.road.num_lanes) & (front_gap >= tc.lane_change_front_gap_m) & (
+            rear_gap >= rear_need) & ((front_gap > gap.take(want) + 5.0) | spontaneous.take(want))
         if not ok.any():
             return
-        self.lc_active |= ok
-        self.lc_t0 = np.where(ok, self.t_s[:, None], self.lc_t0)
-        self.lc_y0 = np.where(ok, self.y, self.lc_y0)
-        self.lc_y1 = np.where(ok, self.road.lane_center(tl), self.lc_y1)
-        self.target_lane = np.where(ok, tl, self.target_lane)
+        go, tl = want[ok], tl[ok]
+        self.lc_active.put(go, True)
+        self.lc_t0.put(go, self.t_s.take(env[ok]))
+        self.lc_y0.put(go, self.y.take(go))
+        self.lc_y1.put(go, self.road.lane_center(tl))
+        self.target_lane = self.target_lane.copy()  # the previous step's array may be held by a reader
+        self.target_lane.put(go, tl)
 
     def _build_index(self) -> LaneIndex:
         extra = np.where(self.lc_active, self.target_lane, -1)
@@ -301,8 +316,8 @@ class HighwaySim:
         return LaneIndex(self.x, self.y, self.yaw, self.speed, self.length, self.width, extra,
                          self.road.lane_width, self.road.num_lanes, self.rows, previous_order=previous)
 
-    def _sensors(self, ego_y_prev: np.ndarray) -> None:
-        """Collisions, lane invasion and off-road.
+    def _sensors(self, ego_y_prev: np.ndarray, frozen: np.ndarray | None = None) -> None:
+        """Collisions, lane invasion and off-road (the caller restores them in ``frozen`` environments).
 
         Collision candidates are the pairs (vehicle, leader) whose gap along x is under a metre: the
         leader is the nearest vehicle ahead in any lane the body overlaps, so any contact shows up as
@@ -310,24 +325,29 @@ class HighwaySim:
         """
         index = self.index
         assert index is not None
+        n = self.num_vehicles
         self.collision_with[:] = -1
         cand = index.gap < 1.0
-        if cand.any():
-            ee, va = np.nonzero(cand)
-            vb = index.lead[ee, va]
-            hit = obb_overlap(self.x[ee, va], self.y[ee, va], self.yaw[ee, va], self.length[ee, va],
-                              self.width[ee, va], self.x[ee, vb], self.y[ee, vb], self.yaw[ee, vb],
-                              self.length[ee, vb], self.width[ee, vb])
+        if frozen is not None:
+            cand[frozen] = False
+        va = np.flatnonzero(cand)
+        if va.size:
+            vb = index.lead_flat.take(va)
+            x, y, yaw, length, width = self.x, self.y, self.yaw, self.length, self.width
+            hit = obb_overlap(x.take(va), y.take(va), yaw.take(va), length.take(va), width.take(va),
+                              x.take(vb), y.take(vb), yaw.take(vb), length.take(vb), width.take(vb))
             if hit.any():
-                ee, va, vb = ee[hit], va[hit], vb[hit]
+                va, vb = va[hit], vb[hit]
+                ee, va, vb = va // n, va % n, vb % n
                 ego_hit = (va == 0) | (vb == 0)
                 other = np.where(va == 0, vb, va)
                 self.collision_with[ee[ego_hit][::-1]] = other[ego_hit][::-1]
                 np.add.at(self.traffic_collisions, ee[~ego_hit], 1)
         lw = self.road.lane_width
-        k_prev, k_new = np.floor(ego_y_prev / lw), np.floor(self.y[:, 0] / lw)
+        ego_y = self.y[:, 0]
+        k_prev, k_new = np.floor(ego_y_prev / lw), np.floor(ego_y / lw)
         self.lane_invasion = np.where(k_prev != k_new, np.maximum(k_prev, k_new), -1).astype(np.int64)
-        self.off_road = ~self.road.on_road(self.y[:, 0])
+        self.off_road = (ego_y < 0.0) | (ego_y > self.road.width)  # not road.on_road, inlined
 
     # ------------------------------------------------------------- freezing
     def _save(self, idx: np.ndarray) -> dict[str, np.ndarray]:
