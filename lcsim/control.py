@@ -29,6 +29,7 @@ class PIDBank:
         self.dt = np.array([g.dt_s for g in gains])
         self.kd_over_dt = self.kd / self.dt
         self.ki_dt = self.ki * self.dt
+        self._kp, self._kd_over_dt, self._ki_dt = self.kp.tolist(), self.kd_over_dt.tolist(), self.ki_dt.tolist()
         self.window = window
         self.errors = np.zeros((num_envs, window, len(gains)))
         self.count = np.zeros((num_envs, 1), dtype=np.int64)
@@ -51,6 +52,26 @@ class PIDBank:
         d_term = np.where(has_two, (error - prev) * self.kd_over_dt, 0.0)
         i_term = np.where(has_two, self.errors.sum(axis=1) * self.ki_dt, 0.0)
         return np.minimum(np.maximum(self.kp * error + d_term + i_term, -1.0), 1.0)
+
+    def step_one(self, error: tuple[float, ...]) -> list[float]:
+        """:meth:`step` for a single environment (E = 1) on Python floats, bit-identical to it.
+
+        A dozen numpy calls on 1-element arrays cost ~20x the same arithmetic on floats; the window
+        sum still goes through numpy so that its summation order is the one :meth:`step` uses.
+        """
+        errors = self.errors
+        prev = errors[0, self.ptr].tolist()
+        self.ptr = (self.ptr + 1) % self.window
+        errors[0, self.ptr] = error
+        self.count += 1
+        has_two = self.count.item(0) >= 2
+        total = errors.sum(axis=1)[0].tolist() if has_two else None
+        out = []
+        for c, e in enumerate(error):
+            u = self._kp[c] * e + ((e - prev[c]) * self._kd_over_dt[c] if has_two else 0.0) + (
+                total[c] * self._ki_dt[c] if has_two else 0.0)
+            out.append(min(max(u, -1.0), 1.0))
+        return out
 
 
 def pid_reference(errors: list[float], kp: float, ki: float, kd: float, dt: float, window: int = 10) -> float:

@@ -9,6 +9,7 @@ per-environment loops in the hot path.
 
 from __future__ import annotations
 
+import math
 from collections.abc import Callable, Sequence
 
 import numpy as np
@@ -248,6 +249,9 @@ class HighwaySim:
     def _ego_step(self, lead_gap: np.ndarray, x_out: np.ndarray, y_out: np.ndarray, yaw_out: np.ndarray,
                   v_out: np.ndarray, a_out: np.ndarray) -> None:
         """PID control on the planned path and a bicycle-model step; writes column 0 of the outputs."""
+        if self.num_envs == 1:
+            self._ego_step_one(lead_gap, x_out, y_out, yaw_out, v_out, a_out)
+            return
         ec = self.config.ego
         x, y, yaw, v = self.x[:, 0], self.y[:, 0], self.yaw[:, 0], self.speed[:, 0]
         target = self.target_speed
@@ -270,6 +274,45 @@ class HighwaySim:
             np.abs(ny - self.path_y1) < ec.lane_change_tolerance_m)
         self.ego_lc_active &= ~done
         x_out[:, 0], y_out[:, 0], yaw_out[:, 0], v_out[:, 0], a_out[:, 0] = nx, ny, nyaw, nv, accel
+
+    def _ego_step_one(self, lead_gap: np.ndarray, x_out: np.ndarray, y_out: np.ndarray, yaw_out: np.ndarray,
+                      v_out: np.ndarray, a_out: np.ndarray) -> None:
+        """:meth:`_ego_step` for E = 1 on Python floats: the same operations in the same order, so the
+        result is bit-identical (IEEE arithmetic; the transcendental functions still come from numpy,
+        whose SIMD versions can differ from ``math`` in the last bit)."""
+        ec, dt = self.config.ego, self.dt
+        x, y, yaw, v = self.x.item(0), self.y.item(0), self.yaw.item(0), self.speed.item(0)
+        px0, plen, py0, py1 = self.path_x0.item(0), self.path_len.item(0), self.path_y0.item(0), self.path_y1.item(0)
+        target = self.target_speed
+        if ec.adaptive_cruise:
+            target = min(target, max((lead_gap.item(0) - ec.acc_min_gap_m) / ec.acc_time_headway_s, 0.0))
+        sp = ec.waypoint_spacing_m
+        tx = px0 + float(math.ceil((x + (ec.base_min_distance_m + ec.distance_ratio * v) - px0) / sp)) * sp
+        frac = min(max((tx - px0) / plen, 0.0), 1.0)
+        ty = py0 + (py1 - py0) * frac
+        head_err = (float(np.arctan2(ty - y, tx - x)) - yaw + math.pi) % (2 * math.pi) - math.pi
+        u_long, u_lat = self.pid.step_one(((target - v) * 3.6, head_err))
+        throttle, brake = min(max(u_long, 0.0), ec.max_throttle), min(max(-u_long, 0.0), ec.max_brake)
+        past = self.steer.item(0)
+        lo = max(past - ec.max_steer_change, -ec.max_steer)
+        hi = min(past + ec.max_steer_change, ec.max_steer)
+        steer = min(max(u_lat, lo), hi)
+        resist = (ec.rolling_resistance_mps2 + ec.drag_per_speed2 * v * v) * (1.0 if v > 0.0 else 0.0)
+        drive = throttle * ec.max_accel_mps2 - brake * ec.max_brake_decel_mps2 - resist
+        accel_prev = self.ego_accel.item(0)
+        accel = accel_prev + (drive - accel_prev) * self.lag_alpha
+        # Kinematic bicycle (control.bicycle_step).
+        beta = float(np.arctan(0.5 * float(np.tan(steer * math.radians(ec.max_steer_angle_deg)))))
+        heading = yaw + beta
+        vdt = v * dt
+        nx = x + vdt * float(np.cos(heading))
+        ny = y + vdt * float(np.sin(heading))
+        nyaw = yaw + vdt * (2.0 / ec.wheelbase_m) * float(np.sin(beta))
+        nv = max(v + accel * dt, 0.0)
+        self.ego_accel[0], self.steer[0], self.throttle[0], self.brake[0] = accel, steer, throttle, brake
+        if self.ego_lc_active.item(0) and nx >= px0 + plen and abs(ny - py1) < ec.lane_change_tolerance_m:
+            self.ego_lc_active[0] = False
+        x_out[0, 0], y_out[0, 0], yaw_out[0, 0], v_out[0, 0], a_out[0, 0] = nx, ny, nyaw, nv, accel
 
     def _traffic_lane_changes(self, index: LaneIndex, due: np.ndarray) -> None:
         """Traffic-Manager-like lane changes: when blocked (or at random), into a free side lane."""
