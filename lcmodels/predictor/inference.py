@@ -9,6 +9,7 @@ transformed back into the input frame.
 
 from __future__ import annotations
 
+import functools
 import os
 from pathlib import Path
 
@@ -20,6 +21,14 @@ from lcmodels.predictor.checkpoint import load_model, save_model
 from lcmodels.predictor.model import TrajectoryTransformer
 
 __all__ = ["Predictor"]
+
+
+@functools.lru_cache(maxsize=8)
+def _token_order(k: int) -> np.ndarray:
+    """``(K, K+1)``: token order for neighbour i, ``[i, the other K-1 neighbours, ego (K)]``."""
+    order = np.array([[i, *(j for j in range(k) if j != i), k] for i in range(k)], dtype=np.int64)
+    order.setflags(write=False)
+    return order
 
 
 class Predictor:
@@ -121,7 +130,7 @@ class Predictor:
         all_mask = np.concatenate((mask, ego_mask), axis=1)
         # Token order for neighbour i: [i, the other K-1 neighbours, ego] (slot order is irrelevant to
         # the model: it has no slot embedding).
-        order = np.array([[i, *(j for j in range(k) if j != i), k] for i in range(k)], dtype=np.int64)
+        order = _token_order(k)
         bi, ki = np.nonzero(valid)  # (M,) each
         tok_pos = all_pos[bi[:, None], order[ki]]  # (M, K+1, H, 2)
         tok_mask = all_mask[bi[:, None], order[ki]]  # (M, K+1, H)
@@ -129,7 +138,7 @@ class Predictor:
         heading = heading_from_positions(history[bi, ki], mask[bi, ki]).astype(np.float32)  # (M,)
         m = len(bi)
         local = to_frame(tok_pos.reshape(m, (k + 1) * h, 2), origin, heading).reshape(m, k + 1, h, 2)
-        local[~tok_mask] = 0.0
+        # Absent positions need no zeroing here: the model ignores whatever is behind the mask.
         pred = self.predict_tokens(local, tok_mask)  # (M, F, 2) in each vehicle's frame
         result[bi, ki] = from_frame(pred, origin, heading)
         return result
