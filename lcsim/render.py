@@ -12,6 +12,8 @@ sums), so any yaw is drawn without per-vehicle Python loops. Colours follow CARL
 
 from __future__ import annotations
 
+import math
+
 import numpy as np
 
 from lcsim.config import RenderConfig, RoadConfig
@@ -56,6 +58,7 @@ class BevRenderer:
         table = np.arange(6, dtype=np.uint8)[:, None].repeat(2, axis=1)  # (class, dash_on) -> class
         table[_DASH] = (ROAD, MARKING)
         self.table = table
+        self.rgb_table = PALETTE[table[:5 + 1]]  # (lateral class, dash_on, channel)
 
     def render(self, x: np.ndarray, y: np.ndarray, yaw: np.ndarray, length: np.ndarray,
                width: np.ndarray) -> np.ndarray:
@@ -73,38 +76,52 @@ class BevRenderer:
         np.clip(li, 0, self.lut.size - 1, out=li)
         col_cls = self.lut[li]  # (E, S) lateral class of each column
         dash_on = (np.mod(ex + self.offsets[None, :], self.period) < self.road.dash_length_m).astype(np.intp)
-        # Two RGB row templates per environment (broken markings off / on), then whole rows gathered.
-        tmpl = PALETTE.T[:, self.table[col_cls]]  # (3, E, S, 2)
-        tmpl = np.ascontiguousarray(tmpl.transpose(1, 0, 3, 2))  # (E, 3, 2, S)
-        out = tmpl[np.arange(e)[:, None, None], np.arange(3)[None, :, None], dash_on[:, None, :]]  # (E, 3, S, S)
-        flat = out.reshape(e, 3, s * s)
-        traffic, ego = self._covered(x, y, yaw, length, width)
-        for pix, cls in ((traffic, VEHICLE), (ego, EGO)):
-            env, idx = pix
-            for ch in range(3):
-                flat[env, ch, idx] = PALETTE[cls, ch]
+        # Two RGB row templates per environment and channel (broken markings off / on); every image row
+        # is one of them, copied whole by a row take.
+        tmpl = self.rgb_table[col_cls]  # (E, S, 2, 3)
+        tmpl = np.ascontiguousarray(tmpl.transpose(0, 3, 2, 1)).reshape(e * 6, s)  # rows (E, 3, 2)
+        src = (np.arange(e)[:, None, None] * 6 + np.arange(0, 6, 2)[None, :, None]) + dash_on[:, None, :]
+        out = tmpl.take(src.reshape(-1), axis=0).reshape(e, 3, s, s)
+        flat = out.reshape(-1)
+        for env, idx, cls in self._covered(x, y, yaw, length, width):  # traffic, then the ego on top
+            if env.size:
+                pix = (env * 3)[None, :] * (s * s) + idx[None, :] + (np.arange(3) * (s * s))[:, None]
+                flat[pix] = PALETTE[cls][:, None]
         return out
 
     def _covered(self, x: np.ndarray, y: np.ndarray, yaw: np.ndarray, length: np.ndarray,
-                 width: np.ndarray) -> tuple[tuple[np.ndarray, np.ndarray], tuple[np.ndarray, np.ndarray]]:
-        """Pixels covered by traffic and by the ego: ``(env, flat pixel index)`` pairs for each."""
+                 width: np.ndarray) -> list[tuple[np.ndarray, np.ndarray, int]]:
+        """Pixels covered by traffic and by the ego: ``(env, flat pixel index, class)`` for each, in drawing order.
+
+        The ego and its nearest ``max_vehicles_drawn`` vehicles are drawn. Only vehicles close enough
+        to reach the image are rasterised: when no more than that many are within reach (always, at
+        normal densities), they are exactly the drawn ones that show.
+        """
         e, n = x.shape
         s, res = self.size, self.res
-        ex, ey = x[:, :1], y[:, :1]
         k = min(n, self.max_vehicles + 1)
-        if n > k:  # the ego plus the nearest vehicles
-            d2 = (x - ex) ** 2 + (y - ey) ** 2
+        ex, ey = x[:, :1], y[:, :1]
+        d2 = (x - ex) ** 2 + (y - ey) ** 2
+        reach = math.sqrt(2.0) * (self.half_extent + float(length.max()) + float(width.max())) + 1.0
+        near = d2 <= reach * reach
+        near[:, 0] = True
+        if n > k and int(near.sum(axis=1).max()) > k:  # crowded: the nearest k, ties by index
             d2[:, 0] = -1.0
             sel = np.argsort(d2, axis=1, kind="stable")[:, :k]
-            rows = np.arange(e)[:, None]
-            x, y, yaw, length, width = x[rows, sel], y[rows, sel], yaw[rows, sel], length[rows, sel], width[rows, sel]
-        c, sn = np.cos(yaw)[..., None], np.sin(yaw)[..., None]
+            near[:] = False
+            near[np.arange(e)[:, None], sel] = True
+        vi = np.flatnonzero(near)
+        env = vi // n
+        ego = env * n
+        x, y, yaw, length, width = x.take(vi), y.take(vi), yaw.take(vi), length.take(vi), width.take(vi)
+        ex, ey = ex.take(env), ey.take(env)
+        c, sn = np.cos(yaw)[:, None], np.sin(yaw)[:, None]
         frac = (np.arange(_STRIPS) + 0.5) / _STRIPS - 0.5
-        lx = length[..., None] * frac  # (E, K, strips) strip centres along the body
-        hl = (length / (2 * _STRIPS))[..., None]
-        hw = (0.5 * width)[..., None]
-        cu = x[..., None] + c * lx - ex[..., None]  # metres ahead of the ego
-        cv = y[..., None] + sn * lx - ey[..., None]  # metres left of the ego
+        lx = length[:, None] * frac  # (M, strips) strip centres along the body
+        hl = (length / (2 * _STRIPS))[:, None]
+        hw = (0.5 * width)[:, None]
+        cu = x[:, None] + c * lx - ex[:, None]  # metres ahead of the ego
+        cv = y[:, None] + sn * lx - ey[:, None]  # metres left of the ego
         hu = np.abs(c) * hl + np.abs(sn) * hw
         hv = np.abs(sn) * hl + np.abs(c) * hw
         # Pixel i has its centre at s/2 - i - 0.5 (in pixels): covered rows/cols are the centres inside.
@@ -113,18 +130,18 @@ class BevRenderer:
         c0 = np.maximum(np.ceil(s / 2 - 0.5 - (cv + hv) / res), 0).astype(np.intp)
         c1 = np.minimum(np.floor(s / 2 - 0.5 - (cv - hv) / res), s - 1).astype(np.intp)
         ok = (r0 <= r1) & (c0 <= c1)
+        is_ego = (vi == ego)[:, None]
         out = []
-        for part in (slice(1, None), slice(0, 1)):  # traffic, then the ego on top
-            m = ok[:, part]
-            env = np.broadcast_to(np.arange(e)[:, None, None], m.shape)[m]
-            a0, a1, b0, b1 = r0[:, part][m], r1[:, part][m], c0[:, part][m], c1[:, part][m]
-            if env.size == 0:
-                out.append((env, env))
+        for part, cls in ((ok & ~is_ego, VEHICLE), (ok & is_ego, EGO)):  # traffic, then the ego on top
+            m_env = np.broadcast_to(env[:, None], part.shape)[part]
+            a0, a1, b0, b1 = r0[part], r1[part], c0[part], c1[part]
+            if m_env.size == 0:
+                out.append((m_env, m_env, cls))
                 continue
             nr, nc = int((a1 - a0).max()) + 1, int((b1 - b0).max()) + 1
             rr = a0[:, None, None] + np.arange(nr)[None, :, None]
             cc = b0[:, None, None] + np.arange(nc)[None, None, :]
             inside = (rr <= a1[:, None, None]) & (cc <= b1[:, None, None])
             idx = (rr * s + cc)[inside]
-            out.append((np.broadcast_to(env[:, None, None], inside.shape)[inside], idx))
-        return out[0], out[1]
+            out.append((np.broadcast_to(m_env[:, None, None], inside.shape)[inside], idx, cls))
+        return out
