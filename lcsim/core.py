@@ -25,6 +25,24 @@ CURRENT_FEATURES = ("x_m", "y_m", "vx_mps", "vy_mps", "yaw_rad", "speed_mps", "l
 REWARD_COMPONENTS = ("collision", "off_road", "forward", "success")
 
 
+def _k_smallest(a: np.ndarray, k: int) -> np.ndarray:
+    """``np.argsort(a, axis=1, kind="stable")[:, :k]`` for a 2-D float array, via a partition on large batches.
+
+    The k smallest of each row are found by ``argpartition`` and ordered by (value, index); rows with a
+    tie at the k-th value (where the partition may pick a different index) are sorted in full.
+    """
+    e, n = a.shape
+    if e < 8 or k >= n:
+        return np.argsort(a, axis=1, kind="stable")[:, :k]
+    part = np.sort(np.argpartition(a, k - 1, axis=1)[:, :k], axis=1)  # the k smallest, by index
+    vals = np.take_along_axis(a, part, axis=1)
+    out = np.take_along_axis(part, np.argsort(vals, axis=1, kind="stable"), axis=1)
+    ties = np.flatnonzero((a <= vals.max(axis=1, keepdims=True)).sum(axis=1) != k)
+    if ties.size:
+        out[ties] = np.argsort(a[ties], axis=1, kind="stable")[:, :k]
+    return out
+
+
 @dataclass(slots=True)
 class StepResult:
     """What one decision step returns for E environments (arrays of shape (E,) unless noted)."""
@@ -98,6 +116,13 @@ class LaneChangeCore:
         left_road = np.zeros(self.num_envs, dtype=bool)
         for _ in range(cfg.steps_per_decision):
             sim.substep()
+            # Cheap test first: does any running environment see a contact, the road edge or the goal?
+            event = sim.collision_with >= 0
+            event |= sim.off_road
+            event |= sim.x[:, 0] >= cfg.route_length_m
+            event &= ~done
+            if not event.any():
+                continue
             new_col = ~done & (sim.collision_with >= 0)
             new_off = ~done & ~new_col & sim.off_road
             new_succ = ~done & ~new_col & ~new_off & (sim.x[:, 0] >= cfg.route_length_m)
@@ -165,7 +190,7 @@ class LaneChangeCore:
         d2 = (x - x[:, :1]) ** 2 + (y - y[:, :1]) ** 2
         d2[:, 0] = np.inf
         k = min(self.k, sim.num_vehicles - 1)
-        order = np.argsort(d2, axis=1, kind="stable")[:, :k]
+        order = _k_smallest(d2, k)
         near = np.take_along_axis(d2, order, axis=1) <= self.config.sensing_range_m ** 2
         out = np.full((len(ids), self.k), -1, dtype=np.int64)
         out[:, :k] = np.where(near, order, -1)
