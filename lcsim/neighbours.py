@@ -147,7 +147,7 @@ class LaneIndex:
         # The leader: the nearest member strictly ahead in any lane the vehicle belongs to.
         lead_pos = np.subtract(n, (member * ahead[:, 1:]).max(axis=0), dtype=np.int64)  # (N, E); N when none
         lead_flat = np.empty(e * n, dtype=np.int64)
-        lead_flat[fi] = flat.take(lead_pos * e + c.env)
+        lead_flat[fi] = flat.take(lead_pos * e + c.env if e > 1 else lead_pos)
         lead_flat = lead_flat.reshape(e, n)
         self._lead_flat = lead_flat
         self._lead: np.ndarray | None = None

@@ -35,6 +35,8 @@ _VEHICLE_STATE = ("x", "y", "yaw", "speed", "accel", "lane", "target_lane", "lc_
 _ENV_STATE = ("step", "t_s", "ego_accel", "path_x0", "path_len", "path_y0", "path_y1", "ego_lc_active", "steer",
               "throttle", "brake", "collision_with", "lane_invasion", "off_road")
 _SENSOR_STATE = ("collision_with", "lane_invasion", "off_road")
+# Up to this many vehicles changing lanes, their lateral update runs on Python floats (fewer calls).
+_SCALAR_LANE_CHANGES = 6
 
 SubstepHook = Callable[["HighwaySim"], None]
 
@@ -209,7 +211,9 @@ class HighwaySim:
         new_x = self.x + 0.5 * (speed + new_speed) * dt
         new_y, new_yaw = self.y.copy(), np.zeros_like(self.yaw)
         changing = np.flatnonzero(self.lc_active)
-        if changing.size:
+        if 0 < changing.size <= _SCALAR_LANE_CHANGES:
+            self._lateral_few(changing.tolist(), new_speed, new_y, new_yaw)
+        elif changing.size:
             inv_dur = 1.0 / tc.lane_change_duration_s
             tau = (self.t_s.take(changing // self.num_vehicles) + (dt - self.lc_t0.take(changing))) * inv_dur
             prof, dprof = smoothstep5(tau)
@@ -245,6 +249,29 @@ class HighwaySim:
         self.hist_count += 1
         for hook in self.hooks:
             hook(self)
+
+    def _lateral_few(self, changing: list[int], new_speed: np.ndarray, new_y: np.ndarray, new_yaw: np.ndarray) -> None:
+        """The minimum-jerk lateral update of :meth:`substep` for a few vehicles, on Python floats.
+
+        The same operations in the same order as the array version (traffic.smoothstep5), so the result
+        does not depend on which of the two ran; arctan2 still comes from numpy.
+        """
+        tc, dt, n = self.config.traffic, self.dt, self.num_vehicles
+        inv_dur = 1.0 / tc.lane_change_duration_s
+        t_s, t0, y0s, y1s, active = self.t_s, self.lc_t0, self.lc_y0, self.lc_y1, self.lc_active
+        for i in changing:
+            e, v = divmod(i, n)
+            tau = (t_s.item(e) + (dt - t0.item(i))) * inv_dur
+            t = min(max(tau, 0.0), 1.0)
+            t2 = t * t
+            u = 1.0 - t
+            prof = t2 * t * (10.0 - 15.0 * t + 6.0 * t2)
+            dprof = 30.0 * t2 * (u * u)
+            y0 = y0s.item(i)
+            dy = y1s.item(i) - y0
+            new_y[e, v] = y0 + dy * prof
+            new_yaw[e, v] = np.arctan2(dy * dprof * inv_dur, max(new_speed.item(i), 1e-3))
+            active[e, v] = tau < 1.0
 
     def _ego_step(self, lead_gap: np.ndarray, x_out: np.ndarray, y_out: np.ndarray, yaw_out: np.ndarray,
                   v_out: np.ndarray, a_out: np.ndarray) -> None:
@@ -419,7 +446,9 @@ class HighwaySim:
         h = self.history_len
         slots = (self.hist_ptr - h + 1 + np.arange(h)) % h
         veh = np.maximum(env_vehicles, 0)[:, :, None]
-        pos = self.hist[ids[:, None, None], slots[None, None, :], veh]  # (B, K, H, 2)
+        n = self.num_vehicles
+        rows = (ids[:, None, None] * h + slots[None, None, :]) * n + veh  # rows of hist seen as (E * H * N, 2)
+        pos = self.hist.reshape(-1, 2).take(rows, axis=0)  # (B, K, H, 2)
         valid_t = np.arange(h)[None, :] >= (h - np.minimum(self.hist_count[ids], h))[:, None]  # (B, H)
         valid = (env_vehicles >= 0)[:, :, None] & valid_t[:, None, :]
         return pos, valid
