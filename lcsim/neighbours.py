@@ -74,7 +74,7 @@ def _half_lateral_extent(yaw: np.ndarray, length: np.ndarray, width: np.ndarray,
         sy = np.abs(np.sin(yaw))
         return 0.5 * (sy * length + np.sqrt(1.0 - sy * sy) * width) + margin
     half = 0.5 * width + margin
-    tilted = np.flatnonzero(yaw != 0.0)
+    tilted = (yaw != 0.0).ravel().nonzero()[0]
     if tilted.size:
         sy = np.abs(np.sin(yaw.take(tilted)))
         half.put(tilted, 0.5 * (sy * length.take(tilted) + np.sqrt(1.0 - sy * sy) * width.take(tilted)) + margin)
@@ -90,9 +90,9 @@ def sorted_order(x: np.ndarray, previous: np.ndarray | None = None) -> np.ndarra
     """
     e = x.shape[0]
     if previous is None or e < _REUSE_ORDER_MIN_ENVS or previous.shape != x.shape:
-        return np.argsort(x, axis=1, kind="stable")
+        return x.argsort(axis=1, kind="stable")  # (the method: less dispatch than np.argsort)
     xs = x.take(previous + _consts(e, x.shape[1], 1).rn)
-    redo = np.flatnonzero((xs[:, 1:] <= xs[:, :-1]).any(axis=1))
+    redo = (xs[:, 1:] <= xs[:, :-1]).any(axis=1).nonzero()[0]
     if redo.size == 0:
         return previous
     order = previous.copy()
@@ -145,7 +145,7 @@ class LaneIndex:
         self._ahead = ahead
         self._behind: np.ndarray | None = None
         # The leader: the nearest member strictly ahead in any lane the vehicle belongs to.
-        lead_pos = np.subtract(n, (member * ahead[:, 1:]).max(axis=0), dtype=np.int64)  # (N, E); N when none
+        lead_pos = n - (member * ahead[:, 1:]).max(axis=0).astype(np.int64)  # (N, E); N when none
         lead_flat = np.empty(e * n, dtype=np.int64)
         lead_flat[fi] = flat.take(lead_pos * e + c.env if e > 1 else lead_pos)
         lead_flat = lead_flat.reshape(e, n)

@@ -194,7 +194,7 @@ class HighwaySim:
     # ----------------------------------------------------------------- physics
     def substep(self) -> None:
         """Advance every environment by one simulation step (frozen environments stay as they are)."""
-        frozen = np.flatnonzero(self.frozen)
+        frozen = self.frozen.nonzero()[0]
         saved = self._save(frozen) if frozen.size else None
         tc, dt = self.config.traffic, self.dt
         index = self.index if self.index is not None else self._build_index()
@@ -202,15 +202,15 @@ class HighwaySim:
         acc = idm_accel(speed, self.v0, index.gap, speed - index.lead_speed, tc)
         if tc.lane_changes:
             due = (self.step % self.check_every) == 0
-            if due.any():
+            if (due.item(0) if self.num_envs == 1 else due.any()):
                 self._traffic_lane_changes(index, due)
 
         # Traffic: ballistic longitudinal update, minimum-jerk lateral profile while changing lanes
         # (computed for the few vehicles changing lanes only).
         new_speed = np.maximum(speed + acc * dt, 0.0)
         new_x = self.x + 0.5 * (speed + new_speed) * dt
-        new_y, new_yaw = self.y.copy(), np.zeros_like(self.yaw)
-        changing = np.flatnonzero(self.lc_active)
+        new_y, new_yaw = self.y.copy(), np.zeros(self.yaw.shape)
+        changing = self.lc_active.ravel().nonzero()[0]
         if 0 < changing.size <= _SCALAR_LANE_CHANGES:
             self._lateral_few(changing.tolist(), new_speed, new_y, new_yaw)
         elif changing.size:
@@ -350,7 +350,7 @@ class HighwaySim:
         blocked = (gap < np.inf) & (gap >= tc.blocked_gap_min_m) & (gap <= tc.blocked_gap_max_m) & (
             index.lead_speed < self.v0 - tc.blocked_speed_margin_kmh / 3.6)
         spontaneous = rng.uniform(self.key, self.step, n, stream=1) < self.p_spontaneous
-        want = np.flatnonzero(cand & (blocked | spontaneous))  # flat (E * N) indices of the few that want to
+        want = (cand & (blocked | spontaneous)).ravel().nonzero()[0]  # flat (E * N) indices of the few that want to
         if not want.size:
             return
         # One side per check period (left on even periods) so that two vehicles never merge into one gap.
@@ -400,7 +400,7 @@ class HighwaySim:
         cand = index.gap < 1.0
         if frozen is not None:
             cand[frozen] = False
-        va = np.flatnonzero(cand)
+        va = cand.ravel().nonzero()[0]
         if va.size:
             vb = index.lead_flat.take(va)
             x, y, yaw, length, width = self.x, self.y, self.yaw, self.length, self.width
@@ -414,6 +414,12 @@ class HighwaySim:
                 self.collision_with[ee[ego_hit][::-1]] = other[ego_hit][::-1]
                 np.add.at(self.traffic_collisions, ee[~ego_hit], 1)
         lw = self.road.lane_width
+        if self.num_envs == 1:  # the same on floats (floor of a float is exact either way)
+            y_prev, y_now = ego_y_prev.item(0), self.y.item(0)
+            k_prev, k_new = math.floor(y_prev / lw), math.floor(y_now / lw)
+            self.lane_invasion = np.array([max(k_prev, k_new) if k_prev != k_new else -1], dtype=np.int64)
+            self.off_road = np.array([y_now < 0.0 or y_now > self.road.width])
+            return
         ego_y = self.y[:, 0]
         k_prev, k_new = np.floor(ego_y_prev / lw), np.floor(ego_y / lw)
         self.lane_invasion = np.where(k_prev != k_new, np.maximum(k_prev, k_new), -1).astype(np.int64)
