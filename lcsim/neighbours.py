@@ -42,6 +42,8 @@ class _Consts:
         self.rank_behind = np.arange(1, n + 1).astype(self.dtype)[:, None]
         self.lanes = np.arange(num_lanes, dtype=np.float64)[:, None, None]
         self.sentinel = e * n  # flat index standing for "no vehicle"
+        self.minus_plus = np.array([-1.0, 1.0])[:, None, None]
+        self.half_offset = np.array([0, e * n])[:, None, None]  # flat offsets of the two halves of (2, E, N)
 
 
 @lru_cache(maxsize=32)
@@ -130,9 +132,8 @@ class LaneIndex:
         flat[n] = c.sentinel
         self._flat = flat
         half_lat = _half_lateral_extent(yaw, length, width, margin)
-        inv = 1.0 / lane_width
-        lo = np.floor((y - half_lat) * inv).take(fi)
-        hi = np.floor((y + half_lat) * inv).take(fi)
+        # Lowest and highest lane the body touches, both in one pass: y - h and y + h (negation is exact).
+        lo, hi = np.floor((y + c.minus_plus * half_lat) * (1.0 / lane_width)).take(fi + c.half_offset)
         lanes = c.lanes
         member = (lanes >= lo) & (lanes <= hi)  # (L, N, E)
         member |= lanes == extra_lane.take(fi)
