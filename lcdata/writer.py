@@ -19,9 +19,10 @@ topic                         schema                     rate
 ``log_time = publish_time = start_time_ns + round(t_s * 1e9)``. The file is written to
 ``<path>.partial`` and renamed to ``<path>`` by :meth:`EpisodeWriter.close`, so a killed run never
 leaves a half file under the final name; :func:`lcdata.read_episode` recovers the complete chunks of
-a partial file. Cost on the caller's thread: about 20 µs per simulation step for /vehicles (101
-vehicles) + /ego/state on a loaded 2-core machine (``tools/bench_mcap_io.py``); zstd compression of
-the chunks (another ~25 µs/step of CPU for such data) runs on a background thread.
+a partial file. Cost on the caller's thread: about 13 µs per simulation step for /vehicles (101
+vehicles) + /ego/state through :meth:`EpisodeWriter.write_sim_step`, the recorder's reads included,
+on a loaded 2-core machine; zstd compression of the chunks (another ~20 µs/step of CPU for such
+data) runs on a background thread.
 """
 
 from __future__ import annotations
