@@ -47,8 +47,8 @@ def predictor_path(tmp_path_factory: pytest.TempPathFactory) -> Path:
 
 
 def _tiny(**kw) -> PolicyConfig:
-    base = dict(scenario="tiny", timesteps=256, n_envs=4, n_steps=32, batch_size=64, n_epochs=2,
-                eval_episodes=4, eval_batch=4, checkpoint_every=128, buffer_size=1000, learning_starts=64)
+    base = dict(scenario="tiny", timesteps=128, n_envs=2, n_steps=32, batch_size=64, n_epochs=2,
+                eval_episodes=2, eval_batch=2, checkpoint_every=64, buffer_size=500, learning_starts=32)
     base.update(kw)
     return PolicyConfig(**base)
 
@@ -104,15 +104,15 @@ def test_pure_mode_drops_the_image_and_skips_rendering() -> None:
 def test_short_training_saves_loads_and_evaluates(tmp_path: Path, predictor_path: Path, algo: str, mode: str) -> None:
     cfg = _tiny(algo=algo, obs=mode, n_steps=8 if algo == "a2c" else 32)
     res = train_policy(cfg, tmp_path, predictor=predictor_path)
-    assert res.timesteps >= 256
+    assert res.timesteps >= 128
     meta = read_meta(tmp_path / "policy.zip")
     assert (meta["algo"], meta["obs_mode"]) == (algo, mode)
     loaded = load_policy(tmp_path / "policy.zip")
     assert loaded.model.num_timesteps == res.timesteps
     ev = json.loads((tmp_path / "eval" / "metrics.json").read_text())
-    assert EVAL_KEYS <= set(ev) and ev["episodes"] == 4
+    assert EVAL_KEYS <= set(ev) and ev["episodes"] == 2
     assert abs(sum(ev[f"{o}_rate"] for o in ("success", "collision", "off_road", "timeout")) - 1.0) < 1e-9
-    assert len(list((tmp_path / "eval" / "episodes").glob("*.mcap"))) == 4
+    assert len(list((tmp_path / "eval" / "episodes").glob("*.mcap"))) == 2
     rows = (tmp_path / "progress.csv").read_text().splitlines()
     assert rows[0].startswith("timesteps,wall_s") and len(rows) >= 2
 
@@ -128,13 +128,13 @@ def test_same_seed_same_policy(tmp_path: Path) -> None:
 
 
 def test_resume_continues_the_step_count(tmp_path: Path) -> None:
-    first = train_policy(_tiny(obs="pure", timesteps=128, eval_episodes=0), tmp_path)
-    assert first.timesteps == 128
-    second = train_policy(_tiny(obs="pure", timesteps=384, eval_episodes=0), tmp_path)
-    assert second.timesteps == 384
-    assert second.metrics["train"]["resumed_from"] == 128
+    first = train_policy(_tiny(obs="pure", timesteps=64, eval_episodes=0), tmp_path)
+    assert first.timesteps == 64
+    second = train_policy(_tiny(obs="pure", timesteps=192, eval_episodes=0), tmp_path)
+    assert second.timesteps == 192
+    assert second.metrics["train"]["resumed_from"] == 64
     steps = [int(r.split(",")[0]) for r in (tmp_path / "progress.csv").read_text().splitlines()[1:]]
-    assert steps == sorted(steps) and steps[-1] == 384
+    assert steps == sorted(steps) and steps[-1] == 192
     # a run with another config in the same directory is refused, saying what differs
     with pytest.raises(ValueError, match="algo"):
         train_policy(_tiny(obs="pure", algo="a2c"), tmp_path)
