@@ -1,0 +1,525 @@
+"""``lc-experiment``: the paper's tables and figures end to end, resumable stage by stage.
+
+An experiment directory ``DIR`` holds one directory per stage::
+
+    experiment.json              preset, seeds and command of the last invocation (marks DIR as ours)
+    stages/                      one record per stage (see below)
+    corpus/                      autopilot trajectory corpus (MCAP)                   -> predictor
+    predictor/                   predictor.pt, metrics.json (Table II)                -> prediction/hybrid policies
+    demos/                       rule-based episodes with images                      -> warm start
+    rule/metrics.json            rule-based reference on the held-out evaluation seeds
+    policies/<method>/seed<k>/   lcmodels.policy.train run directories (metrics.json, progress.csv, policy.zip)
+    REPORT.md, fig5_safe_forward.png, fig6_total_reward.png
+
+Resumability. Each stage gets a record ``stages/<stage>.json`` when it completes: the stage's config,
+the content hashes of its inputs (the outputs of the stages it reads) and the SHA-256 of each of its own
+outputs. A rerun skips a stage whose record matches the current config and inputs and whose outputs
+still hash to the recorded values; anything else is redone. ``stages/<stage>.pending.json`` is written when a
+stage starts: a stage interrupted with the same config and inputs continues from what it left (missing
+episodes are recorded, a policy resumes from its last checkpoint); a stage whose config or inputs
+changed starts from an empty directory. A policy whose only change is a larger ``timesteps`` (or other
+evaluation settings) continues training instead of starting over.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import hashlib
+import json
+import logging
+import shutil
+import time
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+log = logging.getLogger(__name__)
+
+STAGES_DIR = "stages"
+MARKER = "experiment.json"
+REPORT_NAME = "REPORT.md"
+FIG5_NAME = "fig5_safe_forward.png"
+FIG6_NAME = "fig6_total_reward.png"
+
+
+# ------------------------------------------------------------------------------------------------ presets
+@dataclass(frozen=True, slots=True, kw_only=True)
+class Preset:
+    """Budgets of every stage. ``tiny`` is for tests, ``quick`` for ``make demo``, ``paper`` for results."""
+
+    name: str
+    scenario: str = "paper"
+    """Policy scenario (lcmodels.policy.train.POLICY_SCENARIOS): paper, light or tiny."""
+    corpus_episodes: int = 24
+    corpus_seed: int = 100
+    corpus_steps: int | None = None
+    """Episode length of the corpus in simulation steps (None: the paper's 2000)."""
+    record_workers: int = 2
+    predictor_d_model: int = 64
+    predictor_heads: int = 4
+    predictor_layers: int = 2
+    predictor_ff_dim: int = 256
+    predictor_epochs: int = 20
+    predictor_time_limit_s: float | None = 600.0
+    predictor_max_train_windows: int = 200_000
+    predictor_stride: int = 1
+    predictor_tensorboard: bool = True
+    demo_episodes: int = 32
+    demo_seed: int = 5000
+    ppo_timesteps: int = 150_000
+    a2c_timesteps: int = 150_000
+    dqn_timesteps: int = 150_000
+    n_envs: int = 16
+    ppo_n_steps: int = 128
+    ppo_batch_size: int = 256
+    ppo_n_epochs: int = 10
+    a2c_n_steps: int = 8
+    dqn_learning_starts: int = 2_000
+    dqn_buffer_size: int = 50_000
+    dqn_target_update_interval: int = 2_000
+    warm_start_epochs: int = 10
+    checkpoint_every: int = 20_000
+    eval_episodes: int = 200
+    eval_seed: int = 0
+    record_eval: bool = True
+
+    def __post_init__(self) -> None:
+        from lcmodels.policy.train import POLICY_SCENARIOS
+
+        if self.scenario not in POLICY_SCENARIOS:
+            raise ValueError(f"Preset.scenario must be one of {', '.join(POLICY_SCENARIOS)}, got {self.scenario!r}")
+        if self.corpus_episodes < 3:
+            raise ValueError(f"Preset.corpus_episodes must be >= 3 (train/val/test split), got {self.corpus_episodes}")
+        for name in ("demo_episodes", "ppo_timesteps", "a2c_timesteps", "dqn_timesteps", "n_envs", "eval_episodes",
+                     "record_workers", "predictor_epochs", "checkpoint_every"):  # fmt: skip
+            if getattr(self, name) < 1:
+                raise ValueError(f"Preset.{name} must be >= 1, got {getattr(self, name)}")
+
+    def to_dict(self) -> dict[str, Any]:
+        return dataclasses.asdict(self)
+
+
+PRESETS: dict[str, Preset] = {
+    # Seconds: exercises every stage for the tests; the numbers mean nothing.
+    "tiny": Preset(
+        name="tiny", scenario="tiny", corpus_episodes=3, corpus_steps=200, record_workers=1,
+        predictor_d_model=16, predictor_heads=2, predictor_layers=1, predictor_ff_dim=32, predictor_epochs=1,
+        predictor_time_limit_s=None, predictor_max_train_windows=2_000, predictor_stride=5,
+        predictor_tensorboard=False, demo_episodes=2, ppo_timesteps=128, a2c_timesteps=128, dqn_timesteps=128,
+        n_envs=4, ppo_n_steps=32, ppo_batch_size=64, ppo_n_epochs=2, dqn_learning_starts=32,
+        dqn_buffer_size=1_000, dqn_target_update_interval=64, warm_start_epochs=1, checkpoint_every=10_000,
+        eval_episodes=4, record_eval=False,
+    ),
+    # About 15 minutes on 2 CPU cores: the pipeline end to end with budgets far below convergence.
+    "quick": Preset(
+        name="quick", scenario="light", corpus_episodes=6, corpus_steps=1000, predictor_epochs=20,
+        predictor_time_limit_s=60.0, predictor_max_train_windows=50_000, predictor_stride=2,
+        demo_episodes=8, ppo_timesteps=4_096, a2c_timesteps=4_096, dqn_timesteps=4_096, n_envs=16,
+        ppo_n_steps=64, ppo_n_epochs=4, dqn_learning_starts=1_000, dqn_target_update_interval=1_000,
+        warm_start_epochs=5, checkpoint_every=2_048, eval_episodes=50, record_eval=False,
+    ),
+    # The paper's setting: budgets each method needs to converge (hours on a CPU; use --seeds and resume).
+    "paper": Preset(name="paper"),
+}
+
+
+# ------------------------------------------------------------------------------------------------ methods
+@dataclass(frozen=True, slots=True)
+class Method:
+    key: str
+    label: str
+    algo: str
+    obs: str
+    warm_start: bool = False
+
+
+RULE_KEY = "rule"
+RULE_LABEL = "Rule-based (reference)"
+METHODS: tuple[Method, ...] = (
+    Method("ppo-hybrid", "Hybrid-PPO", "ppo", "hybrid"),
+    Method("ppo-hybrid-warm", "Hybrid-PPO + warm start", "ppo", "hybrid", warm_start=True),
+    Method("a2c-hybrid", "A2C (hybrid)", "a2c", "hybrid"),
+    Method("dqn-hybrid", "DQN (hybrid)", "dqn", "hybrid"),
+    Method("ppo-pure", "PPO pure", "ppo", "pure"),
+    Method("ppo-image", "PPO image", "ppo", "image"),
+    Method("ppo-prediction", "PPO prediction", "ppo", "prediction"),
+)
+METHOD_BY_KEY = {m.key: m for m in METHODS}
+# The paper's numbers: success / collision / timeout, percent.
+PAPER_TABLE3 = {"a2c-hybrid": (47.8, 52.2, 0.0), "dqn-hybrid": (46.5, 53.3, 0.2), "ppo-hybrid": (87.8, 10.5, 2.7)}
+PAPER_TABLE4 = {"ppo-pure": (47.6, 50.0, 2.2), "ppo-image": (63.8, 34.0, 0.2), "ppo-prediction": (76.4, 22.7, 0.9),
+                "ppo-hybrid": (87.8, 10.5, 2.7)}  # fmt: skip
+TABLE3_ROWS = (RULE_KEY, "a2c-hybrid", "dqn-hybrid", "ppo-hybrid", "ppo-hybrid-warm")
+TABLE4_ROWS = ("ppo-pure", "ppo-image", "ppo-prediction", "ppo-hybrid")
+PAPER_TABLE2 = {"ade": 0.382, "fde": 0.597}
+
+
+def policy_dir(out: Path, key: str, seed: int) -> Path:
+    return Path(out) / "policies" / key / f"seed{seed}"
+
+
+def method_timesteps(preset: Preset, method: Method) -> int:
+    return {"ppo": preset.ppo_timesteps, "a2c": preset.a2c_timesteps, "dqn": preset.dqn_timesteps}[method.algo]
+
+
+def policy_config(preset: Preset, method: Method, seed: int, demos: Path | None) -> Any:
+    """The :class:`~lcmodels.policy.train.PolicyConfig` of one (method, seed) run."""
+    from lcmodels.policy.train import PolicyConfig
+
+    lr, n_steps = {"a2c": (7e-4, preset.a2c_n_steps), "dqn": (1e-4, preset.ppo_n_steps)}.get(
+        method.algo, (3e-4, preset.ppo_n_steps))
+    return PolicyConfig(
+        algo=method.algo, obs=method.obs, scenario=preset.scenario, timesteps=method_timesteps(preset, method),
+        n_envs=preset.n_envs, seed=seed, learning_rate=lr, n_steps=n_steps, batch_size=preset.ppo_batch_size,
+        n_epochs=preset.ppo_n_epochs, buffer_size=preset.dqn_buffer_size,
+        learning_starts=preset.dqn_learning_starts, target_update_interval=preset.dqn_target_update_interval,
+        checkpoint_every=preset.checkpoint_every, eval_episodes=preset.eval_episodes, eval_seed=preset.eval_seed,
+        record_eval=preset.record_eval, warm_start=str(demos.resolve()) if method.warm_start and demos else "",
+        warm_start_epochs=preset.warm_start_epochs,
+    )  # fmt: skip
+
+
+# ---------------------------------------------------------------------------------------------- hashing
+def _canon(x: Any) -> Any:
+    """JSON round trip: tuples become lists, keys sorted, so records compare equal to fresh configs."""
+    return json.loads(json.dumps(x, sort_keys=True, default=_json_default))
+
+
+def _json_default(o: Any) -> Any:
+    if hasattr(o, "tolist"):
+        return o.tolist()
+    if isinstance(o, Path):
+        return str(o)
+    return float(o)
+
+
+def file_sha256(path: Path) -> str:
+    h = hashlib.sha256()
+    with open(path, "rb") as f:
+        for chunk in iter(lambda: f.read(1 << 20), b""):
+            h.update(chunk)
+    return h.hexdigest()
+
+
+def outputs_digest(outputs: dict[str, str]) -> str:
+    """One hash for a stage's outputs: what the stages that read them record as their input."""
+    return hashlib.sha256(json.dumps(outputs, sort_keys=True).encode()).hexdigest()
+
+
+def _hash_outputs(base: Path, names: Sequence[str]) -> dict[str, str] | None:
+    out = {}
+    for name in names:
+        p = base / name
+        if not p.is_file():
+            return None
+        out[name] = file_sha256(p)
+    return out
+
+
+def _read_json(path: Path) -> dict[str, Any] | None:
+    try:
+        return json.loads(path.read_text())
+    except (OSError, json.JSONDecodeError):
+        return None
+
+
+def write_json(path: Path, data: Any) -> None:
+    path.parent.mkdir(parents=True, exist_ok=True)
+    tmp = path.with_name(path.name + ".partial")
+    tmp.write_text(json.dumps(data, indent=2, sort_keys=True, default=_json_default) + "\n")
+    tmp.replace(path)
+
+
+# ---------------------------------------------------------------------------------------------- stages
+@dataclass
+class StageResult:
+    name: str
+    status: str
+    """``skipped`` (complete), ``done`` (computed in this run), ``not run`` (--skip-train)."""
+    path: Path
+    wall_s: float
+    """Wall time of the computation that produced the outputs (recorded; 0 for not run)."""
+    run_s: float = 0.0
+    """Time spent on the stage in this invocation (hashing included)."""
+    outputs: dict[str, str] = field(default_factory=dict)
+
+    @property
+    def digest(self) -> str:
+        return outputs_digest(self.outputs)
+
+
+@dataclass
+class ExperimentResult:
+    out: Path
+    preset: Preset
+    seeds: int
+    stages: list[StageResult]
+    wall_s: float
+    report: Path
+
+
+Progress = Callable[[str], None]
+
+
+def _resumable_policy_change(prior: dict[str, Any], now: dict[str, Any]) -> bool:
+    """A policy run can continue under ``now``: only evaluation settings or a larger budget differ."""
+    free = ("timesteps", "checkpoint_every", "eval_episodes", "eval_seed", "eval_batch", "record_eval")
+    if any(prior.get(k) != now.get(k) for k in now if k not in free):
+        return False
+    return int(prior.get("timesteps", 0)) <= int(now["timesteps"])
+
+
+class Experiment:
+    """The stages of one experiment directory; :meth:`run` does what is missing or stale."""
+
+    def __init__(self, preset: Preset, out: str | Path, *, seeds: int = 1, command: str = "", threads: int = 1,
+                 progress: Progress | None = None) -> None:  # fmt: skip
+        if seeds < 1:
+            raise ValueError(f"seeds must be >= 1, got {seeds}")
+        if threads < 1:
+            raise ValueError(f"threads must be >= 1, got {threads}")
+        self.preset, self.out, self.seeds, self.command = preset, Path(out), seeds, command
+        self.threads = threads
+        self._progress = progress
+        self.stages: list[StageResult] = []
+
+    # -- helpers -------------------------------------------------------------------------------------
+    def emit(self, msg: str) -> None:
+        log.info(msg)
+        if self._progress is not None:
+            self._progress(msg)
+
+    def record_paths(self, name: str) -> tuple[Path, Path]:
+        """``(complete record, pending record)`` of stage ``name`` (kept outside the stage's directory)."""
+        base = self.out / STAGES_DIR / name.replace("/", "__")
+        return base.with_suffix(".json"), base.with_suffix(".pending.json")
+
+    def check_out(self) -> None:
+        """``ValueError`` when ``out`` is a file or a non-empty directory that is not an experiment."""
+        if self.out.exists() and not self.out.is_dir():
+            raise ValueError(f"--out {self.out} exists and is not a directory")
+        if self.out.is_dir() and any(self.out.iterdir()) and not (self.out / MARKER).exists():
+            raise ValueError(f"--out {self.out} is a non-empty directory without {MARKER}; "
+                             "choose a new or an experiment directory")  # fmt: skip
+
+    def _stage(self, name: str, path: Path, config: dict[str, Any], inputs: dict[str, str],
+               outputs: Callable[[], list[str]], work: Callable[[bool], None],
+               resumable: Callable[[dict[str, Any], dict[str, Any]], bool] | None = None) -> StageResult:
+        """Skip the stage when complete, else run ``work(keep)`` (``keep``: the directory holds a prefix of it)."""
+        t0 = time.perf_counter()
+        config, inputs = _canon(config), _canon(inputs)
+        rec_path, pend_path = self.record_paths(name)
+        record = _read_json(rec_path)
+        if record is not None and record.get("config") == config and record.get("inputs") == inputs:
+            current = _hash_outputs(path, list(record.get("outputs", {})))
+            if current is not None and current == record["outputs"]:
+                self.emit(f"[{name}] complete, skipped")
+                res = StageResult(name, "skipped", path, float(record.get("wall_s", 0.0)),
+                                  time.perf_counter() - t0, current)  # fmt: skip
+                self.stages.append(res)
+                return res
+            why = "outputs missing or changed"
+        elif record is not None:
+            why = "stale: " + ("config changed" if record.get("config") != config else "inputs changed")
+        else:
+            why = "new" if not pend_path.exists() else "resuming an interrupted run"
+        prior = None if record is not None and why == "outputs missing or changed" else (
+            record or _read_json(pend_path))
+        keep = prior is not None and prior.get("inputs") == inputs and (
+            prior.get("config") == config or (resumable is not None and resumable(prior.get("config", {}), config)))
+        if not keep and path.exists():
+            shutil.rmtree(path)
+        path.mkdir(parents=True, exist_ok=True)
+        rec_path.unlink(missing_ok=True)
+        write_json(pend_path, {"stage": name, "config": config, "inputs": inputs})
+        self.emit(f"[{name}] running ({why})")
+        w0 = time.perf_counter()
+        work(keep)
+        wall = time.perf_counter() - w0
+        hashes = _hash_outputs(path, outputs())
+        if hashes is None:
+            raise RuntimeError(f"stage {name} finished without all of its outputs in {path}")
+        write_json(rec_path, {"stage": name, "config": config, "inputs": inputs, "outputs": hashes, "wall_s": wall,
+                              "finished": time.strftime("%Y-%m-%dT%H:%M:%S%z")})  # fmt: skip
+        pend_path.unlink(missing_ok=True)
+        self.emit(f"[{name}] done in {wall:.1f} s")
+        res = StageResult(name, "done", path, wall, time.perf_counter() - t0, hashes)
+        self.stages.append(res)
+        return res
+
+    # -- stages --------------------------------------------------------------------------------------
+    def _record_stage(self, name: str, path: Path, config: Any, seeds: list[int], driver: str, scenario: str,
+                      images: bool) -> StageResult:  # fmt: skip
+        from lcdata.record import episode_filename, iter_record_episodes
+
+        names = [episode_filename(scenario, driver, s) for s in seeds]
+
+        def work(keep: bool) -> None:
+            for p in path.glob("*.partial"):
+                p.unlink()
+            todo = [s for s, n in zip(seeds, names, strict=True) if not (path / n).exists()]
+            workers = max(1, min(self.preset.record_workers, len(todo)))
+            for k, r in enumerate(iter_record_episodes(config, todo, driver, path, scenario=scenario,
+                                                       workers=workers, images=images), 1):  # fmt: skip
+                self.emit(f"[{name}] {k}/{len(todo)} episodes: {r.path.name} {r.outcome}")
+
+        stage_cfg = {"scenario": config.to_dict(), "seeds": seeds, "driver": driver, "images": images,
+                     "scenario_name": scenario}  # fmt: skip
+        return self._stage(name, path, stage_cfg, {}, lambda: names, work)
+
+    def corpus(self) -> StageResult:
+        from lcsim.config import corpus_scenario
+
+        config = corpus_scenario()
+        if self.preset.corpus_steps is not None:
+            config = dataclasses.replace(config, time_limit_s=self.preset.corpus_steps * config.dt_s)
+        p = self.preset
+        seeds = list(range(p.corpus_seed, p.corpus_seed + p.corpus_episodes))
+        return self._record_stage("corpus", self.out / "corpus", config, seeds, "autopilot", "corpus", False)
+
+    def predictor_config(self) -> Any:
+        from lcmodels.predictor import PredictorConfig, TrainConfig
+
+        p = self.preset
+        return TrainConfig(
+            model=PredictorConfig(d_model=p.predictor_d_model, num_heads=p.predictor_heads,
+                                  num_layers=p.predictor_layers, ff_dim=p.predictor_ff_dim),
+            stride=p.predictor_stride, max_epochs=p.predictor_epochs, time_limit_s=p.predictor_time_limit_s,
+            max_train_windows=p.predictor_max_train_windows, num_threads=self.threads, progress=False,
+            tensorboard=p.predictor_tensorboard,
+        )  # fmt: skip
+
+    def predictor(self, corpus: StageResult) -> StageResult:
+        tc = self.predictor_config()
+        path = self.out / "predictor"
+
+        def work(keep: bool) -> None:
+            from lcdata.corpus import load_tracks
+            from lcmodels.predictor import train_predictor
+
+            m = train_predictor(load_tracks(corpus.path), tc, path)
+            self.emit(f"[predictor] test ADE {m['model']['ade']:.4f} m FDE {m['model']['fde']:.4f} m "
+                      f"(constant velocity {m['constant_velocity']['ade']:.4f} / "
+                      f"{m['constant_velocity']['fde']:.4f})")  # fmt: skip
+
+        cfg = {k: v for k, v in dataclasses.asdict(tc).items() if k not in ("progress", "num_threads")}
+        return self._stage("predictor", path, cfg, {"corpus": corpus.digest},
+                           lambda: ["predictor.pt", "metrics.json"], work)  # fmt: skip
+
+    def demos(self) -> StageResult:
+        from lcmodels.policy.train import PolicyConfig
+
+        config = PolicyConfig(scenario=self.preset.scenario, obs="hybrid").scenario_config()
+        p = self.preset
+        seeds = list(range(p.demo_seed, p.demo_seed + p.demo_episodes))
+        return self._record_stage("demos", self.out / "demos", config, seeds, "rule", "lane-change", True)
+
+    def rule(self) -> StageResult:
+        from lcmodels.policy.train import PolicyConfig
+
+        p = self.preset
+        config = PolicyConfig(scenario=p.scenario, obs="pure").scenario_config()
+        path = self.out / RULE_KEY
+
+        def work(keep: bool) -> None:
+            from lcmodels.policy.evaluate import evaluate
+            from lcsim.drivers import RuleBasedDriver
+
+            t0 = time.perf_counter()
+            summary, _ = evaluate(RuleBasedDriver(), config, episodes=p.eval_episodes, seed=p.eval_seed,
+                                  out_dir=path / "episodes" if p.record_eval else None, scenario="lane-change",
+                                  overwrite=True)  # fmt: skip
+            summary["wall_s"] = time.perf_counter() - t0
+            write_json(path / "metrics.json", {"config": cfg, "eval": summary})
+            self.emit(f"[{RULE_KEY}] success {100 * summary['success_rate']:.1f}% "
+                      f"collision {100 * summary['collision_rate']:.1f}%")  # fmt: skip
+
+        cfg = {"driver": "rule", "scenario": config.to_dict(), "episodes": p.eval_episodes, "seed": p.eval_seed,
+               "record": p.record_eval}  # fmt: skip
+        return self._stage(RULE_KEY, path, cfg, {}, lambda: ["metrics.json"], work)
+
+    def policy(self, method: Method, seed: int, predictor: StageResult | None, demos: StageResult | None) -> StageResult:
+        from lcmodels.policy.obs import needs_predictor
+        from lcmodels.policy.train import train_policy
+
+        path = policy_dir(self.out, method.key, seed)
+        cfg = policy_config(self.preset, method, seed, demos.path if demos else None)
+        inputs: dict[str, str] = {}
+        pred_path = None
+        if needs_predictor(method.obs):
+            assert predictor is not None
+            inputs["predictor"] = predictor.digest
+            pred_path = predictor.path / "predictor.pt"
+        if method.warm_start:
+            assert demos is not None
+            inputs["demos"] = demos.digest
+        name = f"{method.key}/seed{seed}"
+
+        def show(row: dict[str, Any]) -> None:
+            self.emit(f"[{name}] step {int(row['timesteps'])}/{cfg.timesteps} "
+                      f"success {row['success_rate']:.2f} collision {row['collision_rate']:.2f} "
+                      f"return {row['mean_return']:.1f} safe forward {row['mean_safe_forward_m']:.1f} m")  # fmt: skip
+
+        def work(keep: bool) -> None:
+            try:
+                res = train_policy(cfg, path, predictor=pred_path, progress=show)
+            except ValueError as exc:  # the directory holds another run (e.g. moved --out): start over
+                if "another configuration" not in str(exc):
+                    raise
+                shutil.rmtree(path)
+                path.mkdir(parents=True)
+                res = train_policy(cfg, path, predictor=pred_path, progress=show)
+            ev = res.metrics.get("eval", {})
+            self.emit(f"[{name}] held-out: success {100 * ev.get('success_rate', float('nan')):.1f}% "
+                      f"collision {100 * ev.get('collision_rate', float('nan')):.1f}% "
+                      f"timeout {100 * ev.get('timeout_rate', float('nan')):.1f}%")  # fmt: skip
+
+        stage_cfg = cfg.to_dict()
+        if method.warm_start:
+            stage_cfg["warm_start"] = "demos"  # the demos' content is an input; the path may move
+        return self._stage(name, path, stage_cfg, inputs, lambda: ["policy.zip", "metrics.json", "progress.csv"],
+                           work, resumable=_resumable_policy_change)  # fmt: skip
+
+    # -- the whole run -------------------------------------------------------------------------------
+    def run(self, *, skip_train: bool = False) -> ExperimentResult:
+        """Every stage in order (skipping what is complete), then REPORT.md and the figures."""
+        import torch
+
+        from lcmodels.policy.obs import needs_predictor
+        from lcmodels.policy.train import versions
+        from lcmodels.report import write_report
+
+        t0 = time.perf_counter()
+        self.check_out()
+        self.out.mkdir(parents=True, exist_ok=True)
+        write_json(self.out / MARKER, {"preset": self.preset.to_dict(), "seeds": self.seeds,
+                                       "command": self.command, "versions": versions()})  # fmt: skip
+        torch.set_num_threads(self.threads)
+        self.stages = []
+        corpus = self.corpus()
+        predictor = self.predictor(corpus)
+        demos = self.demos()
+        self.rule()
+        for seed in range(self.seeds):
+            for m in METHODS:
+                if skip_train:
+                    path = policy_dir(self.out, m.key, seed)
+                    self.stages.append(StageResult(f"{m.key}/seed{seed}", "not run", path, 0.0))
+                    continue
+                self.policy(m, seed, predictor if needs_predictor(m.obs) else None, demos if m.warm_start else None)
+        wall = time.perf_counter() - t0
+        report = write_report(self, wall_s=wall)
+        self.emit(f"[report] wrote {report}")
+        return ExperimentResult(self.out, self.preset, self.seeds, list(self.stages), wall, report)
+
+
+def run_experiment(preset: Preset | str, out: str | Path, *, seeds: int = 1, command: str = "", threads: int = 1,
+                   progress: Progress | None = None, skip_train: bool = False) -> ExperimentResult:  # fmt: skip
+    """Run (or resume) the experiment of ``preset`` in ``out``; see the module docstring."""
+    if isinstance(preset, str):
+        if preset not in PRESETS:
+            raise ValueError(f"unknown preset {preset!r}; choose one of {', '.join(PRESETS)}")
+        preset = PRESETS[preset]
+    exp = Experiment(preset, out, seeds=seeds, command=command, threads=threads, progress=progress)
+    return exp.run(skip_train=skip_train)
