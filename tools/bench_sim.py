@@ -8,12 +8,14 @@ When highway-env is installed, measures its ``highway-v0`` with 100 vehicles on 
 
     python tools/bench_sim.py            # human-readable
     python tools/bench_sim.py --json     # one JSON object
+    python tools/bench_sim.py --repeat 5 # median of 5 measurements each (for a busy machine)
 """
 
 from __future__ import annotations
 
 import argparse
 import json
+import statistics
 import sys
 import time
 
@@ -83,12 +85,19 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--seconds", type=float, default=10.0, help="wall time per measurement (default 10)")
     parser.add_argument("--json", action="store_true", help="print one JSON object")
     parser.add_argument("--no-highway-env", action="store_true", help="skip the highway-env comparison")
+    parser.add_argument("--repeat", type=int, default=1,
+                        help="measure each lcsim figure this many times, interleaved, and report the median (default 1)")
     args = parser.parse_args(argv)
     if args.seconds <= 0:
         parser.error("--seconds must be > 0")
+    if args.repeat < 1:
+        parser.error("--repeat must be >= 1")
     config = ScenarioConfig()
-    single = bench_single(args.seconds, config)
-    batch = bench_batch(args.seconds, config)
+    singles, batches = [], []
+    for _ in range(args.repeat):
+        singles.append(bench_single(args.seconds, config))
+        batches.append(bench_batch(args.seconds, config))
+    single, batch = statistics.median(singles), statistics.median(batches)
     hwy = None if args.no_highway_env else bench_highway_env(args.seconds)
     result = {
         "single_env_sim_s_per_s": round(single, 1),
