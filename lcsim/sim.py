@@ -20,7 +20,6 @@ from lcsim.config import ScenarioConfig
 from lcsim.control import (
     PIDBank,
     bicycle_step,
-    heading_error,
     limit_steer,
     longitudinal_accel,
     split_throttle_brake,
@@ -279,27 +278,54 @@ class HighwaySim:
         if self.num_envs == 1:
             self._ego_step_one(lead_gap, x_out, y_out, yaw_out, v_out, a_out)
             return
-        ec = self.config.ego
+        ec, dt = self.config.ego, self.dt
         x, y, yaw, v = self.x[:, 0], self.y[:, 0], self.yaw[:, 0], self.speed[:, 0]
+        px0 = self.path_x0
         target = self.target_speed
         if ec.adaptive_cruise:
             target = np.minimum(target, np.maximum((lead_gap - ec.acc_min_gap_m) / ec.acc_time_headway_s, 0.0))
         # Local planner: first waypoint (every waypoint_spacing_m along the path) beyond the look-ahead.
+        # (The control.py functions, inlined with in-place steps: the same operations in the same order.)
         sp = ec.waypoint_spacing_m
-        tx = self.path_x0 + np.ceil((x + (ec.base_min_distance_m + ec.distance_ratio * v) - self.path_x0) / sp) * sp
-        frac = np.minimum(np.maximum((tx - self.path_x0) / self.path_len, 0.0), 1.0)
-        ty = self.path_y0 + (self.path_y1 - self.path_y0) * frac
-        err = np.stack([(target - v) * 3.6, heading_error(x, y, yaw, tx, ty)], axis=1)
+        tx = ec.distance_ratio * v
+        tx += ec.base_min_distance_m
+        tx += x
+        tx -= px0
+        tx /= sp
+        np.ceil(tx, out=tx)
+        tx *= sp
+        tx += px0
+        frac = tx - px0
+        frac /= self.path_len
+        np.minimum(np.maximum(frac, 0.0, out=frac), 1.0, out=frac)
+        ty = self.path_y1 - self.path_y0
+        ty *= frac
+        ty += self.path_y0
+        err = np.empty((self.num_envs, 2))
+        e_speed, e_head = err[:, 0], err[:, 1]
+        np.subtract(target, v, out=e_speed)
+        e_speed *= 3.6
+        head = np.arctan2(ty - y, tx - x)  # heading_error (contiguous, as the E = 1 path computes it)
+        head -= yaw
+        head += math.pi
+        np.remainder(head, 2 * math.pi, out=head)
+        head -= math.pi
+        e_head[:] = head
         u = self.pid.step(err)
         throttle, brake = split_throttle_brake(u[:, 0], ec)
         steer = limit_steer(u[:, 1], self.steer, ec)
-        accel = self.ego_accel + (longitudinal_accel(throttle, brake, v, ec) - self.ego_accel) * self.lag_alpha
+        drive = longitudinal_accel(throttle, brake, v, ec)
+        drive -= self.ego_accel
+        drive *= self.lag_alpha
+        accel = drive
+        accel += self.ego_accel
         self.ego_accel = accel
-        nx, ny, nyaw, nv = bicycle_step(x, y, yaw, v, accel, steer, ec, self.dt)
+        nx, ny, nyaw, nv = bicycle_step(x, y, yaw, v, accel, steer, ec, dt)
         self.steer, self.throttle, self.brake = steer, throttle, brake
-        done = self.ego_lc_active & (nx >= self.path_x0 + self.path_len) & (
-            np.abs(ny - self.path_y1) < ec.lane_change_tolerance_m)
-        self.ego_lc_active &= ~done
+        if self.ego_lc_active.any():
+            done = self.ego_lc_active & (nx >= px0 + self.path_len) & (
+                np.abs(ny - self.path_y1) < ec.lane_change_tolerance_m)
+            self.ego_lc_active &= ~done
         x_out[:, 0], y_out[:, 0], yaw_out[:, 0], v_out[:, 0], a_out[:, 0] = nx, ny, nyaw, nv, accel
 
     def _ego_step_one(self, lead_gap: np.ndarray, x_out: np.ndarray, y_out: np.ndarray, yaw_out: np.ndarray,
