@@ -400,6 +400,8 @@ def experiment_parser() -> argparse.ArgumentParser:
                    "not depend on it beyond float rounding, and changing it does not make stages stale)")
     p.add_argument("--skip-train", action="store_true",
                    help="do not train policies; report what the directory already holds")
+    p.add_argument("--dry-run", action="store_true",
+                   help="only say which stages are complete and which would run (and why)")
     p.add_argument("-q", "--quiet", action="store_true", help="no progress lines")
     return p
 
@@ -431,6 +433,14 @@ def experiment_main(argv: list[str] | None = None) -> int:
     except ValueError as exc:
         return fail(str(exc))
     logging.basicConfig(level=logging.WARNING, format="%(message)s")
+    if args.dry_run:
+        if not args.out.exists():
+            print(f"{args.out} does not exist: every stage would run")
+            return 0
+        stages = exp.plan()
+        print(f"{sum(s.status == 'skipped' for s in stages)} stages complete, "
+              f"{sum(s.status != 'skipped' for s in stages)} would run")
+        return 0
     try:
         res = exp.run(skip_train=args.skip_train)
     except (ValueError, OSError) as exc:

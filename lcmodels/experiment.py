@@ -236,7 +236,8 @@ def write_json(path: Path, data: Any) -> None:
 class StageResult:
     name: str
     status: str
-    """``skipped`` (complete), ``done`` (computed in this run), ``not run`` (--skip-train)."""
+    """``skipped`` (complete), ``done`` (computed in this run), ``not run`` (--skip-train) or, in a dry run,
+    ``would run (why)``."""
     path: Path
     wall_s: float
     """Wall time of the computation that produced the outputs (recorded; 0 for not run)."""
@@ -281,6 +282,7 @@ class Experiment:
             raise ValueError(f"threads must be >= 1, got {threads}")
         self.preset, self.out, self.seeds, self.command = preset, Path(out), seeds, command
         self.threads = threads
+        self.dry_run = False
         self._progress = progress
         self.stages: list[StageResult] = []
 
@@ -324,6 +326,11 @@ class Experiment:
             why = "stale: " + ("config changed" if record.get("config") != config else "inputs changed")
         else:
             why = "new" if not pend_path.exists() else "resuming an interrupted run"
+        if self.dry_run:
+            self.emit(f"[{name}] would run ({why})")
+            res = StageResult(name, f"would run ({why})", path, 0.0, time.perf_counter() - t0, {"pending": name})
+            self.stages.append(res)
+            return res
         prior = None if record is not None and why == "outputs missing or changed" else (
             record or _read_json(pend_path))
         keep = prior is not None and prior.get("inputs") == inputs and (
@@ -482,11 +489,23 @@ class Experiment:
                            work, resumable=_resumable_policy_change)  # fmt: skip
 
     # -- the whole run -------------------------------------------------------------------------------
+    def plan(self) -> list[StageResult]:
+        """What :meth:`run` would do, without doing it: each stage ``skipped`` or ``would run (why)``.
+
+        A stage downstream of one that would run shows as stale (its inputs are not known yet).
+        """
+        self.check_out()
+        self.dry_run = True
+        try:
+            self._stages(skip_train=False)
+        finally:
+            self.dry_run = False
+        return list(self.stages)
+
     def run(self, *, skip_train: bool = False) -> ExperimentResult:
         """Every stage in order (skipping what is complete), then REPORT.md and the figures."""
         import torch
 
-        from lcmodels.policy.obs import needs_predictor
         from lcmodels.policy.train import versions
         from lcmodels.report import write_report
 
@@ -496,6 +515,15 @@ class Experiment:
         write_json(self.out / MARKER, {"preset": self.preset.to_dict(), "seeds": self.seeds,
                                        "command": self.command, "versions": versions()})  # fmt: skip
         torch.set_num_threads(self.threads)
+        self._stages(skip_train=skip_train)
+        wall = time.perf_counter() - t0
+        report = write_report(self, wall_s=wall)
+        self.emit(f"[report] wrote {report}")
+        return ExperimentResult(self.out, self.preset, self.seeds, list(self.stages), wall, report)
+
+    def _stages(self, *, skip_train: bool) -> None:
+        from lcmodels.policy.obs import needs_predictor
+
         self.stages = []
         corpus = self.corpus()
         predictor = self.predictor(corpus)
@@ -508,10 +536,6 @@ class Experiment:
                     self.stages.append(StageResult(f"{m.key}/seed{seed}", "not run", path, 0.0))
                     continue
                 self.policy(m, seed, predictor if needs_predictor(m.obs) else None, demos if m.warm_start else None)
-        wall = time.perf_counter() - t0
-        report = write_report(self, wall_s=wall)
-        self.emit(f"[report] wrote {report}")
-        return ExperimentResult(self.out, self.preset, self.seeds, list(self.stages), wall, report)
 
 
 def run_experiment(preset: Preset | str, out: str | Path, *, seeds: int = 1, command: str = "", threads: int = 1,

@@ -1,0 +1,181 @@
+"""lc-experiment end to end on the tiny preset: report contents, resumability, staleness, CLI errors."""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+import re
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from lcmodels.cli import experiment_main
+from lcmodels.experiment import (
+    FIG5_NAME,
+    FIG6_NAME,
+    METHOD_BY_KEY,
+    METHODS,
+    PAPER_TABLE3,
+    PAPER_TABLE4,
+    PRESETS,
+    REPORT_NAME,
+    RULE_KEY,
+    RULE_LABEL,
+    Experiment,
+    Preset,
+    policy_dir,
+)
+
+SEEDS = 2
+
+
+def test_tiny_preset_end_to_end(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    """One pipeline run (under pytest-xdist a shared fixture would run once per worker)."""
+    run_dir = tmp_path / "tiny"
+    assert experiment_main(["--preset", "tiny", "--seeds", str(SEEDS), "--out", str(run_dir), "-q"]) == 0
+    check_report_holds_the_numbers_of_the_metrics_files(run_dir)
+    check_rerun_skips_everything_and_a_changed_preset_value_is_stale(run_dir, capsys)
+
+
+# ------------------------------------------------------------------------------------------------ helpers
+def md_table(report: str, heading: str) -> list[dict[str, str]]:
+    """Rows of the first markdown table after the line starting with ``heading``, as dicts by header."""
+    lines = report.splitlines()
+    start = next(i for i, line in enumerate(lines) if line.startswith(heading))
+    rows = []
+    header: list[str] | None = None
+    for line in lines[start + 1 :]:
+        if not line.startswith("|"):
+            if header is not None:
+                break
+            continue
+        cells = [c.strip() for c in line.strip().strip("|").split("|")]
+        if header is None:
+            header = cells
+        elif not set(line) <= set("|-"):
+            rows.append(dict(zip(header, cells, strict=True)))
+    return rows
+
+
+def parse_cell(cell: str) -> tuple[float, float | None]:
+    m = re.fullmatch(r"(-?[0-9.]+)(?: ± ([0-9.]+))?", cell)
+    assert m, f"not a number cell: {cell!r}"
+    return float(m.group(1)), (float(m.group(2)) if m.group(2) else None)
+
+
+def evals(out: Path, key: str) -> list[dict]:
+    if key == RULE_KEY:
+        return [json.loads((out / RULE_KEY / "metrics.json").read_text())["eval"]]
+    return [json.loads((policy_dir(out, key, s) / "metrics.json").read_text())["eval"] for s in range(SEEDS)]
+
+
+def check_cell(cell: str, values: list[float]) -> None:
+    mean, std = parse_cell(cell)
+    a = np.asarray(values, dtype=float)
+    assert mean == pytest.approx(a.mean(), abs=0.051), (cell, values)
+    if len(a) > 1:
+        assert std is not None and std == pytest.approx(a.std(ddof=1), abs=0.051), (cell, values)
+    else:
+        assert std is None
+
+
+# ------------------------------------------------------------------------------------------------ checks
+def check_report_holds_the_numbers_of_the_metrics_files(run_dir: Path) -> None:
+    report = (run_dir / REPORT_NAME).read_text()
+    for name in (FIG5_NAME, FIG6_NAME):
+        png = run_dir / name
+        assert png.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n" and png.stat().st_size > 10_000
+        assert f"]({name})" in report
+    assert "lc-experiment --preset tiny --seeds 2" in report and '"corpus_episodes": 3' in report
+
+    pred = json.loads((run_dir / "predictor" / "metrics.json").read_text())
+    t2 = {r["Predictor"]: r for r in md_table(report, "## Table II")}
+    for label, key in (("Transformer (ours), m", "model"), ("Constant velocity, m", "constant_velocity"),
+                       ("Constant acceleration, m", "constant_acceleration")):  # fmt: skip
+        assert float(t2[label]["ADE / MAD"]) == pytest.approx(pred[key]["ade"], abs=5e-5)
+        assert float(t2[label]["FDE / FAD"]) == pytest.approx(pred[key]["fde"], abs=5e-5)
+    assert t2["Paper (Hybrid-PPO), units as reported"]["ADE / MAD"] == "0.382"
+
+    labels = {m.label: m.key for m in METHODS} | {RULE_LABEL: RULE_KEY}
+    for heading, paper, n_rows in (("## Table III", PAPER_TABLE3, 5), ("## Table IV", PAPER_TABLE4, 4)):
+        rows = md_table(report, heading)
+        assert len(rows) == n_rows
+        for row in rows:
+            key = labels[row["Method"]]
+            ev = evals(run_dir, key)
+            assert int(row["seeds"]) == len(ev)
+            for rate in ("success", "collision", "timeout"):
+                check_cell(row[f"{rate.capitalize()} % (ours)"], [100 * e[f"{rate}_rate"] for e in ev])
+                want = f"{paper[key][('success', 'collision', 'timeout').index(rate)]:.1f}" if key in paper else "—"
+                assert row[f"{rate.capitalize()} % (paper)"] == want
+            check_cell(row["Off-road % (ours)"], [100 * e["off_road_rate"] for e in ev])
+            check_cell(row["Safe forward m (ours)"], [e["mean_safe_forward_m"] for e in ev])
+            check_cell(row["Return (ours)"], [e["mean_return"] for e in ev])
+    warm = md_table(report, "## Warm start")
+    assert [int(r["seed"]) for r in warm] == list(range(SEEDS))
+
+
+def check_rerun_skips_everything_and_a_changed_preset_value_is_stale(
+    run_dir: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    zips = sorted(run_dir.glob("policies/*/seed*/policy.zip"))
+    assert len(zips) == len(METHODS) * SEEDS
+    before = {p: p.stat().st_mtime_ns for p in zips}
+    capsys.readouterr()
+    assert experiment_main(["--preset", "tiny", "--seeds", str(SEEDS), "--out", str(run_dir)]) == 0
+    out = capsys.readouterr().out
+    n_stages = 4 + len(METHODS) * SEEDS
+    assert f"0 stages computed, {n_stages} complete and skipped" in out
+    assert out.count("complete, skipped") == n_stages
+    assert {p: p.stat().st_mtime_ns for p in zips} == before
+
+    # One more demo episode: the demos and the warm-started runs are stale, nothing else.
+    changed = Experiment(dataclasses.replace(PRESETS["tiny"], demo_episodes=3), run_dir, seeds=SEEDS)
+    plan = {s.name: s.status for s in changed.plan()}
+    warm = {f"ppo-hybrid-warm/seed{s}" for s in range(SEEDS)}
+    assert {n for n, st in plan.items() if st != "skipped"} == {"demos"} | warm
+    assert plan["demos"].startswith("would run (stale: config changed")
+    # Redo the demos for real: the warm-started runs now see other inputs; the rest stays complete.
+    assert changed.demos().status == "done"
+    assert len(list((run_dir / "demos").glob("*.mcap"))) == 3
+    plan = {s.name: s.status for s in changed.plan()}
+    assert plan["demos"] == "skipped"
+    assert {n for n, st in plan.items() if st != "skipped"} == warm
+    assert all("inputs changed" in plan[n] for n in warm)
+    assert {p: p.stat().st_mtime_ns for p in zips} == before
+
+
+def test_policy_stage_config_follows_the_preset() -> None:
+    tiny = PRESETS["tiny"]
+    from lcmodels.experiment import policy_config
+
+    a2c = policy_config(tiny, METHOD_BY_KEY["a2c-hybrid"], 1, None)
+    assert (a2c.algo, a2c.obs, a2c.seed, a2c.learning_rate, a2c.n_steps) == ("a2c", "hybrid", 1, 7e-4, 8)
+    assert policy_config(tiny, METHOD_BY_KEY["dqn-hybrid"], 0, None).learning_rate == 1e-4
+    warm = policy_config(tiny, METHOD_BY_KEY["ppo-hybrid-warm"], 0, Path("demos"))
+    assert warm.warm_start == str(Path("demos").resolve())
+    with pytest.raises(ValueError, match="corpus_episodes"):
+        Preset(name="x", corpus_episodes=2)
+
+
+def test_cli_bad_input(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    with pytest.raises(SystemExit) as exc:
+        experiment_main(["--preset", "tiny", "--seeds", "0", "--out", str(tmp_path / "x")])
+    assert exc.value.code == 2
+    f = tmp_path / "file"
+    f.write_text("x")
+    capsys.readouterr()
+    assert experiment_main(["--preset", "tiny", "--out", str(f)]) == 2
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1 and "is not a directory" in err
+    other = tmp_path / "other"
+    other.mkdir()
+    (other / "keep.txt").write_text("not an experiment")
+    assert experiment_main(["--preset", "tiny", "--out", str(other)]) == 2
+    assert "experiment.json" in capsys.readouterr().err
+    assert (other / "keep.txt").exists()
+    with pytest.raises(SystemExit) as exc:
+        experiment_main(["--help"])
+    assert exc.value.code == 0
+    assert "REPORT.md" in capsys.readouterr().out
