@@ -213,8 +213,10 @@ def plot_curves(runs: dict[str, MethodRuns], key: str, ylabel: str, title: str, 
         n = len(runs[m.key].curves)
         ax.plot(x, mean, color=colors(i), lw=1.8, marker="o" if len(x) < 4 else None, ms=3,
                 label=f"{m.label} (n={n})")  # fmt: skip
-        if n > 1:
+        if n > 1 and len(x) > 1:
             ax.fill_between(x, lo, hi, color=colors(i), alpha=0.18, lw=0)
+        elif n > 1:  # one logged point: the band as an error bar
+            ax.errorbar(x, mean, yerr=[mean - lo, hi - mean], color=colors(i), capsize=3, lw=1)
     if reference is not None and math.isfinite(reference):
         ax.axhline(reference, color="black", ls="--", lw=1, label=f"{RULE_LABEL}, held-out")
     ax.set_xlabel("training timesteps (decisions over all environments)")
