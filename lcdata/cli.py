@@ -48,7 +48,7 @@ _non_negative_int = int_at_least(0)
 def _driver_spec(text: str) -> str:
     if text in DRIVERS or (text.startswith("policy:") and len(text) > len("policy:")):
         return text
-    raise argparse.ArgumentTypeError(f"expected one of {', '.join(DRIVERS)} or policy:CKPT, got {text!r}")
+    raise argparse.ArgumentTypeError(f"invalid choice: {text!r} (choose from {', '.join(DRIVERS)} or policy:CKPT)")
 
 
 def build_parser() -> argparse.ArgumentParser:
