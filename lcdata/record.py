@@ -166,6 +166,23 @@ class EpisodeRecorder:
         mask = np.asarray(action_mask, dtype=bool).reshape(-1, 3)[e].copy()
         self._pending = (step, t, action, mask, np.asarray(obs["current"][e]).copy())
 
+    def write_predictions(self, predictions: np.ndarray) -> None:
+        """``/prediction`` for this decision from the policy's ``(K, F, 2)`` ego-frame predictions.
+
+        Slot k is the k-th nearest neighbour of the observation (``core.neighbours``); call it between
+        :meth:`before_step` and ``core.step``. Positions are written in the world frame.
+        """
+        sim, e = self.core.sim, self.env
+        nb = self.core.neighbours(np.array([e]))[0]
+        ids = np.where(nb >= 0, np.asarray(sim.ids)[np.maximum(nb, 0)], -1)
+        p = np.asarray(predictions, dtype=np.float64)
+        yaw = float(sim.yaw[e, 0])
+        c, s = np.cos(yaw), np.sin(yaw)
+        xy = np.empty_like(p)
+        xy[..., 0] = sim.x[e, 0] + c * p[..., 0] - s * p[..., 1]
+        xy[..., 1] = sim.y[e, 0] + s * p[..., 0] + c * p[..., 1]
+        self.writer.write_prediction(int(sim.step[e]), float(sim.t_s[e]), ids, xy)
+
     def after_step(self, result: StepResult) -> None:
         """Call right after ``core.step``: writes ``/rl/step`` (and the outcome event when the episode ends)."""
         if self._pending is None:
@@ -289,6 +306,9 @@ def record_episode(
             mask = core.action_mask()
             actions = np.asarray(policy(obs, mask, core), dtype=np.int64).reshape(1)
             recorder.before_step(obs, mask, actions)
+            predictions = getattr(policy, "last_prediction", None)  # what a policy driver saw, if any
+            if predictions is not None:
+                recorder.write_predictions(predictions[0])
             recorder.after_step(core.step(actions))
             if not recorder.done:
                 obs = core.observe()

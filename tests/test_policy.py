@@ -223,3 +223,18 @@ def test_policy_obs_env_passes_sb3_check_on_single_view(predictor_path: Path) ->
     obs = penv.reset()
     for k, s in space.spaces.items():
         assert s.contains(obs[k][0]), k
+
+
+def test_lc_record_with_a_policy_driver_writes_its_predictions(tmp_path: Path, predictor_path: Path) -> None:
+    from lcdata.cli import record_main
+    from lcdata.reader import read_episode
+    from lcdata.record import record_episode
+
+    train_policy(_tiny(obs="prediction", timesteps=64, n_steps=16, eval_episodes=0), tmp_path / "run",
+                 predictor=predictor_path)
+    drv = PolicyDriver(load_policy(tmp_path / "run" / "policy.zip"))
+    res = record_episode(drv.config, 4, drv, tmp_path / "ep.mcap")  # what lc-record --driver policy:CKPT runs
+    ep = read_episode(res.path)
+    assert sorted(set(ep.predictions["step"])) == sorted(ep.steps["step"])  # one prediction set per decision
+    assert set(ep.predictions["k"]) == set(range(1, 11))
+    assert record_main(["--driver", f"policy:{tmp_path / 'missing.zip'}", "--out", str(tmp_path / "o")]) == 2

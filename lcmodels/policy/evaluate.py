@@ -102,14 +102,6 @@ def summarize_with_intervals(episodes: Sequence[EpisodeStats]) -> dict[str, Any]
     return out
 
 
-def _to_world(pred: np.ndarray, x: float, y: float, yaw: float) -> np.ndarray:
-    c, s = math.cos(yaw), math.sin(yaw)
-    out = np.empty(pred.shape, dtype=np.float64)
-    out[..., 0] = x + c * pred[..., 0] - s * pred[..., 1]
-    out[..., 1] = y + s * pred[..., 0] + c * pred[..., 1]
-    return out
-
-
 def evaluate(
     driver: Driver | Callable[..., np.ndarray],
     config: ScenarioConfig,
@@ -179,11 +171,7 @@ def evaluate(
                 for i in np.flatnonzero(running) if recorders else ():
                     recorders[i].before_step(obs, mask, actions)
                     if pred is not None:
-                        sim = core.sim
-                        nb = core.neighbours(np.array([i]))[0]
-                        ids = np.where(nb >= 0, sim.ids[np.maximum(nb, 0)], -1)
-                        xy = _to_world(pred[i], float(sim.x[i, 0]), float(sim.y[i, 0]), float(sim.yaw[i, 0]))
-                        recorders[i].writer.write_prediction(int(sim.step[i]), float(sim.t_s[i]), ids, xy)
+                        recorders[i].write_predictions(pred[i])
                 res = core.step(actions)
                 ret += np.where(running, res.reward, 0.0)
                 fwd += np.where(running, res.components["forward"], 0.0)
