@@ -463,7 +463,13 @@ class Experiment:
             inputs["demos"] = demos.digest
         name = f"{method.key}/seed{seed}"
 
+        shown = [0]
+
         def show(row: dict[str, Any]) -> None:
+            t = int(row["timesteps"])  # about 8 lines per run, whatever the algorithm's log interval
+            if t < cfg.timesteps and t - shown[0] < cfg.timesteps / 8:
+                return
+            shown[0] = t
             self.emit(f"[{name}] step {int(row['timesteps'])}/{cfg.timesteps} "
                       f"success {row['success_rate']:.2f} collision {row['collision_rate']:.2f} "
                       f"return {row['mean_return']:.1f} safe forward {row['mean_safe_forward_m']:.1f} m")  # fmt: skip
