@@ -75,6 +75,8 @@ class Preset:
     ppo_batch_size: int = 256
     ppo_n_epochs: int = 10
     a2c_n_steps: int = 8
+    dqn_batch_size: int = 256
+    """DQN minibatch (it takes n_envs / 4 gradient steps per environment step: the costly part on a CPU)."""
     dqn_learning_starts: int = 2_000
     dqn_buffer_size: int = 50_000
     dqn_target_update_interval: int = 2_000
@@ -107,7 +109,7 @@ PRESETS: dict[str, Preset] = {
         predictor_d_model=16, predictor_heads=2, predictor_layers=1, predictor_ff_dim=32, predictor_epochs=1,
         predictor_time_limit_s=None, predictor_max_train_windows=2_000, predictor_stride=5,
         predictor_tensorboard=False, demo_episodes=2, ppo_timesteps=128, a2c_timesteps=128, dqn_timesteps=128,
-        n_envs=4, ppo_n_steps=32, ppo_batch_size=64, ppo_n_epochs=2, dqn_learning_starts=32,
+        n_envs=4, ppo_n_steps=32, ppo_batch_size=64, ppo_n_epochs=2, dqn_batch_size=32, dqn_learning_starts=32,
         dqn_buffer_size=1_000, dqn_target_update_interval=64, warm_start_epochs=1, checkpoint_every=10_000,
         eval_episodes=4, record_eval=False,
     ),
@@ -116,7 +118,7 @@ PRESETS: dict[str, Preset] = {
         name="quick", scenario="light", corpus_episodes=6, corpus_steps=1000, predictor_epochs=20,
         predictor_time_limit_s=60.0, predictor_max_train_windows=50_000, predictor_stride=2,
         demo_episodes=8, ppo_timesteps=4_096, a2c_timesteps=4_096, dqn_timesteps=4_096, n_envs=16,
-        ppo_n_steps=64, ppo_n_epochs=4, dqn_learning_starts=1_000, dqn_target_update_interval=1_000,
+        ppo_n_steps=64, ppo_n_epochs=4, dqn_batch_size=32, dqn_learning_starts=1_000, dqn_target_update_interval=1_000,
         warm_start_epochs=5, checkpoint_every=2_048, eval_episodes=50, record_eval=False,
     ),
     # The paper's setting: budgets each method needs to converge (hours on a CPU; use --seeds and resume).
@@ -169,9 +171,10 @@ def policy_config(preset: Preset, method: Method, seed: int, demos: Path | None)
 
     lr, n_steps = {"a2c": (7e-4, preset.a2c_n_steps), "dqn": (1e-4, preset.ppo_n_steps)}.get(
         method.algo, (3e-4, preset.ppo_n_steps))
+    batch = preset.dqn_batch_size if method.algo == "dqn" else preset.ppo_batch_size
     return PolicyConfig(
         algo=method.algo, obs=method.obs, scenario=preset.scenario, timesteps=method_timesteps(preset, method),
-        n_envs=preset.n_envs, seed=seed, learning_rate=lr, n_steps=n_steps, batch_size=preset.ppo_batch_size,
+        n_envs=preset.n_envs, seed=seed, learning_rate=lr, n_steps=n_steps, batch_size=batch,
         n_epochs=preset.ppo_n_epochs, buffer_size=preset.dqn_buffer_size,
         learning_starts=preset.dqn_learning_starts, target_update_interval=preset.dqn_target_update_interval,
         checkpoint_every=preset.checkpoint_every, eval_episodes=preset.eval_episodes, eval_seed=preset.eval_seed,
@@ -324,8 +327,12 @@ class Experiment:
             why = "outputs missing or changed"
         elif record is not None:
             why = "stale: " + ("config changed" if record.get("config") != config else "inputs changed")
+        elif (pending := _read_json(pend_path)) is None:
+            why = "new"
+        elif pending.get("config") == config and pending.get("inputs") == inputs:
+            why = "resuming an interrupted run"
         else:
-            why = "new" if not pend_path.exists() else "resuming an interrupted run"
+            why = "stale: config or inputs changed since an interrupted run"
         if self.dry_run:
             self.emit(f"[{name}] would run ({why})")
             res = StageResult(name, f"would run ({why})", path, 0.0, time.perf_counter() - t0, {"pending": name})
