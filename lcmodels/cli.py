@@ -117,7 +117,7 @@ def train_predictor_main(argv: list[str] | None = None) -> int:
         ("constant acceleration", metrics["constant_acceleration"]),
     ]
     print(
-        f"test split, {args.history}+{args.future} steps ({metrics['corpus'].get('test_windows', '?')} windows):"
+        f"test split, {args.history}+{args.future} steps ({metrics['corpus'].get('windows', {}).get('test', '?')} windows):"
     )
     for name, m in rows:
         print(f"  {name:22s} ADE {m['ade']:.4f} m   FDE {m['fde']:.4f} m   miss rate {m['miss_rate']:.4f}")

@@ -76,7 +76,7 @@ class Preset:
     ppo_n_epochs: int = 10
     a2c_n_steps: int = 8
     dqn_batch_size: int = 256
-    """DQN minibatch (it takes n_envs / 4 gradient steps per environment step: the costly part on a CPU)."""
+    """DQN minibatch (one gradient step per vector step of n_envs transitions)."""
     dqn_learning_starts: int = 2_000
     dqn_buffer_size: int = 50_000
     dqn_target_update_interval: int = 2_000
