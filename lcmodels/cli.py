@@ -316,8 +316,9 @@ def eval_main(argv: list[str] | None = None) -> int:
     from lcmodels.policy.train import POLICY_SCENARIOS
 
     is_driver = args.policy in ("rule", "keep", "random")
-    if not is_driver and not Path(args.policy.removeprefix("policy:")).is_file():
-        what = "is a directory" if Path(args.policy.removeprefix("policy:")).is_dir() else "does not exist"
+    ckpt = Path(args.policy.removeprefix("policy:"))
+    if not is_driver and not ckpt.is_file():
+        what = "is a directory" if ckpt.is_dir() else "does not exist"
         return fail(f"{args.policy} {what} (expected a policy.zip, or rule / keep / random)")
     if args.json_out is not None and args.json_out.exists() and not args.overwrite:
         return fail(f"{args.json_out} already exists; pass --overwrite or choose another --json-out")
@@ -337,11 +338,10 @@ def eval_main(argv: list[str] | None = None) -> int:
         elif is_driver:
             out = Path("runs") / f"eval-{args.policy}-s{args.seed}"
         else:
-            ckpt = Path(args.policy.removeprefix("policy:"))
             out = ckpt.parent / f"eval-{ckpt.stem}-s{args.seed}"
     train_seeds = None
     if not is_driver:
-        seeds_file = Path(args.policy.removeprefix("policy:")).parent / "train_episode_seeds.npy"
+        seeds_file = ckpt.parent / "train_episode_seeds.npy"
         train_seeds = np.load(seeds_file) if seeds_file.exists() else None
     show = None if args.quiet else (lambda k, n: print(f"evaluating: {k}/{n} episodes", flush=True))
     try:

@@ -34,6 +34,8 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
+from lcmodels.fileio import file_sha256, json_default, write_json
+
 log = logging.getLogger(__name__)
 
 STAGES_DIR = "stages"
@@ -186,23 +188,7 @@ def policy_config(preset: Preset, method: Method, seed: int, demos: Path | None)
 # ---------------------------------------------------------------------------------------------- hashing
 def _canon(x: Any) -> Any:
     """JSON round trip: tuples become lists, keys sorted, so records compare equal to fresh configs."""
-    return json.loads(json.dumps(x, sort_keys=True, default=_json_default))
-
-
-def _json_default(o: Any) -> Any:
-    if hasattr(o, "tolist"):
-        return o.tolist()
-    if isinstance(o, Path):
-        return str(o)
-    return float(o)
-
-
-def file_sha256(path: Path) -> str:
-    h = hashlib.sha256()
-    with open(path, "rb") as f:
-        for chunk in iter(lambda: f.read(1 << 20), b""):
-            h.update(chunk)
-    return h.hexdigest()
+    return json.loads(json.dumps(x, sort_keys=True, default=json_default))
 
 
 def outputs_digest(outputs: dict[str, str]) -> str:
@@ -225,13 +211,6 @@ def _read_json(path: Path) -> dict[str, Any] | None:
         return json.loads(path.read_text())
     except (OSError, json.JSONDecodeError):
         return None
-
-
-def write_json(path: Path, data: Any) -> None:
-    path.parent.mkdir(parents=True, exist_ok=True)
-    tmp = path.with_name(path.name + ".partial")
-    tmp.write_text(json.dumps(data, indent=2, sort_keys=True, default=_json_default) + "\n")
-    tmp.replace(path)
 
 
 # ---------------------------------------------------------------------------------------------- stages

@@ -9,7 +9,6 @@ SB3 loads the weights with ``torch.load(weights_only=True)``.
 
 from __future__ import annotations
 
-import hashlib
 import json
 import os
 import zipfile
@@ -20,20 +19,13 @@ from typing import Any
 from stable_baselines3 import A2C, DQN, PPO
 from stable_baselines3.common.base_class import BaseAlgorithm
 
+from lcmodels.fileio import file_sha256
 from lcmodels.predictor.inference import Predictor
 from lcsim.config import ScenarioConfig
 
 META_FORMAT = "lc-toolkit/policy"
 META_VERSION = 1
 ALGOS: dict[str, type[BaseAlgorithm]] = {"ppo": PPO, "a2c": A2C, "dqn": DQN}
-
-
-def file_sha256(path: str | os.PathLike[str]) -> str:
-    h = hashlib.sha256()
-    with open(path, "rb") as f:
-        for chunk in iter(lambda: f.read(1 << 20), b""):
-            h.update(chunk)
-    return h.hexdigest()
 
 
 def save_policy(model: BaseAlgorithm, path: str | os.PathLike[str], meta: dict[str, Any]) -> Path:
@@ -76,6 +68,13 @@ def _diff(a: Any, b: Any, prefix: str = "") -> list[str]:
     return []
 
 
+def scenario_differences(have: dict[str, Any], want: ScenarioConfig) -> list[str]:
+    """Fields in which a stored scenario dict differs from ``want``, ignoring ``render_image`` (the
+    observation mode decides it)."""
+    have = {k: v for k, v in have.items() if k != "render_image"}
+    return _diff(have, {k: v for k, v in want.to_dict().items() if k != "render_image"})
+
+
 def compatibility_problems(meta: dict[str, Any], *, obs_mode: str | None = None,
                            predictor_sha256: str | None = None,
                            scenario: ScenarioConfig | None = None) -> list[str]:
@@ -90,11 +89,7 @@ def compatibility_problems(meta: dict[str, Any], *, obs_mode: str | None = None,
             f"{str(pred.get('sha256'))[:12]}), requested one has sha256 {predictor_sha256[:12]}"
         )
     if scenario is not None:
-        have = dict(meta.get("scenario") or {})
-        want = scenario.to_dict()
-        have.pop("render_image", None)  # decided by the observation mode
-        want.pop("render_image", None)
-        problems += [f"scenario {d}" for d in _diff(have, want)]
+        problems += [f"scenario {d}" for d in scenario_differences(meta.get("scenario") or {}, scenario)]
     return problems
 
 

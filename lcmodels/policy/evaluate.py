@@ -24,9 +24,9 @@ import numpy as np
 from lcdata.record import EpisodeRecorder, episode_filename, episode_metadata, episode_seed
 from lcdata.writer import EpisodeWriter
 from lcmodels.policy.checkpoint import LoadedPolicy
-from lcmodels.policy.obs import EpisodeStats, build_observation, mode_keys, scenario_for_mode
+from lcmodels.policy.obs import EpisodeStats, build_observation, scenario_for_mode
 from lcsim.config import ScenarioConfig
-from lcsim.core import COLLISION, OFF_ROAD, OUTCOMES, RUNNING, LaneChangeCore
+from lcsim.core import OUTCOMES, RUNNING, LaneChangeCore
 from lcsim.drivers import Driver
 
 EVAL_SEED_BASE = 1_000_000_000
@@ -142,7 +142,6 @@ def evaluate(
                 raise FileExistsError(f"{existing[0]} exists ({len(existing)} evaluation files); use --overwrite "
                                       "or another output directory")  # fmt: skip
     results: list[EpisodeStats] = []
-    forward_per_m = config.reward.forward_per_m or 1.0
     for start in range(0, episodes, batch):
         chunk = user_seeds[start : start + batch]
         e = len(chunk)
@@ -185,9 +184,8 @@ def evaluate(
                 w.close()
         for i in range(e):
             outcome = str(core.outcome[i])
-            f = float(fwd[i]) / forward_per_m
-            safe = 0.0 if outcome in (COLLISION, OFF_ROAD) else f
-            results.append(EpisodeStats(outcome, float(ret[i]), int(length[i]), f, safe, int(ep_seeds[i])))
+            results.append(EpisodeStats.of(outcome, float(ret[i]), int(length[i]), float(fwd[i]),
+                                           config.reward.forward_per_m, int(ep_seeds[i])))
         if progress is not None:
             progress(len(results), episodes)
     summary = summarize_with_intervals(results)
@@ -216,4 +214,4 @@ def driver_for(spec: str, *, predictor: str | None = None, device: str = "cpu") 
 
 
 __all__ = ["EVAL_SEED_BASE", "PolicyDriver", "driver_for", "eval_user_seeds", "evaluate", "mean_interval",
-           "mode_keys", "summarize_with_intervals", "wilson_interval"]
+           "summarize_with_intervals", "wilson_interval"]

@@ -107,6 +107,13 @@ class EpisodeStats:
     """``forward_m`` when the episode ended without a collision or leaving the road, else 0."""
     seed: int
 
+    @classmethod
+    def of(cls, outcome: str, ret: float, length: int, forward_reward: float, forward_per_m: float,
+           seed: int) -> EpisodeStats:
+        """Statistics of a finished episode from its summed ``forward`` reward component."""
+        fwd = forward_reward / forward_per_m if forward_per_m else 0.0
+        return cls(outcome, ret, length, fwd, 0.0 if outcome in (COLLISION, OFF_ROAD) else fwd, seed)
+
 
 class PolicyVecEnv(VecEnvWrapper):
     """Observation mode, batched prediction and episode statistics on top of a SB3 vector env.
@@ -171,10 +178,8 @@ class PolicyVecEnv(VecEnvWrapper):
                 info = infos[i]
                 info["terminal_observation"] = {k: v[j] for k, v in converted.items()}
                 outcome = str(info["outcome"])
-                fwd = float(self._fwd[i]) / self.forward_per_m if self.forward_per_m else 0.0
-                safe = 0.0 if outcome in (COLLISION, OFF_ROAD) else fwd
-                stats = EpisodeStats(outcome, float(self._ret[i]), int(self._len[i]), fwd, safe,
-                                     int(self._seed[i]))  # fmt: skip
+                stats = EpisodeStats.of(outcome, float(self._ret[i]), int(self._len[i]), float(self._fwd[i]),
+                                        self.forward_per_m, int(self._seed[i]))  # fmt: skip
                 self.finished.append(stats)
                 info["episode"] = {"r": stats.ret, "l": stats.length, "t": round(time.perf_counter() - self._t0, 6)}
                 info["lc_episode"] = dataclasses.asdict(stats)

@@ -37,7 +37,8 @@ from stable_baselines3.common.base_class import BaseAlgorithm
 from stable_baselines3.common.callbacks import BaseCallback
 from stable_baselines3.common.logger import configure
 
-from lcmodels.policy.checkpoint import ALGOS, LoadedPolicy, file_sha256, save_policy
+from lcmodels.fileio import file_sha256, write_json
+from lcmodels.policy.checkpoint import ALGOS, LoadedPolicy, save_policy
 from lcmodels.policy.evaluate import EVAL_SEED_BASE, PolicyDriver, evaluate
 from lcmodels.policy.extractor import IMAGE_NETS, HybridExtractor
 from lcmodels.policy.obs import OBS_MODES, EpisodeStats, PolicyVecEnv, needs_predictor, scenario_for_mode
@@ -215,10 +216,13 @@ class _Logger(BaseCallback):
 class _Run:
     """The run directory: config check, checkpoints, progress rows, wall time across resumes."""
 
-    def __init__(self, cfg: PolicyConfig, out: Path, predictor_path: Path | None,
+    def __init__(self, cfg: PolicyConfig, out: Path, predictor_path: Path | None, predictor_sha256: str | None,
                  progress: Callable[[dict[str, Any]], None] | None) -> None:
         self.cfg, self.out, self.progress = cfg, out, progress
-        self.predictor_path = predictor_path
+        self.predictor: dict[str, str] | None = None
+        if predictor_path is not None:
+            self.predictor = {"path": str(predictor_path.resolve()), "file": predictor_path.name,
+                              "sha256": str(predictor_sha256)}  # fmt: skip
         self.ckpt = out / "checkpoints" / "latest.zip"
         self.ckpt_state = out / "checkpoints" / "latest.json"
         self.start_timesteps = 0
@@ -233,13 +237,9 @@ class _Run:
         return self.wall_before + time.perf_counter() - self.t_start
 
     def meta(self, timesteps: int) -> dict[str, Any]:
-        pred = None
-        if self.predictor_path is not None:
-            pred = {"path": str(self.predictor_path.resolve()), "file": self.predictor_path.name,
-                    "sha256": file_sha256(self.predictor_path)}  # fmt: skip
         return {"algo": self.cfg.algo, "obs_mode": self.cfg.obs, "image_net": self.cfg.image_net,
                 "scenario_name": self.cfg.scenario, "scenario": self.cfg.scenario_config().to_dict(),
-                "predictor": pred, "train_config": self.cfg.to_dict(), "timesteps": timesteps}  # fmt: skip
+                "predictor": self.predictor, "train_config": self.cfg.to_dict(), "timesteps": timesteps}  # fmt: skip
 
     def all_seeds(self) -> np.ndarray:
         new = np.asarray(self.env.episode_seeds if self.env is not None else [], dtype=np.int64)
@@ -248,7 +248,7 @@ class _Run:
     def checkpoint(self, model: BaseAlgorithm, t: int, episodes_total: int) -> None:
         save_policy(model, self.ckpt, self.meta(t))
         np.save(self.seeds_path, self.all_seeds())
-        _write_json(self.ckpt_state, {"timesteps": t, "wall_s": self.wall_s(), "episodes_total": episodes_total})
+        write_json(self.ckpt_state, {"timesteps": t, "wall_s": self.wall_s(), "episodes_total": episodes_total})
 
     def append_progress(self, row: dict[str, Any]) -> None:
         path = self.out / "progress.csv"
@@ -272,13 +272,6 @@ class _Run:
             w.writerows(rows)
 
 
-def _write_json(path: Path, data: Any) -> None:
-    path.parent.mkdir(parents=True, exist_ok=True)
-    tmp = path.with_name(path.name + ".partial")
-    tmp.write_text(json.dumps(data, indent=2, sort_keys=True, default=float) + "\n")
-    tmp.replace(path)
-
-
 def versions() -> dict[str, str]:
     import gymnasium
     import stable_baselines3
@@ -290,7 +283,7 @@ def versions() -> dict[str, str]:
             "lc_toolkit": lcsim.__version__, "platform": platform.platform()}  # fmt: skip
 
 
-def check_run_dir(cfg: PolicyConfig, out: Path, predictor_path: Path | None) -> None:
+def check_run_dir(cfg: PolicyConfig, out: Path, predictor_sha256: str | None) -> None:
     """``ValueError`` when ``out`` holds a run with another config or predictor (says what differs)."""
     run_json = out / "run.json"
     if not run_json.exists():
@@ -305,9 +298,7 @@ def check_run_dir(cfg: PolicyConfig, out: Path, predictor_path: Path | None) -> 
     now = cfg.to_dict()
     diffs = [f"{k}: {prev_cfg.get(k)!r} -> {now[k]!r}" for k in now
              if k not in _RESUMABLE_FIELDS and prev_cfg.get(k) != now[k]]  # fmt: skip
-    prev_sha = (prev.get("predictor") or {}).get("sha256")
-    sha = file_sha256(predictor_path) if predictor_path is not None else None
-    if prev_sha != sha:
+    if (prev.get("predictor") or {}).get("sha256") != predictor_sha256:
         diffs.append("predictor file content differs")
     if diffs:
         raise ValueError(f"{out} holds a run with another configuration ({'; '.join(diffs)}); "
@@ -340,10 +331,11 @@ def train_policy(
     if needs_predictor(cfg.obs) and pred_path is None:
         raise ValueError(f"observation mode {cfg.obs!r} needs a trained predictor (--predictor)")
     pred = Predictor.load(pred_path) if pred_path is not None else None
-    check_run_dir(cfg, out, pred_path)
+    pred_sha = file_sha256(pred_path) if pred_path is not None else None
+    check_run_dir(cfg, out, pred_sha)
     out.mkdir(parents=True, exist_ok=True)
-    run = _Run(cfg, out, pred_path, progress)
-    _write_json(out / "run.json", {"config": cfg.to_dict(), "predictor": run.meta(0)["predictor"],
+    run = _Run(cfg, out, pred_path, pred_sha, progress)
+    write_json(out / "run.json", {"config": cfg.to_dict(), "predictor": run.predictor,
                                    "scenario": cfg.scenario_config().to_dict(), "versions": versions()})  # fmt: skip
     final = out / "policy.zip"
     train_info: dict[str, Any] = {}
@@ -357,10 +349,8 @@ def train_policy(
     metrics: dict[str, Any] = {"config": cfg.to_dict(), "train": train_info}
     eval_json = out / "eval" / "metrics.json"
     if cfg.eval_episodes > 0:
-        if eval_json.exists() and json.loads(eval_json.read_text()).get("episodes") == cfg.eval_episodes and \
-                json.loads(eval_json.read_text()).get("eval_seed") == cfg.eval_seed:
-            summary = json.loads(eval_json.read_text())
-        else:
+        summary = json.loads(eval_json.read_text()) if eval_json.exists() else {}
+        if (summary.get("episodes"), summary.get("eval_seed")) != (cfg.eval_episodes, cfg.eval_seed):
             from lcmodels.policy.checkpoint import load_policy
 
             loaded: LoadedPolicy = load_policy(final, predictor=pred_path, device=device)
@@ -371,9 +361,9 @@ def train_policy(
                                   batch=cfg.eval_batch, overwrite=True, train_seeds=train_seeds,
                                   progress=eval_progress)  # fmt: skip
             summary["wall_s"] = time.perf_counter() - t0
-            _write_json(eval_json, summary)
+            write_json(eval_json, summary)
         metrics["eval"] = summary
-    _write_json(out / "metrics.json", metrics)
+    write_json(out / "metrics.json", metrics)
     return TrainResult(out, int(train_info.get("timesteps", 0)), float(train_info.get("wall_s", 0.0)), metrics)
 
 
@@ -404,7 +394,7 @@ def _train(cfg: PolicyConfig, run: _Run, pred: Predictor | None, device: str, lo
         model = build_model(cfg, env, tb, device)
         if cfg.warm_start:
             warm = _warm_start(cfg, model, pred, config)
-            _write_json(out / "warm_start.json", warm)
+            write_json(out / "warm_start.json", warm)
     env.seed(train_seed_base(cfg.seed, run.start_timesteps))
     model.set_logger(configure(tb, ["tensorboard"]))
     every = log_every or (cfg.n_envs * cfg.n_steps if cfg.algo != "dqn" else 2048)

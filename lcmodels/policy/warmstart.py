@@ -28,6 +28,7 @@ from stable_baselines3.common.utils import obs_as_tensor
 
 from lcdata.offline import episode_config, rebuild_observations
 from lcdata.reader import list_episodes, read_episode
+from lcmodels.policy.checkpoint import scenario_differences
 from lcmodels.policy.obs import build_observation, mode_keys
 from lcmodels.predictor.inference import Predictor
 from lcsim.config import ScenarioConfig
@@ -85,11 +86,8 @@ def load_demonstrations(
         if episode.steps.empty:
             continue
         config = episode_config(episode)
-        if scenario is not None:
-            a, b = config.to_dict(), scenario.to_dict()
-            a.pop("render_image"), b.pop("render_image")
-            if a != b:
-                raise ValueError(f"{path} was recorded in another scenario than the one being trained")
+        if scenario is not None and (diffs := scenario_differences(config.to_dict(), scenario)):
+            raise ValueError(f"{path} was recorded in another scenario than the one being trained ({diffs[0]})")
         if "image" in keys and not config.render_image:
             raise ValueError(f"{path} was recorded without the bird's-eye image, which mode {mode!r} needs")
         rows = [obs for _step, obs in rebuild_observations(episode)]
