@@ -40,13 +40,13 @@ import numpy as np
 from lcdata.writer import EpisodeWriter, package_version
 from lcsim.config import ScenarioConfig
 from lcsim.core import KEEP, RUNNING, SUCCESS, LaneChangeCore, StepResult
-from lcsim.drivers import Driver, make_driver
+from lcsim.drivers import DRIVER_NAMES, Driver, make_driver
 from lcsim.envs import episode_seed as lcsim_episode_seed
 from lcsim.sim import HighwaySim
 
 log = logging.getLogger(__name__)
 
-DRIVERS = ("autopilot", "rule", "keep", "random")
+DRIVERS = ("autopilot", *DRIVER_NAMES)
 """Driver names :func:`record_episode` accepts (``autopilot``: the ego is driven by the traffic autopilot)."""
 
 

@@ -283,13 +283,13 @@ def eval_parser() -> argparse.ArgumentParser:
         epilog=EVAL_EPILOG,
         formatter_class=argparse.RawDescriptionHelpFormatter,
     )
-    p.add_argument("policy", help="policy checkpoint (policy.zip), or rule / keep / random")
+    p.add_argument("policy", help="policy checkpoint (policy.zip), or a built-in driver: rule / lookahead (privileged planner) / keep / random")
     p.add_argument("--episodes", type=_positive_int, default=200, help="episodes (default %(default)s)")
     p.add_argument("--seed", type=int_at_least(0), default=0, help="evaluation seed (default %(default)s)")
     p.add_argument("--predictor", type=Path, default=None,
                    help="predictor checkpoint (default: the one the policy was trained with)")
     p.add_argument("--scenario", choices=("paper", "light", "tiny"), default=None,
-                   help="scenario for rule/keep/random (default paper); a policy uses its own")
+                   help="scenario for a built-in driver (default paper); a policy uses its own")
     p.add_argument("--out", type=Path, default=None,
                    help="record every episode here (default: eval-<name>-s<seed> next to the checkpoint, "
                    "or runs/eval-<driver> for a driver)")
@@ -314,12 +314,13 @@ def eval_main(argv: list[str] | None = None) -> int:
 
     from lcmodels.policy.evaluate import driver_for, evaluate
     from lcmodels.policy.train import POLICY_SCENARIOS
+    from lcsim.drivers import DRIVER_NAMES
 
-    is_driver = args.policy in ("rule", "keep", "random")
+    is_driver = args.policy in DRIVER_NAMES
     ckpt = Path(args.policy.removeprefix("policy:"))
     if not is_driver and not ckpt.is_file():
         what = "is a directory" if ckpt.is_dir() else "does not exist"
-        return fail(f"{args.policy} {what} (expected a policy.zip, or rule / keep / random)")
+        return fail(f"{args.policy} {what} (expected a policy.zip, or {' / '.join(DRIVER_NAMES)})")
     if args.json_out is not None and args.json_out.exists() and not args.overwrite:
         return fail(f"{args.json_out} already exists; pass --overwrite or choose another --json-out")
     torch.set_num_threads(args.threads)
@@ -330,7 +331,7 @@ def eval_main(argv: list[str] | None = None) -> int:
     if config is None:
         config = POLICY_SCENARIOS[args.scenario or "paper"]()
     elif args.scenario is not None:
-        return fail("--scenario applies to rule / keep / random; a policy is evaluated in its own scenario")
+        return fail("--scenario applies to built-in drivers; a policy is evaluated in its own scenario")
     out = None
     if not args.no_record:
         if args.out is not None:

@@ -1,12 +1,15 @@
-"""Non-learning drivers: the rule-based driver completes most episodes; an ACC lane keeper times out."""
+"""Non-learning drivers: the rule-based driver completes most episodes; an ACC lane keeper times out; the
+lookahead planner only ever overrides the rule with a decision that survives its horizon."""
 
 import collections
 
 import numpy as np
 
-from lcsim.config import EgoConfig, ScenarioConfig
-from lcsim.drivers import make_driver
+from lcsim.config import EgoConfig, ScenarioConfig, TrafficConfig
+from lcsim.core import KEEP, LaneChangeCore
+from lcsim.drivers import LookaheadConfig, LookaheadDriver, make_driver
 from lcsim.envs import LaneChangeVectorEnv
+from tests.conftest import small_config
 
 
 def _outcomes(driver_name: str, cfg: ScenarioConfig, n: int, seed: int) -> collections.Counter:
@@ -39,3 +42,42 @@ def test_random_driver_respects_the_mask():
     mask = np.array([[False, True, False], [True, True, False], [True, True, True]])
     acts = np.stack([driver({}, mask, None) for _ in range(50)])
     assert (acts[:, 0] == 1).all() and set(acts[:, 1]) <= {0, 1} and set(acts[:, 2]) == {0, 1, 2}
+
+
+def test_lookahead_picks_a_surviving_decision_and_leaves_the_simulator_untouched():
+    # Dense traffic on a short route, so that some decisions are traps.
+    cfg = small_config(traffic=TrafficConfig(num_vehicles=24, spawn_behind_m=40.0, spawn_ahead_m=140.0))
+    core = LaneChangeCore(cfg, 4)
+    core.reset(range(4), [11, 12, 13, 14])
+    calls = []
+    core.sim.hooks.append(lambda sim: calls.append(int(sim.step[0])))
+    driver = LookaheadDriver(LookaheadConfig(horizon_decisions=6))
+    decisions = 0
+    while (core.outcome == "").all() and decisions < 40:
+        mask = core.action_mask()
+        before = (core.sim.x.copy(), core.sim.y.copy(), core.sim.step.copy(), len(calls))
+        actions = driver({}, mask, core)
+        assert np.array_equal(core.sim.x, before[0]) and np.array_equal(core.sim.y, before[1])
+        assert np.array_equal(core.sim.step, before[2]) and len(calls) == before[3]  # hooks saw nothing
+        ok = np.stack([driver.survives(core, np.where(mask[:, a], a, KEEP)) & mask[:, a] for a in range(3)], 1)
+        rows = np.arange(4)
+        assert mask[rows, actions].all()
+        assert (ok[rows, actions] | ~ok.any(1)).all(), (actions, ok)  # never a doomed choice if one survives
+        core.step(actions)
+        decisions += 1
+    assert decisions > 5 and len(calls) == decisions * cfg.steps_per_decision
+
+
+def test_lookahead_driver_is_deterministic_and_named():
+    assert make_driver("lookahead").name == "lookahead"
+    runs = []
+    for _ in range(2):
+        core = LaneChangeCore(small_config(render_image=False), 2)
+        core.reset([0, 1], [7, 8])
+        driver, actions = LookaheadDriver(LookaheadConfig(horizon_decisions=4)), []
+        while (core.outcome == "").all():
+            actions.append(driver({}, core.action_mask(), core))
+            core.step(actions[-1])
+        runs.append((np.stack(actions), core.sim.x.copy(), core.outcome.copy()))
+    assert np.array_equal(runs[0][0], runs[1][0]) and np.array_equal(runs[0][1], runs[1][1])
+    assert list(runs[0][2]) == list(runs[1][2])

@@ -198,14 +198,14 @@ def evaluate(
 
 
 def driver_for(spec: str, *, predictor: str | None = None, device: str = "cpu") -> tuple[Any, ScenarioConfig | None]:
-    """A driver from ``rule`` / ``keep`` / ``random`` or a policy checkpoint path (``policy:`` prefix optional).
+    """A driver from ``rule`` / ``lookahead`` / ``keep`` / ``random`` or a policy checkpoint path (``policy:`` prefix optional).
 
     Returns the driver and, for a policy, the scenario it was trained on (``None`` for lcsim drivers).
     """
     from lcmodels.policy.checkpoint import load_policy
-    from lcsim.drivers import make_driver
+    from lcsim.drivers import DRIVER_NAMES, make_driver
 
-    if spec in ("rule", "keep", "random"):
+    if spec in DRIVER_NAMES:
         return make_driver(spec), None
     path = spec.removeprefix("policy:")
     policy = load_policy(path, predictor=predictor, device=device)
