@@ -16,7 +16,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from lcdata.corpus import WindowBatch, from_frame, heading_from_positions, to_frame
+from lcdata.corpus import WindowBatch, heading_from_positions
 from lcmodels.predictor.checkpoint import load_model, save_model
 from lcmodels.predictor.model import TrajectoryTransformer
 
@@ -74,6 +74,10 @@ class Predictor:
         """
         pos_t = torch.as_tensor(np.asarray(pos, dtype=np.float32))
         mask_t = torch.as_tensor(np.asarray(mask, dtype=bool))
+        return self._predict_tensors(pos_t, mask_t, batch_size).numpy()
+
+    def _predict_tensors(self, pos_t: torch.Tensor, mask_t: torch.Tensor, batch_size: int = 8192) -> torch.Tensor:
+        """:meth:`predict_tokens` on tensors (call under ``torch.inference_mode``)."""
         t = self.config.num_neighbours + 1
         if pos_t.shape[1] < t:  # fewer context slots than trained with: pad with absent tokens
             extra = t - pos_t.shape[1]
@@ -84,8 +88,8 @@ class Predictor:
             for i in range(0, len(pos_t), batch_size)
         ]
         if not outs:
-            return np.zeros((0, self.future_steps, 2), np.float32)
-        return torch.cat(outs).numpy()
+            return pos_t.new_zeros((0, self.future_steps, 2))
+        return torch.cat(outs)
 
     def predict_windows(self, batch: WindowBatch) -> np.ndarray:
         """``(N, F, 2)`` predictions for corpus windows, in each window's agent frame."""
@@ -137,8 +141,15 @@ class Predictor:
         origin = history[bi, ki, -1]  # (M, 2)
         heading = heading_from_positions(history[bi, ki], mask[bi, ki]).astype(np.float32)  # (M,)
         m = len(bi)
-        local = to_frame(tok_pos.reshape(m, (k + 1) * h, 2), origin, heading).reshape(m, k + 1, h, 2)
-        # Absent positions need no zeroing here: the model ignores whatever is behind the mask.
-        pred = self.predict_tokens(local, tok_mask)  # (M, F, 2) in each vehicle's frame
-        result[bi, ki] = from_frame(pred, origin, heading)
+        # The frame change as one batched 2x2 product in torch (the transform of lcdata.corpus.to_frame
+        # and from_frame, which do it in numpy): local = (p - origin) @ R, R = [[c, -s], [s, c]].
+        with torch.inference_mode():
+            c, s = torch.from_numpy(np.cos(heading)), torch.from_numpy(np.sin(heading))
+            rot = torch.stack((torch.stack((c, -s), -1), torch.stack((s, c), -1)), -2)  # (M, 2, 2)
+            origin_t = torch.from_numpy(origin).unsqueeze(1)  # (M, 1, 2)
+            local = torch.bmm(torch.from_numpy(tok_pos.reshape(m, (k + 1) * h, 2)) - origin_t, rot)
+            # Absent positions need no zeroing here: the model ignores whatever is behind the mask.
+            pred = self._predict_tensors(local.view(m, k + 1, h, 2), torch.from_numpy(tok_mask))  # (M, F, 2)
+            back = torch.bmm(pred, rot.transpose(1, 2)) + origin_t  # (M, F, 2) in the input frame
+        result[bi, ki] = back.numpy()
         return result
