@@ -9,6 +9,7 @@ recorder, and is evaluated exactly like a learned policy.
 from __future__ import annotations
 
 import copy
+from collections.abc import Callable
 from dataclasses import dataclass
 from typing import Protocol
 
@@ -16,9 +17,6 @@ import numpy as np
 
 from lcsim.config import _non_negative, _positive
 from lcsim.core import KEEP, RUNNING, SUCCESS, TIMEOUT, LaneChangeCore
-
-DRIVER_NAMES = ("rule", "lookahead", "keep", "random")
-"""Names :func:`make_driver` accepts."""
 
 
 class Driver(Protocol):
@@ -127,25 +125,26 @@ class LookaheadDriver:
         # A copy without hooks (a recorder must not see the imagined future) and without the renderer.
         memo = {id(core.sim.hooks): [], id(core.renderer): None}
         future = copy.deepcopy(core, memo)
-        result = future.step(actions)
+        future.step(actions)
         for _ in range(self.config.horizon_decisions):
-            if result.terminated.all() or result.truncated.all():
+            if (future.outcome != RUNNING).all():  # ended environments stay frozen; nothing left to see
                 break
-            result = future.step(self.rule({}, future.action_mask(), future))
+            future.step(self.rule({}, future.action_mask(), future))
         return np.isin(future.outcome, (RUNNING, SUCCESS, TIMEOUT))
 
     def __call__(self, obs: dict[str, np.ndarray], action_mask: np.ndarray, core: LaneChangeCore) -> np.ndarray:
         mask = np.asarray(action_mask, dtype=bool).reshape(-1, 3)
         planned = self.rule(obs, mask, core)
+        choice = mask.sum(axis=1) > 1  # during a lane change only keep is allowed: nothing to look at
+        if not choice.any():
+            return planned
         ok = np.zeros(mask.shape, dtype=bool)
         for action in range(3):
-            candidate = np.where(mask[:, action], action, KEEP)
-            ok[:, action] = self.survives(core, candidate) & mask[:, action]
-        rows = np.arange(len(planned))
-        keep_ok = ok[:, KEEP]
-        fallback = np.where(keep_ok, KEEP, ok.argmax(axis=1))  # keep, else the first surviving change
-        choose_fallback = ~ok[rows, planned] & ok.any(axis=1)
-        return np.where(choose_fallback, fallback, planned).astype(np.int64)
+            if (mask[:, action] & choice).any():  # one imagined future per action someone can take
+                ok[:, action] = self.survives(core, np.where(mask[:, action], action, KEEP)) & mask[:, action]
+        fallback = np.where(ok[:, KEEP], KEEP, ok.argmax(axis=1))  # keep, else the first surviving change
+        override = choice & ~ok[np.arange(len(planned)), planned] & ok.any(axis=1)
+        return np.where(override, fallback, planned).astype(np.int64)
 
 
 class KeepLaneDriver:
@@ -171,14 +170,19 @@ class RandomDriver:
         return u.argmax(axis=1).astype(np.int64)
 
 
+_FACTORIES: dict[str, Callable[[int], Driver]] = {
+    "rule": lambda seed: RuleBasedDriver(),
+    "lookahead": lambda seed: LookaheadDriver(),
+    "keep": lambda seed: KeepLaneDriver(),
+    "random": RandomDriver,
+}
+DRIVER_NAMES = tuple(_FACTORIES)
+"""Names :func:`make_driver` accepts."""
+
+
 def make_driver(name: str, seed: int = 0) -> Driver:
-    """``rule``, ``lookahead``, ``keep`` or ``random`` (``autopilot`` is a simulator mode, not a policy)."""
-    if name == "rule":
-        return RuleBasedDriver()
-    if name == "lookahead":
-        return LookaheadDriver()
-    if name == "keep":
-        return KeepLaneDriver()
-    if name == "random":
-        return RandomDriver(seed)
-    raise ValueError(f"unknown driver {name!r}; choose rule, lookahead, keep or random")
+    """A driver by name (``autopilot`` is a simulator mode, not a policy); ``seed`` seeds ``random``."""
+    factory = _FACTORIES.get(name)
+    if factory is None:
+        raise ValueError(f"unknown driver {name!r}; choose {', '.join(DRIVER_NAMES)}")
+    return factory(seed)
