@@ -47,3 +47,26 @@ def test_vehicle_drawn_where_it_is_and_off_road_outside():
     assert cls[row - 2:row + 2, col - 1:col + 1].min() == VEHICLE
     assert cls[60, 0] == OFF_ROAD  # 30 m to the left of lane 1 is beyond the road
     assert set(CLASS_NAMES) == {OFF_ROAD, ROAD, MARKING, VEHICLE, EGO}
+
+
+def test_few_boxes_path_equals_pixel_index_path(monkeypatch):
+    """A single environment fills its boxes by slices; a big batch by pixel indices: the same images.
+
+    Vehicles are given yaws (tilted strips) and some overlap the ego, which must stay on top.
+    """
+    core = LaneChangeCore(ScenarioConfig(), 3)
+    core.reset([0, 1, 2], [11, 12, 13])
+    for action in (2, 1, 1, 0, 1):
+        core.step(np.array([action] * 3))
+    sim = core.sim
+    yaw = sim.yaw.copy()
+    yaw[:, 1::3] = np.linspace(-0.4, 0.4, yaw[:, 1::3].size).reshape(yaw[:, 1::3].shape)
+    x, y = sim.x.copy(), sim.y.copy()
+    x[:, 5], y[:, 5] = x[:, 0] + 1.0, y[:, 0] + 0.5  # overlapping the ego
+    renderer = core.renderer
+    loop = np.stack([renderer.render(x[i:i + 1], y[i:i + 1], yaw[i:i + 1], sim.length[i:i + 1],
+                                     sim.width[i:i + 1])[0] for i in range(3)])
+    monkeypatch.setattr("lcsim.render._LOOP_MAX_BOXES", -1)  # force the pixel-index path
+    indexed = renderer.render(x, y, yaw, sim.length, sim.width)
+    assert (_classes(loop[0]) == VEHICLE).any() and (_classes(loop[0]) == EGO).any()
+    np.testing.assert_array_equal(loop, indexed)
