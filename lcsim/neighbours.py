@@ -17,6 +17,7 @@ branch prediction), and scanned by a log-step running max on large batches, wher
 
 from __future__ import annotations
 
+import math
 from functools import lru_cache
 
 import numpy as np
@@ -113,8 +114,8 @@ class LaneIndex:
         lead: ``(E, N)`` each vehicle's leader (nearest vehicle ahead in any lane it belongs to), -1.
     """
 
-    __slots__ = ("_ahead", "_behind", "_c", "_flat", "_lead", "_lead_flat", "_pos_of", "gap", "lead_speed",
-                 "member", "num_lanes", "order")
+    __slots__ = ("_ahead", "_behind", "_c", "_flat", "_lead", "_lead_flat", "_lead_half_len", "_none", "_pos_of",
+                 "extra", "gap", "lead_speed", "lohi", "margin", "member", "num_lanes", "order")
 
     def __init__(self, x: np.ndarray, y: np.ndarray, yaw: np.ndarray, speed: np.ndarray, length: np.ndarray,
                  width: np.ndarray, extra_lane: np.ndarray, lane_width: float, num_lanes: int,
@@ -133,7 +134,9 @@ class LaneIndex:
         self._flat = flat
         half_lat = _half_lateral_extent(yaw, length, width, margin)
         # Lowest and highest lane the body touches, both in one pass: y - h and y + h (negation is exact).
-        lo, hi = np.floor((y + c.minus_plus * half_lat) * (1.0 / lane_width)).take(fi + c.half_offset)
+        self.lohi = lohi = np.floor((y + c.minus_plus * half_lat) * (1.0 / lane_width))  # (2, E, N)
+        self.extra, self.margin = extra_lane, margin
+        lo, hi = lohi.take(fi + c.half_offset)
         lanes = c.lanes
         member = (lanes >= lo) & (lanes <= hi)  # (L, N, E)
         member |= lanes == extra_lane.take(fi)
@@ -153,10 +156,55 @@ class LaneIndex:
         self._lead_flat = lead_flat
         self._lead: np.ndarray | None = None
         self._pos_of: np.ndarray | None = None
-        none = lead_flat == c.sentinel
-        self.gap = np.where(none, np.inf, x.take(lead_flat, mode="clip") - x - 0.5 * (
-            length + length.take(lead_flat, mode="clip")))
+        self._none = none = lead_flat == c.sentinel
+        self._lead_half_len = 0.5 * (length + length.take(lead_flat, mode="clip"))
+        self.gap = np.where(none, np.inf, x.take(lead_flat, mode="clip") - x - self._lead_half_len)
         self.lead_speed = np.where(none, 0.0, speed.take(lead_flat, mode="clip"))
+
+    def unchanged_after_move(self, x: np.ndarray, y: np.ndarray, yaw: np.ndarray, length: np.ndarray,
+                             width: np.ndarray, extra_lane: np.ndarray, lane_width: float, moved: np.ndarray) -> bool:
+        """Whether an index built on the new state would have this one's order and lane membership.
+
+        Valid when only the vehicles at flat indices ``moved`` (into E x N) can have changed ``y``, ``yaw``
+        or ``extra_lane`` since this index was built (``x`` may have changed everywhere). Then the sorted
+        order is checked on all vehicles and the lanes touched on the moved ones; when both hold, every
+        structure of the index (leaders included) is the same and :meth:`moved` gives the new index.
+        """
+        e = x.shape[0]
+        xs = x.take(self._flat[:-1].T if e > 1 else self.order)  # positions in the previous sorted order
+        if not (xs[:, 1:] > xs[:, :-1]).all():
+            return False
+        if extra_lane.take(moved).tolist() != self.extra.take(moved).tolist():
+            return False
+        # The few moved vehicles on Python floats: the operations of _half_lateral_extent and of the
+        # build, in the same order (IEEE arithmetic and sqrt; the sine still comes from numpy).
+        sines = np.sin(yaw.take(moved)).tolist()
+        lo, hi = self.lohi.reshape(2, -1).take(moved, axis=1).tolist()
+        inv, margin = 1.0 / lane_width, self.margin
+        for s_m, l_m, w_m, y_m, lo_m, hi_m in zip(sines, length.take(moved).tolist(), width.take(moved).tolist(),
+                                                  y.take(moved).tolist(), lo, hi, strict=True):
+            sy = abs(s_m)
+            half = 0.5 * (sy * l_m + math.sqrt(1.0 - sy * sy) * w_m) + margin
+            if math.floor((y_m - half) * inv) != lo_m or math.floor((y_m + half) * inv) != hi_m:
+                return False
+        return True
+
+    def moved(self, x: np.ndarray, y: np.ndarray, yaw: np.ndarray, speed: np.ndarray, extra_lane: np.ndarray,
+              ) -> LaneIndex:
+        """The index of the new positions when :meth:`unchanged_after_move` holds: new gaps and leader
+        speeds, every other structure shared (the same values a full build gives, bit for bit)."""
+        new = object.__new__(LaneIndex)
+        new._ahead, new._behind, new._c, new._flat, new._lead = self._ahead, self._behind, self._c, self._flat, self._lead
+        new._lead_flat, new._lead_half_len, new._none = self._lead_flat, self._lead_half_len, self._none
+        new._pos_of, new.margin, new.member, new.num_lanes, new.order = (
+            self._pos_of, self.margin, self.member, self.num_lanes, self.order)
+        lead_flat, none = self._lead_flat, self._none
+        new.gap = np.where(none, np.inf, x.take(lead_flat, mode="clip") - x - self._lead_half_len)
+        new.lead_speed = np.where(none, 0.0, speed.take(lead_flat, mode="clip"))
+        # The lanes touched are unchanged where compared; elsewhere y and yaw did not change: recompute
+        # nothing, but keep the arrays of the new state for the next comparison.
+        new.lohi, new.extra = self.lohi, extra_lane
+        return new
 
     @property
     def lead_flat(self) -> np.ndarray:

@@ -36,6 +36,9 @@ _ENV_STATE = ("step", "t_s", "ego_accel", "path_x0", "path_len", "path_y0", "pat
 _SENSOR_STATE = ("collision_with", "lane_invasion", "off_road")
 # Up to this many vehicles changing lanes, their lateral update runs on Python floats (fewer calls).
 _SCALAR_LANE_CHANGES = 6
+# Up to this many environments the neighbour index is updated rather than rebuilt when nothing but the
+# gaps changed (all environments must qualify, which becomes rare on large batches).
+_INCREMENTAL_INDEX_MAX_ENVS = 8
 
 SubstepHook = Callable[["HighwaySim"], None]
 
@@ -101,6 +104,7 @@ class HighwaySim:
         self.rows = np.arange(e)[:, None]
         self.target_speed = ec.target_speed_kmh / 3.6
         self.index: LaneIndex | None = None
+        self._ego_flat = np.arange(e, dtype=np.int64) * n  # flat index of each environment's vehicle 0
         self.hooks: list[SubstepHook] = []
 
     # ------------------------------------------------------------------ reset
@@ -237,7 +241,9 @@ class HighwaySim:
 
         if saved is not None:  # frozen environments get their state back before the index is built
             self._restore(frozen, saved)
-        self.index = self._build_index()
+            self.index = self._build_index()
+        else:  # only the lane changers and the egos moved sideways
+            self.index = self._build_index(np.concatenate((changing, self._ego_flat)) if changing.size else self._ego_flat)
         self._sensors(ego_y_prev, frozen if saved is not None else None)
         if saved is not None:
             for name in _SENSOR_STATE:
@@ -406,9 +412,26 @@ class HighwaySim:
         self.target_lane = self.target_lane.copy()  # the previous step's array may be held by a reader
         self.target_lane.put(go, tl)
 
-    def _build_index(self) -> LaneIndex:
+    def rebuild_index(self) -> None:
+        """Rebuild the neighbour index from scratch: call it after editing the state arrays by hand
+        (the simulator itself keeps the index up to date)."""
+        self.index = self._build_index()
+
+    def _build_index(self, moved: np.ndarray | None = None) -> LaneIndex:
+        """The neighbour index of the current state.
+
+        ``moved``: flat indices (into E x N) of the only vehicles whose ``y``, ``yaw`` or lane-change
+        state may have changed since ``self.index`` was built (None: anything may have). For a few
+        environments the previous index is then updated in place of a full build when the sorted order
+        and the lanes the moved vehicles touch are unchanged (most steps); the result is the same.
+        """
         extra = np.where(self.lc_active, self.target_lane, -1)
-        previous = self.index.order if self.index is not None else None
+        prev = self.index
+        if moved is not None and prev is not None and self.num_envs <= _INCREMENTAL_INDEX_MAX_ENVS and \
+                prev.unchanged_after_move(self.x, self.y, self.yaw, self.length, self.width, extra,
+                                          self.road.lane_width, moved):
+            return prev.moved(self.x, self.y, self.yaw, self.speed, extra)
+        previous = prev.order if prev is not None else None
         return LaneIndex(self.x, self.y, self.yaw, self.speed, self.length, self.width, extra,
                          self.road.lane_width, self.road.num_lanes, self.rows, previous_order=previous)
 

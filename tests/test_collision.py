@@ -47,7 +47,7 @@ def test_ego_without_brakes_hits_a_slow_leader():
     sim.y[0, 1] = sim.y[0, 0]  # put the one traffic vehicle in the ego's lane, ahead
     sim.x[0, 1] = 30.0
     sim.lane[0, 1] = sim.target_lane[0, 1] = 0
-    sim.index = sim._build_index()
+    sim.rebuild_index()
     for _ in range(40):
         res = core.step(np.array([KEEP]))
         if res.terminated[0]:

@@ -3,7 +3,7 @@
 import numpy as np
 
 from lcsim.collision import obb_overlap
-from lcsim.config import EgoConfig, ScenarioConfig
+from lcsim.config import EgoConfig, ScenarioConfig, TrafficConfig
 from lcsim.core import KEEP, LaneChangeCore
 
 
@@ -48,3 +48,33 @@ def test_traffic_stays_ahead_of_the_ego_for_the_whole_route():
         core.step(np.full(2, KEEP))
     ahead = (sim.x[:, 1:] > sim.x[:, :1]) & (sim.x[:, 1:] < sim.x[:, :1] + 150.0)
     assert (ahead.sum(axis=1) >= 5).all()
+
+
+def test_updated_neighbour_index_equals_a_full_build():
+    """Between builds the index is updated when only the gaps changed: check it against a full build
+    at every step of lane-changing traffic, and that both kinds of step occur."""
+    from lcsim.neighbours import LaneIndex
+
+    cfg = ScenarioConfig(render_image=False, traffic=TrafficConfig(random_lane_change_rate_per_min=3.0))
+    core = LaneChangeCore(cfg, 2)
+    core.reset([0, 1], [21, 22])
+    sim = core.sim
+    updated = rebuilt = 0
+    for step in range(400):
+        before = sim.index
+        sim.substep()
+        if sim.index.order is before.order:
+            updated += 1
+        else:
+            rebuilt += 1
+        full = LaneIndex(sim.x, sim.y, sim.yaw, sim.speed, sim.length, sim.width,
+                         np.where(sim.lc_active, sim.target_lane, -1), sim.road.lane_width, sim.road.num_lanes)
+        for name in ("order", "member", "gap", "lead_speed", "lead_flat", "pos_of"):
+            np.testing.assert_array_equal(getattr(sim.index, name), getattr(full, name), err_msg=f"{name}, step {step}")
+        lanes = np.tile(np.arange(-1, sim.road.num_lanes + 1), (2, 1))
+        for ahead in (True, False):
+            np.testing.assert_array_equal(sim.index.neighbour_in_lane(lanes, ahead, vehicles=np.arange(lanes.shape[1])),
+                                          full.neighbour_in_lane(lanes, ahead, vehicles=np.arange(lanes.shape[1])))
+        if step % 10 == 0:
+            core.step(np.array([step // 10 % 3, 2 - step // 10 % 3]))
+    assert updated > 100 and rebuilt > 10, (updated, rebuilt)
