@@ -7,6 +7,7 @@ the stable-baselines3 adapter, so all three run the same code and agree bit for 
 from __future__ import annotations
 
 from dataclasses import dataclass
+from functools import lru_cache
 
 import numpy as np
 
@@ -40,6 +41,14 @@ def _k_smallest(a: np.ndarray, k: int) -> np.ndarray:
     ties = np.flatnonzero((a <= vals.max(axis=1, keepdims=True)).sum(axis=1) != k)
     if ties.size:
         out[ties] = np.argsort(a[ties], axis=1, kind="stable")[:, :k]
+    return out
+
+
+@lru_cache(maxsize=32)
+def _vehicle_range(n: int) -> np.ndarray:
+    """``np.arange(n)`` (int64), shared: callers must not modify it."""
+    out = np.arange(n, dtype=np.int64)
+    out.flags.writeable = False
     return out
 
 
@@ -114,15 +123,21 @@ class LaneChangeCore:
         sim.frozen[:] = done
         collided = np.zeros(self.num_envs, dtype=bool)
         left_road = np.zeros(self.num_envs, dtype=bool)
+        single, route = self.num_envs == 1, cfg.route_length_m
         for _ in range(cfg.steps_per_decision):
             sim.substep()
             # Cheap test first: does any running environment see a contact, the road edge or the goal?
-            event = sim.collision_with >= 0
-            event |= sim.off_road
-            event |= sim.x[:, 0] >= cfg.route_length_m
-            event &= ~done
-            if not event.any():
-                continue
+            if single:
+                if done.item(0) or not (sim.collision_with.item(0) >= 0 or sim.off_road.item(0)
+                                        or sim.x.item(0) >= route):
+                    continue
+            else:
+                event = sim.collision_with >= 0
+                event |= sim.off_road
+                event |= sim.x[:, 0] >= route
+                event &= ~done
+                if not event.any():
+                    continue
             new_col = ~done & (sim.collision_with >= 0)
             new_off = ~done & ~new_col & sim.off_road
             new_succ = ~done & ~new_col & ~new_off & (sim.x[:, 0] >= cfg.route_length_m)
@@ -186,12 +201,15 @@ class LaneChangeCore:
     def neighbours(self, ids: np.ndarray) -> np.ndarray:
         """``(len(ids), K)`` indices of the K nearest vehicles to the ego within sensing range, nearest first; -1."""
         sim = self.sim
-        x, y = sim.x[ids], sim.y[ids]
-        d2 = (x - x[:, :1]) ** 2 + (y - y[:, :1]) ** 2
+        n = sim.num_vehicles
+        ego = (ids * n)[:, None]  # flat index of each ego into (E, N)
+        flat = ego + _vehicle_range(n)
+        x, y = sim.x.take(flat), sim.y.take(flat)
+        d2 = (x - sim.x.take(ego)) ** 2 + (y - sim.y.take(ego)) ** 2
         d2[:, 0] = np.inf
-        k = min(self.k, sim.num_vehicles - 1)
+        k = min(self.k, n - 1)
         order = _k_smallest(d2, k)
-        near = np.take_along_axis(d2, order, axis=1) <= self.config.sensing_range_m ** 2
+        near = d2.take(order + _vehicle_range(len(ids))[:, None] * n) <= self.config.sensing_range_m ** 2
         out = np.full((len(ids), self.k), -1, dtype=np.int64)
         out[:, :k] = np.where(near, order, -1)
         return out
@@ -205,17 +223,17 @@ class LaneChangeCore:
         with a validity flag, and ``image`` (B, 3, S, S) uint8 when rendering is on.
         """
         sim = self.sim
-        ids = np.arange(self.num_envs) if ids is None else np.asarray(ids, dtype=np.int64)
+        every = ids is None
+        ids = _vehicle_range(self.num_envs) if every else np.asarray(ids, dtype=np.int64)
         nb = self.neighbours(ids)
         rows = np.concatenate([np.zeros((len(ids), 1), dtype=np.int64), nb], axis=1)  # (B, 1+K)
         present = rows >= 0
-        r = np.maximum(rows, 0)
-        x, y, yaw_all, speed_all = sim.x[ids], sim.y[ids], sim.yaw[ids], sim.speed[ids]
-        take = lambda a: np.take_along_axis(a, r, axis=1)  # noqa: E731
-        ex, ey, eyaw, ev = x[:, :1], y[:, :1], yaw_all[:, :1], speed_all[:, :1]
+        flat = np.maximum(rows, 0)
+        flat += (ids * sim.num_vehicles)[:, None]  # flat indices into (E, N); column 0 is the ego
+        px, py, yaw, speed = sim.x.take(flat), sim.y.take(flat), sim.yaw.take(flat), sim.speed.take(flat)
+        ex, ey, eyaw, ev = px[:, :1], py[:, :1], yaw[:, :1], speed[:, :1]
         c, s = np.cos(eyaw), np.sin(eyaw)
-        dx, dy = take(x) - ex, take(y) - ey
-        yaw, speed = take(yaw_all), take(speed_all)
+        dx, dy = px - ex, py - ey
         rvx, rvy = speed * np.cos(yaw) - ev * c, speed * np.sin(yaw) - ev * s
         rvx[:, 0], rvy[:, 0] = ev[:, 0] * c[:, 0], ev[:, 0] * s[:, 0]  # the ego row holds its own velocity
         rel_yaw = yaw - eyaw
@@ -224,7 +242,7 @@ class LaneChangeCore:
             c * dx + s * dy, -s * dx + c * dy,
             c * rvx + s * rvy, -s * rvx + c * rvy,
             rel_yaw, speed,
-            take(sim.lane[ids]).astype(np.float64), take(sim.target_lane[ids]).astype(np.float64),
+            sim.lane.take(flat).astype(np.float64), sim.target_lane.take(flat).astype(np.float64),
             np.ones_like(dx),
         ], axis=-1)
         cur *= present[..., None]
@@ -235,5 +253,9 @@ class LaneChangeCore:
                          valid.astype(np.float64)], axis=-1)
         obs = {"current": cur.astype(np.float32), "history": hist.astype(np.float32)}
         if self.renderer is not None:
-            obs["image"] = self.renderer.render(x, y, yaw_all, sim.length[ids], sim.width[ids])
+            if every:
+                obs["image"] = self.renderer.render(sim.x, sim.y, sim.yaw, sim.length, sim.width)
+            else:
+                obs["image"] = self.renderer.render(sim.x[ids], sim.y[ids], sim.yaw[ids], sim.length[ids],
+                                                    sim.width[ids])
         return obs
