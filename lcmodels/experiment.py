@@ -34,7 +34,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
-from lcmodels.fileio import file_sha256, json_default, write_json
+from lcmodels.fileio import file_sha256, json_default, read_json, write_json
 
 log = logging.getLogger(__name__)
 
@@ -206,13 +206,6 @@ def _hash_outputs(base: Path, names: Sequence[str]) -> dict[str, str] | None:
     return out
 
 
-def _read_json(path: Path) -> dict[str, Any] | None:
-    try:
-        return json.loads(path.read_text())
-    except (OSError, json.JSONDecodeError):
-        return None
-
-
 # ---------------------------------------------------------------------------------------------- stages
 @dataclass
 class StageResult:
@@ -294,7 +287,7 @@ class Experiment:
         t0 = time.perf_counter()
         config, inputs = _canon(config), _canon(inputs)
         rec_path, pend_path = self.record_paths(name)
-        record = _read_json(rec_path)
+        record = read_json(rec_path)
         if record is not None and record.get("config") == config and record.get("inputs") == inputs:
             current = _hash_outputs(path, list(record.get("outputs", {})))
             if current is not None and current == record["outputs"]:
@@ -306,7 +299,7 @@ class Experiment:
             why = "outputs missing or changed"
         elif record is not None:
             why = "stale: " + ("config changed" if record.get("config") != config else "inputs changed")
-        elif (pending := _read_json(pend_path)) is None:
+        elif (pending := read_json(pend_path)) is None:
             why = "new"
         elif pending.get("config") == config and pending.get("inputs") == inputs:
             why = "resuming an interrupted run"
@@ -318,7 +311,7 @@ class Experiment:
             self.stages.append(res)
             return res
         prior = None if record is not None and why == "outputs missing or changed" else (
-            record or _read_json(pend_path))
+            record or read_json(pend_path))
         keep = prior is not None and prior.get("inputs") == inputs and (
             prior.get("config") == config or (resumable is not None and resumable(prior.get("config", {}), config)))
         if not keep and path.exists():

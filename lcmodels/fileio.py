@@ -27,6 +27,14 @@ def json_default(o: Any) -> Any:
     return float(o)
 
 
+def read_json(path: str | os.PathLike[str]) -> Any | None:
+    """The JSON in ``path``, or None when it is missing, unreadable or not valid JSON."""
+    try:
+        return json.loads(Path(path).read_text())
+    except (OSError, json.JSONDecodeError):
+        return None
+
+
 def write_json(path: str | os.PathLike[str], data: Any) -> None:
     """Write ``data`` as indented JSON atomically (``.partial`` then rename), creating the directory."""
     path = Path(path)

@@ -33,6 +33,7 @@ from lcmodels.experiment import (
     method_timesteps,
     policy_dir,
 )
+from lcmodels.fileio import read_json
 
 if TYPE_CHECKING:
     from lcmodels.experiment import Experiment
@@ -69,7 +70,7 @@ def collect(out: Path, seeds: int) -> dict[str, MethodRuns]:
     """Metrics of the rule-based reference and of every (method, seed) run found in ``out``."""
     runs: dict[str, MethodRuns] = {}
     rule = MethodRuns(RULE_KEY, RULE_LABEL)
-    m = _load(out / RULE_KEY / "metrics.json")
+    m = read_json(out / RULE_KEY / "metrics.json")
     if m and "eval" in m:
         rule.evals.append(m["eval"])
         rule.seeds.append(0)
@@ -78,7 +79,7 @@ def collect(out: Path, seeds: int) -> dict[str, MethodRuns]:
         mr = MethodRuns(method.key, method.label)
         for s in range(seeds):
             d = policy_dir(out, method.key, s)
-            m = _load(d / "metrics.json")
+            m = read_json(d / "metrics.json")
             if not m or "eval" not in m:
                 continue
             mr.seeds.append(s)
@@ -87,13 +88,6 @@ def collect(out: Path, seeds: int) -> dict[str, MethodRuns]:
             mr.curves.append(read_progress(d / "progress.csv"))
         runs[method.key] = mr
     return runs
-
-
-def _load(path: Path) -> dict[str, Any] | None:
-    try:
-        return json.loads(path.read_text())
-    except (OSError, json.JSONDecodeError):
-        return None
 
 
 # -------------------------------------------------------------------------------------------- formatting
@@ -236,7 +230,7 @@ def write_report(exp: Experiment, *, wall_s: float) -> Path:
 
     out = exp.out
     runs = collect(out, exp.seeds)
-    pred = _load(out / "predictor" / "metrics.json")
+    pred = read_json(out / "predictor" / "metrics.json")
     rule_eval = runs[RULE_KEY].evals[0] if runs[RULE_KEY].evals else {}
     plot_curves(runs, "mean_safe_forward_m", "safe forward distance, m (mean of last 100 episodes)",
                 "Fig. 5: safe forward distance over training", out / FIG5_NAME,
