@@ -7,6 +7,7 @@ so tests call it in-process. Bad input ends with one line on stderr and exit sta
 from __future__ import annotations
 
 import argparse
+import functools
 import json
 import logging
 import sys
@@ -26,6 +27,12 @@ constant velocity and constant acceleration on the same windows, corpus statisti
 
 
 _positive_int = int_at_least(1)
+
+
+def _fail(prog: str, msg: str) -> int:
+    """Print ``prog: error: msg`` on stderr (one line, no traceback) and return the exit status 2."""
+    print(f"{prog}: error: {msg}", file=sys.stderr)
+    return 2
 
 
 def train_predictor_parser() -> argparse.ArgumentParser:
@@ -76,9 +83,7 @@ def train_predictor_parser() -> argparse.ArgumentParser:
 def train_predictor_main(argv: list[str] | None = None) -> int:
     args = train_predictor_parser().parse_args(argv)
 
-    def fail(msg: str) -> int:
-        print(f"lc-train-predictor: error: {msg}", file=sys.stderr)
-        return 2
+    fail = functools.partial(_fail, "lc-train-predictor")
 
     if not args.data.is_dir():
         return fail(f"--data {args.data} is not a directory")
@@ -205,9 +210,7 @@ def _fmt_row(row: dict) -> str:
 def train_policy_main(argv: list[str] | None = None) -> int:
     args = train_policy_parser().parse_args(argv)
 
-    def fail(msg: str) -> int:
-        print(f"lc-train-policy: error: {msg}", file=sys.stderr)
-        return 2
+    fail = functools.partial(_fail, "lc-train-policy")
 
     import shutil
 
@@ -305,9 +308,7 @@ def eval_parser() -> argparse.ArgumentParser:
 def eval_main(argv: list[str] | None = None) -> int:
     args = eval_parser().parse_args(argv)
 
-    def fail(msg: str) -> int:
-        print(f"lc-eval: error: {msg}", file=sys.stderr)
-        return 2
+    fail = functools.partial(_fail, "lc-eval")
 
     import numpy as np
     import torch
@@ -414,9 +415,7 @@ def experiment_main(argv: list[str] | None = None) -> int:
     parser = experiment_parser()
     args = parser.parse_args(argv)
 
-    def fail(msg: str) -> int:
-        print(f"lc-experiment: error: {msg}", file=sys.stderr)
-        return 2
+    fail = functools.partial(_fail, "lc-experiment")
 
     from lcmodels.experiment import PRESETS, Experiment
 
