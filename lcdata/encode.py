@@ -36,7 +36,9 @@ _FIXED32 = struct.Struct("<BI")
 _QUAT = struct.Struct("<BdBdBdBd")
 
 
-# VehicleTracks packed fields in wire order: (field number, little-endian wire dtype).
+VEHICLE_COLUMNS = ("ids", "x", "y", "yaw", "speed", "accel", "lane", "target_lane", "length", "width")
+"""The per-vehicle arrays of ``lc.VehicleTracks``, in the order the encoder takes them."""
+# VehicleTracks packed fields in wire order (of VEHICLE_COLUMNS): (field number, little-endian wire dtype).
 _VEHICLE_FIELDS = ((3, "<i4"), (4, "<f8"), (5, "<f8"), (6, "<f8"), (7, "<f8"), (8, "<f8"), (9, "<i4"),
                    (10, "<i4"), (11, "<f8"), (12, "<f8"))  # fmt: skip
 
@@ -73,38 +75,22 @@ class VehicleEncoder:
         self._views = [array[o : o + size].view(dtype) for o, size, dtype in offsets]
         self._n = n
 
-    def fill(
-        self,
-        step: int,
-        t_s: float,
-        ids: np.ndarray,
-        x: np.ndarray,
-        y: np.ndarray,
-        yaw: np.ndarray,
-        speed: np.ndarray,
-        accel: np.ndarray,
-        lane: np.ndarray,
-        target_lane: np.ndarray,
-        length: np.ndarray,
-        width: np.ndarray,
-    ) -> int:
+    def fill(self, step: int, t_s: float, *columns: np.ndarray) -> int:
         """Write the message into :attr:`buffer`; return its offset (the message is ``buffer[offset:]``,
-        and at least ``HEAD_ROOM - 20`` bytes before ``offset`` are free for the caller)."""
-        n = len(x)
+        and at least ``HEAD_ROOM - 20`` bytes before ``offset`` are free for the caller).
+
+        ``columns``: the (N,) arrays ``ids, x, y, yaw, speed, accel, lane, target_lane, length, width``
+        (:data:`VEHICLE_COLUMNS`), any numeric dtype.
+        """
+        if len(columns) != len(_VEHICLE_FIELDS):
+            names = ", ".join(VEHICLE_COLUMNS)
+            raise ValueError(f"expected {len(_VEHICLE_FIELDS)} columns ({names}), got {len(columns)}")
+        n = len(columns[0])
         if n != self._n:
             self._layout(n)
         if n:
-            v = self._views
-            v[0][...] = ids
-            v[1][...] = x
-            v[2][...] = y
-            v[3][...] = yaw
-            v[4][...] = speed
-            v[5][...] = accel
-            v[6][...] = lane
-            v[7][...] = target_lane
-            v[8][...] = length
-            v[9][...] = width
+            for view, column in zip(self._views, columns, strict=True):
+                view[...] = column
         buffer = self.buffer
         start = self.HEAD_ROOM - 9
         _T_FIELD.pack_into(buffer, start, 0x11, t_s)
@@ -118,23 +104,9 @@ class VehicleEncoder:
             buffer[start : start + len(head)] = head
         return start
 
-    def encode(
-        self,
-        step: int,
-        t_s: float,
-        ids: np.ndarray,
-        x: np.ndarray,
-        y: np.ndarray,
-        yaw: np.ndarray,
-        speed: np.ndarray,
-        accel: np.ndarray,
-        lane: np.ndarray,
-        target_lane: np.ndarray,
-        length: np.ndarray,
-        width: np.ndarray,
-    ) -> bytes:
-        """Serialized ``lc.VehicleTracks``; every array (N,), any numeric dtype."""
-        start = self.fill(step, t_s, ids, x, y, yaw, speed, accel, lane, target_lane, length, width)
+    def encode(self, step: int, t_s: float, *columns: np.ndarray) -> bytes:
+        """Serialized ``lc.VehicleTracks`` of the (N,) arrays :data:`VEHICLE_COLUMNS`, any numeric dtype."""
+        start = self.fill(step, t_s, *columns)
         return bytes(memoryview(self.buffer)[start:])
 
 

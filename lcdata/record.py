@@ -122,11 +122,10 @@ class EpisodeRecorder:
         step, t = sim.step.item(e), sim.t_s.item(e)
         speed, lane = sim.speed[e], sim.lane[e]
         collision_with, invasion, off_road = sim.collision_with.item(e), sim.lane_invasion.item(e), sim.off_road.item(e)
-        w.write_sim_step(
-            step, t, sim.ids, sim.x[e], sim.y[e], sim.yaw[e], speed, sim.accel[e], lane, sim.target_lane[e],
-            sim.length[e], sim.width[e], speed.item(0), lane.item(0), collision_with, invasion, off_road,
-            sim.steer.item(e), sim.throttle.item(e), sim.brake.item(e),
-        )  # fmt: skip
+        vehicles = (sim.ids, sim.x[e], sim.y[e], sim.yaw[e], speed, sim.accel[e], lane, sim.target_lane[e],
+                    sim.length[e], sim.width[e])  # fmt: skip
+        w.write_sim_step(step, t, vehicles, speed.item(0), lane.item(0), collision_with, invasion, off_road,
+                         sim.steer.item(e), sim.throttle.item(e), sim.brake.item(e))  # fmt: skip
         if collision_with >= 0:
             w.write_collision(step, t, other_id=collision_with, ego_x=float(sim.x[e, 0]), ego_y=float(sim.y[e, 0]),
                               ego_speed=float(sim.speed[e, 0]), other_speed=float(sim.speed[e, collision_with]))  # fmt: skip

@@ -180,9 +180,7 @@ class EpisodeWriter:
         width: np.ndarray,
     ) -> None:
         """``/vehicles``: all vehicles, each argument (N,) (row ``e`` of the simulator's (E, N) arrays)."""
-        data = self._vehicle_encoder.encode(
-            step, t_s, ids, x, y, yaw, speed, accel, lane, target_lane, length, width
-        )
+        data = self._vehicle_encoder.encode(step, t_s, ids, x, y, yaw, speed, accel, lane, target_lane, length, width)
         self._write(topics.VEHICLES, t_s, data)
 
     def write_ego(
@@ -206,12 +204,13 @@ class EpisodeWriter:
         self._write(topics.EGO_STATE, t_s, data)
 
     def write_sim_step(
-        self, step: int, t_s: float, ids: np.ndarray, x: np.ndarray, y: np.ndarray, yaw: np.ndarray,
-        speed: np.ndarray, accel: np.ndarray, lane: np.ndarray, target_lane: np.ndarray, length: np.ndarray,
-        width: np.ndarray, ego_speed: float, ego_lane: int, collision_with: int, lane_invasion: int,
-        off_road: bool, steer: float, throttle: float, brake: float,
+        self, step: int, t_s: float, vehicles: Sequence[np.ndarray], ego_speed: float, ego_lane: int,
+        collision_with: int, lane_invasion: int, off_road: bool, steer: float, throttle: float, brake: float,
     ) -> None:  # fmt: skip
-        """:meth:`write_vehicles` and :meth:`write_ego` of one simulation step in one call (the recorder's hot path)."""
+        """:meth:`write_vehicles` and :meth:`write_ego` of one simulation step in one call (the recorder's hot path).
+
+        ``vehicles``: the (N,) arrays :data:`~lcdata.encode.VEHICLE_COLUMNS`, as :meth:`write_vehicles` takes them.
+        """
         if self._closed:
             raise RuntimeError(f"{self.path}: writer is closed")
         time_ns = self.start_time_ns + round(t_s * 1e9)
@@ -221,7 +220,7 @@ class EpisodeWriter:
         # /vehicles: the MCAP record header goes into the encoder's buffer right before the message,
         # so that the record leaves it with one copy.
         encoder = self._vehicle_encoder
-        start = encoder.fill(step, t_s, ids, x, y, yaw, speed, accel, lane, target_lane, length, width)
+        start = encoder.fill(step, t_s, *vehicles)
         buffer = encoder.buffer
         record = start - MESSAGE_HEADER_SIZE
         pack_message_header(buffer, record, vehicles_id, time_ns, len(buffer) - start)
