@@ -189,8 +189,7 @@ class LaneIndex:
                 return False
         return True
 
-    def moved(self, x: np.ndarray, y: np.ndarray, yaw: np.ndarray, speed: np.ndarray, extra_lane: np.ndarray,
-              ) -> LaneIndex:
+    def moved(self, x: np.ndarray, speed: np.ndarray, extra_lane: np.ndarray) -> LaneIndex:
         """The index of the new positions when :meth:`unchanged_after_move` holds: new gaps and leader
         speeds, every other structure shared (the same values a full build gives, bit for bit)."""
         new = object.__new__(LaneIndex)
@@ -201,8 +200,8 @@ class LaneIndex:
         lead_flat, none = self._lead_flat, self._none
         new.gap = np.where(none, np.inf, x.take(lead_flat, mode="clip") - x - self._lead_half_len)
         new.lead_speed = np.where(none, 0.0, speed.take(lead_flat, mode="clip"))
-        # The lanes touched are unchanged where compared; elsewhere y and yaw did not change: recompute
-        # nothing, but keep the arrays of the new state for the next comparison.
+        # The lanes touched are the same (checked where y or yaw may have changed); the lane-change
+        # targets are kept from the new state for the next comparison.
         new.lohi, new.extra = self.lohi, extra_lane
         return new
 

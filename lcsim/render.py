@@ -149,9 +149,7 @@ class BevRenderer:
         env = vi // n
         # Along (u, metres ahead of the ego) and across (v, metres left) stacked on a leading axis of 2:
         # the same elementwise operations as one array per axis, in half the calls.
-        rows = np.stack([vi, vi + e * n, vi + 2 * e * n, vi + 3 * e * n])
-        px, py, lengths, widths = np.concatenate([x.ravel(), y.ravel(), length.ravel(), width.ravel()]).take(rows)
-        yaws = yaw.take(vi)
+        px, py, yaws, lengths, widths = x.take(vi), y.take(vi), yaw.take(vi), length.take(vi), width.take(vi)
         cs = np.stack([np.cos(yaws), np.sin(yaws)])[:, :, None]  # (2, M, 1): cos, sin
         lx = lengths[:, None] * _STRIP_FRAC  # (M, strips) strip centres along the body
         centre = np.stack([px, py])[:, :, None] + cs * lx

@@ -243,7 +243,7 @@ class HighwaySim:
             self._restore(frozen, saved)
             self.index = self._build_index()
         else:  # only the lane changers and the egos moved sideways
-            self.index = self._build_index(np.concatenate((changing, self._ego_flat)) if changing.size else self._ego_flat)
+            self.index = self._build_index(changing)
         self._sensors(ego_y_prev, frozen if saved is not None else None)
         if saved is not None:
             for name in _SENSOR_STATE:
@@ -417,20 +417,21 @@ class HighwaySim:
         (the simulator itself keeps the index up to date)."""
         self.index = self._build_index()
 
-    def _build_index(self, moved: np.ndarray | None = None) -> LaneIndex:
+    def _build_index(self, changing: np.ndarray | None = None) -> LaneIndex:
         """The neighbour index of the current state.
 
-        ``moved``: flat indices (into E x N) of the only vehicles whose ``y``, ``yaw`` or lane-change
-        state may have changed since ``self.index`` was built (None: anything may have). For a few
+        ``changing``: flat indices (into E x N) of the traffic vehicles whose ``y``, ``yaw`` or lane-change
+        state may have changed since ``self.index`` was built, besides the egos (None: any vehicle's). For a few
         environments the previous index is then updated in place of a full build when the sorted order
         and the lanes the moved vehicles touch are unchanged (most steps); the result is the same.
         """
         extra = np.where(self.lc_active, self.target_lane, -1)
         prev = self.index
-        if moved is not None and prev is not None and self.num_envs <= _INCREMENTAL_INDEX_MAX_ENVS and \
-                prev.unchanged_after_move(self.x, self.y, self.yaw, self.length, self.width, extra,
-                                          self.road.lane_width, moved):
-            return prev.moved(self.x, self.y, self.yaw, self.speed, extra)
+        if changing is not None and prev is not None and self.num_envs <= _INCREMENTAL_INDEX_MAX_ENVS:
+            moved = np.concatenate((changing, self._ego_flat)) if changing.size else self._ego_flat
+            if prev.unchanged_after_move(self.x, self.y, self.yaw, self.length, self.width, extra,
+                                         self.road.lane_width, moved):
+                return prev.moved(self.x, self.speed, extra)
         previous = prev.order if prev is not None else None
         return LaneIndex(self.x, self.y, self.yaw, self.speed, self.length, self.width, extra,
                          self.road.lane_width, self.road.num_lanes, self.rows, previous_order=previous)
