@@ -19,17 +19,24 @@ stage starts: a stage interrupted with the same config and inputs continues from
 episodes are recorded, a policy resumes from its last checkpoint); a stage whose config or inputs
 changed starts from an empty directory. A policy whose only change is a larger ``timesteps`` (or other
 evaluation settings) continues training instead of starting over.
+
+Parallel policies. With ``jobs > 1`` the policy stages (each an independent training run with its own
+seed) run in that many worker processes, ``threads`` torch threads each; a stage's result does not
+depend on which process ran it. ``DIR/.lock`` keeps a second invocation out of a directory in use.
 """
 
 from __future__ import annotations
 
+import contextlib
 import dataclasses
 import hashlib
 import json
 import logging
+import os
 import shutil
+import threading
 import time
-from collections.abc import Callable, Sequence
+from collections.abc import Callable, Iterator, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -40,6 +47,7 @@ log = logging.getLogger(__name__)
 
 STAGES_DIR = "stages"
 MARKER = "experiment.json"
+LOCK_NAME = ".lock"
 REPORT_NAME = "REPORT.md"
 FIG5_NAME = "fig5_safe_forward.png"
 FIG6_NAME = "fig6_total_reward.png"
@@ -276,7 +284,8 @@ class Experiment:
         """``ValueError`` when ``out`` is a file or a non-empty directory that is not an experiment."""
         if self.out.exists() and not self.out.is_dir():
             raise ValueError(f"--out {self.out} exists and is not a directory")
-        if self.out.is_dir() and any(self.out.iterdir()) and not (self.out / MARKER).exists():
+        if self.out.is_dir() and any(q.name != LOCK_NAME for q in self.out.iterdir()) and not (
+                self.out / MARKER).exists():
             raise ValueError(f"--out {self.out} is a non-empty directory without {MARKER}; "
                              "choose a new or an experiment directory")  # fmt: skip
 
@@ -487,26 +496,62 @@ class Experiment:
             self.dry_run = False
         return list(self.stages)
 
-    def run(self, *, skip_train: bool = False) -> ExperimentResult:
-        """Every stage in order (skipping what is complete), then REPORT.md and the figures."""
+    def run(self, *, skip_train: bool = False, jobs: int = 1) -> ExperimentResult:
+        """Every stage in order (skipping what is complete), then REPORT.md and the figures.
+
+        ``jobs``: policy stages trained at once, each in its own process (1: all in this process).
+        """
         import torch
 
         from lcmodels.policy.train import versions
         from lcmodels.report import write_report
 
+        if jobs < 1:
+            raise ValueError(f"jobs must be >= 1, got {jobs}")
         t0 = time.perf_counter()
         self.check_out()
         self.out.mkdir(parents=True, exist_ok=True)
-        write_json(self.out / MARKER, {"preset": self.preset.to_dict(), "seeds": self.seeds,
-                                       "command": self.command, "versions": versions()})  # fmt: skip
-        torch.set_num_threads(self.threads)
-        self._stages(skip_train=skip_train)
-        wall = time.perf_counter() - t0
-        report = write_report(self, wall_s=wall)
+        with self.lock():
+            write_json(self.out / MARKER, {"preset": self.preset.to_dict(), "seeds": self.seeds,
+                                           "command": self.command, "versions": versions()})  # fmt: skip
+            torch.set_num_threads(self.threads)
+            self._stages(skip_train=skip_train, jobs=jobs)
+            wall = time.perf_counter() - t0
+            report = write_report(self, wall_s=wall)
         self.emit(f"[report] wrote {report}")
         return ExperimentResult(self.out, self.preset, self.seeds, list(self.stages), wall, report)
 
-    def _stages(self, *, skip_train: bool) -> None:
+    @contextlib.contextmanager
+    def lock(self) -> Iterator[None]:
+        """Hold ``DIR/.lock`` (an advisory ``flock``, released when the process ends however it ends).
+
+        ``ValueError`` when another process holds it: two runs in one directory would overwrite each other.
+        """
+        try:
+            import fcntl
+        except ImportError:  # not POSIX: no lock
+            yield
+            return
+        with open(self.out / LOCK_NAME, "a+") as fh:
+            try:
+                fcntl.flock(fh, fcntl.LOCK_EX | fcntl.LOCK_NB)
+            except BlockingIOError:
+                fh.seek(0)
+                holder = fh.read().strip() or "unknown"
+                raise ValueError(f"another lc-experiment (pid {holder}) is running in {self.out}; "
+                                 "wait for it or stop it first") from None  # fmt: skip
+            fh.seek(0)
+            fh.truncate()
+            fh.write(str(os.getpid()))
+            fh.flush()
+            try:
+                yield
+            finally:
+                fh.seek(0)
+                fh.truncate()
+                fcntl.flock(fh, fcntl.LOCK_UN)
+
+    def _stages(self, *, skip_train: bool, jobs: int = 1) -> None:
         from lcmodels.policy.obs import needs_predictor
 
         self.stages = []
@@ -514,21 +559,81 @@ class Experiment:
         predictor = self.predictor(corpus)
         demos = self.demos()
         self.rule()
+        tasks = []
         for seed in range(self.seeds):
             for m in METHODS:
                 if skip_train:
                     path = policy_dir(self.out, m.key, seed)
                     self.stages.append(StageResult(f"{m.key}/seed{seed}", "not run", path, 0.0))
                     continue
-                self.policy(m, seed, predictor if needs_predictor(m.obs) else None, demos if m.warm_start else None)
+                tasks.append((m, seed, predictor if needs_predictor(m.obs) else None, demos if m.warm_start else None))
+        if jobs == 1 or self.dry_run or len(tasks) < 2:
+            for task in tasks:
+                self.policy(*task)
+        else:
+            self.stages.extend(self._parallel_policies(tasks, jobs))
+
+    def _parallel_policies(self, tasks: list[tuple[Any, ...]], jobs: int) -> list[StageResult]:
+        """The policy stages ``tasks`` in ``jobs`` spawned processes; results in task order.
+
+        Progress lines come back through a queue. The first failure stops every worker and is raised; the
+        stages it interrupted keep their pending records and resume on the next run.
+        """
+        import multiprocessing as mp
+
+        ctx = mp.get_context("spawn")  # no fork of a process that may hold torch threads
+        queue = ctx.Queue()
+
+        def pump() -> None:
+            while (msg := queue.get()) is not None:
+                self.emit(msg)
+
+        printer = threading.Thread(target=pump, daemon=True)
+        printer.start()
+        pool = ctx.Pool(min(jobs, len(tasks)), initializer=_policy_worker_init, initargs=(queue, self.threads))
+        try:
+            pending = [pool.apply_async(_policy_worker, (self.preset, self.out, self.seeds, *task)) for task in tasks]
+            while not all(r.ready() for r in pending):
+                for r in pending:
+                    if r.ready() and not r.successful():
+                        r.get()  # raises the worker's exception
+                time.sleep(0.5)
+            results = [r.get() for r in pending]
+        except BaseException:
+            pool.terminate()
+            raise
+        else:
+            pool.close()
+        finally:
+            pool.join()
+            queue.put(None)
+            printer.join()
+        return results
+
+
+_WORKER: dict[str, Any] = {}
+
+
+def _policy_worker_init(queue: Any, threads: int) -> None:
+    import torch
+
+    torch.set_num_threads(threads)
+    _WORKER["queue"], _WORKER["threads"] = queue, threads
+
+
+def _policy_worker(preset: Preset, out: Path, seeds: int, method: Method, seed: int, predictor: StageResult | None,
+                   demos: StageResult | None) -> StageResult:  # fmt: skip
+    """One policy stage in a worker process of :meth:`Experiment._parallel_policies`."""
+    exp = Experiment(preset, out, seeds=seeds, threads=_WORKER["threads"], progress=_WORKER["queue"].put)
+    return exp.policy(method, seed, predictor, demos)
 
 
 def run_experiment(preset: Preset | str, out: str | Path, *, seeds: int = 1, command: str = "", threads: int = 1,
-                   progress: Progress | None = None, skip_train: bool = False) -> ExperimentResult:  # fmt: skip
+                   progress: Progress | None = None, skip_train: bool = False, jobs: int = 1) -> ExperimentResult:  # fmt: skip
     """Run (or resume) the experiment of ``preset`` in ``out``; see the module docstring."""
     if isinstance(preset, str):
         if preset not in PRESETS:
             raise ValueError(f"unknown preset {preset!r}; choose one of {', '.join(PRESETS)}")
         preset = PRESETS[preset]
     exp = Experiment(preset, out, seeds=seeds, command=command, threads=threads, progress=progress)
-    return exp.run(skip_train=skip_train)
+    return exp.run(skip_train=skip_train, jobs=jobs)

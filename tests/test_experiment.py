@@ -35,6 +35,7 @@ def test_tiny_preset_end_to_end(tmp_path: Path, capsys: pytest.CaptureFixture[st
     run_dir = tmp_path / "tiny"
     assert experiment_main(["--preset", "tiny", "--seeds", str(SEEDS), "--out", str(run_dir), "-q"]) == 0
     check_report_holds_the_numbers_of_the_metrics_files(run_dir)
+    check_parallel_policies_equal_sequential_ones(run_dir)
     check_rerun_skips_everything_and_a_changed_preset_value_is_stale(run_dir, capsys)
 
 
@@ -114,6 +115,41 @@ def check_report_holds_the_numbers_of_the_metrics_files(run_dir: Path) -> None:
             check_cell(row["Return (ours)"], [e["mean_return"] for e in ev])
     warm = md_table(report, "## Warm start")
     assert [int(r["seed"]) for r in warm] == list(range(SEEDS))
+
+
+def without_wall_times(metrics: dict) -> dict:
+    return {part: {k: v for k, v in metrics[part].items() if k != "wall_s"} for part in ("config", "eval", "train")}
+
+
+def check_parallel_policies_equal_sequential_ones(run_dir: Path) -> None:
+    """Two policy stages redone by ``--jobs 2`` worker processes give the same metrics as the first run."""
+    redo = [("ppo-pure", 0), ("a2c-hybrid", 1)]
+    before = {}
+    for key, seed in redo:
+        path = policy_dir(run_dir, key, seed)
+        before[key] = without_wall_times(json.loads((path / "metrics.json").read_text()))
+        (path / "policy.zip").unlink()  # outputs changed: the stage is redone from scratch
+    assert experiment_main(["--preset", "tiny", "--seeds", str(SEEDS), "--out", str(run_dir), "--jobs", "2", "-q"]) == 0
+    for key, seed in redo:
+        after = json.loads((policy_dir(run_dir, key, seed) / "metrics.json").read_text())
+        assert after["eval"]["episodes"] == PRESETS["tiny"].eval_episodes
+        assert without_wall_times(after) == before[key]
+
+
+def test_a_second_run_in_a_directory_in_use_is_refused(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    import fcntl
+
+    run_dir = tmp_path / "busy"
+    run_dir.mkdir()
+    with open(run_dir / ".lock", "w") as fh:
+        fcntl.flock(fh, fcntl.LOCK_EX)
+        fh.write("4242")
+        fh.flush()
+        capsys.readouterr()
+        assert experiment_main(["--preset", "tiny", "--out", str(run_dir), "-q"]) == 2
+        err = capsys.readouterr().err
+        assert "another lc-experiment (pid 4242) is running" in err and len(err.strip().splitlines()) == 1
+    assert not (run_dir / "corpus").exists()
 
 
 def check_rerun_skips_everything_and_a_changed_preset_value_is_stale(
