@@ -253,3 +253,34 @@ def test_rerun_decodes_every_channel(tmp_path: pathlib.Path) -> None:
         assert column in decoded.get(topic, set()), f"{topic} not decoded by Rerun: {decoded.get(topic)}"
         assert not any("raw" in name.lower() for name in decoded[topic]), decoded[topic]
     np.testing.assert_array_equal(np.array(vehicles_x), s["x"])
+
+
+@pytest.mark.parametrize("background", [True, False])
+def test_chunk_buffers_are_recycled_and_outsized_records_get_their_own(
+    tmp_path: pathlib.Path, background: bool
+) -> None:
+    """Many chunks (buffers reused) and images larger than a chunk buffer (1 KiB chunks + 64 KiB slack)."""
+    path = tmp_path / "big.mcap"
+    rng = np.random.default_rng(3)
+    images = [rng.integers(0, 255, (3, 160, 160), dtype=np.uint8) for _ in range(5)]  # 75 KiB each
+    s = make_state(60)
+    with EpisodeWriter(path, metadata=METADATA, chunk_size=1024, background=background) as w:
+        for k in range(60):
+            w.write_vehicles(k, k * 0.05, s["ids"], s["x"][k], s["y"][k], s["yaw"][k], s["speed"][k], s["accel"][k],
+                             s["lane"][k], s["target_lane"][k], s["length"], s["width"])  # fmt: skip
+            if k % 12 == 0:
+                w.write_image(k, k * 0.05, images[k // 12])
+    with path.open("rb") as f:
+        reader = make_reader(f, decoder_factories=[DecoderFactory()])
+        summary = reader.get_summary()
+        assert summary is not None and summary.statistics.chunk_count > 10
+        got_images, xs = [], []
+        for _, channel, _, msg in reader.iter_decoded_messages():
+            if channel.topic == "/camera/bev_semantic":
+                got_images.append(np.frombuffer(msg.data, dtype=np.uint8).reshape(msg.height, msg.width, 3))
+            else:
+                xs.append(np.asarray(msg.x))
+    assert len(got_images) == 5 and len(xs) == 60
+    for want, got in zip(images, got_images, strict=True):
+        np.testing.assert_array_equal(got, want.transpose(1, 2, 0))
+    np.testing.assert_array_equal(np.stack(xs), s["x"])
