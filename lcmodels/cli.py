@@ -402,8 +402,7 @@ def experiment_parser() -> argparse.ArgumentParser:
                    "not depend on it beyond float rounding, and changing it does not make stages stale)")
     p.add_argument("--jobs", type=_positive_int, default=1,
                    help="policies trained at once, each in its own process with --threads torch threads "
-                   "(default 1; on 2 cores, --jobs 2 --threads 1 nearly halves the wall time of the policy "
-                   "stages; results do not depend on it)")
+                   "(default 1; on 2 cores --jobs 2 --threads 1 keeps both busy; results do not depend on it)")
     p.add_argument("--skip-train", action="store_true",
                    help="do not train policies; report what the directory already holds")
     p.add_argument("--dry-run", action="store_true",
