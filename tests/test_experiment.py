@@ -215,3 +215,16 @@ def test_cli_bad_input(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> No
         experiment_main(["--help"])
     assert exc.value.code == 0
     assert "REPORT.md" in capsys.readouterr().out
+
+
+def test_a_resumed_policy_counts_every_part_of_its_training(tmp_path: Path) -> None:
+    from lcmodels.experiment import StageResult
+    from lcmodels.report import stage_compute_s
+
+    policy = tmp_path / "policy"
+    policy.mkdir()
+    # the stage record holds only the last invocation (10 s); training summed over its parts took 100 s
+    (policy / "metrics.json").write_text(json.dumps({"train": {"wall_s": 100.0}, "eval": {"wall_s": 5.0}}))
+    assert stage_compute_s(StageResult("ppo-pure/seed0", "skipped", policy, 10.0)) == 105.0
+    assert stage_compute_s(StageResult("ppo-pure/seed0", "skipped", policy, 200.0)) == 200.0
+    assert stage_compute_s(StageResult("rule", "skipped", tmp_path / "rule", 7.0)) == 7.0
