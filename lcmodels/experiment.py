@@ -290,9 +290,13 @@ class Experiment:
                              "choose a new or an experiment directory")  # fmt: skip
 
     def _stage(self, name: str, path: Path, config: dict[str, Any], inputs: dict[str, str],
-               outputs: Callable[[], list[str]], work: Callable[[bool], None],
+               outputs: Callable[[], list[str]], work: Callable[[bool], float | None],
                resumable: Callable[[dict[str, Any], dict[str, Any]], bool] | None = None) -> StageResult:
-        """Skip the stage when complete, else run ``work(keep)`` (``keep``: the directory holds a prefix of it)."""
+        """Skip the stage when complete, else run ``work(keep)`` (``keep``: the directory holds a prefix of it).
+
+        The record's ``wall_s`` is what ``work`` returns (the compute time behind the outputs, every resumed
+        part counted, when the stage knows it) or else the time of this call.
+        """
         t0 = time.perf_counter()
         config, inputs = _canon(config), _canon(inputs)
         rec_path, pend_path = self.record_paths(name)
@@ -330,8 +334,9 @@ class Experiment:
         write_json(pend_path, {"stage": name, "config": config, "inputs": inputs})
         self.emit(f"[{name}] running ({why})")
         w0 = time.perf_counter()
-        work(keep)
-        wall = time.perf_counter() - w0
+        wall = work(keep)
+        if wall is None:
+            wall = time.perf_counter() - w0
         hashes = _hash_outputs(path, outputs())
         if hashes is None:
             raise RuntimeError(f"stage {name} finished without all of its outputs in {path}")
@@ -462,7 +467,7 @@ class Experiment:
                       f"success {row['success_rate']:.2f} collision {row['collision_rate']:.2f} "
                       f"return {row['mean_return']:.1f} safe forward {row['mean_safe_forward_m']:.1f} m")  # fmt: skip
 
-        def work(keep: bool) -> None:
+        def work(keep: bool) -> float:
             try:
                 res = train_policy(cfg, path, predictor=pred_path, progress=show)
             except ValueError as exc:  # the directory holds another run (e.g. moved --out): start over
@@ -475,6 +480,8 @@ class Experiment:
             self.emit(f"[{name}] held-out: success {100 * ev.get('success_rate', float('nan')):.1f}% "
                       f"collision {100 * ev.get('collision_rate', float('nan')):.1f}% "
                       f"timeout {100 * ev.get('timeout_rate', float('nan')):.1f}%")  # fmt: skip
+            # training time summed over every resumed part (the checkpoints carry it), plus the evaluation
+            return res.wall_s + float(ev.get("wall_s", 0.0))
 
         stage_cfg = cfg.to_dict()
         if method.warm_start:

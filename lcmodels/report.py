@@ -224,15 +224,6 @@ def plot_curves(runs: dict[str, MethodRuns], key: str, ylabel: str, title: str, 
 
 
 # ------------------------------------------------------------------------------------------------ report
-def stage_compute_s(stage: Any) -> float:
-    """Wall time behind a stage's outputs. A stage record holds only its last invocation, so for a policy
-    that was resumed it is at least the training time summed over its parts plus the evaluation time."""
-    m = read_json(stage.path / "metrics.json") if "/seed" in stage.name else None
-    if not isinstance(m, dict) or not isinstance(m.get("train"), dict):
-        return float(stage.wall_s)
-    return max(float(stage.wall_s), float(m["train"].get("wall_s", 0.0)) + float(m.get("eval", {}).get("wall_s", 0.0)))
-
-
 def write_report(exp: Experiment, *, wall_s: float) -> Path:
     """Write ``REPORT.md`` and the two figures into ``exp.out``; returns the report's path."""
     from lcmodels.policy.train import versions
@@ -253,8 +244,8 @@ def write_report(exp: Experiment, *, wall_s: float) -> Path:
     add(f"- seeds per method: **{exp.seeds}** (training seeds 0..{exp.seeds - 1}); held-out evaluation: "
         f"{p.eval_episodes} episodes of evaluation seed {p.eval_seed} (the same episodes for every method)")
     add(f"- scenario: `{p.scenario}`; wall time of this invocation: **{wall_s / 60:.1f} min**; compute time of "
-        f"all results (sum of the stages' wall times, every resumed part counted): "
-        f"**{sum(stage_compute_s(s) for s in exp.stages) / 60:.1f} min**")
+        f"all results (sum of the stages' recorded wall times, every resumed part of a policy counted): "
+        f"**{sum(s.wall_s for s in exp.stages) / 60:.1f} min**")
     add(f"- written {_now()}; every number below is read from the `metrics.json` / `progress.csv` files named in "
         "*Files*.\n")
     if p.name != "paper":
