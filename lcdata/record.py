@@ -37,6 +37,7 @@ from typing import Any
 
 import numpy as np
 
+from lcdata.corpus import from_frame
 from lcdata.writer import EpisodeWriter, package_version
 from lcsim.config import ScenarioConfig
 from lcsim.core import KEEP, RUNNING, SUCCESS, LaneChangeCore, StepResult
@@ -174,12 +175,8 @@ class EpisodeRecorder:
         sim, e = self.core.sim, self.env
         nb = self.core.neighbours(np.array([e]))[0]
         ids = np.where(nb >= 0, np.asarray(sim.ids)[np.maximum(nb, 0)], -1)
-        p = np.asarray(predictions, dtype=np.float64)
-        yaw = float(sim.yaw[e, 0])
-        c, s = np.cos(yaw), np.sin(yaw)
-        xy = np.empty_like(p)
-        xy[..., 0] = sim.x[e, 0] + c * p[..., 0] - s * p[..., 1]
-        xy[..., 1] = sim.y[e, 0] + s * p[..., 0] + c * p[..., 1]
+        origin = np.array([sim.x[e, 0], sim.y[e, 0]])
+        xy = from_frame(np.asarray(predictions, dtype=np.float64), origin, sim.yaw[e, 0])
         self.writer.write_prediction(int(sim.step[e]), float(sim.t_s[e]), ids, xy)
 
     def after_step(self, result: StepResult) -> None:
