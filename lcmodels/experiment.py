@@ -254,6 +254,10 @@ def _resumable_policy_change(prior: dict[str, Any], now: dict[str, Any]) -> bool
     return int(prior.get("timesteps", 0)) <= int(now["timesteps"])
 
 
+def _no_wall() -> None:
+    pass
+
+
 class Experiment:
     """The stages of one experiment directory; :meth:`run` does what is missing or stale."""
 
@@ -267,6 +271,8 @@ class Experiment:
         self.threads = threads
         self.dry_run = False
         self._progress = progress
+        self._save_wall: Callable[[], None] = _no_wall
+        """Put the time spent so far on the running stage into its pending record (``_stage`` sets it)."""
         self.stages: list[StageResult] = []
 
     # -- helpers -------------------------------------------------------------------------------------
@@ -295,7 +301,8 @@ class Experiment:
         """Skip the stage when complete, else run ``work(keep)`` (``keep``: the directory holds a prefix of it).
 
         The record's ``wall_s`` is what ``work`` returns (the compute time behind the outputs, every resumed
-        part counted, when the stage knows it) or else the time of this call.
+        part counted, when the stage knows it) or else the time of this call plus that of the interrupted
+        calls before it, as far as :meth:`_save_wall` put them into the pending record.
         """
         t0 = time.perf_counter()
         config, inputs = _canon(config), _canon(inputs)
@@ -331,12 +338,18 @@ class Experiment:
             shutil.rmtree(path)
         path.mkdir(parents=True, exist_ok=True)
         rec_path.unlink(missing_ok=True)
-        write_json(pend_path, {"stage": name, "config": config, "inputs": inputs})
+        pending = {"stage": name, "config": config, "inputs": inputs}
+        before = float(prior.get("wall_s_parts", 0.0)) if keep and prior is not None else 0.0
+        write_json(pend_path, pending | {"wall_s_parts": before})
         self.emit(f"[{name}] running ({why})")
         w0 = time.perf_counter()
-        wall = work(keep)
+        self._save_wall = lambda: write_json(pend_path, pending | {"wall_s_parts": before + time.perf_counter() - w0})
+        try:
+            wall = work(keep)
+        finally:
+            self._save_wall = _no_wall
         if wall is None:
-            wall = time.perf_counter() - w0
+            wall = before + time.perf_counter() - w0
         hashes = _hash_outputs(path, outputs())
         if hashes is None:
             raise RuntimeError(f"stage {name} finished without all of its outputs in {path}")
@@ -362,6 +375,7 @@ class Experiment:
             workers = max(1, min(self.preset.record_workers, len(todo)))
             for k, r in enumerate(iter_record_episodes(config, todo, driver, path, scenario=scenario,
                                                        workers=workers, images=images), 1):  # fmt: skip
+                self._save_wall()  # an interrupted stage keeps the time of the episodes it has written
                 self.emit(f"[{name}] {k}/{len(todo)} episodes: {r.path.name} {r.outcome}")
 
         stage_cfg = {"scenario": config.to_dict(), "seeds": seeds, "driver": driver, "images": images,

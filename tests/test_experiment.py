@@ -190,6 +190,30 @@ def check_rerun_skips_everything_and_a_changed_preset_value_is_stale(
     assert {p: p.stat().st_mtime_ns for p in zips} == before
 
 
+def test_an_interrupted_recording_stage_keeps_the_time_of_its_first_part(tmp_path: Path) -> None:
+    """A recording stage stopped after 2 of its 3 episodes and resumed records the time of both parts."""
+
+    class Stop(Exception):
+        pass
+
+    def stop_after_two(msg: str) -> None:
+        if "2/3 episodes" in msg:
+            raise Stop
+
+    run_dir = tmp_path / "run"
+    with pytest.raises(Stop):
+        Experiment(PRESETS["tiny"], run_dir, progress=stop_after_two).corpus()
+    pending = json.loads((run_dir / "stages" / "corpus.pending.json").read_text())
+    first = pending["wall_s_parts"]
+    assert first > 0 and len(list((run_dir / "corpus").glob("*.mcap"))) == 2
+    res = Experiment(PRESETS["tiny"], run_dir).corpus()
+    assert res.status == "done" and len(list((run_dir / "corpus").glob("*.mcap"))) == 3
+    record = json.loads((run_dir / "stages" / "corpus.json").read_text())
+    # the one episode left took less than the two of the first part; the record holds both parts
+    assert first < record["wall_s"] <= first + res.run_s
+    assert res.wall_s == record["wall_s"]
+
+
 def test_policy_stage_config_follows_the_preset() -> None:
     tiny = PRESETS["tiny"]
     from lcmodels.experiment import policy_config
