@@ -37,6 +37,7 @@ def test_tiny_preset_end_to_end(tmp_path: Path, capsys: pytest.CaptureFixture[st
     check_report_holds_the_numbers_of_the_metrics_files(run_dir)
     check_parallel_policies_equal_sequential_ones(run_dir)
     check_rerun_skips_everything_and_a_changed_preset_value_is_stale(run_dir, capsys)
+    check_publish_copies_the_report_and_every_metrics_file_it_names(run_dir, tmp_path / "published", capsys)
 
 
 # ------------------------------------------------------------------------------------------------ helpers
@@ -248,3 +249,24 @@ def test_cli_bad_input(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> No
     assert exc.value.code == 0
     assert "REPORT.md" in capsys.readouterr().out
 
+
+
+def check_publish_copies_the_report_and_every_metrics_file_it_names(
+    run_dir: Path, dest: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    from tools.publish_results import main as publish
+
+    assert publish([str(run_dir), str(dest)]) == 0
+    report = (dest / REPORT_NAME).read_text()
+    assert report == (run_dir / REPORT_NAME).read_text()
+    named = re.findall(r"`([^`]+/metrics\.json)`", report)
+    assert len(named) == 2 + len(METHODS) * SEEDS
+    for rel in named:
+        assert (dest / rel).read_bytes() == (run_dir / rel).read_bytes()
+    assert (dest / FIG5_NAME).is_file() and (dest / FIG6_NAME).is_file()
+    big = [p for p in dest.rglob("*") if p.suffix in (".zip", ".pt", ".mcap", ".npy")]
+    assert not big and sum(p.stat().st_size for p in dest.rglob("*") if p.is_file()) < 2_000_000
+    capsys.readouterr()
+    assert publish([str(run_dir), str(dest)]) == 2  # nothing is overwritten silently
+    err = capsys.readouterr().err
+    assert "exists" in err and len(err.strip().splitlines()) == 1
