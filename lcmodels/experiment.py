@@ -48,6 +48,9 @@ log = logging.getLogger(__name__)
 STAGES_DIR = "stages"
 MARKER = "experiment.json"
 LOCK_NAME = ".lock"
+INVOCATIONS = "invocations.json"
+"""Every ``run`` of the directory: start, command, wall time so far (kept up to date by each progress line, so
+that a killed invocation keeps the time until its last line) and whether it finished."""
 REPORT_NAME = "REPORT.md"
 FIG5_NAME = "fig5_safe_forward.png"
 FIG6_NAME = "fig6_total_reward.png"
@@ -272,14 +275,26 @@ class Experiment:
         self.dry_run = False
         self._progress = progress
         self._save_wall: Callable[[], None] = _no_wall
+        self.invocations: list[dict[str, Any]] = []
+        """What :data:`INVOCATIONS` holds (this invocation last while :meth:`run` runs)."""
+        self._invocation_t0: float | None = None
+        self._invocation_lock = threading.Lock()
         """Put the time spent so far on the running stage into its pending record (``_stage`` sets it)."""
         self.stages: list[StageResult] = []
 
     # -- helpers -------------------------------------------------------------------------------------
     def emit(self, msg: str) -> None:
         log.info(msg)
+        if self._invocation_t0 is not None:
+            self._save_invocation(finished=False)
         if self._progress is not None:
             self._progress(msg)
+
+    def _save_invocation(self, *, finished: bool) -> None:
+        assert self._invocation_t0 is not None
+        with self._invocation_lock:  # progress lines of parallel policies come from another thread
+            self.invocations[-1].update(wall_s=time.perf_counter() - self._invocation_t0, finished=finished)
+            write_json(self.out / INVOCATIONS, self.invocations)
 
     def record_paths(self, name: str) -> tuple[Path, Path]:
         """``(complete record, pending record)`` of stage ``name`` (kept outside the stage's directory)."""
@@ -535,8 +550,17 @@ class Experiment:
         with self.lock():
             write_json(self.out / MARKER, {"preset": self.preset.to_dict(), "seeds": self.seeds,
                                            "command": self.command, "versions": versions()})  # fmt: skip
-            torch.set_num_threads(self.threads)
-            self._stages(skip_train=skip_train, jobs=jobs)
+            previous = read_json(self.out / INVOCATIONS)
+            self.invocations = [*(previous if isinstance(previous, list) else []),
+                                {"started": time.strftime("%Y-%m-%dT%H:%M:%S%z"), "command": self.command}]
+            self._invocation_t0 = t0
+            try:
+                self._save_invocation(finished=False)
+                torch.set_num_threads(self.threads)
+                self._stages(skip_train=skip_train, jobs=jobs)
+                self._save_invocation(finished=True)
+            finally:
+                self._invocation_t0 = None
             wall = time.perf_counter() - t0
             report = write_report(self, wall_s=wall)
         self.emit(f"[report] wrote {report}")

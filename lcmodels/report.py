@@ -20,6 +20,7 @@ import numpy as np
 from lcmodels.experiment import (
     FIG5_NAME,
     FIG6_NAME,
+    INVOCATIONS,
     METHOD_BY_KEY,
     METHODS,
     PAPER_TABLE2,
@@ -243,9 +244,11 @@ def write_report(exp: Experiment, *, wall_s: float) -> Path:
     add(f"# lc-experiment report: preset `{p.name}`\n")
     add(f"- seeds per method: **{exp.seeds}** (training seeds 0..{exp.seeds - 1}); held-out evaluation: "
         f"{p.eval_episodes} episodes of evaluation seed {p.eval_seed} (the same episodes for every method)")
-    add(f"- scenario: `{p.scenario}`; wall time of this invocation: **{wall_s / 60:.1f} min**; compute time of "
-        f"all results (sum of the stages' recorded wall times, every resumed part of a policy counted): "
-        f"**{sum(s.wall_s for s in exp.stages) / 60:.1f} min**")
+    parts = exp.invocations or [{"wall_s": wall_s}]
+    total = sum(float(inv.get("wall_s", 0.0)) for inv in parts)
+    add(f"- scenario: `{p.scenario}`; wall time: **{total / 60:.1f} min** over {len(parts)} invocation(s) "
+        f"(`{INVOCATIONS}`; this one {wall_s / 60:.1f} min); compute time of all results (sum of the stages' "
+        f"recorded wall times, every resumed part counted): **{sum(s.wall_s for s in exp.stages) / 60:.1f} min**")
     add(f"- written {_now()}; every number below is read from the `metrics.json` / `progress.csv` files named in "
         "*Files*.\n")
     if p.name != "paper":

@@ -14,6 +14,7 @@ from lcmodels.cli import experiment_main
 from lcmodels.experiment import (
     FIG5_NAME,
     FIG6_NAME,
+    INVOCATIONS,
     METHOD_BY_KEY,
     METHODS,
     PAPER_TABLE3,
@@ -38,6 +39,7 @@ def test_tiny_preset_end_to_end(tmp_path: Path, capsys: pytest.CaptureFixture[st
     check_parallel_policies_equal_sequential_ones(run_dir)
     check_rerun_skips_everything_and_a_changed_preset_value_is_stale(run_dir, capsys)
     check_publish_copies_the_report_and_every_metrics_file_it_names(run_dir, tmp_path / "published", capsys)
+    check_the_report_states_the_wall_time_of_every_invocation(run_dir)
 
 
 # ------------------------------------------------------------------------------------------------ helpers
@@ -215,6 +217,23 @@ def test_an_interrupted_recording_stage_keeps_the_time_of_its_first_part(tmp_pat
     assert res.wall_s == record["wall_s"]
 
 
+def test_an_interrupted_invocation_keeps_its_wall_time_until_its_last_progress_line(tmp_path: Path) -> None:
+    class Stop(Exception):
+        pass
+
+    lines: list[str] = []
+
+    def stop_at_the_third_episode(msg: str) -> None:
+        lines.append(msg)
+        if "3/3 episodes" in msg:
+            raise Stop
+
+    with pytest.raises(Stop):
+        Experiment(PRESETS["tiny"], tmp_path / "run", progress=stop_at_the_third_episode).run()
+    (inv,) = json.loads((tmp_path / "run" / INVOCATIONS).read_text())
+    assert not inv["finished"] and inv["wall_s"] > 0 and len(lines) >= 4
+
+
 def test_policy_stage_config_follows_the_preset() -> None:
     tiny = PRESETS["tiny"]
     from lcmodels.experiment import policy_config
@@ -270,3 +289,12 @@ def check_publish_copies_the_report_and_every_metrics_file_it_names(
     assert publish([str(run_dir), str(dest)]) == 2  # nothing is overwritten silently
     err = capsys.readouterr().err
     assert "exists" in err and len(err.strip().splitlines()) == 1
+
+
+def check_the_report_states_the_wall_time_of_every_invocation(run_dir: Path) -> None:
+    """Three runs of the directory (the first, the --jobs 2 redo, the rerun): the report sums all three."""
+    invocations = json.loads((run_dir / INVOCATIONS).read_text())
+    assert len(invocations) == 3 and all(inv["finished"] for inv in invocations)
+    assert invocations[0]["wall_s"] > invocations[2]["wall_s"] > 0  # the rerun only skips and reports
+    m = re.search(r"wall time: \*\*([0-9.]+) min\*\* over 3 invocation\(s\)", (run_dir / REPORT_NAME).read_text())
+    assert m and float(m.group(1)) == pytest.approx(sum(inv["wall_s"] for inv in invocations) / 60, abs=0.051)

@@ -3,7 +3,7 @@
 
     python tools/publish_results.py runs/paper docs/results/paper [--overwrite]
 
-Copies ``REPORT.md``, the figures, ``experiment.json``, the complete stage records (``stages/*.json``)
+Copies ``REPORT.md``, the figures, ``experiment.json``, ``invocations.json``, the complete stage records (``stages/*.json``)
 and, per stage, ``metrics.json`` / ``run.json`` / ``progress.csv`` / ``warm_start.json``: every file
 the report's *Files* table names, and nothing large (no checkpoints, TensorBoard logs or MCAP episodes).
 Refuses when the run has no report or has unfinished stages, and when the destination exists (unless
@@ -18,12 +18,13 @@ import sys
 from pathlib import Path
 
 TOP = ("REPORT.md", "experiment.json")
+OPTIONAL_TOP = ("invocations.json",)  # runs of lc-toolkit versions before it have none
 PER_STAGE = ("metrics.json", "run.json", "progress.csv", "warm_start.json")
 
 
 def published_files(run: Path) -> list[Path]:
     """Paths (relative to ``run``) of the files to publish."""
-    files = [Path(n) for n in TOP] + sorted(p.relative_to(run) for p in run.glob("*.png"))
+    files = [Path(n) for n in TOP] + [Path(n) for n in OPTIONAL_TOP if (run / n).is_file()] + sorted(p.relative_to(run) for p in run.glob("*.png"))
     files += sorted(p.relative_to(run) for p in (run / "stages").glob("*.json") if not p.name.endswith(".pending.json"))
     stage_dirs = [run / "predictor", run / "rule", *sorted(run.glob("policies/*/seed*"))]
     for d in stage_dirs:
