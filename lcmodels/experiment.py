@@ -548,8 +548,12 @@ class Experiment:
         self.check_out()
         self.out.mkdir(parents=True, exist_ok=True)
         with self.lock():
+            command = self.command
+            if skip_train:  # a report-only rebuild keeps the command that made the results
+                command = (read_json(self.out / MARKER) or {}).get("command") or command
+            self.command = command
             write_json(self.out / MARKER, {"preset": self.preset.to_dict(), "seeds": self.seeds,
-                                           "command": self.command, "versions": versions()})  # fmt: skip
+                                           "command": command, "versions": versions()})  # fmt: skip
             previous = read_json(self.out / INVOCATIONS)
             self.invocations = [*(previous if isinstance(previous, list) else []),
                                 {"started": time.strftime("%Y-%m-%dT%H:%M:%S%z"), "command": self.command}]
@@ -607,11 +611,17 @@ class Experiment:
         tasks = []
         for seed in range(self.seeds):
             for m in METHODS:
-                if skip_train:
-                    path = policy_dir(self.out, m.key, seed)
-                    self.stages.append(StageResult(f"{m.key}/seed{seed}", "not run", path, 0.0))
+                task = (m, seed, predictor if needs_predictor(m.obs) else None, demos if m.warm_start else None)
+                if skip_train:  # a complete stage is reported as such (with its recorded time); the rest not run
+                    dry, self.dry_run = self.dry_run, True
+                    try:
+                        res = self.policy(*task)
+                    finally:
+                        self.dry_run = dry
+                    if res.status != "skipped":
+                        self.stages[-1] = StageResult(res.name, "not run", res.path, 0.0)
                     continue
-                tasks.append((m, seed, predictor if needs_predictor(m.obs) else None, demos if m.warm_start else None))
+                tasks.append(task)
         if jobs == 1 or self.dry_run or len(tasks) < 2:
             for task in tasks:
                 self.policy(*task)

@@ -40,6 +40,7 @@ def test_tiny_preset_end_to_end(tmp_path: Path, capsys: pytest.CaptureFixture[st
     check_rerun_skips_everything_and_a_changed_preset_value_is_stale(run_dir, capsys)
     check_publish_copies_the_report_and_every_metrics_file_it_names(run_dir, tmp_path / "published", capsys)
     check_the_report_states_the_wall_time_of_every_invocation(run_dir)
+    check_skip_train_reports_complete_policies_with_their_time_and_keeps_the_command(run_dir)
 
 
 # ------------------------------------------------------------------------------------------------ helpers
@@ -298,3 +299,20 @@ def check_the_report_states_the_wall_time_of_every_invocation(run_dir: Path) -> 
     assert invocations[0]["wall_s"] > invocations[2]["wall_s"] > 0  # the rerun only skips and reports
     m = re.search(r"wall time: \*\*([0-9.]+) min\*\* over 3 invocation\(s\)", (run_dir / REPORT_NAME).read_text())
     assert m and float(m.group(1)) == pytest.approx(sum(inv["wall_s"] for inv in invocations) / 60, abs=0.051)
+
+
+def check_skip_train_reports_complete_policies_with_their_time_and_keeps_the_command(run_dir: Path) -> None:
+    before = (run_dir / REPORT_NAME).read_text()
+    assert experiment_main(["--preset", "tiny", "--seeds", str(SEEDS), "--out", str(run_dir), "--skip-train", "-q"]) == 0
+    report = (run_dir / REPORT_NAME).read_text()
+    stages = {r["stage"]: r for r in md_table(report, "## Stages")}
+    for m in METHODS:
+        for s in range(SEEDS):
+            row = stages[f"{m.key}/seed{s}"]
+            if m.warm_start:  # stale: the demos were redone with another episode count above
+                assert (row["this run"], row["recorded wall s"]) == ("not run", "0.0")
+                continue
+            record = json.loads((run_dir / "stages" / f"{m.key}__seed{s}.json").read_text())
+            assert row["this run"] == "skipped" and float(row["recorded wall s"]) == pytest.approx(record["wall_s"], abs=0.051)
+    for heading in ("## Reproduce", "## Table III", "## Table IV"):
+        assert report.split(heading)[1].split("##")[0] == before.split(heading)[1].split("##")[0]
