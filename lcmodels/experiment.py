@@ -275,11 +275,11 @@ class Experiment:
         self.dry_run = False
         self._progress = progress
         self._save_wall: Callable[[], None] = _no_wall
+        """Put the time spent so far on the running stage into its pending record (``_stage`` sets it)."""
         self.invocations: list[dict[str, Any]] = []
         """What :data:`INVOCATIONS` holds (this invocation last while :meth:`run` runs)."""
         self._invocation_t0: float | None = None
         self._invocation_lock = threading.Lock()
-        """Put the time spent so far on the running stage into its pending record (``_stage`` sets it)."""
         self.stages: list[StageResult] = []
 
     # -- helpers -------------------------------------------------------------------------------------
