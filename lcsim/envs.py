@@ -87,10 +87,9 @@ class LaneChangeEnv(gym.Env):
     def step(self, action: Any):
         if not self._started:
             raise RuntimeError("call reset() before step()")
-        a = int(action)
-        if not self.action_space.contains(a):
+        if not self.action_space.contains(action):  # an integer (or 0-d integer array) in {0, 1, 2}
             raise ValueError(f"action must be 0 (right), 1 (keep) or 2 (left), got {action!r}")
-        res = self.core.step(np.array([a]))
+        res = self.core.step(np.array([int(action)]))
         info = _info(res, self.core.action_mask(), 0, float(self.core.sim.t_s[0]))
         return self._get_obs(), float(res.reward[0]), bool(res.terminated[0]), bool(res.truncated[0]), info
 

@@ -34,6 +34,8 @@ def test_step_info_and_spaces():
     assert frame is None
     with pytest.raises(ValueError, match="action"):
         env.step(3)
+    with pytest.raises(ValueError, match="action"):  # not truncated to 1
+        env.step(1.5)
 
 
 def test_make_vec_uses_native_batched_env():
