@@ -548,12 +548,10 @@ class Experiment:
         self.check_out()
         self.out.mkdir(parents=True, exist_ok=True)
         with self.lock():
-            command = self.command
             if skip_train:  # a report-only rebuild keeps the command that made the results
-                command = (read_json(self.out / MARKER) or {}).get("command") or command
-            self.command = command
+                self.command = (read_json(self.out / MARKER) or {}).get("command") or self.command
             write_json(self.out / MARKER, {"preset": self.preset.to_dict(), "seeds": self.seeds,
-                                           "command": command, "versions": versions()})  # fmt: skip
+                                           "command": self.command, "versions": versions()})  # fmt: skip
             previous = read_json(self.out / INVOCATIONS)
             self.invocations = [*(previous if isinstance(previous, list) else []),
                                 {"started": time.strftime("%Y-%m-%dT%H:%M:%S%z"), "command": self.command}]
