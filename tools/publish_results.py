@@ -17,16 +17,18 @@ import shutil
 import sys
 from pathlib import Path
 
-TOP = ("REPORT.md", "experiment.json")
-OPTIONAL_TOP = ("invocations.json",)  # runs of lc-toolkit versions before it have none
+from lcmodels.experiment import INVOCATIONS, MARKER, REPORT_NAME, RULE_KEY, STAGES_DIR
+
+TOP = (REPORT_NAME, MARKER)
+OPTIONAL_TOP = (INVOCATIONS,)  # runs of lc-toolkit versions before it have none
 PER_STAGE = ("metrics.json", "run.json", "progress.csv", "warm_start.json")
 
 
 def published_files(run: Path) -> list[Path]:
     """Paths (relative to ``run``) of the files to publish."""
     files = [Path(n) for n in TOP] + [Path(n) for n in OPTIONAL_TOP if (run / n).is_file()] + sorted(p.relative_to(run) for p in run.glob("*.png"))
-    files += sorted(p.relative_to(run) for p in (run / "stages").glob("*.json") if not p.name.endswith(".pending.json"))
-    stage_dirs = [run / "predictor", run / "rule", *sorted(run.glob("policies/*/seed*"))]
+    files += sorted(p.relative_to(run) for p in (run / STAGES_DIR).glob("*.json") if not p.name.endswith(".pending.json"))
+    stage_dirs = [run / "predictor", run / RULE_KEY, *sorted(run.glob("policies/*/seed*"))]
     for d in stage_dirs:
         files += [(d / n).relative_to(run) for n in PER_STAGE if (d / n).is_file()]
     return files
@@ -39,10 +41,10 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--overwrite", action="store_true", help="replace an existing destination")
     args = ap.parse_args(argv)
     run, dest = args.run, args.dest
-    if not (run / "REPORT.md").is_file() or not (run / "experiment.json").is_file():
-        print(f"error: {run} is not an lc-experiment directory with a REPORT.md", file=sys.stderr)
+    if not all((run / n).is_file() for n in TOP):
+        print(f"error: {run} is not an lc-experiment directory with a {REPORT_NAME}", file=sys.stderr)
         return 2
-    pending = sorted(p.name for p in (run / "stages").glob("*.pending.json"))
+    pending = sorted(p.name for p in (run / STAGES_DIR).glob("*.pending.json"))
     if pending:
         print(f"error: {run} has {len(pending)} unfinished stage(s) ({pending[0]}); finish the run first",
               file=sys.stderr)  # fmt: skip
