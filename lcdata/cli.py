@@ -15,6 +15,7 @@ from collections.abc import Sequence
 from tqdm import tqdm
 
 from lcdata.record import DRIVERS, episode_filename, iter_record_episodes
+from lcdata.writer_process import WRITER_MODES
 from lcsim.cli import int_at_least
 from lcsim.config import ScenarioConfig, corpus_scenario, paper_scenario
 
@@ -75,6 +76,10 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--steps", type=_positive_int, default=None,
                    help="override the episode time limit, in simulation steps (default: the scenario's)")  # fmt: skip
     p.add_argument("--no-images", action="store_true", help="do not record the bird's-eye image")
+    p.add_argument("--writer", choices=WRITER_MODES, default=None,
+                   help="where files are encoded and compressed: process (a helper process, on the core "
+                   "the simulator leaves idle), thread, or inline; the files are the same. Default: process "
+                   "with --workers 1, thread with more")  # fmt: skip
     p.add_argument("-v", "--verbose", action="store_true", help="log every episode")
     return p
 
@@ -150,7 +155,8 @@ def record_main(argv: Sequence[str] | None = None) -> int:
     start = time.perf_counter()
     workers = args.workers if isinstance(driver, str) else 1  # a loaded policy stays in this process
     results = iter_record_episodes(config, seeds, driver, args.out, scenario=args.scenario, workers=workers,
-                                   overwrite=args.overwrite, images=not args.no_images)  # fmt: skip
+                                   overwrite=args.overwrite, images=not args.no_images,
+                                   writer=args.writer)  # fmt: skip
     try:
         with tqdm(total=len(seeds), unit="ep", desc=f"{args.scenario}/{name}", disable=None) as bar:
             for result in results:

@@ -39,6 +39,7 @@ import numpy as np
 
 from lcdata.corpus import from_frame
 from lcdata.writer import EpisodeWriter, package_version
+from lcdata.writer_process import WRITER_MODES, open_writer
 from lcsim.config import ScenarioConfig
 from lcsim.core import KEEP, RUNNING, SUCCESS, LaneChangeCore, StepResult
 from lcsim.drivers import DRIVER_NAMES, Driver, make_driver
@@ -138,7 +139,7 @@ class EpisodeRecorder:
                           "ego left the road" if off_road else "ego back on the road",
                           "warning" if off_road else "info")  # fmt: skip
             self._off_road = off_road
-        active = self._lane_change_active(sim)
+        active = sim.lc_active.item(e, 0) if sim.autopilot_ego else sim.ego_lc_active.item(e)
         if active != self._lc_active:
             lane, target = int(sim.lane[e, 0]), int(sim.target_lane[e, 0])
             if active:
@@ -156,9 +157,9 @@ class EpisodeRecorder:
             action_mask: (E, 3) bool. actions: (E,) int.
         """
         sim, e, w = self.core.sim, self.env, self.writer
-        step, t = int(sim.step[e]), float(sim.t_s[e])
+        step, t = sim.step.item(e), sim.t_s.item(e)
         if self.scene:
-            w.write_transform(step, t, float(sim.x[e, 0]), float(sim.y[e, 0]), float(sim.yaw[e, 0]))
+            w.write_transform(step, t, sim.x.item(e, 0), sim.y.item(e, 0), sim.yaw.item(e, 0))
             w.write_scene(step, t, sim.ids, sim.x[e], sim.y[e], sim.yaw[e], sim.length[e], sim.width[e])
         if self.images and "image" in obs:
             w.write_image(step, t, obs["image"][e])
@@ -272,6 +273,7 @@ def record_episode(
     overwrite: bool = False,
     images: bool = True,
     start_time_ns: int | None = None,
+    writer: str = "process",
 ) -> RecordResult:
     """Run one episode (``LaneChangeEnv.reset(seed=seed)`` semantics) and write it to ``path``.
 
@@ -285,6 +287,9 @@ def record_episode(
         overwrite: replace an existing file instead of raising ``FileExistsError``.
         images: record the bird's-eye image at every decision (when the scenario renders one).
         start_time_ns: time of ``t = 0`` in the file (default: now).
+        writer: where the file is encoded and written (:data:`lcdata.writer_process.WRITER_MODES`):
+            ``process`` (default: a helper process on another core, see
+            :class:`~lcdata.writer_process.ProcessEpisodeWriter`), ``thread`` or ``inline``. Same bytes.
 
     Returns:
         A :class:`RecordResult` with the final path and the outcome.
@@ -293,8 +298,8 @@ def record_episode(
     core = LaneChangeCore(config, 1, autopilot_ego=autopilot)
     metadata = episode_metadata(config, seed, driver=name, driver_description=desc, scenario=scenario,
                                 autopilot=autopilot)  # fmt: skip
-    with EpisodeWriter(path, metadata=metadata, overwrite=overwrite, start_time_ns=start_time_ns) as writer:
-        recorder = EpisodeRecorder(writer, core, 0, images=images)
+    with open_writer(path, mode=writer, metadata=metadata, overwrite=overwrite, start_time_ns=start_time_ns) as out:
+        recorder = EpisodeRecorder(out, core, 0, images=images)
         core.reset([0], [int(metadata["episode_seed"])])
         recorder.attach()
         obs = core.observe()
@@ -309,8 +314,7 @@ def record_episode(
             if not recorder.done:
                 obs = core.observe()
         recorder.detach()
-        messages = writer.message_count
-    final = writer.path
+    final, messages = out.path, out.message_count
     log.info("%s: %s after %d decisions", final, recorder.outcome, recorder.decisions)
     return RecordResult(
         path=final, outcome=recorder.outcome, seed=int(seed), episode_seed=int(metadata["episode_seed"]),
@@ -320,10 +324,11 @@ def record_episode(
 
 
 def _record_one(config_json: str, seed: int, driver: str | Driver, path: str, scenario: str, overwrite: bool,
-                images: bool) -> RecordResult:  # fmt: skip
+                images: bool, writer: str) -> RecordResult:  # fmt: skip
     """Worker entry point (module level so that a process pool can pickle it)."""
     config = ScenarioConfig.from_json(config_json)
-    return record_episode(config, seed, driver, path, scenario=scenario, overwrite=overwrite, images=images)
+    return record_episode(config, seed, driver, path, scenario=scenario, overwrite=overwrite, images=images,
+                          writer=writer)  # fmt: skip
 
 
 def iter_record_episodes(
@@ -336,15 +341,23 @@ def iter_record_episodes(
     workers: int = 1,
     overwrite: bool = False,
     images: bool = True,
+    writer: str | None = None,
 ) -> Iterator[RecordResult]:
     """Record one episode per seed into ``out_dir`` (file names from :func:`episode_filename`).
 
     Results come in completion order. With ``workers > 1`` episodes run in that many processes;
     every episode depends only on its seed, so the files do not depend on ``workers``.
     Existing files raise ``FileExistsError`` before anything runs unless ``overwrite``.
+    ``writer``: as in :func:`record_episode`; by default ``process`` with one worker (the writer
+    takes an idle core) and ``thread`` with several (the cores are taken; a helper process per
+    worker would cost more CPU in all).
     """
     if workers < 1:
         raise ValueError(f"workers must be >= 1, got {workers}")
+    if writer is None:
+        writer = "process" if workers == 1 else "thread"
+    if writer not in WRITER_MODES:
+        raise ValueError(f"writer must be one of {', '.join(WRITER_MODES)}, got {writer!r}")
     out = pathlib.Path(out_dir)
     name = driver if isinstance(driver, str) else resolve_driver(driver, 0)[2]
     paths = [out / episode_filename(scenario, name, s) for s in seeds]
@@ -353,7 +366,7 @@ def iter_record_episodes(
         raise FileExistsError(f"{len(existing)} of {len(paths)} episode files already exist in {out} "
                               f"(e.g. {existing[0].name}); pass overwrite=True to replace them")  # fmt: skip
     out.mkdir(parents=True, exist_ok=True)
-    args = [(config.to_json(), int(s), driver, str(p), scenario, overwrite, images)
+    args = [(config.to_json(), int(s), driver, str(p), scenario, overwrite, images, writer)
             for s, p in zip(seeds, paths, strict=True)]  # fmt: skip
     if workers == 1 or len(args) <= 1:
         for a in args:

@@ -33,6 +33,7 @@ import os
 import pathlib
 import time
 from collections.abc import Mapping, Sequence
+from functools import cache
 from types import TracebackType
 from typing import Any
 
@@ -60,6 +61,7 @@ EGO_RGBA = (0.9, 0.2, 0.2, 1.0)
 TRAFFIC_RGBA = (0.2, 0.45, 0.9, 1.0)
 
 
+@cache
 def package_version() -> str:
     """Installed lc-toolkit version, or ``0+unknown`` when running from a bare checkout."""
     from importlib.metadata import PackageNotFoundError, version
@@ -361,6 +363,12 @@ class EpisodeWriter:
             os.replace(self.partial_path, self.path)
             log.debug("wrote %s", self.path)
         return self.path
+
+    def flush(self) -> None:
+        """Close the chunk in progress and write it out now (before it is full), so that it is
+        recoverable from the ``.partial`` file whatever happens next."""
+        if not self._closed:
+            self._mcap.flush_chunk()
 
     def abort(self) -> None:
         """Stop writing without finishing: the ``.partial`` file stays (recoverable)."""

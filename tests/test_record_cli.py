@@ -51,11 +51,14 @@ def test_workers_do_not_change_results(tmp_path: pathlib.Path) -> None:
     common = ["--episodes", "2", "--driver", "random", "--no-images", *TINY]
     assert record_main([*common, "--out", str(tmp_path / "w1")]) == 0
     assert record_main([*common, "--out", str(tmp_path / "w2"), "--workers", "2"]) == 0
-    assert names(tmp_path / "w1") == names(tmp_path / "w2")
+    assert record_main([*common, "--out", str(tmp_path / "w3"), "--writer", "inline"]) == 0
+    assert names(tmp_path / "w1") == names(tmp_path / "w2") == names(tmp_path / "w3")
     for name in names(tmp_path / "w1"):
-        a, b = read_episode(tmp_path / "w1" / name), read_episode(tmp_path / "w2" / name)
-        assert a.tracks.drop(columns="episode").equals(b.tracks.drop(columns="episode"))
-        np.testing.assert_array_equal(a.steps["action"], b.steps["action"])
+        a = read_episode(tmp_path / "w1" / name)
+        for other in ("w2", "w3"):
+            b = read_episode(tmp_path / other / name)
+            assert a.tracks.drop(columns="episode").equals(b.tracks.drop(columns="episode"))
+            np.testing.assert_array_equal(a.steps["action"], b.steps["action"])
 
 
 def test_defaults_are_the_papers() -> None:
@@ -73,6 +76,7 @@ def test_defaults_are_the_papers() -> None:
         (["--workers", "0"], "--workers: must be >= 1"),
         (["--steps", "0"], "--steps: must be >= 1"),
         (["--driver", "fast"], "invalid choice"),
+        (["--writer", "fast"], "invalid choice"),
         (["--scenario", "town06"], "invalid choice"),
         (["--vehicles", "100000"], "does not fit"),
         (["--bogus"], "unrecognized arguments"),
