@@ -22,7 +22,8 @@ leaves a half file under the final name; :func:`lcdata.read_episode` recovers th
 a partial file. Cost on the caller's thread: about 13 µs per simulation step for /vehicles (101
 vehicles) + /ego/state through :meth:`EpisodeWriter.write_sim_step`, the recorder's reads included,
 on a loaded 2-core machine; zstd compression of the chunks (another ~20 µs/step of CPU for such
-data) runs on a background thread.
+data) runs on a background thread. :class:`lcdata.writer_process.ProcessEpisodeWriter` runs all of
+it in a helper process instead (what :func:`lcdata.record_episode` uses by default).
 """
 
 from __future__ import annotations

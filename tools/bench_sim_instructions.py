@@ -15,10 +15,8 @@ from __future__ import annotations
 
 import argparse
 import json
-import re
-import shutil
-import subprocess
-import sys
+
+from callgrind import instructions, require_valgrind
 
 _WORKLOAD = """
 import sys
@@ -40,13 +38,7 @@ for _ in range(int(sys.argv[1])):
 
 
 def _instructions(decisions: int) -> int:
-    cmd = ["valgrind", "--tool=callgrind", "--callgrind-out-file=/dev/null", sys.executable, "-c", _WORKLOAD,
-           str(decisions)]  # fmt: skip
-    out = subprocess.run(cmd, capture_output=True, text=True, check=False)
-    found = re.search(r"Collected\s*:\s*([\d,]+)", out.stderr)
-    if out.returncode != 0 or found is None:
-        raise SystemExit(f"valgrind failed (exit {out.returncode}): {out.stderr.strip().splitlines()[-1:]}")
-    return int(found.group(1).replace(",", ""))
+    return instructions(_WORKLOAD, str(decisions))
 
 
 def main() -> None:
@@ -57,8 +49,7 @@ def main() -> None:
     args = parser.parse_args()
     if args.decisions < 1:
         parser.error(f"--decisions must be >= 1, got {args.decisions}")
-    if shutil.which("valgrind") is None:
-        raise SystemExit("valgrind not found (apt-get install valgrind)")
+    require_valgrind()
     per_decision = (_instructions(args.decisions) - _instructions(0)) / args.decisions
     if args.json:
         print(json.dumps({"instructions_per_decision": round(per_decision), "decisions": args.decisions}))
