@@ -451,6 +451,7 @@ def _rl_step(writer: EpisodeWriter, a: np.ndarray) -> None:
 def serve() -> None:
     """The helper's loop: read records from stdin, run them on :class:`EpisodeWriter` objects."""
     signal.signal(signal.SIGINT, signal.SIG_IGN)  # Ctrl-C is the parent's to handle; it tells us
+    logging.getLogger().addHandler(logging.NullHandler())  # the parent logs and raises what happens here
     replies = os.fdopen(os.dup(1), "wb", buffering=0)
     os.dup2(2, 1)  # a stray print must not corrupt the answers
     stream = os.fdopen(0, "rb", buffering=PIPE_BYTES)
