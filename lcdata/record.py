@@ -39,7 +39,7 @@ import numpy as np
 
 from lcdata.corpus import from_frame
 from lcdata.writer import EpisodeWriter, package_version
-from lcdata.writer_process import WRITER_MODES, open_writer
+from lcdata.writer_process import WRITER_MODES, ProcessEpisodeWriter, open_writer
 from lcsim.config import ScenarioConfig
 from lcsim.core import KEEP, RUNNING, SUCCESS, LaneChangeCore, StepResult
 from lcsim.drivers import DRIVER_NAMES, Driver, make_driver
@@ -66,7 +66,8 @@ class EpisodeRecorder:
     """Write environment ``env`` of ``core`` to ``writer`` (see the module docstring for the loop).
 
     Args:
-        writer: an open :class:`~lcdata.writer.EpisodeWriter`.
+        writer: an open :class:`~lcdata.writer.EpisodeWriter` or
+            :class:`~lcdata.writer_process.ProcessEpisodeWriter`.
         core: the :class:`~lcsim.core.LaneChangeCore` being stepped (any number of environments).
         env: index of the environment to record.
         images: write the observation's bird's-eye image (when it has one) at every decision.
@@ -74,7 +75,8 @@ class EpisodeRecorder:
     """
 
     def __init__(
-        self, writer: EpisodeWriter, core: LaneChangeCore, env: int = 0, *, images: bool = True, scene: bool = True
+        self, writer: EpisodeWriter | ProcessEpisodeWriter, core: LaneChangeCore, env: int = 0, *, images: bool = True,
+        scene: bool = True,
     ) -> None:
         if not 0 <= env < core.num_envs:
             raise ValueError(f"env must be in [0, {core.num_envs}), got {env}")
@@ -139,7 +141,7 @@ class EpisodeRecorder:
                           "ego left the road" if off_road else "ego back on the road",
                           "warning" if off_road else "info")  # fmt: skip
             self._off_road = off_road
-        active = sim.lc_active.item(e, 0) if sim.autopilot_ego else sim.ego_lc_active.item(e)
+        active = self._lane_change_active(sim)
         if active != self._lc_active:
             lane, target = int(sim.lane[e, 0]), int(sim.target_lane[e, 0])
             if active:
