@@ -4,15 +4,16 @@ whose encoding, chunking, compression and file I/O run in a helper process.
 Why: on a 2-core machine the simulator uses one core and the other sits idle, while recording in
 the simulator's process costs about a quarter of its time (the per-step ``/vehicles`` encoding, the
 per-decision image and scene encoding, and the GIL hand-offs with the compression thread). Here the
-simulator's process only copies the raw values of each call into a shared buffer, and a persistent
+simulator's process only copies the raw values of each call into a buffer for a pipe, and a persistent
 helper process (one per recording process, started on first use and reused for every episode) runs
 the very same :class:`~lcdata.writer.EpisodeWriter` calls on them. The file is byte for byte the file
 the in-process writer makes (tested).
 
 Protocol: the helper reads records from its stdin, a pipe: ``<u32 payload bytes, u8 opcode, pad,
-u16 writer id>`` then the payload, padded to 8 bytes. The hot calls (:meth:`write_sim_step`,
-:meth:`write_image`, :meth:`write_scene`, :meth:`write_transform`) are packed as float64 or raw
-arrays straight into the outgoing buffer; every other call travels pickled. Opening, closing,
+u16 writer id>`` then the payload, padded to 8 bytes. The frequent calls (:meth:`write_sim_step`,
+:meth:`write_image`, :meth:`write_scene`, :meth:`write_transform`, :meth:`write_rl_step`) are packed
+as float64 or raw arrays straight into the outgoing buffer (float64 holds every value they carry
+exactly); the rare ones travel pickled. Opening is not waited for. Closing,
 aborting and :attr:`message_count` wait for the helper's answer on its stdout (a length-prefixed
 pickle), which carries the helper's exception, if any, to be raised here.
 
@@ -24,6 +25,8 @@ Failure semantics:
   :meth:`close`) raises ``RuntimeError`` with the cause, and the episode stays ``.partial``.
 * Data still in this process's buffer (at most :data:`BUFFER_BYTES`) is lost when this process is
   killed, as the chunk in progress of the in-process writer is.
+* A child this process forks (not spawns) holds the pipe open too: the helper then sees the end of
+  its input only when that child exits as well. A forked child that records starts its own helper.
 """
 
 from __future__ import annotations
