@@ -74,6 +74,9 @@ class EpisodeRecorder:
         scene: write ``/tf`` and ``/scene`` at every decision and the lane markings once.
     """
 
+    MAX_PENDING_STEPS = 64
+    """Simulation steps kept before they go to the writer when no decision boundary comes."""
+
     def __init__(
         self, writer: EpisodeWriter | ProcessEpisodeWriter, core: LaneChangeCore, env: int = 0, *, images: bool = True,
         scene: bool = True,
@@ -89,11 +92,19 @@ class EpisodeRecorder:
         self._lc_active = False
         self._off_road = False
         self._pending: tuple[int, float, int, np.ndarray, np.ndarray] | None = None
+        # Simulation steps not yet handed to the writer (see _flush_steps).
+        self._steps: list[int] = []
+        self._ts: list[float] = []
+        self._ego: list[tuple[float, int, int, int, bool, float, float, float]] = []
+        self._states: list[tuple[np.ndarray, ...]] = []
+        self._targets: list[np.ndarray] = []
 
     # -- life cycle -------------------------------------------------------------------------------
     def attach(self) -> None:
         """Record the state right after ``core.reset`` (step 0) and register the per-step hook."""
         sim, e = self.core.sim, self.env
+        if self._steps:
+            raise RuntimeError("attach() with steps not yet written: call after_step() or detach() before a reset")
         self.done, self.decisions, self.total_reward, self.outcome = False, 0, 0.0, RUNNING
         self._lc_active = self._lane_change_active(sim)
         self._off_road = bool(sim.off_road[e])
@@ -107,7 +118,8 @@ class EpisodeRecorder:
             sim.hooks.append(self)
 
     def detach(self) -> None:
-        """Stop recording (remove the hook). Safe to call twice."""
+        """Write what is pending and stop recording (remove the hook). Safe to call twice."""
+        self._flush_steps()
         if self in self.core.sim.hooks:
             self.core.sim.hooks.remove(self)
 
@@ -121,15 +133,26 @@ class EpisodeRecorder:
         return bool(sim.lc_active.item(e, 0) if sim.autopilot_ego else sim.ego_lc_active.item(e))
 
     def _write_sim_step(self, sim: HighwaySim) -> None:
-        # Runs after every simulation step: scalars via ndarray.item (no numpy scalar objects).
-        w, e = self.writer, self.env
+        # Runs after every simulation step. It keeps references to the simulator's state arrays, which
+        # the simulator replaces (never changes) at every step; target_lane is changed in place (lane
+        # changes start on it), so its row is copied. The steps go to the writer in one call at the
+        # end of the decision (_flush_steps), or before an event so that the file keeps step order.
+        e = self.env
         step, t = sim.step.item(e), sim.t_s.item(e)
-        speed, lane = sim.speed[e], sim.lane[e]
         collision_with, invasion, off_road = sim.collision_with.item(e), sim.lane_invasion.item(e), sim.off_road.item(e)
-        vehicles = (sim.ids, sim.x[e], sim.y[e], sim.yaw[e], speed, sim.accel[e], lane, sim.target_lane[e],
-                    sim.length[e], sim.width[e])  # fmt: skip
-        w.write_sim_step(step, t, vehicles, speed.item(0), lane.item(0), collision_with, invasion, off_road,
-                         sim.steer.item(e), sim.throttle.item(e), sim.brake.item(e))  # fmt: skip
+        self._steps.append(step)
+        self._ts.append(t)
+        self._ego.append((sim.speed.item(e, 0), sim.lane.item(e, 0), collision_with, invasion, off_road,
+                          sim.steer.item(e), sim.throttle.item(e), sim.brake.item(e)))  # fmt: skip
+        self._states.append((sim.x, sim.y, sim.yaw, sim.speed, sim.accel, sim.lane))
+        self._targets.append(sim.target_lane[e].copy())
+        active = self._lane_change_active(sim)
+        if not (collision_with >= 0 or invasion >= 0 or off_road != self._off_road or active != self._lc_active):
+            if len(self._steps) >= self.MAX_PENDING_STEPS:
+                self._flush_steps()
+            return
+        self._flush_steps()
+        w = self.writer
         if collision_with >= 0:
             w.write_collision(step, t, other_id=collision_with, ego_x=float(sim.x[e, 0]), ego_y=float(sim.y[e, 0]),
                               ego_speed=float(sim.speed[e, 0]), other_speed=float(sim.speed[e, collision_with]))  # fmt: skip
@@ -141,7 +164,6 @@ class EpisodeRecorder:
                           "ego left the road" if off_road else "ego back on the road",
                           "warning" if off_road else "info")  # fmt: skip
             self._off_road = off_road
-        active = self._lane_change_active(sim)
         if active != self._lc_active:
             lane, target = int(sim.lane[e, 0]), int(sim.target_lane[e, 0])
             if active:
@@ -149,6 +171,21 @@ class EpisodeRecorder:
             else:
                 w.write_event(step, t, "lane_change_end", f"in lane {lane}")
             self._lc_active = active
+
+    def _flush_steps(self) -> None:
+        """Hand the pending simulation steps to the writer (one ``write_sim_steps`` call)."""
+        if not self._steps:
+            return
+        sim, e = self.core.sim, self.env
+        states = self._states
+        if sim.num_envs == 1:  # (1, N) arrays: stacking them gives (K, N)
+            x, y, yaw, speed, accel, lane = (np.concatenate([s[i] for s in states]) for i in range(6))
+        else:
+            x, y, yaw, speed, accel, lane = (np.stack([s[i][e] for s in states]) for i in range(6))
+        vehicles = (sim.ids, x, y, yaw, speed, accel, lane, np.stack(self._targets), sim.length[e], sim.width[e])
+        self.writer.write_sim_steps(np.array(self._steps), np.array(self._ts), vehicles,
+                                    np.array(self._ego, dtype=np.float64))  # fmt: skip
+        self._steps, self._ts, self._ego, self._states, self._targets = [], [], [], [], []
 
     # -- per decision -----------------------------------------------------------------------------
     def before_step(self, obs: Mapping[str, np.ndarray], action_mask: np.ndarray, actions: np.ndarray) -> None:
@@ -158,6 +195,7 @@ class EpisodeRecorder:
             obs: the batched observation of all environments (``core.observe()``), e.g. ``current`` (E, 9, 9).
             action_mask: (E, 3) bool. actions: (E,) int.
         """
+        self._flush_steps()
         sim, e, w = self.core.sim, self.env, self.writer
         step, t = sim.step.item(e), sim.t_s.item(e)
         if self.scene:
@@ -186,6 +224,7 @@ class EpisodeRecorder:
         """Call right after ``core.step``: writes ``/rl/step`` (and the outcome event when the episode ends)."""
         if self._pending is None:
             raise RuntimeError("after_step() without before_step()")
+        self._flush_steps()
         step, t, action, mask, current = self._pending
         self._pending = None
         e = self.env

@@ -232,6 +232,23 @@ class EpisodeWriter:
                                 throttle, brake)  # fmt: skip
         self._mcap.add_message(ego_id, time_ns, ego, time_ns)
 
+    def write_sim_steps(self, steps: np.ndarray, ts: np.ndarray, vehicles: Sequence[np.ndarray],
+                        ego: np.ndarray) -> None:  # fmt: skip
+        """K consecutive simulation steps in one call: what :meth:`write_sim_step` writes for each.
+
+        Args:
+            steps: (K,) int. ts: (K,) float, seconds.
+            vehicles: the arrays :data:`~lcdata.encode.VEHICLE_COLUMNS`, each (K, N), or (N,) for a column
+                that is the same at every step of the call.
+            ego: (K, 8) float64: speed, lane, collision_with, lane_invasion, off_road, steer, throttle, brake.
+        """
+        static = [column if column.ndim == 1 else None for column in vehicles]
+        for k, (step, t_s, (speed, lane, collision_with, invasion, off_road, steer, throttle, brake)) in enumerate(
+                zip(np.asarray(steps).tolist(), np.asarray(ts).tolist(), np.asarray(ego).tolist(), strict=True)):  # fmt: skip
+            columns = [column[k] if fixed is None else fixed for column, fixed in zip(vehicles, static, strict=True)]
+            self.write_sim_step(int(step), t_s, columns, speed, int(lane), int(collision_with), int(invasion),
+                                bool(off_road), steer, throttle, brake)  # fmt: skip
+
     def write_collision(
         self,
         step: int,

@@ -66,7 +66,7 @@ _LENGTH = struct.Struct("<I")
 _IMAGE_HEAD = struct.Struct("<qdQQQ")  # step, t, channels, height, width; the pixels follow
 _F_SETPIPE_SZ = 1031
 
-OP_OPEN, OP_STEP, OP_IMAGE, OP_SCENE, OP_TF, OP_CALL, OP_CLOSE, OP_ABORT, OP_COUNT, OP_RL = range(1, 11)
+OP_OPEN, OP_STEP, OP_IMAGE, OP_SCENE, OP_TF, OP_CALL, OP_CLOSE, OP_ABORT, OP_COUNT, OP_RL, OP_STEPS = range(1, 12)
 _RL_SCALARS = 17  # step, t, decision, action, mask x 3, reward, 4 components, terminated, truncated, outcome, rows, cols
 _OUTCOMES = (RUNNING, *OUTCOMES)
 _OUTCOME_CODES = {name: code for code, name in enumerate(_OUTCOMES)}
@@ -279,6 +279,26 @@ class ProcessEpisodeWriter:
             f64[at : at + n] = column
             at += n
 
+    def write_sim_steps(self, steps: np.ndarray, ts: np.ndarray, vehicles: Sequence[np.ndarray],
+                        ego: np.ndarray) -> None:  # fmt: skip
+        """See :meth:`lcdata.writer.EpisodeWriter.write_sim_steps` (one record; a (N,) column is sent once)."""
+        svc = self._check()
+        k, n = len(steps), len(vehicles[0]) if vehicles[0].ndim == 1 else vehicles[0].shape[1]
+        sizes = [n if column.ndim == 1 else k * n for column in vehicles]
+        at = svc.reserve(OP_STEPS, self._wid, 8 * (2 + len(sizes) + 10 * k + sum(sizes))) >> 3
+        f64 = svc.f64
+        f64[at : at + 2] = (k, n)
+        f64[at + 2 : at + 2 + len(sizes)] = sizes
+        at += 2 + len(sizes)
+        f64[at : at + k] = steps
+        f64[at + k : at + 2 * k] = ts
+        at += 2 * k
+        f64[at : at + 8 * k].reshape(k, 8)[...] = ego
+        at += 8 * k
+        for column, size in zip(vehicles, sizes, strict=True):
+            f64[at : at + size].reshape(column.shape)[...] = column
+            at += size
+
     def write_image(self, step: int, t_s: float, chw: np.ndarray) -> None:
         """See :meth:`lcdata.writer.EpisodeWriter.write_image` (copies the uint8 image here)."""
         svc = self._check()
@@ -425,6 +445,21 @@ def _step(writer: EpisodeWriter, a: np.ndarray) -> None:
                           bool(off_road), steer, throttle, brake)  # fmt: skip
 
 
+def _steps(writer: EpisodeWriter, a: np.ndarray) -> None:
+    k, n = int(a[0]), int(a[1])
+    sizes = a[2:12].astype(np.int64).tolist()
+    at = 12
+    steps, ts = a[at : at + k].astype(np.int64), a[at + k : at + 2 * k]
+    at += 2 * k
+    ego = a[at : at + 8 * k].reshape(k, 8)
+    at += 8 * k
+    vehicles = []
+    for size in sizes:
+        vehicles.append(a[at : at + size] if size == n else a[at : at + size].reshape(k, n))  # (N,): every step
+        at += size
+    writer.write_sim_steps(steps, ts, vehicles, ego)
+
+
 def _scene(writer: EpisodeWriter, a: np.ndarray) -> None:
     step, t, height_m, ego_id, n = a[:_SCENE_SCALARS].tolist()
     n = int(n)
@@ -516,6 +551,8 @@ def serve() -> None:
             elif op == OP_TF:
                 step, t, x, y, yaw = np.frombuffer(payload, dtype=np.float64).tolist()
                 writer.write_transform(int(step), t, x, y, yaw)
+            elif op == OP_STEPS:
+                _steps(writer, np.frombuffer(payload, dtype=np.float64))
             elif op == OP_RL:
                 _rl_step(writer, np.frombuffer(payload, dtype=np.float64))
             elif op == OP_CALL:

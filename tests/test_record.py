@@ -97,6 +97,50 @@ def test_round_trip_tracks_ego_steps_metadata(tmp_path: pathlib.Path, small: Sce
     assert len(ep.image_steps) == len(actions)
 
 
+def test_simulator_replaces_the_state_arrays_it_steps(small: ScenarioConfig) -> None:
+    """The recorder keeps references to x, y, yaw, speed, accel and lane until the end of a decision:
+    the simulator must replace these arrays at every step, not change them in place (only a reset
+    writes into the rows of the environments it resets)."""
+    core, driver = LaneChangeCore(small, 2), make_driver("random", 1)
+    names = ("x", "y", "yaw", "speed", "accel", "lane")
+    kept: list[tuple[list[np.ndarray], list[np.ndarray]]] = []
+    core.sim.hooks.append(lambda sim: kept.append(([getattr(sim, n) for n in names],
+                                                   [getattr(sim, n).copy() for n in names])))  # fmt: skip
+    core.reset([0, 1], [episode_seed(1), episode_seed(2)])
+    obs = core.observe()
+    for decision in range(40):
+        core.step(driver(obs, core.action_mask(), core))
+        if decision == 20:
+            core.reset([0], [episode_seed(3)])  # env 0 starts over while env 1 goes on
+        obs = core.observe()
+    assert len(kept) == 400
+    for k, (refs, copies) in enumerate(kept):
+        rows = slice(1, 2) if k == 209 else slice(None)  # the reset wrote env 0 into the arrays of step 209
+        for name, ref, copy in zip(names, refs, copies, strict=True):
+            assert ref[rows].tobytes() == copy[rows].tobytes(), (k, name)
+
+
+def test_hook_only_recording_flushes_by_itself(tmp_path: pathlib.Path, small: ScenarioConfig) -> None:
+    """Without before_step/after_step the recorder writes its steps every MAX_PENDING_STEPS and on detach."""
+    core = LaneChangeCore(small, 1, autopilot_ego=True)
+    seen: list[np.ndarray] = []
+    with EpisodeWriter(tmp_path / "ep.mcap", metadata={"seed": 1}) as writer:
+        recorder = EpisodeRecorder(writer, core)
+        core.reset([0], [episode_seed(1)])
+        recorder.attach()
+        core.sim.hooks.append(lambda sim: seen.append(sim.x[0].copy()))
+        for _ in range(15):  # 150 steps: two full batches of 64 and the rest on detach
+            core.step(np.array([1]))
+        with pytest.raises(RuntimeError, match="not yet written"):
+            recorder.attach()  # as after a reset: the pending steps' rows would be overwritten
+        recorder.detach()
+        with pytest.raises(RuntimeError, match="before_step"):
+            recorder.after_step(None)  # type: ignore[arg-type]
+    tracks = track_arrays(read_episode(tmp_path / "ep.mcap"))
+    np.testing.assert_array_equal(tracks.steps, np.arange(151))
+    assert tracks.columns["x"][1:].tobytes() == np.stack(seen).tobytes()
+
+
 def test_rebuilt_observations_equal_the_environments(tmp_path: pathlib.Path, small: ScenarioConfig) -> None:
     result = record_episode(small, 5, "rule", tmp_path / "ep.mcap")
     ep = read_episode(result.path)

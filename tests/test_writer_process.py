@@ -53,6 +53,45 @@ def test_same_bytes_as_the_in_process_writer(tmp_path: pathlib.Path, small: Scen
     assert writer_process_pid() is not None
 
 
+def test_each_call_gives_the_same_bytes(tmp_path: pathlib.Path) -> None:
+    """Every writing method, called directly (per step and batched, static and per-step columns)."""
+    rng = np.random.default_rng(0)
+    n, k = 5, 4
+    ids, length, width = np.arange(n), np.full(n, 4.8), np.full(n, 1.9)
+    cols = [rng.normal(size=(k, n)) for _ in range(5)]
+    lanes = rng.integers(0, 4, size=(2, k, n))
+    ego = np.column_stack([rng.normal(size=k), lanes[0, :, 0], [-1, 2, -1, -1], [-1, -1, 1, -1], [0, 0, 1, 1],
+                           rng.normal(size=(k, 3))])  # fmt: skip
+    contents = []
+    for mode in ("process", "inline"):
+        with open_writer(tmp_path / mode / "ep.mcap", mode=mode, metadata={"seed": 3}, start_time_ns=T0) as w:
+            w.write_sim_steps(np.arange(k), np.arange(k) * 0.05, (ids, *cols, lanes[0], lanes[1], length, width), ego)
+            w.write_sim_step(k, k * 0.05, (ids, *(c[0] for c in cols), lanes[0, 0], lanes[1, 0], length, width),
+                             1.5, 2, -1, -1, False, 0.1, 0.2, 0.0)  # fmt: skip
+            w.write_vehicles(k + 1, 0.3, ids, *(c[1] for c in cols), lanes[0, 1], lanes[1, 1], length, width)
+            w.write_ego(k + 1, 0.3, speed=2.0, lane=1)
+            w.write_transform(k, 0.2, 1.0, 2.0, 0.3)
+            w.write_scene(k, 0.2, ids, cols[0][0], cols[1][0], cols[2][0], length, width)
+            w.write_image(k, 0.2, rng.integers(0, 255, (3, 8, 6), dtype=np.uint8))
+            w.write_rl_step(k, 0.2, action=2, action_mask=np.array([False, True, True]), reward=-1.5,
+                            reward_components={"forward": 1.0, "collision": -2.5}, outcome="collision",
+                            terminated=True, decision=7, obs_current=rng.normal(size=(3, 4)))  # fmt: skip
+            w.write_prediction(k, 0.2, np.array([1, -1]), rng.normal(size=(2, 3, 2)))
+            w.write_collision(k, 0.2, other_id=2, ego_x=1.0, ego_y=2.0, ego_speed=3.0, other_speed=4.0)
+            w.write_event(k, 0.2, "note", "text", "debug")
+            w.write_lane_markings(0.0, [np.array([[0.0, 0.0], [10.0, 0.0]])], [True])
+        contents.append(w.path.read_bytes())
+        rng = np.random.default_rng(0)  # the same draws for the second writer
+        cols = [rng.normal(size=(k, n)) for _ in range(5)]
+        lanes = rng.integers(0, 4, size=(2, k, n))
+        ego = np.column_stack([rng.normal(size=k), lanes[0, :, 0], [-1, 2, -1, -1], [-1, -1, 1, -1], [0, 0, 1, 1],
+                               rng.normal(size=(k, 3))])  # fmt: skip
+    assert contents[0] == contents[1]
+    ep = read_episode(tmp_path / "process" / "ep.mcap")
+    assert ep.ego["step"].tolist() == [0, 1, 2, 3, 4, 5] and ep.ego["collision_with"].tolist()[:4] == [-1, 2, -1, -1]
+    np.testing.assert_array_equal(ep.tracks["x"].to_numpy()[: k * n], cols[0].reshape(-1))
+
+
 def test_episodes_written_at_once_by_one_helper(tmp_path: pathlib.Path, small: ScenarioConfig) -> None:
     """Two environments of a batch recorded at the same time (interleaved records) equal two inline recordings."""
     seeds = [episode_seed(4), episode_seed(9)]
