@@ -97,7 +97,7 @@ class EpisodeRecorder:
         self._ts: list[float] = []
         self._ego: list[tuple[float, int, int, int, bool, float, float, float]] = []
         self._states: list[tuple[np.ndarray, ...]] = []
-        self._targets: list[np.ndarray] = []
+        self._targets = np.zeros((self.MAX_PENDING_STEPS, core.sim.num_vehicles), dtype=np.int64)
 
     # -- life cycle -------------------------------------------------------------------------------
     def attach(self) -> None:
@@ -144,11 +144,11 @@ class EpisodeRecorder:
         self._ts.append(t)
         self._ego.append((sim.speed.item(e, 0), sim.lane.item(e, 0), collision_with, invasion, off_road,
                           sim.steer.item(e), sim.throttle.item(e), sim.brake.item(e)))  # fmt: skip
+        self._targets[len(self._states)] = sim.target_lane[e]
         self._states.append((sim.x, sim.y, sim.yaw, sim.speed, sim.accel, sim.lane))
-        self._targets.append(sim.target_lane[e].copy())
         active = self._lane_change_active(sim)
         if not (collision_with >= 0 or invasion >= 0 or off_road != self._off_road or active != self._lc_active):
-            if len(self._steps) >= self.MAX_PENDING_STEPS:
+            if len(self._steps) == self.MAX_PENDING_STEPS:
                 self._flush_steps()
             return
         self._flush_steps()
@@ -176,16 +176,18 @@ class EpisodeRecorder:
         """Hand the pending simulation steps to the writer (one ``write_sim_steps`` call)."""
         if not self._steps:
             return
-        sim, e = self.core.sim, self.env
-        states = self._states
-        if sim.num_envs == 1:  # (1, N) arrays: stacking them gives (K, N)
-            x, y, yaw, speed, accel, lane = (np.concatenate([s[i] for s in states]) for i in range(6))
+        sim, e, states, k = self.core.sim, self.env, self._states, len(self._steps)
+        # One numpy call for the six columns of all K steps (a call per array costs more than its copy);
+        # the lane, an integer, comes out as float64, which holds it exactly.
+        if sim.num_envs == 1:  # (1, N) arrays: concatenating them gives (K, N)
+            columns = np.concatenate([s[i] for i in range(6) for s in states])
         else:
-            x, y, yaw, speed, accel, lane = (np.stack([s[i][e] for s in states]) for i in range(6))
-        vehicles = (sim.ids, x, y, yaw, speed, accel, lane, np.stack(self._targets), sim.length[e], sim.width[e])
+            columns = np.stack([s[i][e] for i in range(6) for s in states])
+        x, y, yaw, speed, accel, lane = columns.reshape(6, k, -1)
+        vehicles = (sim.ids, x, y, yaw, speed, accel, lane, self._targets[:k], sim.length[e], sim.width[e])
         self.writer.write_sim_steps(np.array(self._steps), np.array(self._ts), vehicles,
                                     np.array(self._ego, dtype=np.float64))  # fmt: skip
-        self._steps, self._ts, self._ego, self._states, self._targets = [], [], [], [], []
+        self._steps, self._ts, self._ego, self._states = [], [], [], []
 
     # -- per decision -----------------------------------------------------------------------------
     def before_step(self, obs: Mapping[str, np.ndarray], action_mask: np.ndarray, actions: np.ndarray) -> None:
