@@ -1,10 +1,13 @@
 """Record simulated episodes to MCAP: a per-step recorder any driver loop can use, and whole episodes.
 
-:class:`EpisodeRecorder` is a ``HighwaySim.hooks`` entry for one environment index. It writes
-``/vehicles`` and ``/ego/state`` (plus ``/ego/collision`` and ``/log`` events) after every simulation
+:class:`EpisodeRecorder` is a ``HighwaySim.hooks`` entry for one environment index. It records
+``/vehicles`` and ``/ego/state`` (plus ``/ego/collision`` and ``/log`` events) of every simulation
 step, and, when the driver loop calls :meth:`~EpisodeRecorder.before_step` and
 :meth:`~EpisodeRecorder.after_step` around ``core.step``, ``/tf``, ``/scene``, the bird's-eye image
-and ``/rl/step`` at the decision rate. It keeps no history, so memory stays flat however long the run::
+and ``/rl/step`` at the decision rate. The steps of a decision go to the writer together at its end
+(at most :attr:`~EpisodeRecorder.MAX_PENDING_STEPS` are held, as references to the simulator's
+arrays), so memory stays flat however long the run. Do not reset the recorded environment while
+steps are pending: :meth:`~EpisodeRecorder.after_step` and :meth:`~EpisodeRecorder.detach` write them::
 
     core = LaneChangeCore(config, num_envs)
     with EpisodeWriter(path, metadata=episode_metadata(config, seed, ...)) as writer:

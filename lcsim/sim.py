@@ -105,6 +105,9 @@ class HighwaySim:
         self.target_speed = ec.target_speed_kmh / 3.6
         self.index: LaneIndex | None = None
         self._ego_flat = np.arange(e, dtype=np.int64) * n  # flat index of each environment's vehicle 0
+        # Called after every substep. Contract (tested in tests/test_record.py): each substep binds new
+        # x, y, yaw, speed, accel and lane arrays and never writes into earlier ones (only reset writes,
+        # into the rows it resets), so a hook may keep references to them; target_lane is changed in place.
         self.hooks: list[SubstepHook] = []
 
     # ------------------------------------------------------------------ reset
