@@ -8,7 +8,11 @@ alternating so that a drift of the machine's load hits both sides alike, after o
 is not counted. Each pair gives one overhead figure (times summed over the seeds); the result is the
 median over the pairs, with the spread (min, quartiles, max) next to it, for wall-clock time
 (``time.perf_counter``, the target) and for process CPU time (``time.process_time``: the simulation,
-the recorder and the writer's compression thread; a shared machine disturbs it less). Scenarios: the
+the recorder and, with ``--writer thread``, the compression thread; a shared machine disturbs it
+less). With the default ``--writer process`` the encoding and compression run in a helper process
+on the other core: its CPU time is reported separately, as a fraction of the bare CPU time. The
+share of CPU time the hypervisor stole during the runs is printed too: on a busy host the wall
+figures grow with it (``tools/bench_mcap_instructions.py`` counts instructions instead). Scenarios: the
 paper's lane-change scenario with the rule-based driver (100 vehicles, image at every decision) and
 the corpus scenario (20 autopilot vehicles, 2000 steps). Read throughput:
 ``read_episode(path).tracks`` on the recorded files, vehicle rows per second into pandas (best of
