@@ -179,17 +179,15 @@ class EpisodeRecorder:
         """Hand the pending simulation steps to the writer (one ``write_sim_steps`` call)."""
         if not self._steps:
             return
-        sim, e, states, k = self.core.sim, self.env, self._states, len(self._steps)
-        # One numpy call for the six columns of all K steps (a call per array costs more than its copy);
-        # the lane, an integer, comes out as float64, which holds it exactly.
-        if sim.num_envs == 1:  # (1, N) arrays: concatenating them gives (K, N)
-            columns = np.concatenate([s[i] for i in range(6) for s in states])
+        sim, e, states = self.core.sim, self.env, self._states
+        # The six columns go as lists of the per-step arrays: the writer copies them in few numpy calls
+        # (a call per array costs more than its copy). With one environment the arrays are (1, N).
+        if sim.num_envs == 1:
+            columns = list(zip(*states, strict=True))
         else:
-            columns = np.stack([s[i][e] for i in range(6) for s in states])
-        x, y, yaw, speed, accel, lane = columns.reshape(6, k, -1)
-        vehicles = (sim.ids, x, y, yaw, speed, accel, lane, self._targets[:k], sim.length[e], sim.width[e])
-        self.writer.write_sim_steps(np.array(self._steps), np.array(self._ts), vehicles,
-                                    np.array(self._ego, dtype=np.float64))  # fmt: skip
+            columns = [[s[i][e] for s in states] for i in range(6)]
+        vehicles = (sim.ids, *columns, self._targets[: len(states)], sim.length[e], sim.width[e])
+        self.writer.write_sim_steps(self._steps, self._ts, vehicles, self._ego)
         self._steps, self._ts, self._ego, self._states = [], [], [], []
 
     # -- per decision -----------------------------------------------------------------------------

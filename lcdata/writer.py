@@ -232,20 +232,23 @@ class EpisodeWriter:
                                 throttle, brake)  # fmt: skip
         self._mcap.add_message(ego_id, time_ns, ego, time_ns)
 
-    def write_sim_steps(self, steps: np.ndarray, ts: np.ndarray, vehicles: Sequence[np.ndarray],
-                        ego: np.ndarray) -> None:  # fmt: skip
+    def write_sim_steps(self, steps: Sequence[int], ts: Sequence[float], vehicles: Sequence[Any],
+                        ego: Sequence[Sequence[float]]) -> None:  # fmt: skip
         """K consecutive simulation steps in one call: what :meth:`write_sim_step` writes for each.
 
         Args:
-            steps: (K,) int. ts: (K,) float, seconds.
-            vehicles: the arrays :data:`~lcdata.encode.VEHICLE_COLUMNS`, each (K, N), or (N,) for a column
-                that is the same at every step of the call.
-            ego: (K, 8) float64: speed, lane, collision_with, lane_invasion, off_road, steer, throttle, brake.
+            steps: K ints. ts: K floats, seconds.
+            vehicles: the columns :data:`~lcdata.encode.VEHICLE_COLUMNS`, each given as a (K, N) array,
+                as a list of K arrays of N values (one per step, e.g. (1, N) rows of a simulator's
+                arrays), or as one (N,) array when it is the same at every step of the call.
+            ego: K rows of 8 numbers: speed, lane, collision_with, lane_invasion, off_road, steer,
+                throttle, brake.
         """
-        static = [column if column.ndim == 1 else None for column in vehicles]
+        per_step = [None if isinstance(column, np.ndarray) and column.ndim == 1 else column for column in vehicles]
         for k, (step, t_s, (speed, lane, collision_with, invasion, off_road, steer, throttle, brake)) in enumerate(
                 zip(np.asarray(steps).tolist(), np.asarray(ts).tolist(), np.asarray(ego).tolist(), strict=True)):  # fmt: skip
-            columns = [column[k] if fixed is None else fixed for column, fixed in zip(vehicles, static, strict=True)]
+            columns = [fixed if column is None else np.ravel(column[k]) for fixed, column in zip(vehicles, per_step,
+                                                                                             strict=True)]  # fmt: skip
             self.write_sim_step(int(step), t_s, columns, speed, int(lane), int(collision_with), int(invasion),
                                 bool(off_road), steer, throttle, brake)  # fmt: skip
 

@@ -279,12 +279,16 @@ class ProcessEpisodeWriter:
             f64[at : at + n] = column
             at += n
 
-    def write_sim_steps(self, steps: np.ndarray, ts: np.ndarray, vehicles: Sequence[np.ndarray],
-                        ego: np.ndarray) -> None:  # fmt: skip
-        """See :meth:`lcdata.writer.EpisodeWriter.write_sim_steps` (one record; a (N,) column is sent once)."""
+    def write_sim_steps(self, steps: Sequence[int], ts: Sequence[float], vehicles: Sequence[Any],
+                        ego: Sequence[Sequence[float]]) -> None:  # fmt: skip
+        """See :meth:`lcdata.writer.EpisodeWriter.write_sim_steps`: one record; a column the same at every
+        step is sent once, and consecutive columns given per step go into the buffer in one numpy call."""
         svc = self._check()
-        k, n = len(steps), len(vehicles[0]) if vehicles[0].ndim == 1 else vehicles[0].shape[1]
-        sizes = [n if column.ndim == 1 else k * n for column in vehicles]
+        k = len(steps)
+        static = [isinstance(column, np.ndarray) and column.ndim == 1 for column in vehicles]
+        first = vehicles[0]
+        n = len(first) if static[0] else np.size(first[0])
+        sizes = [n if fixed else k * n for fixed in static]
         at = svc.reserve(OP_STEPS, self._wid, 8 * (2 + len(sizes) + 10 * k + sum(sizes))) >> 3
         f64 = svc.f64
         f64[at : at + 2] = (k, n)
@@ -295,9 +299,28 @@ class ProcessEpisodeWriter:
         at += 2 * k
         f64[at : at + 8 * k].reshape(k, 8)[...] = ego
         at += 8 * k
-        for column, size in zip(vehicles, sizes, strict=True):
-            f64[at : at + size].reshape(column.shape)[...] = column
+        run: list[Any] = []  # per-step arrays of consecutive list columns, copied together
+        for column, fixed, size in zip(vehicles, static, sizes, strict=True):
+            if isinstance(column, (list, tuple)):
+                run.extend(column)
+                continue
+            if run:
+                at = self._copy_run(f64, at, run)
+            if fixed:
+                f64[at : at + size] = column
+            else:
+                f64[at : at + size].reshape(np.shape(column))[...] = column
             at += size
+        if run:
+            self._copy_run(f64, at, run)
+
+    @staticmethod
+    def _copy_run(f64: np.ndarray, at: int, arrays: list[Any]) -> int:
+        shape = np.shape(arrays[0])  # (N,) or (1, N); axis=None would ravel each array, at a cost
+        size = shape[-1] * len(arrays)  # every step has N values (concatenate checks it)
+        np.concatenate(arrays, out=f64[at : at + size].reshape(-1, *shape[1:]), casting="same_kind")
+        arrays.clear()
+        return at + size
 
     def write_image(self, step: int, t_s: float, chw: np.ndarray) -> None:
         """See :meth:`lcdata.writer.EpisodeWriter.write_image` (copies the uint8 image here)."""
