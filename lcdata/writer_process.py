@@ -56,7 +56,7 @@ log = logging.getLogger(__name__)
 
 WRITER_MODES = ("process", "thread", "inline")
 """Where an episode is encoded and written: a helper process, a compression thread, or inline."""
-BUFFER_BYTES = 256 << 10
+BUFFER_BYTES = 64 << 10
 """Records are collected in a buffer of this size and written to the helper's pipe when it is full."""
 PIPE_BYTES = 1 << 20
 """Requested pipe capacity (Linux ``F_SETPIPE_SZ``; the default is 64 KiB)."""
