@@ -3,6 +3,7 @@
 
 from __future__ import annotations
 
+import os
 import re
 import shutil
 import subprocess
@@ -16,9 +17,14 @@ def require_valgrind() -> None:
 
 
 def instructions(code: str, *args: str) -> int:
-    """Instructions executed by ``python -c code *args`` (every thread of that process, not its children)."""
+    """Instructions executed by ``python -c code *args`` (every thread of that process, not its children).
+
+    String hashing is seeded the same in every run (``PYTHONHASHSEED=0``): with random seeds the counts
+    of the same work differ by a few percent from run to run.
+    """
     cmd = ["valgrind", "--tool=callgrind", "--callgrind-out-file=/dev/null", sys.executable, "-c", code, *args]
-    run = subprocess.run(cmd, capture_output=True, text=True, check=False)
+    env = {**os.environ, "PYTHONHASHSEED": "0"}
+    run = subprocess.run(cmd, capture_output=True, text=True, check=False, env=env)
     found = re.search(r"Collected\s*:\s*([\d,]+)", run.stderr)
     if run.returncode != 0 or found is None:
         raise SystemExit(f"valgrind failed (exit {run.returncode}): {run.stderr.strip().splitlines()[-1:]}")
