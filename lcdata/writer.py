@@ -36,7 +36,7 @@ import time
 from collections.abc import Mapping, Sequence
 from functools import cache
 from types import TracebackType
-from typing import Any
+from typing import Any, Self
 
 import numpy as np
 from foxglove_schemas_protobuf.Log_pb2 import Log
@@ -79,7 +79,29 @@ def partial_path(path: str | os.PathLike[str]) -> pathlib.Path:
     return path.with_name(path.name + PARTIAL_SUFFIX)
 
 
-class EpisodeWriter:
+class ClosesOnExit:
+    """``with`` support for the episode writers: :meth:`close` when the block ends normally, ``abort()``
+    (the file stays ``.partial``) when it raises."""
+
+    def close(self) -> pathlib.Path:
+        raise NotImplementedError
+
+    def abort(self) -> None:
+        raise NotImplementedError
+
+    def __enter__(self) -> Self:
+        return self
+
+    def __exit__(
+        self, exc_type: type[BaseException] | None, exc: BaseException | None, tb: TracebackType | None
+    ) -> None:
+        if exc_type is None:
+            self.close()
+        else:
+            self.abort()
+
+
+class EpisodeWriter(ClosesOnExit):
     """Stream one episode to ``path`` (an ``.mcap`` file). Use as a context manager.
 
     Args:
@@ -398,13 +420,3 @@ class EpisodeWriter:
             self._mcap.abort()
             log.warning("episode aborted; partial file left at %s", self.partial_path)
 
-    def __enter__(self) -> EpisodeWriter:
-        return self
-
-    def __exit__(
-        self, exc_type: type[BaseException] | None, exc: BaseException | None, tb: TracebackType | None
-    ) -> None:
-        if exc_type is None:
-            self.close()
-        else:
-            self.abort()

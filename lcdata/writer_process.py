@@ -44,12 +44,11 @@ import sys
 import threading
 import time
 from collections.abc import Mapping, Sequence
-from types import TracebackType
 from typing import Any, BinaryIO
 
 import numpy as np
 
-from lcdata.writer import EpisodeWriter, partial_path
+from lcdata.writer import ClosesOnExit, EpisodeWriter, partial_path
 from lcsim.core import OUTCOMES, RUNNING
 
 log = logging.getLogger(__name__)
@@ -209,7 +208,7 @@ def writer_process_pid() -> int | None:
     return _service.pid if _service is not None and _service.pid_owner == os.getpid() else None
 
 
-class ProcessEpisodeWriter:
+class ProcessEpisodeWriter(ClosesOnExit):
     """Stream one episode to ``path`` from a helper process; the same interface as
     :class:`~lcdata.writer.EpisodeWriter` (see the module docstring). Use as a context manager.
 
@@ -438,16 +437,6 @@ class ProcessEpisodeWriter:
                 log.warning("%s: %s", self.partial_path, exc)
             log.warning("episode aborted; partial file left at %s", self.partial_path)
 
-    def __enter__(self) -> ProcessEpisodeWriter:
-        return self
-
-    def __exit__(
-        self, exc_type: type[BaseException] | None, exc: BaseException | None, tb: TracebackType | None
-    ) -> None:
-        if exc_type is None:
-            self.close()
-        else:
-            self.abort()
 
 
 # -- the helper's side ------------------------------------------------------------------------------

@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import time
+
 import pytest
 
 from lcsim.config import ScenarioConfig, TrafficConfig
@@ -27,3 +29,17 @@ def _one_torch_thread_per_worker():
 
     torch.set_num_threads(1)
     yield
+
+
+def wait_gone(pid: int, timeout: float = 30.0) -> None:
+    """Wait until process ``pid`` (not necessarily a child of ours) has exited."""
+    deadline = time.monotonic() + timeout
+    while True:
+        try:
+            with open(f"/proc/{pid}/stat") as f:
+                if f.read().rsplit(")", 1)[1].split()[0] in ("Z", "X"):  # exited, not yet reaped
+                    return
+        except FileNotFoundError:
+            return
+        assert time.monotonic() < deadline, f"process {pid} still running"
+        time.sleep(0.05)

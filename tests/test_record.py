@@ -30,7 +30,7 @@ from lcsim.config import ScenarioConfig
 from lcsim.core import LaneChangeCore
 from lcsim.drivers import make_driver
 from lcsim.envs import LaneChangeEnv
-from tests.conftest import small_config
+from tests.conftest import small_config, wait_gone
 
 ROOT = pathlib.Path(__file__).resolve().parents[1]
 
@@ -182,16 +182,16 @@ def test_replay_is_bit_exact_and_finds_differences(tmp_path: pathlib.Path, small
 
 CHILD = """
 import os, signal, sys, time
-import numpy as np
-from lcdata import EpisodeRecorder, EpisodeWriter, episode_seed
+from lcdata import EpisodeRecorder, episode_seed
 from lcdata.record import episode_metadata
+from lcdata.writer_process import open_writer
 from lcsim.core import LaneChangeCore
 from lcsim.drivers import make_driver
 from tests.conftest import small_config
 
 cfg = small_config(time_limit_s=200.0, route_length_m=1000.0)
 core, driver = LaneChangeCore(cfg, 1), make_driver("rule")
-writer = EpisodeWriter(sys.argv[1], metadata=episode_metadata(cfg, 4, driver="rule"), chunk_size=8192)
+writer = open_writer(sys.argv[1], mode=sys.argv[2], metadata=episode_metadata(cfg, 4, driver="rule"), chunk_size=8192)
 recorder = EpisodeRecorder(writer, core)
 core.reset([0], [episode_seed(4)])
 recorder.attach()
@@ -202,18 +202,27 @@ for _ in range(30):
     recorder.before_step(obs, mask, a)
     recorder.after_step(core.step(a))
     obs = core.observe()
-time.sleep(0.5)  # let the writer thread flush the finished chunks
+if sys.argv[2] == "process":
+    writer.message_count  # an answer from the helper: everything sent so far has reached it
+    print(writer.writer_pid, flush=True)
+else:
+    time.sleep(0.5)  # let the writer thread write the finished chunks
 os.kill(os.getpid(), signal.SIGKILL)
 """
 
 
-def test_sigkill_leaves_a_recoverable_partial(tmp_path: pathlib.Path, small: ScenarioConfig) -> None:
+@pytest.mark.parametrize("mode", ["thread", "process"])
+def test_sigkill_leaves_a_recoverable_partial(tmp_path: pathlib.Path, small: ScenarioConfig, mode: str) -> None:
+    """SIGKILL of the recording process mid-episode. With the helper process, the helper sees its input
+    end, writes out all it was sent and leaves the file ``.partial``: every step recorded is there."""
     other = record_episode(small, 1, "keep", tmp_path / "other.mcap", images=False).path
     before = other.read_bytes()
     target = tmp_path / "killed.mcap"
-    proc = subprocess.run([sys.executable, "-c", textwrap.dedent(CHILD), str(target)], cwd=ROOT, timeout=60,
+    proc = subprocess.run([sys.executable, "-c", textwrap.dedent(CHILD), str(target), mode], cwd=ROOT, timeout=120,
                           capture_output=True)  # fmt: skip
     assert proc.returncode == -signal.SIGKILL, proc.stderr.decode()
+    if mode == "process":
+        wait_gone(int(proc.stdout.split()[-1]))
     assert not target.exists()
     partial = target.with_name(target.name + ".partial")
     with pytest.warns(TruncatedFileWarning, match="recovered"):
@@ -221,6 +230,9 @@ def test_sigkill_leaves_a_recoverable_partial(tmp_path: pathlib.Path, small: Sce
     assert not ep.complete
     tracks = track_arrays(ep)  # complete chunks only: consecutive steps from 0
     assert tracks.steps[0] == 0 and len(tracks.steps) >= 100
+    if mode == "process":  # all 30 decisions of 10 steps reached the helper, and it wrote them all out
+        np.testing.assert_array_equal(tracks.steps, np.arange(301))
+        assert len(ep.steps) == 30
     assert other.read_bytes() == before and sorted(p.name for p in tmp_path.iterdir()) == [
         "killed.mcap.partial", "other.mcap"]  # fmt: skip
     with warnings.catch_warnings():

@@ -5,40 +5,20 @@ from __future__ import annotations
 import os
 import pathlib
 import signal
-import subprocess
-import sys
-import textwrap
-import time
-import warnings
 
 import numpy as np
 import pytest
 
-from lcdata import TruncatedFileWarning, read_episode, record_episode, replay
-from lcdata.offline import track_arrays
+from lcdata import read_episode, record_episode
 from lcdata.record import EpisodeRecorder, episode_metadata, episode_seed
 from lcdata.writer_process import ProcessEpisodeWriter, WriterProcessError, open_writer, writer_process_pid
 from lcsim.config import ScenarioConfig
 from lcsim.core import LaneChangeCore
 from lcsim.drivers import make_driver
+from tests.conftest import wait_gone
 
 ROOT = pathlib.Path(__file__).resolve().parents[1]
 T0 = 1_700_000_000_000_000_000
-
-
-def _gone(pid: int) -> bool:
-    try:
-        with open(f"/proc/{pid}/stat") as f:
-            return f.read().rsplit(")", 1)[1].split()[0] in ("Z", "X")  # exited, not yet reaped
-    except FileNotFoundError:
-        return True
-
-
-def _wait_gone(pid: int, timeout: float = 30.0) -> None:
-    deadline = time.monotonic() + timeout
-    while not _gone(pid):
-        assert time.monotonic() < deadline, f"writer process {pid} still running"
-        time.sleep(0.05)
 
 
 @pytest.mark.parametrize("images", [True, False])
@@ -158,62 +138,10 @@ def test_a_killed_helper_is_reported(tmp_path: pathlib.Path) -> None:
     writer.write_ego(0, 0.0, speed=1.0, lane=0)
     pid = writer.writer_pid
     os.kill(pid, signal.SIGKILL)
-    _wait_gone(pid)
+    wait_gone(pid)
     with pytest.raises(WriterProcessError, match=f"pid {pid}"):
         writer.close()
     assert not (tmp_path / "ep.mcap").exists()
     with ProcessEpisodeWriter(tmp_path / "next.mcap", metadata={}) as nxt:  # a new helper is started
         nxt.write_ego(0, 0.0, speed=2.0, lane=1)
     assert nxt.writer_pid != pid and read_episode(nxt.path).ego["lane"].tolist() == [1]
-
-
-CHILD = """
-import os, signal, sys, time
-from lcdata import EpisodeRecorder, episode_seed
-from lcdata.record import episode_metadata
-from lcdata.writer_process import ProcessEpisodeWriter
-from lcsim.core import LaneChangeCore
-from lcsim.drivers import make_driver
-from tests.conftest import small_config
-
-cfg = small_config(time_limit_s=200.0, route_length_m=1000.0)
-core, driver = LaneChangeCore(cfg, 1), make_driver("rule")
-writer = ProcessEpisodeWriter(sys.argv[1], metadata=episode_metadata(cfg, 4, driver="rule"), chunk_size=8192)
-recorder = EpisodeRecorder(writer, core)
-core.reset([0], [episode_seed(4)])
-recorder.attach()
-obs = core.observe()
-for _ in range(30):
-    mask = core.action_mask()
-    a = driver(obs, mask, core)
-    recorder.before_step(obs, mask, a)
-    recorder.after_step(core.step(a))
-    obs = core.observe()
-writer.message_count  # everything sent so far has reached the helper
-print(writer.writer_pid, flush=True)
-os.kill(os.getpid(), signal.SIGKILL)
-"""
-
-
-def test_sigkill_of_the_recording_process(tmp_path: pathlib.Path, small: ScenarioConfig) -> None:
-    """The helper sees its input end, writes out what it was sent and leaves the episode ``.partial``."""
-    other = record_episode(small, 1, "keep", tmp_path / "other.mcap", images=False).path
-    before = other.read_bytes()
-    target = tmp_path / "killed.mcap"
-    proc = subprocess.run([sys.executable, "-c", textwrap.dedent(CHILD), str(target)], cwd=ROOT, timeout=120,
-                          capture_output=True)  # fmt: skip
-    assert proc.returncode == -signal.SIGKILL, proc.stderr.decode()
-    _wait_gone(int(proc.stdout.split()[-1]))
-    assert not target.exists()
-    partial = target.with_name(target.name + ".partial")
-    with pytest.warns(TruncatedFileWarning, match="recovered"):
-        ep = read_episode(partial)
-    tracks = track_arrays(ep)
-    # all 30 decisions of 10 steps reached the helper before the kill, and it wrote them all out
-    np.testing.assert_array_equal(tracks.steps, np.arange(301))
-    assert len(ep.steps) == 30 and not ep.complete
-    assert other.read_bytes() == before and sorted(p.name for p in tmp_path.iterdir()) == [
-        "killed.mcap.partial", "other.mcap"]  # fmt: skip
-    with warnings.catch_warnings():
-        warnings.simplefilter("ignore", TruncatedFileWarning)
-        assert replay(partial).matches
