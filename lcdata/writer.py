@@ -79,9 +79,24 @@ def partial_path(path: str | os.PathLike[str]) -> pathlib.Path:
     return path.with_name(path.name + PARTIAL_SUFFIX)
 
 
-class ClosesOnExit:
-    """``with`` support for the episode writers: :meth:`close` when the block ends normally, ``abort()``
-    (the file stays ``.partial``) when it raises."""
+class EpisodeSink:
+    """What the episode writers share: the file names, the refusal to overwrite, the time origin, and
+    ``with`` support (:meth:`close` when the block ends normally, :meth:`abort` when it raises: the
+    file stays ``.partial``)."""
+
+    path: pathlib.Path
+    partial_path: pathlib.Path
+    start_time_ns: int
+
+    def _claim(self, path: str | os.PathLike[str], overwrite: bool, start_time_ns: int | None) -> None:
+        """Set :attr:`path`, :attr:`partial_path` and :attr:`start_time_ns` (default: now); raise
+        ``FileExistsError`` for an existing file unless ``overwrite``; create the folder."""
+        self.path = pathlib.Path(path)
+        self.partial_path = partial_path(self.path)
+        if self.path.exists() and not overwrite:
+            raise FileExistsError(f"{self.path} already exists; pass overwrite=True to replace it")
+        self.start_time_ns = time.time_ns() if start_time_ns is None else int(start_time_ns)
+        self.path.parent.mkdir(parents=True, exist_ok=True)
 
     def close(self) -> pathlib.Path:
         raise NotImplementedError
@@ -101,7 +116,7 @@ class ClosesOnExit:
             self.abort()
 
 
-class EpisodeWriter(ClosesOnExit):
+class EpisodeWriter(EpisodeSink):
     """Stream one episode to ``path`` (an ``.mcap`` file). Use as a context manager.
 
     Args:
@@ -130,13 +145,8 @@ class EpisodeWriter(ClosesOnExit):
         compression_level: int = 1,
         background: bool = True,
     ) -> None:
-        self.path = pathlib.Path(path)
-        self.partial_path = partial_path(self.path)
-        if self.path.exists() and not overwrite:
-            raise FileExistsError(f"{self.path} already exists; pass overwrite=True to replace it")
-        self.start_time_ns = time.time_ns() if start_time_ns is None else int(start_time_ns)
+        self._claim(path, overwrite, start_time_ns)
         self.metadata = self._metadata_record(metadata)
-        self.path.parent.mkdir(parents=True, exist_ok=True)
         self._mcap = McapStreamWriter(
             open(self.partial_path, "wb"),  # closed by McapStreamWriter.finish/abort
             chunk_size=chunk_size,

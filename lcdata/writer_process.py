@@ -10,7 +10,7 @@ the very same :class:`~lcdata.writer.EpisodeWriter` calls on them. The file is b
 the in-process writer makes (tested).
 
 Protocol: the helper reads records from its stdin, a pipe: ``<u32 payload bytes, u8 opcode, pad,
-u16 writer id>`` then the payload, padded to 8 bytes. The frequent calls (:meth:`write_sim_step`,
+u16 writer id>`` then the payload, padded to 8 bytes. The frequent calls (:meth:`write_sim_steps`,
 :meth:`write_image`, :meth:`write_scene`, :meth:`write_transform`, :meth:`write_rl_step`) are packed
 as float64 or raw arrays straight into the outgoing buffer (float64 holds every value they carry
 exactly); the rare ones travel pickled. Opening is not waited for. Closing,
@@ -42,13 +42,12 @@ import struct
 import subprocess
 import sys
 import threading
-import time
 from collections.abc import Mapping, Sequence
 from typing import Any, BinaryIO
 
 import numpy as np
 
-from lcdata.writer import ClosesOnExit, EpisodeWriter, partial_path
+from lcdata.writer import EpisodeSink, EpisodeWriter
 from lcsim.core import OUTCOMES, RUNNING
 
 log = logging.getLogger(__name__)
@@ -65,12 +64,11 @@ _LENGTH = struct.Struct("<I")
 _IMAGE_HEAD = struct.Struct("<qdQQQ")  # step, t, channels, height, width; the pixels follow
 _F_SETPIPE_SZ = 1031
 
-OP_OPEN, OP_STEP, OP_IMAGE, OP_SCENE, OP_TF, OP_CALL, OP_CLOSE, OP_ABORT, OP_COUNT, OP_RL, OP_STEPS = range(1, 12)
+OP_OPEN, OP_STEPS, OP_IMAGE, OP_SCENE, OP_TF, OP_CALL, OP_CLOSE, OP_ABORT, OP_COUNT, OP_RL = range(1, 11)
 _RL_SCALARS = 17  # step, t, decision, action, mask x 3, reward, 4 components, terminated, truncated, outcome, rows, cols
 _OUTCOMES = (RUNNING, *OUTCOMES)
 _OUTCOME_CODES = {name: code for code, name in enumerate(_OUTCOMES)}
 _REWARD_KEYS = frozenset(("collision", "off_road", "forward", "success"))
-_STEP_SCALARS = 11  # step, t, ego speed, ego lane, collision_with, invasion, off_road, steer, throttle, brake, N
 _SCENE_SCALARS = 5  # step, t, height_m, ego_id, N
 
 
@@ -98,9 +96,7 @@ class _Service:
             fcntl.fcntl(self._fd, _F_SETPIPE_SZ, PIPE_BYTES)
         except OSError:  # a capped pipe-max-size: the default pipe works, with more hand-offs
             pass
-        self.buf = bytearray(BUFFER_BYTES)
-        self.f64 = np.frombuffer(self.buf, dtype=np.float64)
-        self.u8 = np.frombuffer(self.buf, dtype=np.uint8)
+        self._new_buffer(BUFFER_BYTES)
         self.pos = 0
         self.next_id = 1
 
@@ -119,12 +115,13 @@ class _Service:
             self.flush()
             pos = 0
             if size > len(self.buf):
-                self._grow(size)
+                self._new_buffer(size)
         _HEADER.pack_into(self.buf, pos, nbytes, op, wid)
         self.pos = pos + size
         return pos + 8
 
-    def _grow(self, size: int) -> None:
+    def _new_buffer(self, size: int) -> None:
+        """The outgoing buffer and its float64 and uint8 views (a record larger than it gets a larger one)."""
         self.buf = bytearray(size)
         self.f64 = np.frombuffer(self.buf, dtype=np.float64)
         self.u8 = np.frombuffer(self.buf, dtype=np.uint8)
@@ -208,40 +205,28 @@ def writer_process_pid() -> int | None:
     return _service.pid if _service is not None and _service.pid_owner == os.getpid() else None
 
 
-class ProcessEpisodeWriter(ClosesOnExit):
+class ProcessEpisodeWriter(EpisodeSink):
     """Stream one episode to ``path`` from a helper process; the same interface as
     :class:`~lcdata.writer.EpisodeWriter` (see the module docstring). Use as a context manager.
 
-    Arguments are those of :class:`~lcdata.writer.EpisodeWriter` (the helper compresses on its own
-    thread of control, so there is no ``background``). Errors the in-process writer raises when a
-    call is made (a bad argument) surface at :meth:`close` here, as ``RuntimeError``, with the file
-    left as ``.partial``. Several writers may be open at once (one helper serves them all), but use
-    them from one thread: the buffer they share has no lock.
+    Arguments are those of :class:`~lcdata.writer.EpisodeWriter`; ``options`` (``chunk_size``,
+    ``compression_level``) go to the one in the helper, which compresses on its own core (so
+    ``background`` does not apply). Errors the in-process writer raises when a call is made (a bad
+    argument) surface at :meth:`close` here, as ``RuntimeError``, with the file left as ``.partial``.
+    Several writers may be open at once (one helper serves them all), but use them from one thread:
+    the buffer they share has no lock.
     """
 
-    def __init__(
-        self,
-        path: str | os.PathLike[str],
-        *,
-        metadata: Mapping[str, Any],
-        overwrite: bool = False,
-        start_time_ns: int | None = None,
-        chunk_size: int = 1 << 20,
-        compression_level: int = 1,
-    ) -> None:
-        self.path = pathlib.Path(path)
-        self.partial_path = partial_path(self.path)
-        if self.path.exists() and not overwrite:
-            raise FileExistsError(f"{self.path} already exists; pass overwrite=True to replace it")
-        self.start_time_ns = time.time_ns() if start_time_ns is None else int(start_time_ns)
+    def __init__(self, path: str | os.PathLike[str], *, metadata: Mapping[str, Any], overwrite: bool = False,
+                 start_time_ns: int | None = None, **options: Any) -> None:  # fmt: skip
+        self._claim(path, overwrite, start_time_ns)  # a bad folder or an existing file fails here
         self._svc = svc = _get_service()
         self._wid = svc.next_id
         svc.next_id = svc.next_id % 0xFFFF + 1
         self._closed = False
         self._count: int | None = None
-        kwargs = dict(metadata=dict(metadata), overwrite=overwrite, start_time_ns=self.start_time_ns,
-                      chunk_size=chunk_size, compression_level=compression_level, background=False)  # fmt: skip
-        self.path.parent.mkdir(parents=True, exist_ok=True)  # a bad directory fails here, not later
+        kwargs = {**options, "metadata": dict(metadata), "overwrite": overwrite,
+                  "start_time_ns": self.start_time_ns, "background": False}  # fmt: skip
         svc.send_pickled(OP_OPEN, self._wid, (str(self.path), kwargs))  # a failure in the helper: at close()
 
     def _check(self) -> _Service:
@@ -252,31 +237,14 @@ class ProcessEpisodeWriter(ClosesOnExit):
     def _call(self, name: str, *args: Any, **kwargs: Any) -> None:
         self._check().send_pickled(OP_CALL, self._wid, (name, args, kwargs))
 
-    # -- hot calls: raw values into the shared buffer ----------------------------------------------
+    # -- frequent calls: raw values into the shared buffer --------------------------------------------
     def write_sim_step(
         self, step: int, t_s: float, vehicles: Sequence[np.ndarray], ego_speed: float, ego_lane: int,
         collision_with: int, lane_invasion: int, off_road: bool, steer: float, throttle: float, brake: float,
     ) -> None:  # fmt: skip
-        """See :meth:`lcdata.writer.EpisodeWriter.write_sim_step` (copies ~10 x N float64 values here)."""
-        if self._closed:
-            raise RuntimeError(f"{self.path}: writer is closed")
-        svc = self._svc
-        n = len(vehicles[0])
-        nbytes = 8 * (_STEP_SCALARS + 10 * n)
-        pos = svc.pos
-        if pos + 8 + nbytes > len(svc.buf):
-            pos = svc.reserve(OP_STEP, self._wid, nbytes) - 8
-        else:
-            _HEADER.pack_into(svc.buf, pos, nbytes, OP_STEP, self._wid)
-            svc.pos = pos + 8 + nbytes
-        at = (pos >> 3) + 1
-        f64 = svc.f64
-        f64[at : at + _STEP_SCALARS] = (step, t_s, ego_speed, ego_lane, collision_with, lane_invasion, off_road,
-                                        steer, throttle, brake, n)  # fmt: skip
-        at += _STEP_SCALARS
-        for column in vehicles:
-            f64[at : at + n] = column
-            at += n
+        """See :meth:`lcdata.writer.EpisodeWriter.write_sim_step` (a batch of one step here)."""
+        ego = ((ego_speed, ego_lane, collision_with, lane_invasion, off_road, steer, throttle, brake),)
+        self.write_sim_steps((step,), (t_s,), [np.asarray(column) for column in vehicles], ego)
 
     def write_sim_steps(self, steps: Sequence[int], ts: Sequence[float], vehicles: Sequence[Any],
                         ego: Sequence[Sequence[float]]) -> None:  # fmt: skip
@@ -447,16 +415,6 @@ def _read_exact(stream: BinaryIO, size: int) -> bytes | None:
     return data
 
 
-def _step(writer: EpisodeWriter, a: np.ndarray) -> None:
-    step, t, speed, lane, collision_with, invasion, off_road, steer, throttle, brake, n = a[:_STEP_SCALARS].tolist()
-    n = int(n)
-    cols = a[_STEP_SCALARS : _STEP_SCALARS + 10 * n].reshape(10, n)
-    vehicles = (cols[0].astype(np.int64), *cols[1:6], cols[6].astype(np.int64), cols[7].astype(np.int64),
-                cols[8], cols[9])  # fmt: skip
-    writer.write_sim_step(int(step), t, vehicles, speed, int(lane), int(collision_with), int(invasion),
-                          bool(off_road), steer, throttle, brake)  # fmt: skip
-
-
 def _steps(writer: EpisodeWriter, a: np.ndarray) -> None:
     k, n = int(a[0]), int(a[1])
     sizes = a[2:12].astype(np.int64).tolist()
@@ -496,6 +454,15 @@ def _rl_step(writer: EpisodeWriter, a: np.ndarray) -> None:
                          reward=reward, reward_components=components, terminated=bool(terminated),
                          truncated=bool(truncated), outcome=_OUTCOMES[int(code)], decision=int(decision),
                          obs_current=current)  # fmt: skip
+
+
+def _transform(writer: EpisodeWriter, a: np.ndarray) -> None:
+    step, t, x, y, yaw = a.tolist()
+    writer.write_transform(int(step), t, x, y, yaw)
+
+
+_FLOAT64_RECORDS = {OP_STEPS: _steps, OP_SCENE: _scene, OP_TF: _transform, OP_RL: _rl_step}
+"""Decoders of the records packed as float64."""
 
 
 def serve() -> None:
@@ -554,19 +521,10 @@ def serve() -> None:
         if writer is None:
             continue  # an episode that failed earlier: its records are dropped
         try:
-            if op == OP_STEP:
-                _step(writer, np.frombuffer(payload, dtype=np.float64))
+            if (decode := _FLOAT64_RECORDS.get(op)) is not None:
+                decode(writer, np.frombuffer(payload, dtype=np.float64))
             elif op == OP_IMAGE:
                 _image(writer, payload)
-            elif op == OP_SCENE:
-                _scene(writer, np.frombuffer(payload, dtype=np.float64))
-            elif op == OP_TF:
-                step, t, x, y, yaw = np.frombuffer(payload, dtype=np.float64).tolist()
-                writer.write_transform(int(step), t, x, y, yaw)
-            elif op == OP_STEPS:
-                _steps(writer, np.frombuffer(payload, dtype=np.float64))
-            elif op == OP_RL:
-                _rl_step(writer, np.frombuffer(payload, dtype=np.float64))
             elif op == OP_CALL:
                 name, args, kwargs = pickle.loads(payload)
                 getattr(writer, name)(*args, **kwargs)
