@@ -44,70 +44,63 @@ _VEHICLE_FIELDS = ((3, "<i4"), (4, "<f8"), (5, "<f8"), (6, "<f8"), (7, "<f8"), (
 
 
 class VehicleEncoder:
-    """Encode ``lc.VehicleTracks`` from (N,) arrays into a preallocated wire-format buffer.
+    """Encode ``lc.VehicleTracks`` from (N,) arrays, one step or a batch of steps at a time.
 
-    For a given N every packed field has a fixed position, so the key and length prefixes are
-    written once and each call only copies the arrays into numpy views of the buffer (casting to
-    the wire dtype), then puts the ``step`` and ``t`` fields right before them. The buffer keeps
-    :attr:`HEAD_ROOM` bytes in front of the packed fields, so a container can also write its own
-    record header in front of the message (:meth:`fill`) and take both with one copy. One instance
-    per writer: the buffer is reused between calls.
+    For a given N every packed field has a fixed position after the ``step`` and ``t`` fields, so
+    the key and length prefixes are laid out once (a template) and a batch of K steps is one (K, B)
+    byte array: the template broadcast into it, then one cast-and-copy per column into a strided
+    numpy view (:meth:`bodies`). One instance per writer: the template is kept between calls.
     """
-
-    HEAD_ROOM = 64
-    """Bytes before the packed fields: the step (<= 11) and t (9) fields and >= 44 bytes to spare."""
 
     def __init__(self) -> None:
         self._n = -1
-        self.buffer = bytearray(self.HEAD_ROOM)
-        self._views: list[np.ndarray] = []
+        self._template = np.zeros(0, dtype=np.uint8)
+        self._fields: list[tuple[int, int, str]] = []  # (offset, bytes, wire dtype) in the template
 
     def _layout(self, n: int) -> None:
-        template = bytearray(self.HEAD_ROOM)
-        offsets = []
+        template = bytearray()
+        fields = []
         for field, dtype in _VEHICLE_FIELDS if n else ():
             size = np.dtype(dtype).itemsize * n
             template += tag(field, WIRE_LEN) + varint(size)
-            offsets.append((len(template), size, dtype))
+            fields.append((len(template), size, dtype))
             template += bytes(size)
-        array = np.frombuffer(template, dtype=np.uint8)  # a writable view of the bytearray
-        self.buffer = template
-        self._views = [array[o : o + size].view(dtype) for o, size, dtype in offsets]
+        self._template = np.frombuffer(bytes(template), dtype=np.uint8)
+        self._fields = fields
         self._n = n
 
-    def fill(self, step: int, t_s: float, *columns: np.ndarray) -> int:
-        """Write the message into :attr:`buffer`; return its offset (the message is ``buffer[offset:]``,
-        and at least ``HEAD_ROOM - 20`` bytes before ``offset`` are free for the caller).
+    def bodies(self, k: int, *columns: np.ndarray) -> np.ndarray:
+        """The packed fields of K messages (all but ``step`` and ``t``, which :func:`vehicle_head` makes)
+        as a (K, B) uint8 array: row k is the rest of message k.
 
-        ``columns``: the (N,) arrays ``ids, x, y, yaw, speed, accel, lane, target_lane, length, width``
-        (:data:`VEHICLE_COLUMNS`), any numeric dtype.
+        ``columns``: :data:`VEHICLE_COLUMNS`, each (K, N) (one row per step) or (N,) (the same at every
+        step), any numeric dtype (cast to the wire dtype as numpy assignment casts).
         """
         if len(columns) != len(_VEHICLE_FIELDS):
             names = ", ".join(VEHICLE_COLUMNS)
             raise ValueError(f"expected {len(_VEHICLE_FIELDS)} columns ({names}), got {len(columns)}")
-        n = len(columns[0])
+        n = np.shape(columns[0])[-1]
         if n != self._n:
             self._layout(n)
-        if n:
-            for view, column in zip(self._views, columns, strict=True):
-                view[...] = column
-        buffer = self.buffer
-        start = self.HEAD_ROOM - 9
-        _T_FIELD.pack_into(buffer, start, 0x11, t_s)
-        if 0 < step < 0x80:
-            start -= 2
-            buffer[start] = 0x08
-            buffer[start + 1] = step
-        elif step:
-            head = _step_field(step)
-            start -= len(head)
-            buffer[start : start + len(head)] = head
-        return start
+        out = np.empty((k, self._template.size), dtype=np.uint8)
+        out[...] = self._template
+        for (offset, size, dtype), column in zip(self._fields, columns):  # no fields when N = 0
+            out[:, offset : offset + size].view(dtype)[...] = column
+        return out
 
     def encode(self, step: int, t_s: float, *columns: np.ndarray) -> bytes:
         """Serialized ``lc.VehicleTracks`` of the (N,) arrays :data:`VEHICLE_COLUMNS`, any numeric dtype."""
-        start = self.fill(step, t_s, *columns)
-        return bytes(memoryview(self.buffer)[start:])
+        return vehicle_head(step, t_s) + self.bodies(1, *columns).tobytes()
+
+
+def vehicle_head(step: int, t_s: float) -> bytes:
+    """The ``step`` and ``t`` fields that start an ``lc.VehicleTracks`` message (see :class:`VehicleEncoder`)."""
+    if 0 < step < 0x80:
+        return _STEP_T_FIELDS.pack(0x08, step, 0x11, t_s)
+    return (_step_field(step) if step else b"") + _T_FIELD.pack(0x11, t_s)
+
+
+_STEP_T_FIELDS = struct.Struct("<BBBd")
 
 
 def encode_vehicles(step: int, t_s: float, *columns: np.ndarray) -> bytes:

@@ -21,7 +21,7 @@ import queue
 import struct
 import threading
 import zlib
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 from typing import BinaryIO
 
 import zstandard
@@ -60,14 +60,16 @@ def _string_map(mapping: dict[str, str]) -> bytes:
     return _U32.pack(len(body)) + body
 
 
-MESSAGE_HEADER_SIZE = _MESSAGE_HEADER.size  # 31 bytes before the message data
 
 
-def pack_message_header(buffer: bytearray | memoryview, offset: int, channel_id: int, log_time: int,
-                        data_size: int) -> None:  # fmt: skip
-    """Write a message record header (sequence 0, publish time = log time) into ``buffer`` at ``offset``;
-    the ``data_size`` bytes of message data must follow it."""
-    _MESSAGE_HEADER.pack_into(buffer, offset, OP_MESSAGE, 22 + data_size, channel_id, 0, log_time, log_time)
+MESSAGE_HEADER_BYTES = _MESSAGE_HEADER.size
+"""Bytes of a message record before its data (:func:`message_header`)."""
+
+
+def message_header(channel_id: int, log_time: int, data_size: int) -> bytes:
+    """A message record header (sequence 0, publish time = log time) for ``data_size`` bytes of message
+    data, for :meth:`McapStreamWriter.add_message_records`."""
+    return _MESSAGE_HEADER.pack(OP_MESSAGE, 22 + data_size, channel_id, 0, log_time, log_time)
 
 
 def _record(opcode: int, body: bytes) -> bytes:
@@ -99,7 +101,7 @@ class McapStreamWriter:
         self._chunk_size = chunk_size
         self._compressor = zstandard.ZstdCompressor(level=compression_level)
         self._pos = 0  # file offset; touched only by the I/O side
-        self._chunk: list[bytes] = []  # records of the chunk in progress
+        self._chunk: list[bytes | memoryview] = []  # records of the chunk in progress
         self._chunk_bytes = 0
         self._chunk_start = 0
         self._chunk_end = 0
@@ -155,13 +157,42 @@ class McapStreamWriter:
         )
         self._add(channel_id, log_time, data, 31 + len(data))
 
-    def add_message_record(self, channel_id: int, log_time: int, record: bytes) -> None:
-        """Append a complete message record (``MESSAGE_HEADER`` + data, see :func:`pack_message_header`).
+    def add_message_records(self, records: bytes, channel_ids: Sequence[int], log_times: Sequence[int],
+                            sizes: Sequence[int]) -> None:  # fmt: skip
+        """Append consecutive complete message records (each :func:`message_header` + data) given as one
+        bytes object: the file is the one :meth:`add_message` would make for each record in turn.
 
-        For callers that build the record header in their own buffer, which saves a copy per message.
-        ``channel_id`` and ``log_time`` must be the ones packed into the header.
+        ``channel_ids``, ``log_times`` and ``sizes`` (record bytes, header included) describe the
+        records in order and must match their headers. For callers that encode many messages at once.
         """
-        self._add(channel_id, log_time, record, len(record))
+        view = memoryview(records)
+        at = pos = 0  # records[at:pos] are counted in the chunk in progress but not yet appended to it
+        offset, limit, counts = self._chunk_bytes, self._chunk_size, self._counts
+        indexes, messages = self._message_index, self._chunk_messages
+        first, last = self._chunk_start, self._chunk_end
+        for channel_id, log_time, size in zip(channel_ids, log_times, sizes, strict=True):
+            index = indexes.get(channel_id)
+            if index is None:
+                index = indexes[channel_id] = []
+            index += (log_time, offset)
+            counts[channel_id] += 1
+            if messages == 0:
+                first = last = log_time
+            elif log_time < first:
+                first = log_time
+            elif log_time > last:
+                last = log_time
+            messages += 1
+            offset += size
+            pos += size
+            if offset >= limit:
+                self._chunk.append(view[at:pos])
+                self._chunk_bytes, self._chunk_messages, self._chunk_start, self._chunk_end = offset, messages, first, last
+                self.flush_chunk()
+                at, offset, messages, indexes = pos, 0, 0, self._message_index
+        if pos > at:
+            self._chunk.append(view[at:pos])
+        self._chunk_bytes, self._chunk_messages, self._chunk_start, self._chunk_end = offset, messages, first, last
 
     def _add(self, channel_id: int, log_time: int, data: bytes, size: int) -> None:
         offset = self._chunk_bytes

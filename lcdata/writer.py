@@ -44,7 +44,7 @@ from google.protobuf.message import Message
 from mcap_protobuf.schema import build_file_descriptor_set
 
 from lcdata import encode, topics
-from lcdata.mcap_write import MESSAGE_HEADER_SIZE, McapStreamWriter, pack_message_header
+from lcdata.mcap_write import MESSAGE_HEADER_BYTES, McapStreamWriter, message_header
 from lcdata.proto import lc_pb2
 from lcdata.wire import f_double, f_packed, f_varint
 
@@ -242,31 +242,17 @@ class EpisodeWriter(EpisodeSink):
         self, step: int, t_s: float, vehicles: Sequence[np.ndarray], ego_speed: float, ego_lane: int,
         collision_with: int, lane_invasion: int, off_road: bool, steer: float, throttle: float, brake: float,
     ) -> None:  # fmt: skip
-        """:meth:`write_vehicles` and :meth:`write_ego` of one simulation step in one call (the recorder's hot path).
+        """:meth:`write_vehicles` and :meth:`write_ego` of one simulation step in one call.
 
         ``vehicles``: the (N,) arrays :data:`~lcdata.encode.VEHICLE_COLUMNS`, as :meth:`write_vehicles` takes them.
         """
-        if self._closed:
-            raise RuntimeError(f"{self.path}: writer is closed")
-        time_ns = self.start_time_ns + round(t_s * 1e9)
-        channels = self._channels
-        vehicles_id = channels.get(topics.VEHICLES) or self._channel(topics.VEHICLES)
-        ego_id = channels.get(topics.EGO_STATE) or self._channel(topics.EGO_STATE)
-        # /vehicles: the MCAP record header goes into the encoder's buffer right before the message,
-        # so that the record leaves it with one copy.
-        encoder = self._vehicle_encoder
-        start = encoder.fill(step, t_s, *vehicles)
-        buffer = encoder.buffer
-        record = start - MESSAGE_HEADER_SIZE
-        pack_message_header(buffer, record, vehicles_id, time_ns, len(buffer) - start)
-        self._mcap.add_message_record(vehicles_id, time_ns, buffer[record:])
-        ego = encode.encode_ego(step, t_s, ego_speed, ego_lane, collision_with, lane_invasion, off_road, steer,
-                                throttle, brake)  # fmt: skip
-        self._mcap.add_message(ego_id, time_ns, ego, time_ns)
+        ego = ((ego_speed, ego_lane, collision_with, lane_invasion, off_road, steer, throttle, brake),)
+        self.write_sim_steps((step,), (t_s,), vehicles, ego)
 
     def write_sim_steps(self, steps: Sequence[int], ts: Sequence[float], vehicles: Sequence[Any],
                         ego: Sequence[Sequence[float]]) -> None:  # fmt: skip
-        """K consecutive simulation steps in one call: what :meth:`write_sim_step` writes for each.
+        """K consecutive simulation steps in one call (the recorder's hot path): what :meth:`write_vehicles`
+        and :meth:`write_ego` write for each step in turn, encoded together.
 
         Args:
             steps: K ints. ts: K floats, seconds.
@@ -276,13 +262,38 @@ class EpisodeWriter(EpisodeSink):
             ego: K rows of 8 numbers: speed, lane, collision_with, lane_invasion, off_road, steer,
                 throttle, brake.
         """
-        per_step = [None if isinstance(column, np.ndarray) and column.ndim == 1 else column for column in vehicles]
-        for k, (step, t_s, (speed, lane, collision_with, invasion, off_road, steer, throttle, brake)) in enumerate(
-                zip(np.asarray(steps).tolist(), np.asarray(ts).tolist(), np.asarray(ego).tolist(), strict=True)):  # fmt: skip
-            columns = [fixed if column is None else np.ravel(column[k]) for fixed, column in zip(vehicles, per_step,
-                                                                                             strict=True)]  # fmt: skip
-            self.write_sim_step(int(step), t_s, columns, speed, int(lane), int(collision_with), int(invasion),
-                                bool(off_road), steer, throttle, brake)  # fmt: skip
+        if self._closed:
+            raise RuntimeError(f"{self.path}: writer is closed")
+        steps, ts, ego = np.asarray(steps).tolist(), np.asarray(ts).tolist(), np.asarray(ego).tolist()
+        k = len(steps)
+        if len(ts) != k or len(ego) != k:
+            raise ValueError(f"steps, ts and ego must have one entry per step, got {k}, {len(ts)}, {len(ego)}")
+        if not k:
+            return
+        columns = [np.reshape(c, (k, np.size(c[0]))) if isinstance(c, (list, tuple)) else c for c in vehicles]
+        bodies = self._vehicle_encoder.bodies(k, *columns)
+        body_size = bodies.shape[1]
+        body = memoryview(bodies.tobytes())
+        channels = self._channels
+        vehicles_id = channels.get(topics.VEHICLES) or self._channel(topics.VEHICLES)
+        ego_id = channels.get(topics.EGO_STATE) or self._channel(topics.EGO_STATE)
+        parts: list[bytes | memoryview] = []
+        times: list[int] = []
+        sizes: list[int] = []
+        origin, head, encode_ego = self.start_time_ns, encode.vehicle_head, encode.encode_ego
+        for i, (step, t_s, (speed, lane, collision_with, invasion, off_road, steer, throttle, brake)) in enumerate(
+                zip(steps, ts, ego)):  # fmt: skip
+            step = int(step)
+            time_ns = origin + round(t_s * 1e9)
+            message = head(step, t_s)
+            state = encode_ego(step, t_s, speed, int(lane), int(collision_with), int(invasion), bool(off_road),
+                               steer, throttle, brake)  # fmt: skip
+            size = len(message) + body_size
+            parts += (message_header(vehicles_id, time_ns, size), message, body[i * body_size : (i + 1) * body_size],
+                      message_header(ego_id, time_ns, len(state)), state)  # fmt: skip
+            times += (time_ns, time_ns)
+            sizes += (MESSAGE_HEADER_BYTES + size, MESSAGE_HEADER_BYTES + len(state))
+        self._mcap.add_message_records(b"".join(parts), [vehicles_id, ego_id] * k, times, sizes)
 
     def write_collision(
         self,

@@ -16,8 +16,8 @@ from lcdata.encode import (
     encode_scene_entity_update,
     encode_scene_update,
     encode_timestamp,
+    vehicle_head,
 )
-from lcdata.mcap_write import MESSAGE_HEADER_SIZE, pack_message_header
 from lcdata.proto import lc_pb2
 from lcdata.wire import f_bytes
 
@@ -73,14 +73,27 @@ def test_scene_entity_update_is_the_composition() -> None:
     assert encode_scene_entity_update(7, "vehicles", cubes) == encode_scene_update([encode_entity(7, "vehicles", cubes)])
 
 
-def test_vehicle_encoder_fill_leaves_room_for_a_record_header() -> None:
+@pytest.mark.parametrize("n", [0, 1, 7])
+def test_vehicle_encoder_batches_equal_the_protobuf_runtime(n: int) -> None:
+    """A batch of K messages (columns per step and the same at every step) = K messages of the runtime."""
+    rng = np.random.default_rng(n)
+    steps = [0, 1, 127, 128, 20000, 2**40]
+    k = len(steps)
+    names = ("ids", "x", "y", "yaw", "speed", "accel", "lane", "target_lane", "length", "width")
+    per_step = {"x", "y", "yaw", "speed", "accel", "lane", "target_lane"}
+    cols = [rng.normal(size=(k, n)) * 50 if name in per_step else np.arange(n) + 0.25 for name in names]
+    cols[0] = np.arange(n) + 3  # ids
+    cols[6] = cols[7] = rng.integers(-1, 5, size=(k, n))  # lanes: int64 in, int32 on the wire
     encoder = VehicleEncoder()
-    cols = [np.arange(5) * (k + 1.5) for k in range(10)]
-    for step in (0, 1, 127, 128, 20000, 2**40):
-        start = encoder.fill(step, 0.5, *cols)
-        assert start >= MESSAGE_HEADER_SIZE
-        message = bytes(encoder.buffer[start:])
-        assert message == encoder.encode(step, 0.5, *cols)
-        assert lc_pb2.VehicleTracks.FromString(message).step == step
-        pack_message_header(encoder.buffer, start - MESSAGE_HEADER_SIZE, 3, 42, len(message))
-        assert bytes(encoder.buffer[start:]) == message
+    for repeat in range(2):  # the template is reused
+        bodies = encoder.bodies(k, *cols)
+        for i, step in enumerate(steps):
+            t = 0.05 * step + repeat + 0.5  # t = 0 is written explicitly (the runtime omits it): valid, not equal
+            msg = lc_pb2.VehicleTracks(step=step, t=t)
+            for name, col in zip(names, cols, strict=True):
+                getattr(msg, name).extend((col[i] if col.ndim == 2 else col).tolist())
+            ours = vehicle_head(step, t) + bodies[i].tobytes()
+            assert ours == msg.SerializeToString()
+            assert encoder.encode(step, t, *(c[i] if c.ndim == 2 else c for c in cols)) == ours
+    with pytest.raises(ValueError, match="expected 10 columns"):
+        encoder.bodies(k, *cols[:9])

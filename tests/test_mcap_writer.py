@@ -151,6 +151,36 @@ def test_official_mcap_reader_decodes_every_message(tmp_path: pathlib.Path) -> N
     assert meta["lc"]["seed"] == "7" and meta["lc"]["episode_id"] == "ep"
 
 
+@pytest.mark.parametrize("background", [False, True])
+def test_batched_steps_equal_the_steps_one_by_one(tmp_path: pathlib.Path, background: bool) -> None:
+    """``write_sim_steps`` (static and per-step columns, batches across step 127/128 and across chunk
+    boundaries) writes the file that ``write_vehicles`` + ``write_ego`` step by step write (after a first
+    step that registers both channels, as a batch does before its first message)."""
+    k = 300
+    s = make_state(k, n=6, seed=3)
+    names = ("ids", "x", "y", "yaw", "speed", "accel", "lane", "target_lane", "length", "width")
+    ego = [(float(s["speed"][i, 0]), int(s["lane"][i, 0]), i % 7 - 1, i % 5 - 1, i % 11 == 0, 0.1 * i, 0.5, 0.0)
+           for i in range(k)]  # fmt: skip
+    options = {"metadata": METADATA, "start_time_ns": 10**15, "chunk_size": 8000, "background": background}
+    with EpisodeWriter(tmp_path / "one" / "ep.mcap", **options) as w:
+        w.write_sim_step(0, 0.0, [s[name][0] if s[name].ndim == 2 else s[name] for name in names], *ego[0])
+        for i in range(1, k):
+            w.write_vehicles(i, 0.05 * i, *(s[name][i] if s[name].ndim == 2 else s[name] for name in names))
+            speed, lane, collision, invasion, off_road, steer, throttle, brake = ego[i]
+            w.write_ego(i, 0.05 * i, speed=speed, lane=lane, collision_with=collision, lane_invasion=invasion,
+                        off_road=off_road, steer=steer, throttle=throttle, brake=brake)  # fmt: skip
+    one = w.path.read_bytes()
+    with EpisodeWriter(tmp_path / "batched" / "ep.mcap", **options) as w:
+        for a, b in ((0, 1), (1, 120), (120, 133), (133, 133), (133, 300)):  # an empty batch too
+            columns = [s[name] if s[name].ndim == 1 else s[name][a:b] for name in names]
+            columns[1] = list(s["x"][a:b, None, :])  # a list of (1, N) rows, as the recorder gives them
+            w.write_sim_steps(range(a, b), [0.05 * i for i in range(a, b)], columns, ego[a:b])
+    assert w.path.read_bytes() == one
+    assert read_episode(w.path).tracks.shape[0] == 6 * k
+    with pytest.raises(ValueError, match="one entry per step"), EpisodeWriter(tmp_path / "bad.mcap", **options) as w:
+        w.write_sim_steps([0, 1], [0.0], [s[name] for name in names], ego[:2])
+
+
 def test_time_is_start_plus_sim_time(tmp_path: pathlib.Path) -> None:
     path = tmp_path / "ep.mcap"
     write_episode(path, steps=3)
