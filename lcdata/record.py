@@ -98,8 +98,9 @@ class EpisodeRecorder:
         # Simulation steps not yet handed to the writer (see _flush_steps).
         self._steps: list[int] = []
         self._ts: list[float] = []
-        self._ego: list[tuple[float, int, int, int, bool, float, float, float]] = []
-        self._states: list[tuple[np.ndarray, ...]] = []
+        self._ego: list[float] = []  # 8 per step
+        self._rows: list[np.ndarray] = []  # 6 per step: x, y, yaw, speed, accel, lane
+        self._one_env = core.num_envs == 1
         self._targets = np.zeros((self.MAX_PENDING_STEPS, core.sim.num_vehicles), dtype=np.int64)
 
     # -- life cycle -------------------------------------------------------------------------------
@@ -143,15 +144,19 @@ class EpisodeRecorder:
         e = self.env
         step, t = sim.step.item(e), sim.t_s.item(e)
         collision_with, invasion, off_road = sim.collision_with.item(e), sim.lane_invasion.item(e), sim.off_road.item(e)
+        pending = len(self._steps)
         self._steps.append(step)
         self._ts.append(t)
-        self._ego.append((sim.speed.item(e, 0), sim.lane.item(e, 0), collision_with, invasion, off_road,
-                          sim.steer.item(e), sim.throttle.item(e), sim.brake.item(e)))  # fmt: skip
-        self._targets[len(self._states)] = sim.target_lane[e]
-        self._states.append((sim.x, sim.y, sim.yaw, sim.speed, sim.accel, sim.lane))
+        self._ego += (sim.speed.item(e, 0), sim.lane.item(e, 0), collision_with, invasion, off_road,
+                      sim.steer.item(e), sim.throttle.item(e), sim.brake.item(e))  # fmt: skip
+        self._targets[pending] = sim.target_lane[e]
+        if self._one_env:  # the (1, N) arrays themselves
+            self._rows += (sim.x, sim.y, sim.yaw, sim.speed, sim.accel, sim.lane)
+        else:
+            self._rows += (sim.x[e], sim.y[e], sim.yaw[e], sim.speed[e], sim.accel[e], sim.lane[e])
         active = self._lane_change_active(sim)
         if not (collision_with >= 0 or invasion >= 0 or off_road != self._off_road or active != self._lc_active):
-            if len(self._steps) == self.MAX_PENDING_STEPS:
+            if pending + 1 == self.MAX_PENDING_STEPS:
                 self._flush_steps()
             return
         self._flush_steps()
@@ -176,19 +181,13 @@ class EpisodeRecorder:
             self._lc_active = active
 
     def _flush_steps(self) -> None:
-        """Hand the pending simulation steps to the writer (one ``write_sim_steps`` call)."""
+        """Hand the pending simulation steps to the writer (one ``write_sim_rows`` call)."""
         if not self._steps:
             return
-        sim, e, states = self.core.sim, self.env, self._states
-        # The six columns go as lists of the per-step arrays: the writer copies them in few numpy calls
-        # (a call per array costs more than its copy). With one environment the arrays are (1, N).
-        if sim.num_envs == 1:
-            columns = list(zip(*states, strict=True))
-        else:
-            columns = [[s[i][e] for s in states] for i in range(6)]
-        vehicles = (sim.ids, *columns, self._targets[: len(states)], sim.length[e], sim.width[e])
-        self.writer.write_sim_steps(self._steps, self._ts, vehicles, self._ego)
-        self._steps, self._ts, self._ego, self._states = [], [], [], []
+        sim, e = self.core.sim, self.env
+        self.writer.write_sim_rows(self._steps, self._ts, self._rows, self._targets[: len(self._steps)],
+                                   (sim.ids, sim.length[e], sim.width[e]), self._ego)  # fmt: skip
+        self._steps, self._ts, self._rows, self._ego = [], [], [], []
 
     # -- per decision -----------------------------------------------------------------------------
     def before_step(self, obs: Mapping[str, np.ndarray], action_mask: np.ndarray, actions: np.ndarray) -> None:

@@ -98,6 +98,31 @@ class EpisodeSink:
         self.start_time_ns = time.time_ns() if start_time_ns is None else int(start_time_ns)
         self.path.parent.mkdir(parents=True, exist_ok=True)
 
+    def write_sim_steps(self, steps: Sequence[int], ts: Sequence[float], vehicles: Sequence[Any],
+                        ego: Sequence[Sequence[float]]) -> None:  # fmt: skip
+        raise NotImplementedError
+
+    def write_sim_rows(self, steps: Sequence[int], ts: Sequence[float], rows: Sequence[np.ndarray],
+                       target_lane: np.ndarray, fixed: Sequence[np.ndarray], ego: Sequence[float]) -> None:  # fmt: skip
+        """:meth:`write_sim_steps` with the K steps laid out as :class:`~lcdata.record.EpisodeRecorder`
+        collects them (the recorder's hot path: a sink may copy them without rearranging).
+
+        Args:
+            steps: K ints. ts: K floats, seconds.
+            rows: 6 K arrays of N values (e.g. (1, N) rows of a simulator's arrays): ``x``, ``y``, ``yaw``,
+                ``speed``, ``accel``, ``lane`` of the first step, then of the second, and so on.
+            target_lane: (K, N). fixed: ``ids``, ``length``, ``width``, (N,) each, the same at every step.
+            ego: 8 K numbers, :meth:`write_sim_steps`'s ego rows one after the other.
+        """
+        k = len(steps)
+        if not k:
+            return
+        n = np.size(rows[0])
+        state = np.reshape(rows, (k, 6, n))
+        ids, length, width = fixed
+        columns = (ids, *(state[:, j] for j in range(6)), target_lane, length, width)
+        self.write_sim_steps(steps, ts, columns, np.reshape(ego, (k, 8)))
+
     def close(self) -> pathlib.Path:
         raise NotImplementedError
 

@@ -64,7 +64,7 @@ _LENGTH = struct.Struct("<I")
 _IMAGE_HEAD = struct.Struct("<qdQQQ")  # step, t, channels, height, width; the pixels follow
 _F_SETPIPE_SZ = 1031
 
-OP_OPEN, OP_STEPS, OP_IMAGE, OP_SCENE, OP_TF, OP_CALL, OP_CLOSE, OP_ABORT, OP_COUNT, OP_RL = range(1, 11)
+OP_OPEN, OP_STEPS, OP_IMAGE, OP_SCENE, OP_TF, OP_CALL, OP_CLOSE, OP_ABORT, OP_COUNT, OP_RL, OP_ROWS = range(1, 12)
 _RL_SCALARS = 17  # step, t, decision, action, mask x 3, reward, 4 components, terminated, truncated, outcome, rows, cols
 _OUTCOMES = (RUNNING, *OUTCOMES)
 _OUTCOME_CODES = {name: code for code, name in enumerate(_OUTCOMES)}
@@ -281,6 +281,32 @@ class ProcessEpisodeWriter(EpisodeSink):
         if run:
             self._copy_run(f64, at, run)
 
+    def write_sim_rows(self, steps: Sequence[int], ts: Sequence[float], rows: Sequence[np.ndarray],
+                       target_lane: np.ndarray, fixed: Sequence[np.ndarray], ego: Sequence[float]) -> None:  # fmt: skip
+        """See :meth:`lcdata.writer.EpisodeSink.write_sim_rows`: one record, the rows copied in one numpy call."""
+        svc = self._check()
+        k = len(steps)
+        if not k:
+            return
+        first = rows[0]
+        n = first.size
+        at = svc.reserve(OP_ROWS, self._wid, 8 * (2 + 10 * k + 3 * n + 7 * k * n)) >> 3
+        f64 = svc.f64
+        f64[at : at + 2] = (k, n)
+        at += 2
+        f64[at : at + k] = steps
+        f64[at + k : at + 2 * k] = ts
+        at += 2 * k
+        f64[at : at + 8 * k] = ego
+        at += 8 * k
+        for column in fixed:
+            f64[at : at + n] = column
+            at += n
+        size = 6 * k * n  # (1, N) rows stack to (6 K, N); (N,) rows to (6 K N,)
+        np.concatenate(rows, out=f64[at : at + size].reshape(-1, *first.shape[1:]), casting="same_kind")
+        at += size
+        f64[at : at + k * n].reshape(k, n)[...] = target_lane
+
     @staticmethod
     def _copy_run(f64: np.ndarray, at: int, arrays: list[Any]) -> int:
         shape = np.shape(arrays[0])  # (N,) or (1, N); axis=None would ravel each array, at a cost
@@ -430,6 +456,22 @@ def _steps(writer: EpisodeWriter, a: np.ndarray) -> None:
     writer.write_sim_steps(steps, ts, vehicles, ego)
 
 
+def _rows(writer: EpisodeWriter, a: np.ndarray) -> None:
+    k, n = int(a[0]), int(a[1])
+    at = 2
+    steps, ts = a[at : at + k].astype(np.int64), a[at + k : at + 2 * k]
+    at += 2 * k
+    ego = a[at : at + 8 * k].reshape(k, 8)
+    at += 8 * k
+    ids, length, width = a[at : at + 3 * n].reshape(3, n)
+    at += 3 * n
+    state = a[at : at + 6 * k * n].reshape(k, 6, n)
+    at += 6 * k * n
+    target_lane = a[at : at + k * n].reshape(k, n)
+    columns = (ids, *(state[:, j] for j in range(6)), target_lane, length, width)
+    writer.write_sim_steps(steps, ts, columns, ego)
+
+
 def _scene(writer: EpisodeWriter, a: np.ndarray) -> None:
     step, t, height_m, ego_id, n = a[:_SCENE_SCALARS].tolist()
     n = int(n)
@@ -461,7 +503,7 @@ def _transform(writer: EpisodeWriter, a: np.ndarray) -> None:
     writer.write_transform(int(step), t, x, y, yaw)
 
 
-_FLOAT64_RECORDS = {OP_STEPS: _steps, OP_SCENE: _scene, OP_TF: _transform, OP_RL: _rl_step}
+_FLOAT64_RECORDS = {OP_STEPS: _steps, OP_ROWS: _rows, OP_SCENE: _scene, OP_TF: _transform, OP_RL: _rl_step}
 """Decoders of the records packed as float64."""
 
 
