@@ -84,7 +84,7 @@ class VehicleEncoder:
             self._layout(n)
         out = np.empty((k, self._template.size), dtype=np.uint8)
         out[...] = self._template
-        for (offset, size, dtype), column in zip(self._fields, columns):  # no fields when N = 0
+        for (offset, size, dtype), column in zip(self._fields, columns, strict=False):  # no fields when N = 0
             out[:, offset : offset + size].view(dtype)[...] = column
         return out
 

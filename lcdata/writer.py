@@ -19,10 +19,9 @@ topic                         schema                     rate
 ``log_time = publish_time = start_time_ns + round(t_s * 1e9)``. The file is written to
 ``<path>.partial`` and renamed to ``<path>`` by :meth:`EpisodeWriter.close`, so a killed run never
 leaves a half file under the final name; :func:`lcdata.read_episode` recovers the complete chunks of
-a partial file. Cost on the caller's thread: about 13 µs per simulation step for /vehicles (101
-vehicles) + /ego/state through :meth:`EpisodeWriter.write_sim_step`, the recorder's reads included,
-on a loaded 2-core machine; zstd compression of the chunks (another ~20 µs/step of CPU for such
-data) runs on a background thread. :class:`lcdata.writer_process.ProcessEpisodeWriter` runs all of
+a partial file. The per-step topics (/vehicles, /ego/state) are encoded a batch of steps at a time
+(:meth:`EpisodeWriter.write_sim_steps`); zstd compression of the chunks can run on a background
+thread (``background=True``). :class:`lcdata.writer_process.ProcessEpisodeWriter` runs all of
 it in a helper process instead (what :func:`lcdata.record_episode` uses by default).
 """
 
@@ -298,7 +297,7 @@ class EpisodeWriter(EpisodeSink):
         columns = [np.reshape(c, (k, np.size(c[0]))) if isinstance(c, (list, tuple)) else c for c in vehicles]
         bodies = self._vehicle_encoder.bodies(k, *columns)
         body_size = bodies.shape[1]
-        body = memoryview(bodies.tobytes())
+        body = bodies.reshape(-1).data  # a memoryview: row i is body[i * body_size : (i + 1) * body_size]
         channels = self._channels
         vehicles_id = channels.get(topics.VEHICLES) or self._channel(topics.VEHICLES)
         ego_id = channels.get(topics.EGO_STATE) or self._channel(topics.EGO_STATE)
@@ -307,7 +306,7 @@ class EpisodeWriter(EpisodeSink):
         sizes: list[int] = []
         origin, head, encode_ego = self.start_time_ns, encode.vehicle_head, encode.encode_ego
         for i, (step, t_s, (speed, lane, collision_with, invasion, off_road, steer, throttle, brake)) in enumerate(
-                zip(steps, ts, ego)):  # fmt: skip
+                zip(steps, ts, ego, strict=True)):  # fmt: skip
             step = int(step)
             time_ns = origin + round(t_s * 1e9)
             message = head(step, t_s)
