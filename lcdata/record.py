@@ -99,9 +99,8 @@ class EpisodeRecorder:
         self._steps: list[int] = []
         self._ts: list[float] = []
         self._ego: list[float] = []  # 8 per step
-        self._rows: list[np.ndarray] = []  # 6 per step: x, y, yaw, speed, accel, lane
+        self._rows: list[np.ndarray] = []  # 7 per step: x, y, yaw, speed, accel, lane, target_lane
         self._one_env = core.num_envs == 1
-        self._targets = np.zeros((self.MAX_PENDING_STEPS, core.sim.num_vehicles), dtype=np.int64)
 
     # -- life cycle -------------------------------------------------------------------------------
     def attach(self) -> None:
@@ -110,14 +109,14 @@ class EpisodeRecorder:
         if self._steps:
             raise RuntimeError("attach() with steps not yet written: call after_step() or detach() before a reset")
         self.done, self.decisions, self.total_reward, self.outcome = False, 0, 0.0, RUNNING
-        self._lc_active = self._lane_change_active(sim)
+        self._lc_active = bool(sim.lc_active.item(e, 0) if sim.autopilot_ego else sim.ego_lc_active.item(e))
         self._off_road = bool(sim.off_road[e])
         t0 = float(sim.t_s[e])
         if self.scene:
             self._write_lane_markings(t0)
         self.writer.write_event(int(sim.step[e]), t0, "episode_start",
                                 f"env {e}, episode seed {int(self.core.seeds[e])}")  # fmt: skip
-        self._write_sim_step(sim)
+        self(sim)  # step 0
         if self not in sim.hooks:
             sim.hooks.append(self)
 
@@ -129,34 +128,25 @@ class EpisodeRecorder:
 
     # -- per simulation step (the hook) -----------------------------------------------------------
     def __call__(self, sim: HighwaySim) -> None:
-        if not (self.done or sim.frozen.item(self.env)):
-            self._write_sim_step(sim)
-
-    def _lane_change_active(self, sim: HighwaySim) -> bool:
-        e = self.env
-        return bool(sim.lc_active.item(e, 0) if sim.autopilot_ego else sim.ego_lc_active.item(e))
-
-    def _write_sim_step(self, sim: HighwaySim) -> None:
         # Runs after every simulation step. It keeps references to the simulator's state arrays, which
-        # the simulator replaces (never changes) at every step; target_lane is changed in place (lane
-        # changes start on it), so its row is copied. The steps go to the writer in one call at the
-        # end of the decision (_flush_steps), or before an event so that the file keeps step order.
+        # the simulator replaces (never changes) at every step. The steps go to the writer in one call at
+        # the end of the decision (_flush_steps), or before an event so that the file keeps step order.
         e = self.env
+        if self.done or sim.frozen.item(e):
+            return
         step, t = sim.step.item(e), sim.t_s.item(e)
         collision_with, invasion, off_road = sim.collision_with.item(e), sim.lane_invasion.item(e), sim.off_road.item(e)
-        pending = len(self._steps)
         self._steps.append(step)
         self._ts.append(t)
         self._ego += (sim.speed.item(e, 0), sim.lane.item(e, 0), collision_with, invasion, off_road,
                       sim.steer.item(e), sim.throttle.item(e), sim.brake.item(e))  # fmt: skip
-        self._targets[pending] = sim.target_lane[e]
         if self._one_env:  # the (1, N) arrays themselves
-            self._rows += (sim.x, sim.y, sim.yaw, sim.speed, sim.accel, sim.lane)
+            self._rows += (sim.x, sim.y, sim.yaw, sim.speed, sim.accel, sim.lane, sim.target_lane)
         else:
-            self._rows += (sim.x[e], sim.y[e], sim.yaw[e], sim.speed[e], sim.accel[e], sim.lane[e])
-        active = self._lane_change_active(sim)
+            self._rows += (sim.x[e], sim.y[e], sim.yaw[e], sim.speed[e], sim.accel[e], sim.lane[e], sim.target_lane[e])
+        active = sim.lc_active.item(e, 0) if sim.autopilot_ego else sim.ego_lc_active.item(e)
         if not (collision_with >= 0 or invasion >= 0 or off_road != self._off_road or active != self._lc_active):
-            if pending + 1 == self.MAX_PENDING_STEPS:
+            if len(self._steps) == self.MAX_PENDING_STEPS:
                 self._flush_steps()
             return
         self._flush_steps()
@@ -185,8 +175,8 @@ class EpisodeRecorder:
         if not self._steps:
             return
         sim, e = self.core.sim, self.env
-        self.writer.write_sim_rows(self._steps, self._ts, self._rows, self._targets[: len(self._steps)],
-                                   (sim.ids, sim.length[e], sim.width[e]), self._ego)  # fmt: skip
+        self.writer.write_sim_rows(self._steps, self._ts, self._rows, (sim.ids, sim.length[e], sim.width[e]),
+                                   self._ego)  # fmt: skip
         self._steps, self._ts, self._rows, self._ego = [], [], [], []
 
     # -- per decision -----------------------------------------------------------------------------

@@ -78,6 +78,10 @@ def partial_path(path: str | os.PathLike[str]) -> pathlib.Path:
     return path.with_name(path.name + PARTIAL_SUFFIX)
 
 
+ROW_FIELDS = 7
+"""Per-step arrays of :meth:`EpisodeSink.write_sim_rows`: x, y, yaw, speed, accel, lane, target_lane."""
+
+
 class EpisodeSink:
     """What the episode writers share: the file names, the refusal to overwrite, the time origin, and
     ``with`` support (:meth:`close` when the block ends normally, :meth:`abort` when it raises: the
@@ -102,24 +106,24 @@ class EpisodeSink:
         raise NotImplementedError
 
     def write_sim_rows(self, steps: Sequence[int], ts: Sequence[float], rows: Sequence[np.ndarray],
-                       target_lane: np.ndarray, fixed: Sequence[np.ndarray], ego: Sequence[float]) -> None:  # fmt: skip
+                       fixed: Sequence[np.ndarray], ego: Sequence[float]) -> None:  # fmt: skip
         """:meth:`write_sim_steps` with the K steps laid out as :class:`~lcdata.record.EpisodeRecorder`
         collects them (the recorder's hot path: a sink may copy them without rearranging).
 
         Args:
             steps: K ints. ts: K floats, seconds.
-            rows: 6 K arrays of N values (e.g. (1, N) rows of a simulator's arrays): ``x``, ``y``, ``yaw``,
-                ``speed``, ``accel``, ``lane`` of the first step, then of the second, and so on.
-            target_lane: (K, N). fixed: ``ids``, ``length``, ``width``, (N,) each, the same at every step.
+            rows: 7 K arrays of N values (e.g. (1, N) rows of a simulator's arrays): ``x``, ``y``, ``yaw``,
+                ``speed``, ``accel``, ``lane``, ``target_lane`` of the first step, then of the second, ...
+            fixed: ``ids``, ``length``, ``width``, (N,) each, the same at every step.
             ego: 8 K numbers, :meth:`write_sim_steps`'s ego rows one after the other.
         """
         k = len(steps)
         if not k:
             return
         n = np.size(rows[0])
-        state = np.reshape(rows, (k, 6, n))
+        state = np.reshape(rows, (k, ROW_FIELDS, n))
         ids, length, width = fixed
-        columns = (ids, *(state[:, j] for j in range(6)), target_lane, length, width)
+        columns = (ids, *(state[:, j] for j in range(ROW_FIELDS)), length, width)
         self.write_sim_steps(steps, ts, columns, np.reshape(ego, (k, 8)))
 
     def close(self) -> pathlib.Path:

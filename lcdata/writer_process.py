@@ -47,7 +47,7 @@ from typing import Any, BinaryIO
 
 import numpy as np
 
-from lcdata.writer import EpisodeSink, EpisodeWriter
+from lcdata.writer import ROW_FIELDS, EpisodeSink, EpisodeWriter
 from lcsim.core import OUTCOMES, RUNNING
 
 log = logging.getLogger(__name__)
@@ -282,7 +282,7 @@ class ProcessEpisodeWriter(EpisodeSink):
             self._copy_run(f64, at, run)
 
     def write_sim_rows(self, steps: Sequence[int], ts: Sequence[float], rows: Sequence[np.ndarray],
-                       target_lane: np.ndarray, fixed: Sequence[np.ndarray], ego: Sequence[float]) -> None:  # fmt: skip
+                       fixed: Sequence[np.ndarray], ego: Sequence[float]) -> None:  # fmt: skip
         """See :meth:`lcdata.writer.EpisodeSink.write_sim_rows`: one record, the rows copied in one numpy call."""
         svc = self._check()
         k = len(steps)
@@ -290,7 +290,8 @@ class ProcessEpisodeWriter(EpisodeSink):
             return
         first = rows[0]
         n = first.size
-        at = svc.reserve(OP_ROWS, self._wid, 8 * (2 + 10 * k + 3 * n + 7 * k * n)) >> 3
+        size = ROW_FIELDS * k * n
+        at = svc.reserve(OP_ROWS, self._wid, 8 * (2 + 10 * k + 3 * n + size)) >> 3
         f64 = svc.f64
         f64[at : at + 2] = (k, n)
         at += 2
@@ -302,10 +303,8 @@ class ProcessEpisodeWriter(EpisodeSink):
         for column in fixed:
             f64[at : at + n] = column
             at += n
-        size = 6 * k * n  # (1, N) rows stack to (6 K, N); (N,) rows to (6 K N,)
+        # (1, N) rows stack to (7 K, N), (N,) rows to (7 K N,)
         np.concatenate(rows, out=f64[at : at + size].reshape(-1, *first.shape[1:]), casting="same_kind")
-        at += size
-        f64[at : at + k * n].reshape(k, n)[...] = target_lane
 
     @staticmethod
     def _copy_run(f64: np.ndarray, at: int, arrays: list[Any]) -> int:
@@ -465,10 +464,8 @@ def _rows(writer: EpisodeWriter, a: np.ndarray) -> None:
     at += 8 * k
     ids, length, width = a[at : at + 3 * n].reshape(3, n)
     at += 3 * n
-    state = a[at : at + 6 * k * n].reshape(k, 6, n)
-    at += 6 * k * n
-    target_lane = a[at : at + k * n].reshape(k, n)
-    columns = (ids, *(state[:, j] for j in range(6)), target_lane, length, width)
+    state = a[at : at + ROW_FIELDS * k * n].reshape(k, ROW_FIELDS, n)
+    columns = (ids, *(state[:, j] for j in range(ROW_FIELDS)), length, width)
     writer.write_sim_steps(steps, ts, columns, ego)
 
 

@@ -106,8 +106,9 @@ class HighwaySim:
         self.index: LaneIndex | None = None
         self._ego_flat = np.arange(e, dtype=np.int64) * n  # flat index of each environment's vehicle 0
         # Called after every substep. Contract (tested in tests/test_record.py): each substep binds new
-        # x, y, yaw, speed, accel and lane arrays and never writes into earlier ones (only reset writes,
-        # into the rows it resets), so a hook may keep references to them; target_lane is changed in place.
+        # x, y, yaw, speed, accel, lane and target_lane arrays and nothing writes into earlier ones (only
+        # reset writes, into the rows it resets; a lane change copies target_lane before it sets the
+        # target), so a hook may keep references to them.
         self.hooks: list[SubstepHook] = []
 
     # ------------------------------------------------------------------ reset
@@ -194,6 +195,7 @@ class HighwaySim:
         self.path_len[idx] = np.maximum(ec.lane_change_time_s * v, ec.waypoint_spacing_m)
         self.path_y0[idx] = self.road.lane_center(cur)
         self.path_y1[idx] = self.road.lane_center(new)
+        self.target_lane = self.target_lane.copy()  # the previous step's array may be held by a hook
         self.target_lane[idx, 0] = new
         self.ego_lc_active[idx] = True
 
@@ -412,7 +414,7 @@ class HighwaySim:
         self.lc_t0.put(go, self.t_s.take(env[ok]))
         self.lc_y0.put(go, self.y.take(go))
         self.lc_y1.put(go, self.road.lane_center(tl))
-        self.target_lane = self.target_lane.copy()  # the previous step's array may be held by a reader
+        self.target_lane = self.target_lane.copy()  # the previous step's array may be held by a hook
         self.target_lane.put(go, tl)
 
     def rebuild_index(self) -> None:

@@ -26,7 +26,7 @@ from lcdata import (
 )
 from lcdata.offline import STATE_COLUMNS, track_arrays
 from lcdata.record import episode_metadata
-from lcsim.config import ScenarioConfig
+from lcsim.config import ScenarioConfig, TrafficConfig
 from lcsim.core import LaneChangeCore
 from lcsim.drivers import make_driver
 from lcsim.envs import LaneChangeEnv
@@ -97,12 +97,14 @@ def test_round_trip_tracks_ego_steps_metadata(tmp_path: pathlib.Path, small: Sce
     assert len(ep.image_steps) == len(actions)
 
 
-def test_simulator_replaces_the_state_arrays_it_steps(small: ScenarioConfig) -> None:
-    """The recorder keeps references to x, y, yaw, speed, accel and lane until the end of a decision:
-    the simulator must replace these arrays at every step, not change them in place (only a reset
-    writes into the rows of the environments it resets)."""
-    core, driver = LaneChangeCore(small, 2), make_driver("random", 1)
-    names = ("x", "y", "yaw", "speed", "accel", "lane")
+def test_simulator_replaces_the_state_arrays_it_steps() -> None:
+    """The recorder keeps references to x, y, yaw, speed, accel, lane and target_lane until the end of a
+    decision: the simulator must replace these arrays at every step, not change them in place (only a
+    reset writes into the rows of the environments it resets), also when the ego and the traffic start
+    lane changes (which set target lanes)."""
+    dense = small_config(traffic=TrafficConfig(num_vehicles=12, spawn_behind_m=40.0, spawn_ahead_m=120.0))
+    core, driver = LaneChangeCore(dense, 2), make_driver("random", 1)
+    names = ("x", "y", "yaw", "speed", "accel", "lane", "target_lane")
     kept: list[tuple[list[np.ndarray], list[np.ndarray]]] = []
     core.sim.hooks.append(lambda sim: kept.append(([getattr(sim, n) for n in names],
                                                    [getattr(sim, n).copy() for n in names])))  # fmt: skip
@@ -114,6 +116,9 @@ def test_simulator_replaces_the_state_arrays_it_steps(small: ScenarioConfig) -> 
             core.reset([0], [episode_seed(3)])  # env 0 starts over while env 1 goes on
         obs = core.observe()
     assert len(kept) == 400
+    lane, target = names.index("lane"), names.index("target_lane")
+    assert any((copies[target][:, 0] != copies[lane][:, 0]).any() for _, copies in kept)  # ego lane changes
+    assert any((copies[target][:, 1:] != copies[lane][:, 1:]).any() for _, copies in kept)  # traffic ones
     for k, (refs, copies) in enumerate(kept):
         rows = slice(1, 2) if k == 209 else slice(None)  # the reset wrote env 0 into the arrays of step 209
         for name, ref, copy in zip(names, refs, copies, strict=True):

@@ -50,10 +50,10 @@ def test_each_call_gives_the_same_bytes(tmp_path: pathlib.Path) -> None:
                              1.5, 2, -1, -1, False, 0.1, 0.2, 0.0)  # fmt: skip
             w.write_vehicles(k + 1, 0.3, ids, *(c[1] for c in cols), lanes[0, 1], lanes[1, 1], length, width)
             w.write_ego(k + 1, 0.3, speed=2.0, lane=1)
-            rows = [column[i] for i in range(k) for column in (*cols, lanes[0])]  # as EpisodeRecorder collects
+            rows = [column[i] for i in range(k) for column in (*cols, *lanes)]  # as EpisodeRecorder collects
             for first, shaped in ((k + 2, rows), (2 * k + 2, [row[None] for row in rows])):  # (N,) and (1, N)
                 w.write_sim_rows(range(first, first + k), [0.05 * i for i in range(first, first + k)], shaped,
-                                 lanes[1], (ids, length, width), ego.ravel().tolist())  # fmt: skip
+                                 (ids, length, width), ego.ravel().tolist())  # fmt: skip
             w.write_transform(k, 0.2, 1.0, 2.0, 0.3)
             w.write_scene(k, 0.2, ids, cols[0][0], cols[1][0], cols[2][0], length, width)
             w.write_image(k, 0.2, rng.integers(0, 255, (3, 8, 6), dtype=np.uint8))
