@@ -70,6 +70,7 @@ _OUTCOMES = (RUNNING, *OUTCOMES)
 _OUTCOME_CODES = {name: code for code, name in enumerate(_OUTCOMES)}
 _REWARD_KEYS = frozenset(("collision", "off_road", "forward", "success"))
 _SCENE_SCALARS = 5  # step, t, height_m, ego_id, N
+_ROW_DTYPES = (np.dtype(np.float64),) * 5 + (np.dtype(np.int64),) * 2  # the simulator's, see write_sim_rows
 
 
 class WriterProcessError(RuntimeError):
@@ -283,7 +284,9 @@ class ProcessEpisodeWriter(EpisodeSink):
 
     def write_sim_rows(self, steps: Sequence[int], ts: Sequence[float], rows: Sequence[np.ndarray],
                        fixed: Sequence[np.ndarray], ego: Sequence[float]) -> None:  # fmt: skip
-        """See :meth:`lcdata.writer.EpisodeSink.write_sim_rows`: one record, the rows copied in one numpy call."""
+        """See :meth:`lcdata.writer.EpisodeSink.write_sim_rows`: one record. Rows of the simulator's dtypes
+        (float64 state, int64 lanes, judged by the first step) go in as raw bytes, joined in one call;
+        others are cast to float64 (one ``np.concatenate``)."""
         svc = self._check()
         k = len(steps)
         if not k:
@@ -291,10 +294,10 @@ class ProcessEpisodeWriter(EpisodeSink):
         first = rows[0]
         n = first.size
         size = ROW_FIELDS * k * n
-        at = svc.reserve(OP_ROWS, self._wid, 8 * (2 + 10 * k + 3 * n + size)) >> 3
+        base = svc.reserve(OP_ROWS, self._wid, 8 * (3 + 10 * k + 3 * n + size)) >> 3
         f64 = svc.f64
-        f64[at : at + 2] = (k, n)
-        at += 2
+        f64[base : base + 2] = (k, n)  # base + 2: how the rows are stored
+        at = base + 3
         f64[at : at + k] = steps
         f64[at + k : at + 2 * k] = ts
         at += 2 * k
@@ -303,8 +306,13 @@ class ProcessEpisodeWriter(EpisodeSink):
         for column in fixed:
             f64[at : at + n] = column
             at += n
-        # (1, N) rows stack to (7 K, N), (N,) rows to (7 K N,)
-        np.concatenate(rows, out=f64[at : at + size].reshape(-1, *first.shape[1:]), casting="same_kind")
+        raw = b"".join(rows) if tuple(row.dtype for row in rows[:ROW_FIELDS]) == _ROW_DTYPES else b""
+        if len(raw) == 8 * size:
+            f64[base + 2] = 1.0
+            svc.buf[8 * at : 8 * (at + size)] = raw
+        else:  # (1, N) rows stack to (7 K, N), (N,) rows to (7 K N,)
+            f64[base + 2] = 0.0
+            np.concatenate(rows, out=f64[at : at + size].reshape(-1, *first.shape[1:]), casting="same_kind")
 
     @staticmethod
     def _copy_run(f64: np.ndarray, at: int, arrays: list[Any]) -> int:
@@ -456,8 +464,8 @@ def _steps(writer: EpisodeWriter, a: np.ndarray) -> None:
 
 
 def _rows(writer: EpisodeWriter, a: np.ndarray) -> None:
-    k, n = int(a[0]), int(a[1])
-    at = 2
+    k, n, raw = int(a[0]), int(a[1]), a[2] == 1.0
+    at = 3
     steps, ts = a[at : at + k].astype(np.int64), a[at + k : at + 2 * k]
     at += 2 * k
     ego = a[at : at + 8 * k].reshape(k, 8)
@@ -465,8 +473,10 @@ def _rows(writer: EpisodeWriter, a: np.ndarray) -> None:
     ids, length, width = a[at : at + 3 * n].reshape(3, n)
     at += 3 * n
     state = a[at : at + ROW_FIELDS * k * n].reshape(k, ROW_FIELDS, n)
-    columns = (ids, *(state[:, j] for j in range(ROW_FIELDS)), length, width)
-    writer.write_sim_steps(steps, ts, columns, ego)
+    columns = [state[:, j] for j in range(ROW_FIELDS)]
+    if raw:  # the bytes of the simulator's arrays: lane and target_lane are int64
+        columns[5:] = [column.view(np.int64) for column in columns[5:]]
+    writer.write_sim_steps(steps, ts, (ids, *columns, length, width), ego)
 
 
 def _scene(writer: EpisodeWriter, a: np.ndarray) -> None:

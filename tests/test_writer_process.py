@@ -51,7 +51,8 @@ def test_each_call_gives_the_same_bytes(tmp_path: pathlib.Path) -> None:
             w.write_vehicles(k + 1, 0.3, ids, *(c[1] for c in cols), lanes[0, 1], lanes[1, 1], length, width)
             w.write_ego(k + 1, 0.3, speed=2.0, lane=1)
             rows = [column[i] for i in range(k) for column in (*cols, *lanes)]  # as EpisodeRecorder collects
-            for first, shaped in ((k + 2, rows), (2 * k + 2, [row[None] for row in rows])):  # (N,) and (1, N)
+            other_dtypes = [row.astype(np.int32) if row.dtype.kind == "i" else row for row in rows]
+            for first, shaped in ((k + 2, rows), (2 * k + 2, [row[None] for row in rows]), (3 * k + 2, other_dtypes)):
                 w.write_sim_rows(range(first, first + k), [0.05 * i for i in range(first, first + k)], shaped,
                                  (ids, length, width), ego.ravel().tolist())  # fmt: skip
             w.write_transform(k, 0.2, 1.0, 2.0, 0.3)
@@ -72,12 +73,13 @@ def test_each_call_gives_the_same_bytes(tmp_path: pathlib.Path) -> None:
                                rng.normal(size=(k, 3))])  # fmt: skip
     assert contents[0] == contents[1]
     ep = read_episode(tmp_path / "process" / "ep.mcap")
-    assert ep.ego["step"].tolist() == list(range(3 * k + 2))
+    assert ep.ego["step"].tolist() == list(range(4 * k + 2))
     assert ep.ego["collision_with"].tolist()[:4] == ep.ego["collision_with"].tolist()[-4:] == [-1, 2, -1, -1]
     x = ep.tracks["x"].to_numpy()
-    for first in (0, k + 2, 2 * k + 2):
+    target_lane = ep.tracks["target_lane"].to_numpy()
+    for first in (0, k + 2, 2 * k + 2, 3 * k + 2):  # (K, N) columns, (N,) rows, (1, N) rows, int32 lanes
         np.testing.assert_array_equal(x[first * n : (first + k) * n], cols[0].reshape(-1))
-    np.testing.assert_array_equal(ep.tracks["target_lane"].to_numpy()[-k * n :], lanes[1].reshape(-1))
+        np.testing.assert_array_equal(target_lane[first * n : (first + k) * n], lanes[1].reshape(-1))
 
 
 def test_episodes_written_at_once_by_one_helper(tmp_path: pathlib.Path, small: ScenarioConfig) -> None:
