@@ -10,10 +10,10 @@ the very same :class:`~lcdata.writer.EpisodeWriter` calls on them. The file is b
 the in-process writer makes (tested).
 
 Protocol: the helper reads records from its stdin, a pipe: ``<u32 payload bytes, u8 opcode, pad,
-u16 writer id>`` then the payload, padded to 8 bytes. The frequent calls (:meth:`write_sim_steps`,
-:meth:`write_image`, :meth:`write_scene`, :meth:`write_transform`, :meth:`write_rl_step`) are packed
-as float64 or raw arrays straight into the outgoing buffer (float64 holds every value they carry
-exactly); the rare ones travel pickled. Opening is not waited for. Closing,
+u16 writer id>`` then the payload, padded to 8 bytes. The frequent calls (:meth:`write_sim_rows`,
+:meth:`write_sim_steps`, :meth:`write_image`, :meth:`write_scene`, :meth:`write_transform`,
+:meth:`write_rl_step`) are packed as float64 or raw arrays straight into the outgoing buffer (float64
+holds every value they carry exactly); the rare ones travel pickled. Opening is not waited for. Closing,
 aborting and :attr:`message_count` wait for the helper's answer on its stdout (a length-prefixed
 pickle), which carries the helper's exception, if any, to be raised here.
 
@@ -306,7 +306,10 @@ class ProcessEpisodeWriter(EpisodeSink):
         for column in fixed:
             f64[at : at + n] = column
             at += n
-        raw = b"".join(rows) if tuple(row.dtype for row in rows[:ROW_FIELDS]) == _ROW_DTYPES else b""
+        try:
+            raw = b"".join(rows) if tuple(row.dtype for row in rows[:ROW_FIELDS]) == _ROW_DTYPES else b""
+        except (BufferError, TypeError):  # a row that is not contiguous
+            raw = b""
         if len(raw) == 8 * size:
             f64[base + 2] = 1.0
             svc.buf[8 * at : 8 * (at + size)] = raw

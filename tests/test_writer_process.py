@@ -52,7 +52,9 @@ def test_each_call_gives_the_same_bytes(tmp_path: pathlib.Path) -> None:
             w.write_ego(k + 1, 0.3, speed=2.0, lane=1)
             rows = [column[i] for i in range(k) for column in (*cols, *lanes)]  # as EpisodeRecorder collects
             other_dtypes = [row.astype(np.int32) if row.dtype.kind == "i" else row for row in rows]
-            for first, shaped in ((k + 2, rows), (2 * k + 2, [row[None] for row in rows]), (3 * k + 2, other_dtypes)):
+            strided = [np.repeat(row, 2)[::2] for row in rows]  # not contiguous
+            for first, shaped in ((k + 2, rows), (2 * k + 2, [row[None] for row in rows]), (3 * k + 2, other_dtypes),
+                                  (4 * k + 2, strided)):  # fmt: skip
                 w.write_sim_rows(range(first, first + k), [0.05 * i for i in range(first, first + k)], shaped,
                                  (ids, length, width), ego.ravel().tolist())  # fmt: skip
             w.write_transform(k, 0.2, 1.0, 2.0, 0.3)
@@ -73,11 +75,11 @@ def test_each_call_gives_the_same_bytes(tmp_path: pathlib.Path) -> None:
                                rng.normal(size=(k, 3))])  # fmt: skip
     assert contents[0] == contents[1]
     ep = read_episode(tmp_path / "process" / "ep.mcap")
-    assert ep.ego["step"].tolist() == list(range(4 * k + 2))
+    assert ep.ego["step"].tolist() == list(range(5 * k + 2))
     assert ep.ego["collision_with"].tolist()[:4] == ep.ego["collision_with"].tolist()[-4:] == [-1, 2, -1, -1]
     x = ep.tracks["x"].to_numpy()
     target_lane = ep.tracks["target_lane"].to_numpy()
-    for first in (0, k + 2, 2 * k + 2, 3 * k + 2):  # (K, N) columns, (N,) rows, (1, N) rows, int32 lanes
+    for first in (0, k + 2, 2 * k + 2, 3 * k + 2, 4 * k + 2):  # columns; (N,), (1, N), int32, strided rows
         np.testing.assert_array_equal(x[first * n : (first + k) * n], cols[0].reshape(-1))
         np.testing.assert_array_equal(target_lane[first * n : (first + k) * n], lanes[1].reshape(-1))
 
