@@ -152,10 +152,8 @@ class McapStreamWriter:
         self, channel_id: int, log_time: int, data: bytes, publish_time: int, sequence: int = 0
     ) -> None:
         """Append one message record (times in ns) to the current chunk."""
-        self._chunk.append(
-            _MESSAGE_HEADER.pack(OP_MESSAGE, 22 + len(data), channel_id, sequence, log_time, publish_time)
-        )
-        self._add(channel_id, log_time, data, 31 + len(data))
+        header = _MESSAGE_HEADER.pack(OP_MESSAGE, 22 + len(data), channel_id, sequence, log_time, publish_time)
+        self.add_message_records(b"".join((header, data)), (channel_id,), (log_time,), (len(header) + len(data),))
 
     def add_message_records(self, records: bytes, channel_ids: Sequence[int], log_times: Sequence[int],
                             sizes: Sequence[int]) -> None:  # fmt: skip
@@ -193,25 +191,6 @@ class McapStreamWriter:
         if pos > at:
             self._chunk.append(view[at:pos])
         self._chunk_bytes, self._chunk_messages, self._chunk_start, self._chunk_end = offset, messages, first, last
-
-    def _add(self, channel_id: int, log_time: int, data: bytes, size: int) -> None:
-        offset = self._chunk_bytes
-        self._chunk.append(data)
-        self._chunk_bytes = offset + size
-        index = self._message_index.get(channel_id)
-        if index is None:
-            index = self._message_index[channel_id] = []
-        index += (log_time, offset)
-        self._counts[channel_id] += 1
-        if self._chunk_messages == 0:
-            self._chunk_start = self._chunk_end = log_time
-        elif log_time < self._chunk_start:
-            self._chunk_start = log_time
-        elif log_time > self._chunk_end:
-            self._chunk_end = log_time
-        self._chunk_messages += 1
-        if self._chunk_bytes >= self._chunk_size:
-            self.flush_chunk()
 
     def add_metadata(self, name: str, data: dict[str, str]) -> None:
         """Write a metadata record (outside chunks) after the chunks written so far."""
