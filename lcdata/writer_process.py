@@ -11,11 +11,11 @@ the in-process writer makes (tested).
 
 Protocol: the helper reads records from its stdin, a pipe: ``<u32 payload bytes, u8 opcode, pad,
 u16 writer id>`` then the payload, padded to 8 bytes. The frequent calls (:meth:`write_sim_rows`,
-:meth:`write_sim_steps`, :meth:`write_image`, :meth:`write_scene`, :meth:`write_transform`,
-:meth:`write_rl_step`) are packed as float64 or raw arrays straight into the outgoing buffer (float64
-holds every value they carry exactly); the rare ones travel pickled. Opening is not waited for. Closing,
-aborting and :attr:`message_count` wait for the helper's answer on its stdout (a length-prefixed
-pickle), which carries the helper's exception, if any, to be raised here.
+:meth:`write_image`, :meth:`write_scene`, :meth:`write_transform`, :meth:`write_rl_step`) are packed
+as float64 or raw arrays straight into the outgoing buffer (float64 holds every value they carry
+exactly); the rare ones travel pickled. Opening is not waited for. Closing, aborting and
+:attr:`message_count` wait for the helper's answer on its stdout (a length-prefixed pickle), which
+carries the helper's exception, if any, to be raised here.
 
 Failure semantics:
 
@@ -64,7 +64,7 @@ _LENGTH = struct.Struct("<I")
 _IMAGE_HEAD = struct.Struct("<qdQQQ")  # step, t, channels, height, width; the pixels follow
 _F_SETPIPE_SZ = 1031
 
-OP_OPEN, OP_STEPS, OP_IMAGE, OP_SCENE, OP_TF, OP_CALL, OP_CLOSE, OP_ABORT, OP_COUNT, OP_RL, OP_ROWS = range(1, 12)
+OP_OPEN, OP_ROWS, OP_IMAGE, OP_SCENE, OP_TF, OP_CALL, OP_CLOSE, OP_ABORT, OP_COUNT, OP_RL = range(1, 11)
 _RL_SCALARS = 17  # step, t, decision, action, mask x 3, reward, 4 components, terminated, truncated, outcome, rows, cols
 _OUTCOMES = (RUNNING, *OUTCOMES)
 _OUTCOME_CODES = {name: code for code, name in enumerate(_OUTCOMES)}
@@ -239,49 +239,6 @@ class ProcessEpisodeWriter(EpisodeSink):
         self._check().send_pickled(OP_CALL, self._wid, (name, args, kwargs))
 
     # -- frequent calls: raw values into the shared buffer --------------------------------------------
-    def write_sim_step(
-        self, step: int, t_s: float, vehicles: Sequence[np.ndarray], ego_speed: float, ego_lane: int,
-        collision_with: int, lane_invasion: int, off_road: bool, steer: float, throttle: float, brake: float,
-    ) -> None:  # fmt: skip
-        """See :meth:`lcdata.writer.EpisodeWriter.write_sim_step` (a batch of one step here)."""
-        ego = ((ego_speed, ego_lane, collision_with, lane_invasion, off_road, steer, throttle, brake),)
-        self.write_sim_steps((step,), (t_s,), [np.asarray(column) for column in vehicles], ego)
-
-    def write_sim_steps(self, steps: Sequence[int], ts: Sequence[float], vehicles: Sequence[Any],
-                        ego: Sequence[Sequence[float]]) -> None:  # fmt: skip
-        """See :meth:`lcdata.writer.EpisodeWriter.write_sim_steps`: one record; a column the same at every
-        step is sent once, and consecutive columns given per step go into the buffer in one numpy call."""
-        svc = self._check()
-        k = len(steps)
-        static = [isinstance(column, np.ndarray) and column.ndim == 1 for column in vehicles]
-        first = vehicles[0]
-        n = len(first) if static[0] else np.size(first[0])
-        sizes = [n if fixed else k * n for fixed in static]
-        at = svc.reserve(OP_STEPS, self._wid, 8 * (2 + len(sizes) + 10 * k + sum(sizes))) >> 3
-        f64 = svc.f64
-        f64[at : at + 2] = (k, n)
-        f64[at + 2 : at + 2 + len(sizes)] = sizes
-        at += 2 + len(sizes)
-        f64[at : at + k] = steps
-        f64[at + k : at + 2 * k] = ts
-        at += 2 * k
-        f64[at : at + 8 * k].reshape(k, 8)[...] = ego
-        at += 8 * k
-        run: list[Any] = []  # per-step arrays of consecutive list columns, copied together
-        for column, fixed, size in zip(vehicles, static, sizes, strict=True):
-            if isinstance(column, (list, tuple)):
-                run.extend(column)
-                continue
-            if run:
-                at = self._copy_run(f64, at, run)
-            if fixed:
-                f64[at : at + size] = column
-            else:
-                f64[at : at + size].reshape(np.shape(column))[...] = column
-            at += size
-        if run:
-            self._copy_run(f64, at, run)
-
     def write_sim_rows(self, steps: Sequence[int], ts: Sequence[float], rows: Sequence[np.ndarray],
                        fixed: Sequence[np.ndarray], ego: Sequence[float]) -> None:  # fmt: skip
         """See :meth:`lcdata.writer.EpisodeSink.write_sim_rows`: one record. Rows of the simulator's dtypes
@@ -316,14 +273,6 @@ class ProcessEpisodeWriter(EpisodeSink):
         else:  # (1, N) rows stack to (7 K, N), (N,) rows to (7 K N,)
             f64[base + 2] = 0.0
             np.concatenate(rows, out=f64[at : at + size].reshape(-1, *first.shape[1:]), casting="same_kind")
-
-    @staticmethod
-    def _copy_run(f64: np.ndarray, at: int, arrays: list[Any]) -> int:
-        shape = np.shape(arrays[0])  # (N,) or (1, N); axis=None would ravel each array, at a cost
-        size = shape[-1] * len(arrays)  # every step has N values (concatenate checks it)
-        np.concatenate(arrays, out=f64[at : at + size].reshape(-1, *shape[1:]), casting="same_kind")
-        arrays.clear()
-        return at + size
 
     def write_image(self, step: int, t_s: float, chw: np.ndarray) -> None:
         """See :meth:`lcdata.writer.EpisodeWriter.write_image` (copies the uint8 image here)."""
@@ -360,6 +309,14 @@ class ProcessEpisodeWriter(EpisodeSink):
         svc.f64[at : at + 5] = (step, t_s, x, y, yaw)
 
     # -- the rest, pickled ---------------------------------------------------------------------------
+    def write_sim_step(self, *args: Any, **kwargs: Any) -> None:
+        """See :meth:`lcdata.writer.EpisodeWriter.write_sim_step`."""
+        self._call("write_sim_step", *args, **kwargs)
+
+    def write_sim_steps(self, *args: Any, **kwargs: Any) -> None:
+        """See :meth:`lcdata.writer.EpisodeWriter.write_sim_steps` (the recorder sends :meth:`write_sim_rows`)."""
+        self._call("write_sim_steps", *args, **kwargs)
+
     def write_vehicles(self, *args: Any, **kwargs: Any) -> None:
         """See :meth:`lcdata.writer.EpisodeWriter.write_vehicles`."""
         self._call("write_vehicles", *args, **kwargs)
@@ -451,21 +408,6 @@ def _read_exact(stream: BinaryIO, size: int) -> bytes | None:
     return data
 
 
-def _steps(writer: EpisodeWriter, a: np.ndarray) -> None:
-    k, n = int(a[0]), int(a[1])
-    sizes = a[2:12].astype(np.int64).tolist()
-    at = 12
-    steps, ts = a[at : at + k].astype(np.int64), a[at + k : at + 2 * k]
-    at += 2 * k
-    ego = a[at : at + 8 * k].reshape(k, 8)
-    at += 8 * k
-    vehicles = []
-    for size in sizes:
-        vehicles.append(a[at : at + size] if size == n else a[at : at + size].reshape(k, n))  # (N,): every step
-        at += size
-    writer.write_sim_steps(steps, ts, vehicles, ego)
-
-
 def _rows(writer: EpisodeWriter, a: np.ndarray) -> None:
     k, n, raw = int(a[0]), int(a[1]), a[2] == 1.0
     at = 3
@@ -513,7 +455,7 @@ def _transform(writer: EpisodeWriter, a: np.ndarray) -> None:
     writer.write_transform(int(step), t, x, y, yaw)
 
 
-_FLOAT64_RECORDS = {OP_STEPS: _steps, OP_ROWS: _rows, OP_SCENE: _scene, OP_TF: _transform, OP_RL: _rl_step}
+_FLOAT64_RECORDS = {OP_ROWS: _rows, OP_SCENE: _scene, OP_TF: _transform, OP_RL: _rl_step}
 """Decoders of the records packed as float64."""
 
 
