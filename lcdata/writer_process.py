@@ -42,7 +42,7 @@ import struct
 import subprocess
 import sys
 import threading
-from collections.abc import Mapping, Sequence
+from collections.abc import Callable, Mapping, Sequence
 from typing import Any, BinaryIO
 
 import numpy as np
@@ -206,6 +206,17 @@ def writer_process_pid() -> int | None:
     return _service.pid if _service is not None and _service.pid_owner == os.getpid() else None
 
 
+def _pickled(name: str) -> Callable[..., None]:
+    """A :class:`ProcessEpisodeWriter` method that sends the call ``name`` pickled, for the rare calls."""
+
+    def call(self: ProcessEpisodeWriter, *args: Any, **kwargs: Any) -> None:
+        self._call(name, *args, **kwargs)
+
+    call.__name__ = call.__qualname__ = name
+    call.__doc__ = f"See :meth:`lcdata.writer.EpisodeWriter.{name}` (sent to the helper pickled)."
+    return call
+
+
 class ProcessEpisodeWriter(EpisodeSink):
     """Stream one episode to ``path`` from a helper process; the same interface as
     :class:`~lcdata.writer.EpisodeWriter` (see the module docstring). Use as a context manager.
@@ -308,34 +319,15 @@ class ProcessEpisodeWriter(EpisodeSink):
         at = svc.reserve(OP_TF, self._wid, 40) >> 3
         svc.f64[at : at + 5] = (step, t_s, x, y, yaw)
 
-    # -- the rest, pickled ---------------------------------------------------------------------------
-    def write_sim_step(self, *args: Any, **kwargs: Any) -> None:
-        """See :meth:`lcdata.writer.EpisodeWriter.write_sim_step`."""
-        self._call("write_sim_step", *args, **kwargs)
-
-    def write_sim_steps(self, *args: Any, **kwargs: Any) -> None:
-        """See :meth:`lcdata.writer.EpisodeWriter.write_sim_steps` (the recorder sends :meth:`write_sim_rows`)."""
-        self._call("write_sim_steps", *args, **kwargs)
-
-    def write_vehicles(self, *args: Any, **kwargs: Any) -> None:
-        """See :meth:`lcdata.writer.EpisodeWriter.write_vehicles`."""
-        self._call("write_vehicles", *args, **kwargs)
-
-    def write_ego(self, *args: Any, **kwargs: Any) -> None:
-        """See :meth:`lcdata.writer.EpisodeWriter.write_ego`."""
-        self._call("write_ego", *args, **kwargs)
-
-    def write_collision(self, *args: Any, **kwargs: Any) -> None:
-        """See :meth:`lcdata.writer.EpisodeWriter.write_collision`."""
-        self._call("write_collision", *args, **kwargs)
-
-    def write_lane_markings(self, *args: Any, **kwargs: Any) -> None:
-        """See :meth:`lcdata.writer.EpisodeWriter.write_lane_markings`."""
-        self._call("write_lane_markings", *args, **kwargs)
-
-    def write_event(self, *args: Any, **kwargs: Any) -> None:
-        """See :meth:`lcdata.writer.EpisodeWriter.write_event`."""
-        self._call("write_event", *args, **kwargs)
+    # -- the rest, pickled (see :meth:`_call`) -------------------------------------------------------
+    write_sim_step = _pickled("write_sim_step")
+    write_sim_steps = _pickled("write_sim_steps")
+    write_vehicles = _pickled("write_vehicles")
+    write_ego = _pickled("write_ego")
+    write_collision = _pickled("write_collision")
+    write_lane_markings = _pickled("write_lane_markings")
+    write_event = _pickled("write_event")
+    write_prediction = _pickled("write_prediction")
 
     def write_rl_step(
         self, step: int, t_s: float, *, action: int, action_mask: np.ndarray, reward: float,
@@ -362,10 +354,6 @@ class ProcessEpisodeWriter(EpisodeSink):
         )  # fmt: skip
         if current is not None:
             svc.f64[at + _RL_SCALARS : at + _RL_SCALARS + rows * cols] = current.reshape(-1)
-
-    def write_prediction(self, *args: Any, **kwargs: Any) -> None:
-        """See :meth:`lcdata.writer.EpisodeWriter.write_prediction`."""
-        self._call("write_prediction", *args, **kwargs)
 
     # -- life cycle -------------------------------------------------------------------------------
     @property
