@@ -286,7 +286,8 @@ def eval_parser() -> argparse.ArgumentParser:
         epilog=EVAL_EPILOG,
         formatter_class=argparse.RawDescriptionHelpFormatter,
     )
-    p.add_argument("policy", help="policy checkpoint (policy.zip), or a built-in driver: rule / lookahead (privileged planner) / keep / random")
+    p.add_argument("policy", help="policy checkpoint (policy.zip), or a built-in driver: rule / lookahead / oracle (privileged "
+                   "planners, upper references) / keep / random")
     p.add_argument("--episodes", type=_positive_int, default=200, help="episodes (default %(default)s)")
     p.add_argument("--seed", type=int_at_least(0), default=0, help="evaluation seed (default %(default)s)")
     p.add_argument("--predictor", type=Path, default=None,

@@ -1,5 +1,7 @@
 """Non-learning drivers: a rule-based gap-acceptance lane changer, a lookahead planner, keep-lane, random.
 
+``make_driver("oracle")`` gives the omniscient whole-episode search of :mod:`lcsim.oracle`.
+
 A driver is called once per decision as ``driver(obs, action_mask, core) -> actions (E,)`` with the
 batched observation, the ``(E, 3)`` action mask and the :class:`~lcsim.core.LaneChangeCore` (for
 drivers that use privileged state), so one driver serves the single env, the vector env and the
@@ -17,6 +19,12 @@ import numpy as np
 
 from lcsim.config import _non_negative, _positive
 from lcsim.core import KEEP, RUNNING, SUCCESS, TIMEOUT, LaneChangeCore
+
+
+def imagined_copy(core: LaneChangeCore) -> LaneChangeCore:
+    """A copy of ``core`` to imagine a future in: it shares no state with ``core`` and has no hooks (a
+    recorder must not see the imagined future) and no renderer."""
+    return copy.deepcopy(core, {id(core.sim.hooks): [], id(core.renderer): None})
 
 
 class Driver(Protocol):
@@ -122,9 +130,7 @@ class LookaheadDriver:
 
     def survives(self, core: LaneChangeCore, actions: np.ndarray) -> np.ndarray:
         """``(E,)`` bool: no collision or off-road within the horizon after ``actions``, then the rule."""
-        # A copy without hooks (a recorder must not see the imagined future) and without the renderer.
-        memo = {id(core.sim.hooks): [], id(core.renderer): None}
-        future = copy.deepcopy(core, memo)
+        future = imagined_copy(core)
         future.step(actions)
         for _ in range(self.config.horizon_decisions):
             if (future.outcome != RUNNING).all():  # ended environments stay frozen; nothing left to see
@@ -170,9 +176,16 @@ class RandomDriver:
         return u.argmax(axis=1).astype(np.int64)
 
 
+def _oracle(seed: int) -> Driver:
+    from lcsim.oracle import OracleDriver  # it plans with the rule-based driver defined here
+
+    return OracleDriver()
+
+
 _FACTORIES: dict[str, Callable[[int], Driver]] = {
     "rule": lambda seed: RuleBasedDriver(),
     "lookahead": lambda seed: LookaheadDriver(),
+    "oracle": _oracle,
     "keep": lambda seed: KeepLaneDriver(),
     "random": RandomDriver,
 }
