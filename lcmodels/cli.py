@@ -173,8 +173,9 @@ def train_policy_parser() -> argparse.ArgumentParser:
     p.add_argument("--scenario", choices=list(POLICY_SCENARIOS), default=d.scenario,
                    help="paper: 100 vehicles, 600 m route; light: 30 vehicles, 300 m; tiny: 8 vehicles, 150 m, "
                    "for smoke tests (default %(default)s)")
-    p.add_argument("--timesteps", type=_positive_int, default=d.timesteps,
-                   help="online decisions over all envs (default %(default)s)")
+    p.add_argument("--timesteps", type=int_at_least(0), default=d.timesteps,
+                   help="online decisions over all envs; 0 with --warm-start: behaviour cloning only, no online "
+                   "training (default %(default)s)")
     p.add_argument("--n-envs", type=_positive_int, default=d.n_envs, help="parallel episodes (default %(default)s)")
     p.add_argument("--seed", type=int_at_least(0), default=d.seed, help="training seed (default %(default)s)")
     p.add_argument("--image-net", choices=IMAGE_NETS, default=d.image_net,

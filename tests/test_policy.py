@@ -169,6 +169,20 @@ def test_warm_start_lowers_the_behaviour_cloning_loss(tmp_path: Path) -> None:
     assert after < before * 0.8, (before, after, losses)
 
 
+def test_zero_timesteps_with_a_warm_start_gives_the_behaviour_cloned_policy(tmp_path: Path) -> None:
+    config = scenario_for_mode(tiny_scenario(), "pure")
+    record_episodes(config, [1, 2], "oracle", tmp_path / "demos", scenario="tiny", images=False)
+    cfg = _tiny(obs="pure", timesteps=0, warm_start=str(tmp_path / "demos"), warm_start_epochs=3, eval_episodes=0)
+    res = train_policy(cfg, tmp_path / "run")
+    warm = res.metrics["train"]["warm_start"]
+    assert res.timesteps == 0 and warm["nll_after"] < warm["nll_before"]
+    demos = load_demonstrations(tmp_path / "demos", "pure", None, scenario=config)
+    loaded = load_policy(tmp_path / "run" / "policy.zip")
+    assert bc_loss(loaded.model, demos) == pytest.approx(warm["nll_after"], rel=1e-5)  # no online update
+    with pytest.raises(ValueError, match="timesteps"):
+        _tiny(timesteps=0)  # nothing to train without a warm start
+
+
 def test_rule_driver_evaluation_is_reproducible_and_recorded(tmp_path: Path) -> None:
     from lcsim.drivers import RuleBasedDriver
 

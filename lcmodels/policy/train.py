@@ -81,7 +81,8 @@ class PolicyConfig(_JsonMixin):
     obs: str = "hybrid"
     scenario: str = "paper"
     timesteps: int = 100_000
-    """Online decisions (environment steps summed over environments)."""
+    """Online decisions (environment steps summed over environments); 0 with a warm start gives the
+    behaviour-cloned policy itself."""
     n_envs: int = 16
     seed: int = 0
     image_net: str = "compact"
@@ -118,10 +119,12 @@ class PolicyConfig(_JsonMixin):
                self.scenario)  # fmt: skip
         _check(self.image_net in IMAGE_NETS, self, "image_net", f"must be one of {', '.join(IMAGE_NETS)}",
                self.image_net)  # fmt: skip
-        _positive(self, "timesteps", "n_envs", "image_features", "learning_rate", "n_steps", "batch_size",
+        _positive(self, "n_envs", "image_features", "learning_rate", "n_steps", "batch_size",
                   "n_epochs", "reward_scale", "buffer_size", "target_update_interval", "checkpoint_every",
                   "eval_batch", "warm_start_epochs")
-        _non_negative(self, "ent_coef", "learning_starts", "eval_episodes", "seed", "eval_seed")
+        _non_negative(self, "timesteps", "ent_coef", "learning_starts", "eval_episodes", "seed", "eval_seed")
+        _check(self.timesteps > 0 or bool(self.warm_start), self, "timesteps",
+               "must be > 0 without a warm start (0 with one: behaviour cloning only)", self.timesteps)  # fmt: skip
         _check(0 < self.gamma <= 1, self, "gamma", "must be in (0, 1]", self.gamma)
         _check(0 < self.exploration_fraction <= 1, self, "exploration_fraction", "must be in (0, 1]",
                self.exploration_fraction)  # fmt: skip
