@@ -67,19 +67,38 @@ def search_episode(config: ScenarioConfig, seed: int, *, memory_decisions: int =
             when merging states (>= 1; more merges less).
         max_nodes: stop undecided after simulating this many decisions.
     """
+    if config.render_image:
+        config = dataclasses.replace(config, render_image=False)
+    root = LaneChangeCore(config, 1)
+    root.reset([0], [int(seed)])
+    return search_from(root, memory_decisions=memory_decisions, max_nodes=max_nodes)
+
+
+def search_from(start: LaneChangeCore, *, memory_decisions: int = 8, max_nodes: int = 200_000) -> SearchResult:
+    """:func:`search_episode` from the current state of a single-environment core, which is left untouched.
+
+    The decisions found are counted from this state. A lane change already under way counts as just
+    started when states are merged.
+    """
     if not isinstance(memory_decisions, int) or memory_decisions < 1:
         raise ValueError(f"memory_decisions must be an int >= 1, got {memory_decisions!r}")
     if max_nodes < 1:
         raise ValueError(f"max_nodes must be >= 1, got {max_nodes!r}")
-    if config.render_image:
-        config = dataclasses.replace(config, render_image=False)
+    if start.num_envs != 1:
+        raise ValueError(f"the search runs on a single-environment core, got {start.num_envs} environments")
     rule = RuleBasedDriver()
-    result = SearchResult(seed=int(seed), winnable=False)
-    root = LaneChangeCore(config, 1)
-    root.reset([0], [int(seed)])
+    result = SearchResult(seed=int(start.seeds[0]), winnable=False)
+    if start.outcome[0] != RUNNING:
+        result.winnable = start.outcome[0] == SUCCESS
+        return result
+    root = imagined_copy(start)
+    sim = root.sim
+    changing = bool(sim.ego_lc_active[0])
+    since0 = 0 if changing else memory_decisions
+    dir0 = int(np.sign(sim.target_lane[0, 0] - sim.lane[0, 0])) if changing else 0
     # A node: (core at decision k, decisions since the ego's last change started, its direction, actions
     # still to try); stack[k] is at decision k, path[k] the action taken from it, xs[k] its ego x.
-    stack: list[tuple[LaneChangeCore, int, int, list[int]]] = [(root, memory_decisions, 0, _candidates(root, rule))]
+    stack: list[tuple[LaneChangeCore, int, int, list[int]]] = [(root, since0, dir0, _candidates(root, rule))]
     path: list[int] = []
     xs = [_ego_xy(root, 0)]
     seen: set[tuple[int, int, int, int]] = set()
@@ -189,4 +208,4 @@ def replay(config: ScenarioConfig, seed: int, actions: list[int]) -> str:
     return str(core.outcome[0])
 
 
-__all__ = ["OracleDriver", "SearchResult", "replay", "search_episode"]
+__all__ = ["OracleDriver", "SearchResult", "replay", "search_episode", "search_from"]

@@ -7,7 +7,7 @@ import pytest
 from lcsim.config import RoadConfig, TrafficConfig
 from lcsim.core import RUNNING, LaneChangeCore
 from lcsim.drivers import RuleBasedDriver, make_driver
-from lcsim.oracle import OracleDriver, replay, search_episode
+from lcsim.oracle import OracleDriver, replay, search_episode, search_from
 from tests.conftest import small_config
 
 # 12 vehicles on the 150 m route: the rule-based driver crashes in episode 1 and wins episode 0.
@@ -68,7 +68,23 @@ def test_oracle_driver_plays_its_plans_inside_a_batch_and_refuses_an_episode_it_
         driver({}, core.action_mask(), core)
 
 
+def test_search_from_a_state_mid_episode_continues_it_and_leaves_the_state_untouched():
+    core = LaneChangeCore(BUSY, 1)
+    core.reset([0], [1])
+    prefix, rule = [], RuleBasedDriver()
+    for _ in range(6):
+        prefix.append(int(rule({}, core.action_mask(), core)[0]))
+        core.step(np.array(prefix[-1:]))
+    before = (core.sim.x.copy(), core.sim.step.copy(), core.outcome.copy())
+    result = search_from(core)
+    assert np.array_equal(core.sim.x, before[0]) and np.array_equal(core.sim.step, before[1])
+    assert (core.outcome == before[2]).all()
+    assert result.winnable is True and replay(BUSY, 1, prefix + result.actions) == "success"
+
+
 def test_search_rejects_bad_settings():
+    with pytest.raises(ValueError, match="single-environment"):
+        search_from(LaneChangeCore(BUSY, 2))
     with pytest.raises(ValueError, match="memory_decisions"):
         search_episode(BUSY, 0, memory_decisions=0)
     with pytest.raises(ValueError, match="max_nodes"):
