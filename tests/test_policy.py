@@ -252,3 +252,27 @@ def test_lc_record_with_a_policy_driver_writes_its_predictions(tmp_path: Path, p
     assert sorted(set(ep.predictions["step"])) == sorted(ep.steps["step"])  # one prediction set per decision
     assert set(ep.predictions["k"]) == set(range(1, 11))
     assert record_main(["--driver", f"policy:{tmp_path / 'missing.zip'}", "--out", str(tmp_path / "o")]) == 2
+
+
+def test_dagger_round_labels_the_policys_states_with_the_oracle_and_saves_a_loadable_policy(tmp_path: Path) -> None:
+    from lcmodels.policy.dagger import collect, dagger
+
+    config = scenario_for_mode(tiny_scenario(), "pure")
+    record_episodes(config, [1, 2], "oracle", tmp_path / "demos", scenario="tiny", images=False)
+    cfg = _tiny(obs="pure", timesteps=0, warm_start=str(tmp_path / "demos"), warm_start_epochs=2, eval_episodes=0)
+    train_policy(cfg, tmp_path / "bc")
+    demos = load_demonstrations(tmp_path / "demos", "pure", None, scenario=config)
+    got = collect(tmp_path / "bc" / "policy.zip", [7, 8])
+    assert len(got.labels) == len(got.obs["current"]) > 0 and got.searches >= 1 and len(got.outcomes) == 2
+    assert set(got.labels.tolist()) <= {0, 1, 2} and got.agreed <= len(got.labels)
+    again = collect(tmp_path / "bc" / "policy.zip", [7, 8])
+    assert np.array_equal(again.labels, got.labels) and np.array_equal(again.obs["current"], got.obs["current"])
+    records = dagger(tmp_path / "bc", tmp_path / "dg", rounds=1, episodes=2, epochs=1, seed=7, workers=1,
+                     eval_episodes=2)  # fmt: skip
+    assert records[0]["states_labelled"] == len(got.labels)  # the same seeds, the same policy: the same states
+    assert records[0]["training_states"] == len(demos) + len(got.labels)
+    assert set(records[0]["eval"]) >= {"success_rate", "collision_rate"}
+    loaded = load_policy(tmp_path / "dg" / "round1" / "policy.zip")
+    assert loaded.meta["dagger"]["round"] == 1
+    with pytest.raises(FileExistsError):
+        dagger(tmp_path / "bc", tmp_path / "dg", rounds=1, episodes=1, epochs=1)

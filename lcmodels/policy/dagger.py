@@ -1,0 +1,194 @@
+"""DAgger with the oracle as the expert: label the states the policy itself visits, then clone again.
+
+Behaviour cloning of recorded demonstrations learns the expert's decisions on the expert's states; a
+policy that errs drifts to states the demonstrations never show (a gap closing in, a lane it should
+not be in) and errs more. DAgger (Ross et al., 2011) closes that loop. Each round:
+
+1. the current policy drives ``episodes`` training episodes (deterministic actions);
+2. at every decision, :func:`lcsim.oracle.search_from` labels the state with the first decision of a
+   winning plan from there (or, when none exists, of the branch that survives longest). A plan stays
+   valid while the policy follows it, so a new search runs only after the policy deviates;
+3. the labelled states join the demonstrations and the policy is trained on all of them (behaviour
+   cloning, :func:`lcmodels.policy.warmstart.pretrain`, without the value term: the labels carry no
+   return);
+4. the policy is saved as ``round<r>/policy.zip`` and evaluated on the held-out episodes.
+
+The expert sees the future; the policy sees only its observation. What a round teaches is which action
+the future rewards in states like the ones the policy reaches.
+"""
+
+from __future__ import annotations
+
+import json
+import multiprocessing
+import os
+import time
+from collections.abc import Callable, Sequence
+from concurrent.futures import ProcessPoolExecutor
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import torch
+
+from lcdata.record import episode_seed
+from lcmodels.fileio import write_json
+from lcmodels.policy.checkpoint import load_policy, save_policy
+from lcmodels.policy.evaluate import PolicyDriver, evaluate
+from lcmodels.policy.obs import build_observation, mode_keys, scenario_for_mode
+from lcmodels.policy.warmstart import Demonstrations, load_demonstrations, pretrain
+from lcsim.core import KEEP, RUNNING, LaneChangeCore
+from lcsim.oracle import search_from
+
+
+@dataclass
+class Collected:
+    """States a policy visited, in its observation mode, with the oracle's labels."""
+
+    obs: dict[str, np.ndarray]
+    labels: np.ndarray
+    agreed: int
+    searches: int
+    outcomes: list[str]
+
+
+def collect(policy_path: str | os.PathLike[str], user_seeds: Sequence[int], *,
+            predictor: str | os.PathLike[str] | None = None, threads: int = 1) -> Collected:
+    """Drive one episode per user seed with the policy and label every state with the oracle."""
+    torch.set_num_threads(threads)
+    loaded = load_policy(policy_path, predictor=predictor)
+    mode, model = loaded.obs_mode, loaded.model
+    config = scenario_for_mode(loaded.scenario, mode)
+    keys = mode_keys(mode)
+    rows: dict[str, list[np.ndarray]] = {k: [] for k in keys}
+    labels: list[int] = []
+    agreed = searches = 0
+    outcomes: list[str] = []
+    for user in user_seeds:
+        core = LaneChangeCore(config, 1)
+        core.reset([0], [episode_seed(int(user))])
+        plan, j = None, 0
+        while core.outcome[0] == RUNNING:
+            pobs = build_observation(core.observe(), mode, loaded.predictor)
+            if plan is None or j >= len(plan.actions):
+                plan, j = search_from(core), 0
+                searches += 1
+            label = plan.actions[j] if j < len(plan.actions) else KEEP
+            action = int(np.asarray(model.predict(pobs, deterministic=True)[0]).reshape(-1)[0])
+            for k in keys:
+                rows[k].append(pobs[k][0])
+            labels.append(label)
+            core.step(np.array([action]))
+            if action == label:
+                agreed += 1
+                j += 1
+            else:
+                plan = None
+        outcomes.append(str(core.outcome[0]))
+    obs = {k: np.stack(v) if v else np.zeros((0,)) for k, v in rows.items()}
+    return Collected(obs, np.asarray(labels, dtype=np.int64), agreed, searches, outcomes)
+
+
+def _collect_job(args: tuple[str, list[int], str | None]) -> Collected:
+    path, seeds, predictor = args
+    return collect(path, seeds, predictor=predictor)
+
+
+def dagger(
+    run_dir: str | os.PathLike[str],
+    out: str | os.PathLike[str],
+    *,
+    rounds: int = 2,
+    episodes: int = 100,
+    epochs: int = 10,
+    seed: int = 100_000,
+    workers: int = 2,
+    eval_episodes: int = 200,
+    eval_seed: int = 0,
+    progress: Callable[[str], None] | None = None,
+) -> list[dict[str, Any]]:
+    """Run DAgger rounds from a warm-started ``lc-train-policy`` run; returns each round's record.
+
+    Args:
+        run_dir: a run directory with ``policy.zip`` and ``run.json`` whose config names the demonstrations
+            it was warm-started on (``--warm-start``); they stay in the training set.
+        out: new directory for ``round<r>/policy.zip``, ``round<r>/metrics.json`` and ``dagger.json``.
+        episodes: training episodes the policy drives per round (user seeds ``seed + r * episodes + i``:
+            keep them apart from the demonstrations' and from evaluation's, which start at 10^9).
+        epochs: behaviour-cloning epochs over all labelled states per round.
+    """
+    run_dir, out = Path(run_dir), Path(out)
+    say = progress or (lambda _msg: None)
+    if min(rounds, episodes, epochs, workers) < 1:
+        raise ValueError("rounds, episodes, epochs and workers must be >= 1")
+    if out.exists() and any(out.iterdir()):
+        raise FileExistsError(f"{out} exists and is not empty; choose a new directory")
+    policy_path = run_dir / "policy.zip"
+    if not policy_path.is_file() or not (run_dir / "run.json").is_file():
+        raise FileNotFoundError(f"{run_dir} is not a finished lc-train-policy run (policy.zip, run.json)")
+    run = json.loads((run_dir / "run.json").read_text())
+    demos_dir = run["config"].get("warm_start") or ""
+    predictor = (run.get("predictor") or {}).get("path")
+    loaded = load_policy(policy_path, predictor=predictor)
+    mode, model = loaded.obs_mode, loaded.model
+    config = scenario_for_mode(loaded.scenario, mode)
+    data: dict[str, list[np.ndarray]] = {k: [] for k in mode_keys(mode)}
+    labels: list[np.ndarray] = []
+    if demos_dir:
+        demos = load_demonstrations(demos_dir, mode, loaded.predictor, scenario=config)
+        for k in data:
+            data[k].append(demos.obs[k])
+        labels.append(demos.actions)
+        say(f"demonstrations: {len(demos)} decisions of {demos.episodes} episodes from {demos_dir}")
+    out.mkdir(parents=True, exist_ok=True)
+    records: list[dict[str, Any]] = []
+    current = policy_path
+    ctx = multiprocessing.get_context("spawn")
+    for r in range(1, rounds + 1):
+        t0 = time.perf_counter()
+        seeds = [seed + (r - 1) * episodes + i for i in range(episodes)]
+        parts = [seeds[i::workers] for i in range(workers) if seeds[i::workers]]
+        with ProcessPoolExecutor(len(parts), mp_context=ctx) as pool:
+            got = list(pool.map(_collect_job, [(str(current), p, predictor) for p in parts]))
+        states = sum(len(g.labels) for g in got)
+        for g in got:
+            if len(g.labels):
+                for k in data:
+                    data[k].append(g.obs[k])
+                labels.append(g.labels)
+        outcomes = [o for g in got for o in g.outcomes]
+        collect_s = time.perf_counter() - t0
+        say(f"round {r}: the policy drove {episodes} episodes ({outcomes.count('success')} successes), "
+            f"{states} states labelled with {sum(g.searches for g in got)} searches in {collect_s:.0f} s")
+        all_labels = np.concatenate(labels)
+        train = Demonstrations({k: np.concatenate(v) for k, v in data.items()}, all_labels,
+                               np.zeros(len(all_labels), dtype=np.float32), 0)  # fmt: skip
+        t1 = time.perf_counter()
+        losses = pretrain(model, train, epochs=epochs, value_coef=0.0, seed=r)
+        train_s = time.perf_counter() - t1
+        current = out / f"round{r}" / "policy.zip"
+        meta = {k: v for k, v in loaded.meta.items() if k not in ("format", "version")}
+        meta["dagger"] = {"from": str(policy_path), "round": r, "states": len(all_labels)}
+        save_policy(model, current, meta)
+        say(f"round {r}: trained on {len(all_labels)} states, {epochs} epochs in {train_s:.0f} s -> {current}")
+        record: dict[str, Any] = {
+            "round": r, "episodes": episodes, "user_seeds": [seeds[0], seeds[-1]], "states_labelled": states,
+            "agreement": sum(g.agreed for g in got) / max(states, 1), "searches": sum(g.searches for g in got),
+            "policy_success_in_collection": outcomes.count("success") / len(outcomes),
+            "training_states": len(all_labels), "epoch_losses": losses, "collect_s": collect_s,
+            "train_s": train_s,
+        }  # fmt: skip
+        if eval_episodes > 0:
+            summary, _ = evaluate(PolicyDriver(load_policy(current, predictor=predictor)), config,
+                                  episodes=eval_episodes, seed=eval_seed, batch=20)  # fmt: skip
+            record["eval"] = summary
+            say(f"round {r}: held-out {eval_episodes}: success {100 * summary['success_rate']:.1f}%, "
+                f"collision {100 * summary['collision_rate']:.1f}%")
+        write_json(out / f"round{r}" / "metrics.json", record)
+        records.append(record)
+        write_json(out / "dagger.json", {"run_dir": str(run_dir), "demonstrations": demos_dir, "rounds": records})
+    return records
+
+
+__all__ = ["Collected", "collect", "dagger"]

@@ -1,0 +1,59 @@
+#!/usr/bin/env python
+"""DAgger with the oracle as the expert, from a warm-started lc-train-policy run.
+
+Each round the policy drives new training episodes; the oracle (lcsim.oracle, which sees the future)
+labels every state the policy reaches with the decision of a winning plan from there; the policy is
+cloned again on the demonstrations plus every labelled state, saved and evaluated on lc-eval's held-out
+episodes. See lcmodels.policy.dagger.
+
+    lc-record --driver oracle --episodes 200 --out runs/oracle-demos --workers 2
+    lc-train-policy --obs hybrid --predictor P.pt --warm-start runs/oracle-demos --timesteps 0 --out runs/bc
+    python tools/dagger.py runs/bc --rounds 2 --episodes 100 --out runs/bc-dagger
+    lc-eval runs/bc-dagger/round2/policy.zip --episodes 200
+
+Outputs in --out: round<r>/policy.zip (loadable by lc-eval and lc-record --driver policy:...),
+round<r>/metrics.json (collection, training and held-out evaluation), dagger.json (all rounds).
+"""
+
+from __future__ import annotations
+
+import argparse
+import sys
+
+from lcmodels.policy.dagger import dagger
+
+
+def main(argv: list[str] | None = None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0],
+                                 formatter_class=argparse.RawDescriptionHelpFormatter,
+                                 epilog="\n\n".join(__doc__.split("\n\n")[1:]))  # fmt: skip
+    ap.add_argument("run", help="lc-train-policy run directory (warm-started: its demonstrations stay in the data)")
+    ap.add_argument("--out", required=True, help="new directory for the rounds")
+    ap.add_argument("--rounds", type=int, default=2, help="DAgger rounds (2)")
+    ap.add_argument("--episodes", type=int, default=100, help="episodes the policy drives per round (100)")
+    ap.add_argument("--epochs", type=int, default=10, help="behaviour-cloning epochs per round over all states (10)")
+    ap.add_argument("--seed", type=int, default=100_000, help="first training user seed of the rounds (100000)")
+    ap.add_argument("--workers", type=int, default=2, help="processes that drive and label episodes (2)")
+    ap.add_argument("--eval-episodes", type=int, default=200, help="held-out episodes after each round, 0 to skip")
+    ap.add_argument("--eval-seed", type=int, default=0, help="evaluation seed, as lc-eval --seed (0)")
+    ap.add_argument("--threads", type=int, default=2, help="torch threads for training (2)")
+    args = ap.parse_args(argv)
+    if args.eval_episodes < 0 or args.threads < 1 or not 0 <= args.seed < 1_000_000_000:
+        print("dagger: error: --eval-episodes >= 0, --threads >= 1, 0 <= --seed < 10^9 (evaluation's seeds)",
+              file=sys.stderr)
+        return 2
+    import torch
+
+    torch.set_num_threads(args.threads)
+    try:
+        dagger(args.run, args.out, rounds=args.rounds, episodes=args.episodes, epochs=args.epochs, seed=args.seed,
+               workers=args.workers, eval_episodes=args.eval_episodes, eval_seed=args.eval_seed,
+               progress=lambda msg: print(msg, flush=True))  # fmt: skip
+    except (ValueError, OSError) as exc:
+        print(f"dagger: error: {str(exc).splitlines()[0]}", file=sys.stderr)
+        return 2
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
