@@ -99,8 +99,9 @@ def main(argv: list[str] | None = None) -> int:
         "wall_s": round(wall, 1), "workers": args.workers,
     }  # fmt: skip
     if args.out:
-        with open(args.out, "x") as f:
-            json.dump({"summary": summary, "episodes": rows}, f, indent=1)
+        with open(args.out, "x") as f:  # one line per episode
+            f.write('{"summary": ' + json.dumps(summary, indent=1) + ',\n "episodes": [\n  ')
+            f.write(",\n  ".join(json.dumps(r) for r in rows) + "\n ]\n}\n")
     if args.json:
         print(json.dumps(summary))
     else:
