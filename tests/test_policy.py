@@ -267,6 +267,11 @@ def test_dagger_round_labels_the_policys_states_with_the_oracle_and_saves_a_load
     assert set(got.labels.tolist()) <= {0, 1, 2} and got.agreed <= len(got.labels)
     again = collect(tmp_path / "bc" / "policy.zip", [7, 8])
     assert np.array_equal(again.labels, got.labels) and np.array_equal(again.obs["current"], got.obs["current"])
+    winning = collect(tmp_path / "bc" / "policy.zip", [7, 8], labels="winning")  # the same states, other labels
+    assert np.array_equal(winning.obs["current"], got.obs["current"]) and winning.harmless == got.harmless
+    assert (winning.labels != got.labels).sum() == got.harmless  # exactly the harmless deviations keep their own
+    with pytest.raises(ValueError, match="labels"):
+        collect(tmp_path / "bc" / "policy.zip", [7], labels="best")
     records = dagger(tmp_path / "bc", tmp_path / "dg", rounds=1, episodes=2, epochs=1, seed=7, workers=1,
                      eval_episodes=2)  # fmt: skip
     assert records[0]["states_labelled"] == len(got.labels)  # the same seeds, the same policy: the same states

@@ -36,6 +36,9 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--workers", type=int, default=2, help="processes that drive and label episodes (2)")
     ap.add_argument("--eval-episodes", type=int, default=200, help="held-out episodes after each round, 0 to skip")
     ap.add_argument("--eval-seed", type=int, default=0, help="evaluation seed, as lc-eval --seed (0)")
+    ap.add_argument("--labels", choices=("plan", "winning"), default="plan",
+                    help="plan: the oracle's decision at every state; winning: keep the policy's own decision "
+                    "where the episode can still be won after it, correct only the losing ones (plan)")
     ap.add_argument("--threads", type=int, default=2, help="torch threads for training (2)")
     args = ap.parse_args(argv)
     if args.eval_episodes < 0 or args.threads < 1 or not 0 <= args.seed < 1_000_000_000:
@@ -47,7 +50,7 @@ def main(argv: list[str] | None = None) -> int:
     torch.set_num_threads(args.threads)
     try:
         dagger(args.run, args.out, rounds=args.rounds, episodes=args.episodes, epochs=args.epochs, seed=args.seed,
-               workers=args.workers, eval_episodes=args.eval_episodes, eval_seed=args.eval_seed,
+               workers=args.workers, eval_episodes=args.eval_episodes, eval_seed=args.eval_seed, labels=args.labels,
                progress=lambda msg: print(msg, flush=True))  # fmt: skip
     except (ValueError, OSError) as exc:
         print(f"dagger: error: {str(exc).splitlines()[0]}", file=sys.stderr)

@@ -38,8 +38,11 @@ from lcmodels.policy.checkpoint import load_policy, save_policy
 from lcmodels.policy.evaluate import PolicyDriver, evaluate
 from lcmodels.policy.obs import build_observation, mode_keys, scenario_for_mode
 from lcmodels.policy.warmstart import Demonstrations, load_demonstrations, pretrain
-from lcsim.core import KEEP, RUNNING, LaneChangeCore
+from lcsim.core import KEEP, RUNNING, SUCCESS, LaneChangeCore
 from lcsim.oracle import search_from
+
+LABELS = ("plan", "winning")
+"""How :func:`collect` labels a state (see there)."""
 
 
 @dataclass
@@ -51,48 +54,69 @@ class Collected:
     agreed: int
     searches: int
     outcomes: list[str]
+    harmless: int = 0
+    """Decisions off the oracle's plan after which the episode could still be won (those states carry the
+    policy's own decision as their label when ``labels="winning"``)."""
 
 
 def collect(policy_path: str | os.PathLike[str], user_seeds: Sequence[int], *,
-            predictor: str | os.PathLike[str] | None = None, threads: int = 1) -> Collected:
-    """Drive one episode per user seed with the policy and label every state with the oracle."""
+            predictor: str | os.PathLike[str] | None = None, threads: int = 1, labels: str = "plan") -> Collected:
+    """Drive one episode per user seed with the policy and label every state with the oracle.
+
+    ``labels``: ``"plan"`` labels each state with the first decision of the oracle's plan from it;
+    ``"winning"`` keeps the policy's own decision where the episode can still be won after it (known
+    from the search that follows it anyway), so only the decisions that lose are corrected.
+    """
+    if labels not in LABELS:
+        raise ValueError(f"labels must be one of {', '.join(LABELS)}, got {labels!r}")
+    keep_winning = labels == "winning"
     torch.set_num_threads(threads)
     loaded = load_policy(policy_path, predictor=predictor)
     mode, model = loaded.obs_mode, loaded.model
     config = scenario_for_mode(loaded.scenario, mode)
     keys = mode_keys(mode)
     rows: dict[str, list[np.ndarray]] = {k: [] for k in keys}
-    labels: list[int] = []
-    agreed = searches = 0
+    labels_: list[int] = []
+    agreed = searches = harmless = 0
     outcomes: list[str] = []
     for user in user_seeds:
         core = LaneChangeCore(config, 1)
         core.reset([0], [episode_seed(int(user))])
         plan, j = None, 0
+        deviated: tuple[int, int] | None = None  # (state, the policy's decision) off the plan, awaiting a verdict
         while core.outcome[0] == RUNNING:
             pobs = build_observation(core.observe(), mode, loaded.predictor)
             if plan is None or j >= len(plan.actions):
                 plan, j = search_from(core), 0
                 searches += 1
+                if deviated is not None and plan.winnable:  # the policy's decision still wins
+                    harmless += 1
+                    if keep_winning:
+                        labels_[deviated[0]] = deviated[1]
+                deviated = None
             label = plan.actions[j] if j < len(plan.actions) else KEEP
             action = int(np.asarray(model.predict(pobs, deterministic=True)[0]).reshape(-1)[0])
             for k in keys:
                 rows[k].append(pobs[k][0])
-            labels.append(label)
+            labels_.append(label)
             core.step(np.array([action]))
             if action == label:
                 agreed += 1
                 j += 1
             else:
-                plan = None
+                plan, deviated = None, (len(labels_) - 1, action)
+        if deviated is not None and core.outcome[0] == SUCCESS:
+            harmless += 1
+            if keep_winning:
+                labels_[deviated[0]] = deviated[1]
         outcomes.append(str(core.outcome[0]))
     obs = {k: np.stack(v) if v else np.zeros((0,)) for k, v in rows.items()}
-    return Collected(obs, np.asarray(labels, dtype=np.int64), agreed, searches, outcomes)
+    return Collected(obs, np.asarray(labels_, dtype=np.int64), agreed, searches, outcomes, harmless)
 
 
-def _collect_job(args: tuple[str, list[int], str | None]) -> Collected:
-    path, seeds, predictor = args
-    return collect(path, seeds, predictor=predictor)
+def _collect_job(args: tuple[str, list[int], str | None, str]) -> Collected:
+    path, seeds, predictor, labels = args
+    return collect(path, seeds, predictor=predictor, labels=labels)
 
 
 def dagger(
@@ -106,6 +130,7 @@ def dagger(
     workers: int = 2,
     eval_episodes: int = 200,
     eval_seed: int = 0,
+    labels: str = "plan",
     progress: Callable[[str], None] | None = None,
 ) -> list[dict[str, Any]]:
     """Run DAgger rounds from a warm-started ``lc-train-policy`` run; returns each round's record.
@@ -117,9 +142,12 @@ def dagger(
         episodes: training episodes the policy drives per round (user seeds ``seed + r * episodes + i``:
             keep them apart from the demonstrations' and from evaluation's, which start at 10^9).
         epochs: behaviour-cloning epochs over all labelled states per round.
+        labels: ``"plan"`` or ``"winning"``, as in :func:`collect`.
     """
     run_dir, out = Path(run_dir), Path(out)
     say = progress or (lambda _msg: None)
+    if labels not in LABELS:
+        raise ValueError(f"labels must be one of {', '.join(LABELS)}, got {labels!r}")
     if min(rounds, episodes, epochs, workers) < 1:
         raise ValueError("rounds, episodes, epochs and workers must be >= 1")
     if out.exists() and any(out.iterdir()):
@@ -134,12 +162,12 @@ def dagger(
     mode, model = loaded.obs_mode, loaded.model
     config = scenario_for_mode(loaded.scenario, mode)
     data: dict[str, list[np.ndarray]] = {k: [] for k in mode_keys(mode)}
-    labels: list[np.ndarray] = []
+    targets: list[np.ndarray] = []
     if demos_dir:
         demos = load_demonstrations(demos_dir, mode, loaded.predictor, scenario=config)
         for k in data:
             data[k].append(demos.obs[k])
-        labels.append(demos.actions)
+        targets.append(demos.actions)
         say(f"demonstrations: {len(demos)} decisions of {demos.episodes} episodes from {demos_dir}")
     out.mkdir(parents=True, exist_ok=True)
     records: list[dict[str, Any]] = []
@@ -150,18 +178,18 @@ def dagger(
         seeds = [seed + (r - 1) * episodes + i for i in range(episodes)]
         parts = [seeds[i::workers] for i in range(workers) if seeds[i::workers]]
         with ProcessPoolExecutor(len(parts), mp_context=ctx) as pool:
-            got = list(pool.map(_collect_job, [(str(current), p, predictor) for p in parts]))
+            got = list(pool.map(_collect_job, [(str(current), p, predictor, labels) for p in parts]))
         states = sum(len(g.labels) for g in got)
         for g in got:
             if len(g.labels):
                 for k in data:
                     data[k].append(g.obs[k])
-                labels.append(g.labels)
+                targets.append(g.labels)
         outcomes = [o for g in got for o in g.outcomes]
         collect_s = time.perf_counter() - t0
         say(f"round {r}: the policy drove {episodes} episodes ({outcomes.count('success')} successes), "
             f"{states} states labelled with {sum(g.searches for g in got)} searches in {collect_s:.0f} s")
-        all_labels = np.concatenate(labels)
+        all_labels = np.concatenate(targets)
         train = Demonstrations({k: np.concatenate(v) for k, v in data.items()}, all_labels,
                                np.zeros(len(all_labels), dtype=np.float32), 0)  # fmt: skip
         t1 = time.perf_counter()
@@ -175,6 +203,7 @@ def dagger(
         record: dict[str, Any] = {
             "round": r, "episodes": episodes, "user_seeds": [seeds[0], seeds[-1]], "states_labelled": states,
             "agreement": sum(g.agreed for g in got) / max(states, 1), "searches": sum(g.searches for g in got),
+            "labels": labels, "harmless_deviations": sum(g.harmless for g in got),
             "policy_success_in_collection": outcomes.count("success") / len(outcomes),
             "training_states": len(all_labels), "epoch_losses": losses, "collect_s": collect_s,
             "train_s": train_s,
@@ -191,4 +220,4 @@ def dagger(
     return records
 
 
-__all__ = ["Collected", "collect", "dagger"]
+__all__ = ["LABELS", "Collected", "collect", "dagger"]
