@@ -7,7 +7,9 @@ not be in) and errs more. DAgger (Ross et al., 2011) closes that loop. Each roun
 1. the current policy drives ``episodes`` training episodes (deterministic actions);
 2. at every decision, :func:`lcsim.oracle.search_from` labels the state with the first decision of a
    winning plan from there (or, when none exists, of the branch that survives longest). A plan stays
-   valid while the policy follows it, so a new search runs only after the policy deviates;
+   valid while the policy follows it, so a new search runs only after the policy deviates. With
+   ``labels="winning"``, a deviation after which the episode can still be won keeps the policy's own
+   decision as its label, so only losing decisions are corrected;
 3. the labelled states join the demonstrations and the policy is trained on all of them (behaviour
    cloning, :func:`lcmodels.policy.warmstart.pretrain`, without the value term: the labels carry no
    return);
