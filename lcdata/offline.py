@@ -104,6 +104,11 @@ class ObservationRebuilder:
         sim.hist[0, :, :, 1] = cols["y"][idx]
         sim.hist_ptr = h - 1
         sim.hist_count[0] = int(step) + 1 + frozen_steps
+        # The neighbour index of this state. A traffic vehicle is changing lanes where its target lane is
+        # not its lane; where the two agree mid-change, the target adds no lane the body does not touch.
+        sim.lc_active[0] = sim.target_lane[0] != sim.lane[0]
+        sim.lc_active[0, 0] = False  # the ego's change is ego_lc_active; its target lane is not a member
+        sim.rebuild_index()
         return {k: v[0] for k, v in self.core.observe().items()}
 
 

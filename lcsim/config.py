@@ -50,7 +50,8 @@ class _JsonMixin:
         unknown = set(data) - set(fields)
         if unknown:
             raise ValueError(f"{cls.__name__}: unknown field(s) {sorted(unknown)}")
-        kwargs: dict[str, Any] = {}
+        kwargs: dict[str, Any] = {name: value for (owner, name), value in _LEGACY_DEFAULTS.items()
+                                  if owner == cls.__name__ and name not in data}
         for name, value in data.items():
             sub = _NESTED.get((cls.__name__, name))
             if sub is not None and isinstance(value, dict):
@@ -157,6 +158,17 @@ class PIDGains(_JsonMixin):
 
 # The paper's gains. Its Ki/Kd labels may be swapped relative to CARLA's BasicAgent code
 # (lateral K_I 0.05 / K_D 0.2 there), so the swapped reading is kept as a named variant.
+NEIGHBOUR_SELECTIONS = ("lanes", "nearest")
+# The observation's vehicle slots with neighbour_selection="lanes", in order: (lane offset from the ego's
+# target lane, -1 right / +1 left; ahead (True) or behind; rank in that lane, 1 = the nearest).
+LANE_SLOTS: tuple[tuple[int, bool, int], ...] = (
+    (0, True, 1), (0, False, 1),      # leader and follower in the ego's lane
+    (-1, True, 1), (-1, False, 1),    # ... in the lane to its right
+    (1, True, 1), (1, False, 1),      # ... in the lane to its left
+    (-1, True, 2), (1, True, 2),      # the second leaders right and left: how long the gap there is
+)
+MAX_LANE_SLOTS = len(LANE_SLOTS)
+
 PAPER_LATERAL = PIDGains(kp=1.95, ki=0.2, kd=0.07)
 PAPER_LONGITUDINAL = PIDGains(kp=1.0, ki=0.0, kd=0.75)
 SWAPPED_LATERAL = PIDGains(kp=1.95, ki=0.07, kd=0.2)
@@ -278,6 +290,13 @@ class ScenarioConfig(_JsonMixin):
     adaptive cruise, held up by slower traffic, almost never makes it (docs/simulator.md)."""
     history_steps: int = 10
     num_neighbours: int = 8
+    neighbour_selection: str = "lanes"
+    """Which K vehicles the observation shows (within ``sensing_range_m``): ``lanes`` (fixed slots: the
+    leader and follower in the ego's lane and in the lanes right and left of it, then the second leaders
+    right and left; :data:`LANE_SLOTS`; K <= 8) or ``nearest`` (the K nearest by distance,
+    nearest first). PPO on ``pure`` observations won 59.0% of the held-out episodes with ``lanes`` and
+    25.5% with ``nearest`` (300k steps, docs/simulator.md). Configs stored before this field existed
+    read as ``nearest``."""
     sensing_range_m: float = 80.0
     render_image: bool = True
     invalid_lane_change: str = "refuse"
@@ -296,6 +315,11 @@ class ScenarioConfig(_JsonMixin):
                "must be an integer >= 1", self.history_steps)
         _check(isinstance(self.num_neighbours, int) and self.num_neighbours >= 1, self, "num_neighbours",
                "must be an integer >= 1", self.num_neighbours)
+        _check(self.neighbour_selection in NEIGHBOUR_SELECTIONS, self, "neighbour_selection",
+               f"must be one of {', '.join(NEIGHBOUR_SELECTIONS)}", self.neighbour_selection)
+        _check(self.neighbour_selection != "lanes" or self.num_neighbours <= MAX_LANE_SLOTS, self,
+               "num_neighbours", f"must be <= {MAX_LANE_SLOTS} with neighbour_selection='lanes'",
+               self.num_neighbours)
         _check(self.time_limit_s >= self.decision_period_s, self, "time_limit_s",
                "must be >= decision_period_s", self.time_limit_s)
         if self.ego.start_lane >= self.road.num_lanes:
@@ -321,6 +345,12 @@ class ScenarioConfig(_JsonMixin):
         """Simulation steps in the time limit."""
         return round(self.time_limit_s / self.dt_s)
 
+
+# Values of fields added after configs were first stored, for stored configs that lack them: what the
+# simulator did before the field existed (so old recordings replay and old checkpoints compare as they were).
+_LEGACY_DEFAULTS: dict[tuple[str, str], Any] = {
+    ("ScenarioConfig", "neighbour_selection"): "nearest",
+}
 
 _NESTED: dict[tuple[str, str], type[_JsonMixin]] = {
     ("ScenarioConfig", "road"): RoadConfig,

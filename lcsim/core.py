@@ -11,7 +11,7 @@ from functools import lru_cache
 
 import numpy as np
 
-from lcsim.config import ScenarioConfig
+from lcsim.config import LANE_SLOTS, ScenarioConfig
 from lcsim.render import BevRenderer
 from lcsim.sim import HighwaySim
 
@@ -21,7 +21,7 @@ OUTCOMES = (SUCCESS, COLLISION, OFF_ROAD, TIMEOUT)
 # Actions (Table I of the paper).
 RIGHT, KEEP, LEFT = 0, 1, 2
 ACTION_NAMES = ("right", "keep", "left")
-# Columns of the `current` observation (ego row 0, then the nearest neighbours), in the ego frame.
+# Columns of the `current` observation (ego row 0, then the neighbour slots), in the ego frame.
 CURRENT_FEATURES = ("x_m", "y_m", "vx_mps", "vy_mps", "yaw_rad", "speed_mps", "lane", "target_lane", "present")
 REWARD_COMPONENTS = ("collision", "off_road", "forward", "success")
 
@@ -199,7 +199,38 @@ class LaneChangeCore:
 
     # ------------------------------------------------------------ observation
     def neighbours(self, ids: np.ndarray) -> np.ndarray:
-        """``(len(ids), K)`` indices of the K nearest vehicles to the ego within sensing range, nearest first; -1."""
+        """``(len(ids), K)`` the vehicles of the observation's K slots, -1 where a slot is empty.
+
+        As ``config.neighbour_selection`` says: ``lanes``, the slots of :data:`lcsim.config.LANE_SLOTS`
+        (leader and follower in the ego's target lane and the lanes beside it, then the second leaders
+        beside it); ``nearest``, the K nearest vehicles, nearest first. Only vehicles within
+        ``sensing_range_m`` of the ego are shown.
+        """
+        if self.config.neighbour_selection == "nearest":
+            return self._nearest_neighbours(ids)
+        return self._lane_neighbours(ids)
+
+    def _lane_neighbours(self, ids: np.ndarray) -> np.ndarray:
+        sim = self.sim
+        index = sim.index
+        assert index is not None
+        n = sim.num_vehicles
+        ego = ids * n  # flat index of each ego into (E, N)
+        ego_lane = sim.target_lane.take(ego)
+        found: dict[tuple[int, bool, int], np.ndarray] = {}
+        out = np.empty((len(ids), self.k), dtype=np.int64)
+        for j, (offset, ahead, rank) in enumerate(LANE_SLOTS[: self.k]):
+            start = ego if rank == 1 else found[(offset, ahead, rank - 1)]
+            veh = index.neighbour_flat(np.maximum(start, 0), ego_lane + offset, ahead)
+            veh[start < 0] = -1
+            found[(offset, ahead, rank)] = out[:, j] = veh
+        present = out >= 0
+        flat = np.maximum(out, 0)
+        d2 = (sim.x.take(flat) - sim.x.take(ego)[:, None]) ** 2 + (sim.y.take(flat) - sim.y.take(ego)[:, None]) ** 2
+        present &= d2 <= self.config.sensing_range_m ** 2
+        return np.where(present, out - ego[:, None], -1)
+
+    def _nearest_neighbours(self, ids: np.ndarray) -> np.ndarray:
         sim = self.sim
         n = sim.num_vehicles
         ego = (ids * n)[:, None]  # flat index of each ego into (E, N)

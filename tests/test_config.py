@@ -26,6 +26,8 @@ def test_json_round_trip():
     (lambda: ScenarioConfig(time_limit_s=float("nan")), "time_limit_s"),
     (lambda: ScenarioConfig(traffic=TrafficConfig(num_vehicles=2000)), "num_vehicles"),
     (lambda: ScenarioConfig(ego=EgoConfig(start_lane=4)), "start_lane"),
+    (lambda: ScenarioConfig(neighbour_selection="closest"), "neighbour_selection"),
+    (lambda: ScenarioConfig(num_neighbours=9), "num_neighbours"),  # 8 lane slots
 ])
 def test_bad_values_raise_naming_the_field(factory, field):
     with pytest.raises(ValueError, match=field):
@@ -43,3 +45,11 @@ def test_configs_are_frozen():
     cfg = ScenarioConfig()
     with pytest.raises(dataclasses.FrozenInstanceError):
         cfg.dt_s = 0.1  # type: ignore[misc]
+
+
+def test_configs_stored_before_neighbour_selection_read_as_nearest():
+    data = json.loads(ScenarioConfig().to_json())
+    assert data["neighbour_selection"] == "lanes"
+    del data["neighbour_selection"]  # as in recordings and checkpoints made before the field existed
+    assert ScenarioConfig.from_dict(data).neighbour_selection == "nearest"
+    assert ScenarioConfig(num_neighbours=12, neighbour_selection="nearest").num_neighbours == 12
