@@ -202,7 +202,7 @@ class EpisodeRecorder:
     def write_predictions(self, predictions: np.ndarray) -> None:
         """``/prediction`` for this decision from the policy's ``(K, F, 2)`` ego-frame predictions.
 
-        Slot k is the k-th nearest neighbour of the observation (``core.neighbours``); call it between
+        Slot k is the observation's k-th neighbour slot (``core.neighbours``); call it between
         :meth:`before_step` and ``core.step``. Positions are written in the world frame.
         """
         sim, e = self.core.sim, self.env

@@ -4,7 +4,7 @@
   (:class:`VGG16`, 13 convolutions and 5 poolings, then two linear layers down to 10 features) or the
   compact VGG-style default (:class:`CompactVGG`, three 3x3-convolution blocks on the image average-pooled
   to 40x40; about 4000x fewer multiply-adds, so it trains on a CPU).
-- ``current`` (1+K, 9): the ego and its K nearest neighbours (:data:`lcsim.core.CURRENT_FEATURES`),
+- ``current`` (1+K, 9): the ego and its K neighbour slots (:data:`lcsim.core.CURRENT_FEATURES`),
   scaled per column to order one, flattened, two-layer MLP.
 - ``prediction`` (K, F, 2): predicted neighbour positions in the ego frame, scaled, flattened, MLP.
 

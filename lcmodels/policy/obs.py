@@ -9,7 +9,7 @@ mode           keys the policy sees                   the paper's row
 ``hybrid``     ``current``, ``image``, ``prediction`` Hybrid (Hybrid-PPO)
 =============  =====================================  ==========================
 
-``prediction`` is ``(K, F, 2)``: the trained predictor's positions of the K nearest neighbours F steps
+``prediction`` is ``(K, F, 2)``: the trained predictor's positions of the K neighbour slots F steps
 ahead, in the ego frame, from the ``history`` the simulator observes (zeros for absent neighbours).
 :class:`PolicyVecEnv` computes it once per step for all environments and neighbours in one batched call,
 drops the keys the mode does not use, and keeps per-episode statistics (outcome, return, forward
