@@ -72,6 +72,10 @@ class LaneChangeCore:
         self.num_envs = num_envs
         self.renderer = BevRenderer(config.road, config.render) if config.render_image else None
         self.k = config.num_neighbours
+        # Lane slots: how many members each (lane offset, ahead) search must return.
+        self._lane_searches: dict[tuple[int, bool], int] = {}
+        for offset, ahead, rank in LANE_SLOTS[: self.k]:
+            self._lane_searches[(offset, ahead)] = max(rank, self._lane_searches.get((offset, ahead), 0))
         self.milestone_x = np.asarray(config.reward.milestones) * config.route_length_m
         self.milestone_r = np.asarray(config.reward.milestone_rewards)
         self.next_milestone = np.zeros(num_envs, dtype=np.int64)
@@ -214,6 +218,8 @@ class LaneChangeCore:
         sim = self.sim
         index = sim.index
         assert index is not None
+        if self.num_envs == 1:
+            return self._lane_neighbours_one()
         n = sim.num_vehicles
         ego = ids * n  # flat index of each ego into (E, N)
         ego_lane = sim.target_lane.take(ego)
@@ -229,6 +235,27 @@ class LaneChangeCore:
         d2 = (sim.x.take(flat) - sim.x.take(ego)[:, None]) ** 2 + (sim.y.take(flat) - sim.y.take(ego)[:, None]) ** 2
         present &= d2 <= self.config.sensing_range_m ** 2
         return np.where(present, out - ego[:, None], -1)
+
+    def _lane_neighbours_one(self) -> np.ndarray:
+        """:meth:`_lane_neighbours` of a single environment on Python scalars (same result, fewer calls)."""
+        sim = self.sim
+        index = sim.index
+        assert index is not None
+        lane = sim.target_lane.item(0)
+        found = {key: index.lane_members_one(0, lane + key[0], key[1], count)
+                 for key, count in self._lane_searches.items()}
+        x, y = sim.x, sim.y
+        ex, ey, r2 = x.item(0), y.item(0), self.config.sensing_range_m ** 2
+        out = []
+        for offset, ahead, rank in LANE_SLOTS[: self.k]:
+            members = found[(offset, ahead)]
+            v = members[rank - 1] if len(members) >= rank else -1
+            if v >= 0:
+                dx, dy = x.item(v) - ex, y.item(v) - ey
+                if dx * dx + dy * dy > r2:  # the operations of the batched test, in the same order
+                    v = -1
+            out.append(v)
+        return np.array([out], dtype=np.int64)
 
     def _nearest_neighbours(self, ids: np.ndarray) -> np.ndarray:
         sim = self.sim

@@ -22,6 +22,8 @@ from functools import lru_cache
 
 import numpy as np
 
+_NO_POSITIONS = np.zeros(0, dtype=np.int64)
+
 # Above this many table elements a log-step (Hillis-Steele) scan beats ``np.maximum.accumulate``.
 _DOUBLING_SCAN_MIN = 4096
 # From this many vehicles in all, the body extent is computed only where the yaw is not zero.
@@ -263,6 +265,23 @@ class LaneIndex:
         Returns the neighbours' flat indices (-1 when none or the lane does not exist).
         """
         return self._nearest(lane, self.pos_of.take(flat), flat // self.order.shape[1], ahead)
+
+    def lane_members_one(self, vehicle: int, lane: int, ahead: bool, count: int) -> list[int]:
+        """One environment (E = 1): the ``count`` members of ``lane`` nearest ahead of (behind) ``vehicle``,
+        nearest first, as vehicle indices; fewer when there are fewer, none when the lane does not exist.
+
+        The first is what :meth:`neighbour_in_lane` gives, the next the neighbour of that one, and so on;
+        a few numpy calls instead of a table look-up per rank.
+        """
+        if not 0 <= lane < self.num_lanes:
+            return []
+        p = self.pos_of.item(vehicle)
+        col = self.member[lane, :, 0]
+        if ahead:
+            pos = np.flatnonzero(col[p + 1:])[:count] + (p + 1)
+        else:
+            pos = (p - 1) - np.flatnonzero(col[p - 1::-1])[:count] if p > 0 else _NO_POSITIONS
+        return self.order[0].take(pos).tolist()
 
     def _nearest(self, lane: np.ndarray, pos: np.ndarray, env: np.ndarray, ahead: bool) -> np.ndarray:
         """Flat index of the nearest member of ``lane`` ahead of / behind sorted position ``pos``; -1."""

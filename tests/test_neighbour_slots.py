@@ -36,26 +36,28 @@ def _brute_force_slots(core: LaneChangeCore, e: int) -> list[int]:
     return out
 
 
-def test_lane_slots_match_a_brute_force_search():
+@pytest.mark.parametrize("num_envs", [1, 3])  # the single-environment path and the batched one
+def test_lane_slots_match_a_brute_force_search(num_envs):
     cfg = _dense()
     assert cfg.neighbour_selection == "lanes"
-    core = LaneChangeCore(cfg, 3)
-    core.reset([0, 1, 2], [11, 12, 13])
+    core = LaneChangeCore(cfg, num_envs)
+    envs = np.arange(num_envs)
+    core.reset(envs, [13] if num_envs == 1 else [11, 12, 13])
     rng = np.random.default_rng(0)
     filled = straddling = 0
     for _ in range(60):
-        actions = np.where(rng.random(3) < 0.2, rng.integers(0, 3, 3), 1)
+        actions = np.where(rng.random(num_envs) < 0.2, rng.integers(0, 3, num_envs), 1)
         core.step(actions)
-        slots = core.neighbours(np.arange(3))
-        for e in range(3):
+        slots = core.neighbours(envs)
+        for e in envs:
             assert slots[e].tolist() == _brute_force_slots(core, e)
-        assert (core.neighbours(np.array([2, 0])) == slots[[2, 0]]).all()  # a subset of environments
+        assert (core.neighbours(envs[::-1]) == slots[::-1]).all()  # environments in another order
         filled += int((slots >= 0).sum())
         lo, hi = core.sim.index.lohi
-        for e in range(3):
+        for e in envs:
             shown = slots[e][slots[e] >= 0]
             straddling += int((lo[e, shown] != hi[e, shown]).sum())
-    assert filled > 60 * 3 * 4  # the test exercises full slots, not empty ones
+    assert filled > 60 * num_envs * 4  # the test exercises full slots, not empty ones
     assert straddling > 0  # and vehicles that touch two lanes (changing lanes)
 
 
