@@ -13,6 +13,7 @@ from stable_baselines3.common.env_checker import check_env
 
 from lcdata.record import record_episodes
 from lcmodels.cli import eval_main, train_policy_main
+from lcmodels.fileio import file_sha256
 from lcmodels.policy import (
     VGG16,
     CompactVGG,
@@ -135,6 +136,13 @@ def test_resume_continues_the_step_count(tmp_path: Path) -> None:
     assert second.metrics["train"]["resumed_from"] == 64
     steps = [int(r.split(",")[0]) for r in (tmp_path / "progress.csv").read_text().splitlines()[1:]]
     assert steps == sorted(steps) and steps[-1] == 192
+    # the evaluation follows the policy: continuing a finished run evaluates the new policy
+    third = train_policy(_tiny(obs="pure", timesteps=192, eval_episodes=2), tmp_path)
+    assert third.metrics["eval"]["policy_sha256"] == file_sha256(tmp_path / "policy.zip")
+    fourth = train_policy(_tiny(obs="pure", timesteps=256, eval_episodes=2), tmp_path)
+    assert fourth.timesteps == 256
+    assert fourth.metrics["eval"]["policy_sha256"] == file_sha256(tmp_path / "policy.zip")
+    assert fourth.metrics["eval"]["policy_sha256"] != third.metrics["eval"]["policy_sha256"]
     # a run with another config in the same directory is refused, saying what differs
     with pytest.raises(ValueError, match="algo"):
         train_policy(_tiny(obs="pure", algo="a2c"), tmp_path)

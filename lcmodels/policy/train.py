@@ -353,7 +353,9 @@ def train_policy(
     eval_json = out / "eval" / "metrics.json"
     if cfg.eval_episodes > 0:
         summary = json.loads(eval_json.read_text()) if eval_json.exists() else {}
-        if (summary.get("episodes"), summary.get("eval_seed")) != (cfg.eval_episodes, cfg.eval_seed):
+        policy_sha = file_sha256(final)  # a run continued to more timesteps has a new policy to evaluate
+        if (summary.get("episodes"), summary.get("eval_seed"), summary.get("policy_sha256")) != (
+                cfg.eval_episodes, cfg.eval_seed, policy_sha):
             from lcmodels.policy.checkpoint import load_policy
 
             loaded: LoadedPolicy = load_policy(final, predictor=pred_path, device=device)
@@ -364,6 +366,7 @@ def train_policy(
                                   batch=cfg.eval_batch, overwrite=True, train_seeds=train_seeds,
                                   progress=eval_progress)  # fmt: skip
             summary["wall_s"] = time.perf_counter() - t0
+            summary["policy_sha256"] = policy_sha
             write_json(eval_json, summary)
         metrics["eval"] = summary
     write_json(out / "metrics.json", metrics)
