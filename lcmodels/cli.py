@@ -370,7 +370,7 @@ def eval_main(argv: list[str] | None = None) -> int:
 EXPERIMENT_EPILOG = """stages (each skipped when complete, redone when missing or stale):
   corpus      autopilot trajectory corpus (MCAP)                 DIR/corpus/
   predictor   transformer + constant velocity/acceleration        DIR/predictor/metrics.json  (Table II)
-  demos       rule-based episodes with images for the warm start  DIR/demos/
+  demos       demonstrations (the oracle's) for the warm start    DIR/demos/
   rule        rule-based reference on the held-out seeds          DIR/rule/metrics.json
   policies    A2C, DQN, PPO pure/image/prediction/hybrid, Hybrid-PPO + warm start, K seeds each
                                                                   DIR/policies/<method>/seed<k>/

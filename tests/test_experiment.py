@@ -130,7 +130,10 @@ def check_report_holds_the_numbers_of_the_metrics_files(run_dir: Path) -> None:
 
 
 def without_wall_times(metrics: dict) -> dict:
-    return {part: {k: v for k, v in metrics[part].items() if k != "wall_s"} for part in ("config", "eval", "train")}
+    """The results of a run, without what differs between two runs of it: wall times, and the hash of the
+    policy file that was evaluated (an SB3 zip stores the time it was written)."""
+    return {part: {k: v for k, v in metrics[part].items() if k not in ("wall_s", "policy_sha256")}
+            for part in ("config", "eval", "train")}
 
 
 def check_parallel_policies_equal_sequential_ones(run_dir: Path) -> None:
