@@ -112,9 +112,11 @@ class ObservationRebuilder:
         return {k: v[0] for k, v in self.core.observe().items()}
 
 
-def rebuild_observations(episode: Episode) -> Iterator[tuple[int, dict[str, np.ndarray]]]:
-    """Yield ``(step, observation)`` for every recorded RL decision, in order (what the driver saw)."""
-    rebuilder = ObservationRebuilder(episode)
+def rebuild_observations(episode: Episode, config: ScenarioConfig | None = None,
+                         ) -> Iterator[tuple[int, dict[str, np.ndarray]]]:
+    """Yield ``(step, observation)`` for every recorded RL decision, in order (what the driver saw, or, with
+    ``config``, what a driver observing with that scenario would have seen)."""
+    rebuilder = ObservationRebuilder(episode, config)
     for step in episode.steps["step"].to_numpy():
         yield int(step), rebuilder.observe(int(step))
 

@@ -156,6 +156,7 @@ def train_policy_parser() -> argparse.ArgumentParser:
     from lcmodels.policy.extractor import IMAGE_NETS
     from lcmodels.policy.obs import OBS_MODES
     from lcmodels.policy.train import POLICY_SCENARIOS, PolicyConfig
+    from lcsim.config import NEIGHBOUR_SELECTIONS
 
     d = PolicyConfig()
     p = argparse.ArgumentParser(
@@ -173,6 +174,10 @@ def train_policy_parser() -> argparse.ArgumentParser:
     p.add_argument("--scenario", choices=list(POLICY_SCENARIOS), default=d.scenario,
                    help="paper: 100 vehicles, 600 m route; light: 30 vehicles, 300 m; tiny: 8 vehicles, 150 m, "
                    "for smoke tests (default %(default)s)")
+    p.add_argument("--neighbours", choices=NEIGHBOUR_SELECTIONS, default=d.neighbours,
+                   help="the 8 vehicles the observation shows: lanes (leader and follower in the ego's lane and "
+                   "the lanes beside it, then the second leaders beside it) or nearest (the 8 nearest by "
+                   "distance) (default %(default)s)")
     p.add_argument("--timesteps", type=int_at_least(0), default=d.timesteps,
                    help="online decisions over all envs; 0 with --warm-start: behaviour cloning only, no online "
                    "training (default %(default)s)")
@@ -229,7 +234,8 @@ def train_policy_main(argv: list[str] | None = None) -> int:
     defaults = {"a2c": (7e-4, 8), "dqn": (1e-4, 128)}.get(args.algo, (3e-4, 128))
     try:
         cfg = PolicyConfig(
-            algo=args.algo, obs=args.obs, scenario=args.scenario, timesteps=args.timesteps, n_envs=args.n_envs,
+            algo=args.algo, obs=args.obs, scenario=args.scenario, neighbours=args.neighbours,
+            timesteps=args.timesteps, n_envs=args.n_envs,
             seed=args.seed, image_net=args.image_net, learning_rate=args.lr or defaults[0],
             n_steps=args.n_steps or defaults[1], checkpoint_every=args.checkpoint_every,
             eval_episodes=args.eval_episodes, eval_seed=args.eval_seed, record_eval=not args.no_record_eval,

@@ -191,6 +191,35 @@ def test_zero_timesteps_with_a_warm_start_gives_the_behaviour_cloned_policy(tmp_
         _tiny(timesteps=0)  # nothing to train without a warm start
 
 
+def test_demonstrations_are_observed_the_policys_way(tmp_path: Path) -> None:
+    """Episodes recorded with the nearest-vehicle observation serve a policy that observes lane slots."""
+    import dataclasses
+
+    from lcdata.offline import rebuild_observations
+    from lcdata.reader import list_episodes, read_episode
+
+    lanes = scenario_for_mode(tiny_scenario(), "pure")
+    nearest = dataclasses.replace(lanes, neighbour_selection="nearest")
+    record_episodes(nearest, [1, 2], "rule", tmp_path / "demos", scenario="tiny", images=False)
+    demos = load_demonstrations(tmp_path / "demos", "pure", None, scenario=lanes)
+    episodes = [read_episode(p) for p in list_episodes(tmp_path / "demos")]
+    as_lanes = np.concatenate([np.stack([o["current"] for _, o in rebuild_observations(e, lanes)]) for e in episodes])
+    as_recorded = np.concatenate([np.stack([o["current"] for _, o in rebuild_observations(e)]) for e in episodes])
+    assert np.array_equal(demos.obs["current"], as_lanes)
+    assert not np.array_equal(as_lanes, as_recorded)  # the two selections do show other vehicles here
+    with pytest.raises(ValueError, match="another scenario"):  # a change to the episode itself is refused
+        load_demonstrations(tmp_path / "demos", "pure", None, scenario=dataclasses.replace(lanes, time_limit_s=30.0))
+
+
+def test_a_checkpoint_from_before_lane_slots_is_seen_as_nearest() -> None:
+    from lcmodels.policy.checkpoint import scenario_differences
+
+    stored = tiny_scenario().to_dict()
+    del stored["neighbour_selection"]  # as written before the field existed
+    assert scenario_differences(stored, tiny_scenario()) == [
+        "neighbour_selection: checkpoint 'nearest', requested 'lanes'"]
+
+
 def test_rule_driver_evaluation_is_reproducible_and_recorded(tmp_path: Path) -> None:
     from lcsim.drivers import RuleBasedDriver
 

@@ -9,6 +9,7 @@ SB3 loads the weights with ``torch.load(weights_only=True)``.
 
 from __future__ import annotations
 
+import contextlib
 import json
 import os
 import zipfile
@@ -68,11 +69,15 @@ def _diff(a: Any, b: Any, prefix: str = "") -> list[str]:
     return []
 
 
-def scenario_differences(have: dict[str, Any], want: ScenarioConfig) -> list[str]:
-    """Fields in which a stored scenario dict differs from ``want``, ignoring ``render_image`` (the
-    observation mode decides it)."""
-    have = {k: v for k, v in have.items() if k != "render_image"}
-    return _diff(have, {k: v for k, v in want.to_dict().items() if k != "render_image"})
+def scenario_differences(have: dict[str, Any], want: ScenarioConfig,
+                         ignore: tuple[str, ...] = ("render_image",)) -> list[str]:
+    """Fields in which a stored scenario dict differs from ``want``, ignoring ``ignore`` (by default
+    ``render_image``, which the observation mode decides). Fields the stored dict predates count with the
+    value they had then (``ScenarioConfig.from_dict``)."""
+    with contextlib.suppress(ValueError, TypeError):
+        have = ScenarioConfig.from_dict(have).to_dict()
+    have = {k: v for k, v in have.items() if k not in ignore}
+    return _diff(have, {k: v for k, v in want.to_dict().items() if k not in ignore})
 
 
 def compatibility_problems(meta: dict[str, Any], *, obs_mode: str | None = None,

@@ -20,6 +20,7 @@ skips training when ``policy.zip`` is complete, and only evaluates what is missi
 from __future__ import annotations
 
 import csv
+import dataclasses
 import json
 import logging
 import os
@@ -45,6 +46,7 @@ from lcmodels.policy.obs import OBS_MODES, EpisodeStats, PolicyVecEnv, needs_pre
 from lcmodels.predictor.inference import Predictor
 from lcsim import light_scenario
 from lcsim.config import (
+    NEIGHBOUR_SELECTIONS,
     ScenarioConfig,
     TrafficConfig,
     _check,
@@ -85,6 +87,8 @@ class PolicyConfig(_JsonMixin):
     behaviour-cloned policy itself."""
     n_envs: int = 16
     seed: int = 0
+    neighbours: str = "lanes"
+    """Which vehicles the observation shows (``ScenarioConfig.neighbour_selection``): ``lanes`` or ``nearest``."""
     image_net: str = "compact"
     image_features: int = 10
     learning_rate: float = 3e-4
@@ -117,6 +121,8 @@ class PolicyConfig(_JsonMixin):
         _check(self.obs in OBS_MODES, self, "obs", f"must be one of {', '.join(OBS_MODES)}", self.obs)
         _check(self.scenario in POLICY_SCENARIOS, self, "scenario", f"must be one of {', '.join(POLICY_SCENARIOS)}",
                self.scenario)  # fmt: skip
+        _check(self.neighbours in NEIGHBOUR_SELECTIONS, self, "neighbours",
+               f"must be one of {', '.join(NEIGHBOUR_SELECTIONS)}", self.neighbours)
         _check(self.image_net in IMAGE_NETS, self, "image_net", f"must be one of {', '.join(IMAGE_NETS)}",
                self.image_net)  # fmt: skip
         _positive(self, "n_envs", "image_features", "learning_rate", "n_steps", "batch_size",
@@ -132,7 +138,8 @@ class PolicyConfig(_JsonMixin):
                self.seed)  # fmt: skip
 
     def scenario_config(self) -> ScenarioConfig:
-        return scenario_for_mode(POLICY_SCENARIOS[self.scenario](), self.obs)
+        base = dataclasses.replace(POLICY_SCENARIOS[self.scenario](), neighbour_selection=self.neighbours)
+        return scenario_for_mode(base, self.obs)
 
 
 def build_model(cfg: PolicyConfig, env: PolicyVecEnv, tensorboard: str | None = None,

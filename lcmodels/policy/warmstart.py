@@ -15,6 +15,7 @@ recorded rewards. The objective:
 
 from __future__ import annotations
 
+import dataclasses
 import os
 from collections.abc import Callable
 from dataclasses import dataclass
@@ -32,6 +33,10 @@ from lcmodels.policy.checkpoint import scenario_differences
 from lcmodels.policy.obs import build_observation, mode_keys
 from lcmodels.predictor.inference import Predictor
 from lcsim.config import ScenarioConfig
+
+# Scenario fields that change only what is observed, not the episode: demonstrations recorded with other
+# values are replayed and observed the policy's way.
+_OBSERVATION_ONLY = ("render_image", "neighbour_selection")
 
 
 @dataclass
@@ -86,11 +91,14 @@ def load_demonstrations(
         if episode.steps.empty:
             continue
         config = episode_config(episode)
-        if scenario is not None and (diffs := scenario_differences(config.to_dict(), scenario)):
-            raise ValueError(f"{path} was recorded in another scenario than the one being trained ({diffs[0]})")
+        if scenario is not None:
+            # What the observation shows does not change the episode: it is rebuilt the policy's way.
+            if diffs := scenario_differences(config.to_dict(), scenario, ignore=_OBSERVATION_ONLY):
+                raise ValueError(f"{path} was recorded in another scenario than the one being trained ({diffs[0]})")
+            config = dataclasses.replace(config, neighbour_selection=scenario.neighbour_selection)
         if "image" in keys and not config.render_image:
             raise ValueError(f"{path} was recorded without the bird's-eye image, which mode {mode!r} needs")
-        rows = [obs for _step, obs in rebuild_observations(episode)]
+        rows = [obs for _step, obs in rebuild_observations(episode, config)]
         batched = {k: np.stack([r[k] for r in rows]) for k in rows[0]}
         pobs = build_observation(batched, mode, predictor)
         for k in keys:
