@@ -286,6 +286,18 @@ episode is recorded to MCAP under --out (actions, reward components, predictions
 """
 
 
+def add_heldout_arguments(p: argparse.ArgumentParser, episodes: int = 200) -> None:
+    """Who drives which held-out episodes: ``policy``, ``--episodes``, ``--seed``, ``--predictor``, ``--batch``
+    (lc-eval's arguments, shared by the tools that run the same episodes)."""
+    p.add_argument("policy", help="policy checkpoint (policy.zip), or a built-in driver: rule / lookahead / oracle (privileged "
+                   "planners, upper references) / keep / random")
+    p.add_argument("--episodes", type=_positive_int, default=episodes, help="episodes (default %(default)s)")
+    p.add_argument("--seed", type=int_at_least(0), default=0, help="evaluation seed (default %(default)s)")
+    p.add_argument("--predictor", type=Path, default=None,
+                   help="predictor checkpoint (default: the one the policy was trained with)")
+    p.add_argument("--batch", type=_positive_int, default=20, help="episodes simulated together (default 20)")
+
+
 def eval_parser() -> argparse.ArgumentParser:
     p = argparse.ArgumentParser(
         prog="lc-eval",
@@ -293,12 +305,7 @@ def eval_parser() -> argparse.ArgumentParser:
         epilog=EVAL_EPILOG,
         formatter_class=argparse.RawDescriptionHelpFormatter,
     )
-    p.add_argument("policy", help="policy checkpoint (policy.zip), or a built-in driver: rule / lookahead / oracle (privileged "
-                   "planners, upper references) / keep / random")
-    p.add_argument("--episodes", type=_positive_int, default=200, help="episodes (default %(default)s)")
-    p.add_argument("--seed", type=int_at_least(0), default=0, help="evaluation seed (default %(default)s)")
-    p.add_argument("--predictor", type=Path, default=None,
-                   help="predictor checkpoint (default: the one the policy was trained with)")
+    add_heldout_arguments(p)
     p.add_argument("--scenario", choices=("paper", "light", "tiny"), default=None,
                    help="scenario for a built-in driver (default paper); a policy uses its own")
     p.add_argument("--out", type=Path, default=None,
@@ -307,7 +314,6 @@ def eval_parser() -> argparse.ArgumentParser:
     p.add_argument("--no-record", action="store_true", help="do not record episodes")
     p.add_argument("--overwrite", action="store_true", help="replace existing episode files")
     p.add_argument("--json-out", type=Path, default=None, help="write the summary as JSON here")
-    p.add_argument("--batch", type=_positive_int, default=20, help="episodes simulated together (default 20)")
     p.add_argument("--threads", type=_positive_int, default=2, help="torch threads (default 2)")
     p.add_argument("-q", "--quiet", action="store_true", help="no progress lines")
     return p

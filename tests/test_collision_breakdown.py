@@ -40,4 +40,4 @@ def test_bad_input_is_one_line(capsys):
 
     assert main(["no/such/policy.zip", "--episodes", "1"]) == 2
     err = capsys.readouterr().err
-    assert err.startswith("collision_breakdown:") and len(err.strip().splitlines()) == 1
+    assert err.startswith("collision_breakdown: error:") and len(err.strip().splitlines()) == 1

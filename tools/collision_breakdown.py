@@ -25,6 +25,7 @@ import sys
 
 import numpy as np
 
+from lcmodels.cli import _fail, add_heldout_arguments
 from lcmodels.policy.evaluate import driver_for, eval_user_seeds
 from lcsim.config import paper_scenario
 from lcsim.core import KEEP, RUNNING, LaneChangeCore
@@ -80,33 +81,29 @@ def breakdown(driver, config, *, episodes: int, seed: int, batch: int, window_de
 
 
 def main(argv: list[str] | None = None) -> int:
-    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0],
+    parser = argparse.ArgumentParser(prog="collision_breakdown", description=__doc__.split("\n\n")[0],
                                      formatter_class=argparse.RawDescriptionHelpFormatter, epilog=__doc__)
-    parser.add_argument("driver", help="a policy.zip, or a driver name (rule, lookahead, oracle, keep, random)")
-    parser.add_argument("--predictor", help="the predictor a prediction/hybrid policy was trained with")
-    parser.add_argument("--episodes", type=int, default=100, help="held-out episodes (default 100)")
-    parser.add_argument("--seed", type=int, default=0, help="evaluation seed, as lc-eval --seed (default 0)")
-    parser.add_argument("--batch", type=int, default=20, help="episodes simulated together (default 20)")
-    parser.add_argument("--window-s", type=float, default=5.0, help="how far back a side gap counts (default 5)")
-    parser.add_argument("--front-gap-m", type=float, default=12.0, help="side gap ahead (default 12)")
-    parser.add_argument("--rear-gap-m", type=float, default=5.0, help="side gap behind (default 5)")
+    add_heldout_arguments(parser, episodes=100)
+    gaps = parser.add_argument_group("what counts as a side gap")
+    gaps.add_argument("--window-s", type=float, default=5.0, help="how far back it counts (default 5)")
+    gaps.add_argument("--front-gap-m", type=float, default=12.0, help="gap ahead (default 12)")
+    gaps.add_argument("--rear-gap-m", type=float, default=5.0, help="gap behind (default 5)")
     parser.add_argument("--json", action="store_true", help="print one JSON object")
     args = parser.parse_args(argv)
-    if args.episodes < 1 or args.batch < 1 or args.window_s <= 0:
-        parser.error("--episodes and --batch must be >= 1 and --window-s > 0")
+    if args.window_s <= 0:
+        parser.error("--window-s must be > 0")
     try:
-        driver, config = driver_for(args.driver, predictor=args.predictor)
+        driver, config = driver_for(args.policy, predictor=args.predictor)
     except (ValueError, OSError) as exc:
-        print(f"collision_breakdown: {str(exc).splitlines()[0]}", file=sys.stderr)
-        return 2
+        return _fail(parser.prog, str(exc).splitlines()[0])
     config = config or paper_scenario(render_image=False)
     window = max(1, round(args.window_s / config.decision_period_s)) + 1  # + the decision of the contact
     counts = breakdown(driver, config, episodes=args.episodes, seed=args.seed, batch=args.batch,
                        window_decisions=window, front_gap_m=args.front_gap_m, rear_gap_m=args.rear_gap_m)
     if args.json:
-        print(json.dumps({"driver": args.driver, "episodes": args.episodes, **counts}))
+        print(json.dumps({"driver": args.policy, "episodes": args.episodes, **counts}))
     else:
-        print(f"{args.driver}: {args.episodes} held-out episodes: " +
+        print(f"{args.policy}: {args.episodes} held-out episodes: " +
               ", ".join(f"{k} {counts[k]}" for k in ("success", "collision", "off_road", "timeout")))
         for kind in KINDS:
             print(f"  {kind:16s} {counts[kind]}")
