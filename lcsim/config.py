@@ -156,8 +156,6 @@ class PIDGains(_JsonMixin):
         _positive(self, "dt_s")
 
 
-# The paper's gains. Its Ki/Kd labels may be swapped relative to CARLA's BasicAgent code
-# (lateral K_I 0.05 / K_D 0.2 there), so the swapped reading is kept as a named variant.
 NEIGHBOUR_SELECTIONS = ("lanes", "nearest")
 # The observation's vehicle slots with neighbour_selection="lanes", in order: (lane offset from the ego's
 # target lane, -1 right / +1 left; ahead (True) or behind; rank in that lane, 1 = the nearest).
@@ -167,8 +165,9 @@ LANE_SLOTS: tuple[tuple[int, bool, int], ...] = (
     (1, True, 1), (1, False, 1),      # ... in the lane to its left
     (-1, True, 2), (1, True, 2),      # the second leaders right and left: how long the gap there is
 )
-MAX_LANE_SLOTS = len(LANE_SLOTS)
 
+# The paper's gains. Its Ki/Kd labels may be swapped relative to CARLA's BasicAgent code
+# (lateral K_I 0.05 / K_D 0.2 there), so the swapped reading is kept as a named variant.
 PAPER_LATERAL = PIDGains(kp=1.95, ki=0.2, kd=0.07)
 PAPER_LONGITUDINAL = PIDGains(kp=1.0, ki=0.0, kd=0.75)
 SWAPPED_LATERAL = PIDGains(kp=1.95, ki=0.07, kd=0.2)
@@ -317,8 +316,8 @@ class ScenarioConfig(_JsonMixin):
                "must be an integer >= 1", self.num_neighbours)
         _check(self.neighbour_selection in NEIGHBOUR_SELECTIONS, self, "neighbour_selection",
                f"must be one of {', '.join(NEIGHBOUR_SELECTIONS)}", self.neighbour_selection)
-        _check(self.neighbour_selection != "lanes" or self.num_neighbours <= MAX_LANE_SLOTS, self,
-               "num_neighbours", f"must be <= {MAX_LANE_SLOTS} with neighbour_selection='lanes'",
+        _check(self.neighbour_selection != "lanes" or self.num_neighbours <= len(LANE_SLOTS), self,
+               "num_neighbours", f"must be <= {len(LANE_SLOTS)} with neighbour_selection='lanes'",
                self.num_neighbours)
         _check(self.time_limit_s >= self.decision_period_s, self, "time_limit_s",
                "must be >= decision_period_s", self.time_limit_s)

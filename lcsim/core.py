@@ -212,14 +212,14 @@ class LaneChangeCore:
         """
         if self.config.neighbour_selection == "nearest":
             return self._nearest_neighbours(ids)
+        if self.num_envs == 1:
+            return self._lane_neighbours_one()
         return self._lane_neighbours(ids)
 
     def _lane_neighbours(self, ids: np.ndarray) -> np.ndarray:
         sim = self.sim
         index = sim.index
         assert index is not None
-        if self.num_envs == 1:
-            return self._lane_neighbours_one()
         n = sim.num_vehicles
         ego = ids * n  # flat index of each ego into (E, N)
         ego_lane = sim.target_lane.take(ego)
