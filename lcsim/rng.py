@@ -7,18 +7,27 @@ bit-identical results, with no per-environment Python loop in the hot path.
 
 from __future__ import annotations
 
+from functools import lru_cache
+
 import numpy as np
 
-_GOLDEN = np.uint64(0x9E3779B97F4A7C15)
-_M1 = np.uint64(0xBF58476D1CE4E5B9)
-_M2 = np.uint64(0x94D049BB133111EB)
+_MASK = (1 << 64) - 1
+_GOLDEN_INT, _M1_INT, _M2_INT = 0x9E3779B97F4A7C15, 0xBF58476D1CE4E5B9, 0x94D049BB133111EB
+_GOLDEN, _M1, _M2 = np.uint64(_GOLDEN_INT), np.uint64(_M1_INT), np.uint64(_M2_INT)
+_S11, _S27, _S30, _S31 = np.uint64(11), np.uint64(27), np.uint64(30), np.uint64(31)
+_STEP_STRIDE = np.uint64(1 << 20)
 
 
 def _mix(z: np.ndarray) -> np.ndarray:
-    """splitmix64 finaliser on a uint64 array (wrapping arithmetic)."""
-    z = (z ^ (z >> np.uint64(30))) * _M1
-    z = (z ^ (z >> np.uint64(27))) * _M2
-    return z ^ (z >> np.uint64(31))
+    """splitmix64 finaliser on a uint64 array (array arithmetic wraps silently)."""
+    z = (z ^ (z >> _S30)) * _M1
+    z = (z ^ (z >> _S27)) * _M2
+    return z ^ (z >> _S31)
+
+
+@lru_cache(maxsize=8)
+def _counters(n: int) -> np.ndarray:
+    return np.arange(n, dtype=np.uint64)[None, :]
 
 
 def uniform(key: np.ndarray, step: np.ndarray, n: int, stream: int = 0) -> np.ndarray:
@@ -33,8 +42,12 @@ def uniform(key: np.ndarray, step: np.ndarray, n: int, stream: int = 0) -> np.nd
     Returns:
         ``(E, n)`` float64.
     """
-    with np.errstate(over="ignore"):
-        base = _mix(key.astype(np.uint64) ^ (np.uint64(stream) * _M2))
-        ctr = step.astype(np.uint64)[:, None] * np.uint64(1 << 20) + np.arange(n, dtype=np.uint64)[None, :]
-        z = _mix(base[:, None] + ctr * _GOLDEN)
-    return (z >> np.uint64(11)).astype(np.float64) * (1.0 / (1 << 53))
+    # Only arrays take part in the wrapping arithmetic (numpy warns on overflowing scalar operations,
+    # and an errstate context costs more than the draws): the stream constant is a Python int.
+    base = _mix(key.astype(np.uint64) ^ np.uint64((stream * _M2_INT) & _MASK))
+    ctr = step.astype(np.uint64)[:, None] * _STEP_STRIDE
+    ctr = ctr + _counters(n)
+    ctr *= _GOLDEN
+    ctr += base[:, None]
+    z = _mix(ctr)
+    return (z >> _S11).astype(np.float64) * (1.0 / (1 << 53))
