@@ -56,20 +56,28 @@ class PIDBank:
     def step_one(self, error: tuple[float, ...]) -> list[float]:
         """:meth:`step` for a single environment (E = 1) on Python floats, bit-identical to it.
 
-        A dozen numpy calls on 1-element arrays cost ~20x the same arithmetic on floats; the window
-        sum still goes through numpy so that its summation order is the one :meth:`step` uses.
+        A dozen numpy calls on 1-element arrays cost ~20x the same arithmetic on floats. The window
+        sum adds the ring slots in index order, one after the other, which is the order numpy's
+        ``sum(axis=1)`` in :meth:`step` uses (tested).
         """
         errors = self.errors
-        prev = errors[0, self.ptr].tolist()
-        self.ptr = (self.ptr + 1) % self.window
-        errors[0, self.ptr] = error
-        self.count += 1
-        has_two = self.count.item(0) >= 2
-        total = errors.sum(axis=1)[0].tolist() if has_two else None
+        rows = errors[0].tolist()  # the window by ring slot, before this push
+        prev = rows[self.ptr]
+        self.ptr = ptr = (self.ptr + 1) % self.window
+        errors[0, ptr] = error
+        rows[ptr] = error
+        count = self.count.item(0) + 1
+        self.count[0, 0] = count
+        has_two = count >= 2
         out = []
-        for c, e in enumerate(error):
-            u = self._kp[c] * e + ((e - prev[c]) * self._kd_over_dt[c] if has_two else 0.0) + (
-                total[c] * self._ki_dt[c] if has_two else 0.0)
+        for c, (e, column) in enumerate(zip(error, zip(*rows), strict=True)):
+            if has_two:
+                total = column[0]
+                for value in column[1:]:
+                    total += value
+                u = self._kp[c] * e + (e - prev[c]) * self._kd_over_dt[c] + total * self._ki_dt[c]
+            else:
+                u = self._kp[c] * e + 0.0 + 0.0
             out.append(min(max(u, -1.0), 1.0))
         return out
 

@@ -48,6 +48,26 @@ def test_pid_bank_matches_carla_law_and_hand_values():
     assert bank.step(np.array([[5.0]]))[0, 0] == 1.0  # clipped
 
 
+def test_pid_step_one_is_bit_identical_to_the_batched_step():
+    """The single-environment path on floats gives exactly what the batched array path gives, including
+    after a reset, with errors spanning many magnitudes (which would expose another summation order) and
+    small enough that the output is not clipped."""
+    gains = [PIDGains(kp=1.0, ki=0.05, kd=0.75, dt_s=0.05), PIDGains(kp=1.95, ki=0.2, kd=0.07, dt_s=0.05)]
+    one, batch = PIDBank(1, gains, window=10), PIDBank(3, gains, window=10)
+    rng = np.random.default_rng(1)
+    for k in range(60):
+        if k == 30:
+            one.reset(np.array([0]))
+            batch.reset(np.array([0]))
+        e = 0.02 * rng.standard_normal((3, 2)) * 10.0 ** rng.integers(-9, 1, size=(3, 2))
+        got = one.step_one(tuple(e[0].tolist()))
+        want = batch.step(e)[0].tolist()
+        assert got == want, k
+        assert max(abs(u) for u in got) < 1.0
+    assert one.count.item(0) == batch.count[0, 0]
+    np.testing.assert_array_equal(one.errors[0], batch.errors[0])
+
+
 def test_throttle_brake_and_steer_limits():
     cfg = EgoConfig()
     thr, brk = split_throttle_brake(np.array([0.5, 0.9, -0.1, -0.9]), cfg)
