@@ -143,6 +143,13 @@ class LaneIndex:
         member = (lanes >= lo) & (lanes <= hi)  # (L, N, E)
         member |= lanes == extra_lane.take(fi)
         self.member = member
+        self._pos_of: np.ndarray | None = None
+        self._link(x, speed, length)
+
+    def _link(self, x: np.ndarray, speed: np.ndarray, length: np.ndarray) -> None:
+        """The lane tables, leaders, gaps and leader speeds from ``order`` and ``member``."""
+        c, member, flat = self._c, self.member, self._flat
+        num_lanes, n, e = member.shape
         # ahead[l, p, e]: N - (sorted position of the first member of lane l at or after p), 0 when none.
         ahead = np.empty((num_lanes, n + 1, e), dtype=c.dtype)
         ahead[:, n] = 0
@@ -153,58 +160,67 @@ class LaneIndex:
         # The leader: the nearest member strictly ahead in any lane the vehicle belongs to.
         lead_pos = n - (member * ahead[:, 1:]).max(axis=0).astype(np.int64)  # (N, E); N when none
         lead_flat = np.empty(e * n, dtype=np.int64)
-        lead_flat[fi] = flat.take(lead_pos * e + c.env if e > 1 else lead_pos)
+        lead_flat[flat[:n]] = flat.take(lead_pos * e + c.env if e > 1 else lead_pos)
         lead_flat = lead_flat.reshape(e, n)
         self._lead_flat = lead_flat
         self._lead: np.ndarray | None = None
-        self._pos_of: np.ndarray | None = None
         self._none = none = lead_flat == c.sentinel
         self._lead_half_len = 0.5 * (length + length.take(lead_flat, mode="clip"))
         self.gap = np.where(none, np.inf, x.take(lead_flat, mode="clip") - x - self._lead_half_len)
         self.lead_speed = np.where(none, 0.0, speed.take(lead_flat, mode="clip"))
 
-    def unchanged_after_move(self, x: np.ndarray, y: np.ndarray, yaw: np.ndarray, length: np.ndarray,
-                             width: np.ndarray, extra_lane: np.ndarray, lane_width: float, moved: np.ndarray) -> bool:
-        """Whether an index built on the new state would have this one's order and lane membership.
+    def after_move(self, x: np.ndarray, y: np.ndarray, yaw: np.ndarray, speed: np.ndarray, length: np.ndarray,
+                   width: np.ndarray, extra_lane: np.ndarray, lane_width: float, moved: np.ndarray,
+                   ) -> LaneIndex | None:
+        """The index of the new state from this one, or None when the sorted order changed (build afresh).
 
         Valid when only the vehicles at flat indices ``moved`` (into E x N) can have changed ``y``, ``yaw``
-        or ``extra_lane`` since this index was built (``x`` may have changed everywhere). Then the sorted
-        order is checked on all vehicles and the lanes touched on the moved ones; when both hold, every
-        structure of the index (leaders included) is the same and :meth:`moved` gives the new index.
+        or ``extra_lane`` since this index was built (``x`` and ``speed`` may have changed everywhere).
+        When the order holds, the lanes touched are recomputed for the moved vehicles only: if none
+        changed (most steps), every structure but the gaps is shared; otherwise their membership
+        columns are updated and the lane tables and leaders rebuilt from them. Either way the result is
+        the one a full build gives, bit for bit (tested against it).
         """
         e = x.shape[0]
         xs = x.take(self._flat[:-1].T if e > 1 else self.order)  # positions in the previous sorted order
         if not (xs[:, 1:] > xs[:, :-1]).all():
-            return False
-        if extra_lane.take(moved).tolist() != self.extra.take(moved).tolist():
-            return False
-        # The few moved vehicles on Python floats: the operations of _half_lateral_extent and of the
-        # build, in the same order (IEEE arithmetic and sqrt; the sine still comes from numpy).
+            return None
+        # The moved vehicles on Python floats: the operations of _half_lateral_extent and of the build,
+        # in the same order (IEEE arithmetic and sqrt; the sine still comes from numpy).
         sines = np.sin(yaw.take(moved)).tolist()
-        lo, hi = self.lohi.reshape(2, -1).take(moved, axis=1).tolist()
+        lohi = self.lohi.reshape(2, -1)
+        old_lo, old_hi = lohi.take(moved, axis=1).tolist()
         inv, margin = 1.0 / lane_width, self.margin
-        for s_m, l_m, w_m, y_m, lo_m, hi_m in zip(sines, length.take(moved).tolist(), width.take(moved).tolist(),
-                                                  y.take(moved).tolist(), lo, hi, strict=True):
+        new_extra, old_extra = extra_lane.take(moved).tolist(), self.extra.take(moved).tolist()
+        changed = []
+        for k, (s_m, l_m, w_m, y_m) in enumerate(zip(sines, length.take(moved).tolist(), width.take(moved).tolist(),
+                                                     y.take(moved).tolist(), strict=True)):
             sy = abs(s_m)
             half = 0.5 * (sy * l_m + math.sqrt(1.0 - sy * sy) * w_m) + margin
-            if math.floor((y_m - half) * inv) != lo_m or math.floor((y_m + half) * inv) != hi_m:
-                return False
-        return True
-
-    def moved(self, x: np.ndarray, speed: np.ndarray, extra_lane: np.ndarray) -> LaneIndex:
-        """The index of the new positions when :meth:`unchanged_after_move` holds: new gaps and leader
-        speeds, every other structure shared (the same values a full build gives, bit for bit)."""
+            lo, hi = math.floor((y_m - half) * inv), math.floor((y_m + half) * inv)
+            if lo != old_lo[k] or hi != old_hi[k] or new_extra[k] != old_extra[k]:
+                changed.append((moved.item(k), lo, hi, new_extra[k]))
         new = object.__new__(LaneIndex)
-        new._ahead, new._behind, new._c, new._flat, new._lead = self._ahead, self._behind, self._c, self._flat, self._lead
-        new._lead_flat, new._lead_half_len, new._none = self._lead_flat, self._lead_half_len, self._none
-        new._pos_of, new.margin, new.member, new.num_lanes, new.order = (
-            self._pos_of, self.margin, self.member, self.num_lanes, self.order)
-        lead_flat, none = self._lead_flat, self._none
-        new.gap = np.where(none, np.inf, x.take(lead_flat, mode="clip") - x - self._lead_half_len)
-        new.lead_speed = np.where(none, 0.0, speed.take(lead_flat, mode="clip"))
-        # The lanes touched are the same (checked where y or yaw may have changed); the lane-change
-        # targets are kept from the new state for the next comparison.
-        new.lohi, new.extra = self.lohi, extra_lane
+        new._c, new._flat, new.margin, new.num_lanes, new.order = self._c, self._flat, self.margin, self.num_lanes, self.order
+        new._pos_of, new.extra = self._pos_of, extra_lane
+        if not changed:
+            new._ahead, new._behind, new._lead = self._ahead, self._behind, self._lead
+            new._lead_flat, new._lead_half_len, new._none = self._lead_flat, self._lead_half_len, self._none
+            new.member, new.lohi = self.member, self.lohi
+            lead_flat, none = self._lead_flat, self._none
+            new.gap = np.where(none, np.inf, x.take(lead_flat, mode="clip") - x - self._lead_half_len)
+            new.lead_speed = np.where(none, 0.0, speed.take(lead_flat, mode="clip"))
+            return new
+        n = self.order.shape[1]
+        new.lohi, new.member = self.lohi.copy(), self.member.copy()
+        new_lohi = new.lohi.reshape(2, -1)
+        pos_of = new.pos_of
+        for f, lo, hi, lane_extra in changed:
+            new_lohi[0, f], new_lohi[1, f] = lo, hi
+            env = f // n
+            new.member[:, pos_of.item(f), env] = [lo <= lane <= hi or lane == lane_extra
+                                                  for lane in range(self.num_lanes)]
+        new._link(x, speed, length)
         return new
 
     @property

@@ -39,6 +39,8 @@ _SCALAR_LANE_CHANGES = 6
 # Up to this many environments the neighbour index is updated rather than rebuilt when nothing but the
 # gaps changed (all environments must qualify, which becomes rare on large batches).
 _INCREMENTAL_INDEX_MAX_ENVS = 8
+_NO_ENVS = np.zeros(0, dtype=np.int64)
+_ALL_ONE_ENV = np.ones(1, dtype=bool)
 
 SubstepHook = Callable[["HighwaySim"], None]
 
@@ -202,16 +204,21 @@ class HighwaySim:
     # ----------------------------------------------------------------- physics
     def substep(self) -> None:
         """Advance every environment by one simulation step (frozen environments stay as they are)."""
-        frozen = self.frozen.nonzero()[0]
+        single = self.num_envs == 1  # (single-environment paths on Python scalars: the same results)
+        frozen = _NO_ENVS if single and not self.frozen.item(0) else self.frozen.nonzero()[0]
         saved = self._save(frozen) if frozen.size else None
         tc, dt = self.config.traffic, self.dt
         index = self.index if self.index is not None else self._build_index()
         speed = self.speed
         acc = idm_accel(speed, self.v0, index.gap, speed - index.lead_speed, tc)
         if tc.lane_changes:
-            due = (self.step % self.check_every) == 0
-            if (due.item(0) if self.num_envs == 1 else due.any()):
-                self._traffic_lane_changes(index, due)
+            if single:
+                if self.step.item(0) % self.check_every == 0:
+                    self._traffic_lane_changes(index, _ALL_ONE_ENV)
+            else:
+                due = (self.step % self.check_every) == 0
+                if due.any():
+                    self._traffic_lane_changes(index, due)
 
         # Traffic: ballistic longitudinal update, minimum-jerk lateral profile while changing lanes
         # (computed for the few vehicles changing lanes only).
@@ -232,17 +239,23 @@ class HighwaySim:
             self.lc_active.put(changing, tau < 1.0)
 
         ego_y_prev = self.y[:, 0].copy()
-        ego_target = self.target_lane[:, 0].copy()
+        ego_target = self.target_lane.item(0) if single else self.target_lane[:, 0].copy()
         if not self.autopilot_ego:
             self._ego_step(index.gap[:, 0], new_x, new_y, new_yaw, new_speed, acc)
         self.x, self.y, self.yaw, self.speed, self.accel = new_x, new_y, new_yaw, new_speed, acc
         lane = np.floor(new_y / self.road.lane_width)  # as road.lane_of, inlined
         self.lane = np.minimum(np.maximum(lane, 0), self.road.num_lanes - 1).astype(np.int64)
         self.target_lane = np.where(self.lc_active, self.target_lane, self.lane)
-        if not self.autopilot_ego:
-            self.target_lane[:, 0] = np.where(self.ego_lc_active, ego_target, self.lane[:, 0])
-        self.step += 1
-        self.t_s += dt
+        if single:
+            if not self.autopilot_ego:
+                self.target_lane[0, 0] = ego_target if self.ego_lc_active.item(0) else self.lane.item(0)
+            self.step[0] = self.step.item(0) + 1
+            self.t_s[0] = self.t_s.item(0) + dt
+        else:
+            if not self.autopilot_ego:
+                self.target_lane[:, 0] = np.where(self.ego_lc_active, ego_target, self.lane[:, 0])
+            self.step += 1
+            self.t_s += dt
 
         if saved is not None:  # frozen environments get their state back before the index is built
             self._restore(frozen, saved)
@@ -256,7 +269,10 @@ class HighwaySim:
         self.hist_ptr = (self.hist_ptr + 1) % self.history_len
         self.hist[:, self.hist_ptr, :, 0] = self.x
         self.hist[:, self.hist_ptr, :, 1] = self.y
-        self.hist_count += 1
+        if single:
+            self.hist_count[0] = self.hist_count.item(0) + 1
+        else:
+            self.hist_count += 1
         for hook in self.hooks:
             hook(self)
 
@@ -427,16 +443,17 @@ class HighwaySim:
 
         ``changing``: flat indices (into E x N) of the traffic vehicles whose ``y``, ``yaw`` or lane-change
         state may have changed since ``self.index`` was built, besides the egos (None: any vehicle's). For a few
-        environments the previous index is then updated in place of a full build when the sorted order
-        and the lanes the moved vehicles touch are unchanged (most steps); the result is the same.
+        environments the previous index is then updated in place of a full build when the sorted order is
+        unchanged (most steps; see LaneIndex.after_move); the result is the same.
         """
         extra = np.where(self.lc_active, self.target_lane, -1)
         prev = self.index
         if changing is not None and prev is not None and self.num_envs <= _INCREMENTAL_INDEX_MAX_ENVS:
             moved = np.concatenate((changing, self._ego_flat)) if changing.size else self._ego_flat
-            if prev.unchanged_after_move(self.x, self.y, self.yaw, self.length, self.width, extra,
-                                         self.road.lane_width, moved):
-                return prev.moved(self.x, self.speed, extra)
+            index = prev.after_move(self.x, self.y, self.yaw, self.speed, self.length, self.width, extra,
+                                    self.road.lane_width, moved)
+            if index is not None:
+                return index
         previous = prev.order if prev is not None else None
         return LaneIndex(self.x, self.y, self.yaw, self.speed, self.length, self.width, extra,
                          self.road.lane_width, self.road.num_lanes, self.rows, previous_order=previous)

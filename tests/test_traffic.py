@@ -1,6 +1,7 @@
 """Traffic: no overlaps at spawn, no traffic collisions, lane changes happen, the road ahead never empties."""
 
 import numpy as np
+import pytest
 
 from lcsim.collision import obb_overlap
 from lcsim.config import EgoConfig, ScenarioConfig, TrafficConfig
@@ -50,31 +51,33 @@ def test_traffic_stays_ahead_of_the_ego_for_the_whole_route():
     assert (ahead.sum(axis=1) >= 5).all()
 
 
-def test_updated_neighbour_index_equals_a_full_build():
-    """Between builds the index is updated when only the gaps changed: check it against a full build
-    at every step of lane-changing traffic, and that both kinds of step occur."""
+@pytest.mark.parametrize("num_envs", [1, 2])
+def test_updated_neighbour_index_equals_a_full_build(num_envs):
+    """Between builds the index is updated (all shared but the gaps, or the lane membership of the vehicles
+    that moved sideways redone) while the sorted order holds: check it against a full build at every step
+    of lane-changing traffic, and that all three kinds of step occur."""
     from lcsim.neighbours import LaneIndex
 
     cfg = ScenarioConfig(render_image=False, traffic=TrafficConfig(random_lane_change_rate_per_min=3.0))
-    core = LaneChangeCore(cfg, 2)
-    core.reset([0, 1], [21, 22])
+    core = LaneChangeCore(cfg, num_envs)
+    core.reset(list(range(num_envs)), [21 + k for k in range(num_envs)])
     sim = core.sim
-    updated = rebuilt = 0
+    kinds = {"shared": 0, "relaned": 0, "rebuilt": 0}
     for step in range(400):
         before = sim.index
         sim.substep()
-        if sim.index.order is before.order:
-            updated += 1
+        if sim.index.order is not before.order:
+            kinds["rebuilt"] += 1
         else:
-            rebuilt += 1
+            kinds["shared" if sim.index.member is before.member else "relaned"] += 1
         full = LaneIndex(sim.x, sim.y, sim.yaw, sim.speed, sim.length, sim.width,
                          np.where(sim.lc_active, sim.target_lane, -1), sim.road.lane_width, sim.road.num_lanes)
-        for name in ("order", "member", "gap", "lead_speed", "lead_flat", "pos_of"):
+        for name in ("order", "member", "lohi", "gap", "lead_speed", "lead_flat", "lead", "pos_of"):
             np.testing.assert_array_equal(getattr(sim.index, name), getattr(full, name), err_msg=f"{name}, step {step}")
-        lanes = np.tile(np.arange(-1, sim.road.num_lanes + 1), (2, 1))
+        lanes = np.tile(np.arange(-1, sim.road.num_lanes + 1), (num_envs, 1))
         for ahead in (True, False):
             np.testing.assert_array_equal(sim.index.neighbour_in_lane(lanes, ahead, vehicles=np.arange(lanes.shape[1])),
                                           full.neighbour_in_lane(lanes, ahead, vehicles=np.arange(lanes.shape[1])))
         if step % 10 == 0:
-            core.step(np.array([step // 10 % 3, 2 - step // 10 % 3]))
-    assert updated > 100 and rebuilt > 10, (updated, rebuilt)
+            core.step(np.array([step // 10 % 3, 2 - step // 10 % 3][:num_envs]))
+    assert kinds["shared"] > 100 and kinds["relaned"] > 10 and kinds["rebuilt"] > 10, kinds
