@@ -70,7 +70,7 @@ class PIDBank:
         self.count[0, 0] = count
         has_two = count >= 2
         out = []
-        for c, (e, column) in enumerate(zip(error, zip(*rows), strict=True)):
+        for c, (e, column) in enumerate(zip(error, zip(*rows, strict=True), strict=True)):
             if has_two:
                 total = column[0]
                 for value in column[1:]:
