@@ -13,6 +13,8 @@ The longitudinal and lateral controllers of E vehicles are stepped together as `
 from __future__ import annotations
 
 import math
+import operator
+from functools import reduce
 
 import numpy as np
 
@@ -70,15 +72,14 @@ class PIDBank:
         self.count[0, 0] = count
         has_two = count >= 2
         out = []
-        for c, (e, column) in enumerate(zip(error, zip(*rows, strict=True), strict=True)):
-            if has_two:
-                total = column[0]
-                for value in column[1:]:
-                    total += value
-                u = self._kp[c] * e + (e - prev[c]) * self._kd_over_dt[c] + total * self._ki_dt[c]
-            else:
-                u = self._kp[c] * e + 0.0 + 0.0
-            out.append(min(max(u, -1.0), 1.0))
+        if has_two:
+            totals = [reduce(operator.add, column) for column in zip(*rows, strict=True)]  # ((w0 + w1) + w2) ...
+            for c, e in enumerate(error):
+                u = self._kp[c] * e + (e - prev[c]) * self._kd_over_dt[c] + totals[c] * self._ki_dt[c]
+                out.append(min(max(u, -1.0), 1.0))
+        else:
+            for c, e in enumerate(error):
+                out.append(min(max(self._kp[c] * e + 0.0 + 0.0, -1.0), 1.0))
         return out
 
 
