@@ -286,17 +286,23 @@ class LaneIndex:
         """One environment (E = 1): the ``count`` members of ``lane`` nearest ahead of (behind) ``vehicle``,
         nearest first, as vehicle indices; fewer when there are fewer, none when the lane does not exist.
 
-        The first is what :meth:`neighbour_in_lane` gives, the next the neighbour of that one, and so on;
-        a few numpy calls instead of a table look-up per rank.
+        The first is what :meth:`neighbour_in_lane` gives, the next the neighbour of that one, and so on:
+        scalar look-ups in the ahead table, and one search of the membership column behind (the behind
+        table is not built for it).
         """
         if not 0 <= lane < self.num_lanes:
             return []
         p = self.pos_of.item(vehicle)
-        col = self.member[lane, :, 0]
-        if ahead:
-            pos = np.flatnonzero(col[p + 1:])[:count] + (p + 1)
-        else:
-            pos = (p - 1) - np.flatnonzero(col[p - 1::-1])[:count] if p > 0 else _NO_POSITIONS
+        if ahead:  # chained look-ups in the ahead table: the first member at or after q + 1, then after it
+            n, table, order, out = self.order.shape[1], self._ahead, self.order, []
+            q = p
+            while len(out) < count:
+                q = n - table.item(lane, q + 1, 0)
+                if q >= n:
+                    break
+                out.append(order.item(q))
+            return out
+        pos = (p - 1) - np.flatnonzero(self.member[lane, p - 1::-1, 0])[:count] if p > 0 else _NO_POSITIONS
         return self.order[0].take(pos).tolist()
 
     def _nearest(self, lane: np.ndarray, pos: np.ndarray, env: np.ndarray, ahead: bool) -> np.ndarray:

@@ -285,6 +285,7 @@ class HighwaySim:
         tc, dt, n = self.config.traffic, self.dt, self.num_vehicles
         inv_dur = 1.0 / tc.lane_change_duration_s
         t_s, t0, y0s, y1s, active = self.t_s, self.lc_t0, self.lc_y0, self.lc_y1, self.lc_active
+        rates, speeds = [], []
         for i in changing:
             e, v = divmod(i, n)
             tau = (t_s.item(e) + (dt - t0.item(i))) * inv_dur
@@ -296,8 +297,10 @@ class HighwaySim:
             y0 = y0s.item(i)
             dy = y1s.item(i) - y0
             new_y[e, v] = y0 + dy * prof
-            new_yaw[e, v] = np.arctan2(dy * dprof * inv_dur, max(new_speed.item(i), 1e-3))
+            rates.append(dy * dprof * inv_dur)
+            speeds.append(max(new_speed.item(i), 1e-3))
             active[e, v] = tau < 1.0
+        new_yaw.put(changing, np.arctan2(rates, speeds))  # one call (elementwise: the same as one per vehicle)
 
     def _ego_step(self, lead_gap: np.ndarray, x_out: np.ndarray, y_out: np.ndarray, yaw_out: np.ndarray,
                   v_out: np.ndarray, a_out: np.ndarray) -> None:
