@@ -15,7 +15,7 @@ import dataclasses
 import json
 import math
 from dataclasses import dataclass, field
-from typing import Any, Self
+from typing import Any, ClassVar, Self
 
 
 def _check(cond: bool, cls: object, name: str, msg: str, value: object) -> None:
@@ -38,6 +38,11 @@ def _non_negative(obj: object, *names: str) -> None:
 class _JsonMixin:
     """Nested dataclass <-> dict/JSON with unknown keys rejected (a misspelt key is an error)."""
 
+    LEGACY_DEFAULTS: ClassVar[dict[str, Any]] = {}
+    """Values of fields added after configs were first stored, for stored configs that lack them: what
+    the code did before the field existed (so old recordings replay and old checkpoints compare as they
+    were)."""
+
     def to_dict(self) -> dict[str, Any]:
         return dataclasses.asdict(self)  # type: ignore[call-overload]
 
@@ -50,8 +55,7 @@ class _JsonMixin:
         unknown = set(data) - set(fields)
         if unknown:
             raise ValueError(f"{cls.__name__}: unknown field(s) {sorted(unknown)}")
-        kwargs: dict[str, Any] = {name: value for (owner, name), value in _LEGACY_DEFAULTS.items()
-                                  if owner == cls.__name__ and name not in data}
+        kwargs: dict[str, Any] = {name: value for name, value in cls.LEGACY_DEFAULTS.items() if name not in data}
         for name, value in data.items():
             sub = _NESTED.get((cls.__name__, name))
             if sub is not None and isinstance(value, dict):
@@ -275,6 +279,8 @@ class RenderConfig(_JsonMixin):
 class ScenarioConfig(_JsonMixin):
     """Everything that defines an episode, given its seed."""
 
+    LEGACY_DEFAULTS: ClassVar[dict[str, Any]] = {"neighbour_selection": "nearest"}
+
     road: RoadConfig = field(default_factory=RoadConfig)
     traffic: TrafficConfig = field(default_factory=TrafficConfig)
     ego: EgoConfig = field(default_factory=EgoConfig)
@@ -344,12 +350,6 @@ class ScenarioConfig(_JsonMixin):
         """Simulation steps in the time limit."""
         return round(self.time_limit_s / self.dt_s)
 
-
-# Values of fields added after configs were first stored, for stored configs that lack them: what the
-# simulator did before the field existed (so old recordings replay and old checkpoints compare as they were).
-_LEGACY_DEFAULTS: dict[tuple[str, str], Any] = {
-    ("ScenarioConfig", "neighbour_selection"): "nearest",
-}
 
 _NESTED: dict[tuple[str, str], type[_JsonMixin]] = {
     ("ScenarioConfig", "road"): RoadConfig,
