@@ -185,6 +185,9 @@ def train_policy_parser() -> argparse.ArgumentParser:
     p.add_argument("--seed", type=int_at_least(0), default=d.seed, help="training seed (default %(default)s)")
     p.add_argument("--image-net", choices=IMAGE_NETS, default=d.image_net,
                    help="image branch: compact VGG-style (CPU) or the paper's VGG-16 (default %(default)s)")
+    p.add_argument("--contact-features", action=argparse.BooleanOptionalAction, default=d.contact_features,
+                   help="give the sensor branch each neighbour slot's time to contact, gap and proximity "
+                   "(default on)")
     p.add_argument("--lr", type=float, default=None, help="learning rate (default 3e-4; A2C 7e-4; DQN 1e-4)")
     p.add_argument("--n-steps", type=_positive_int, default=None,
                    help="PPO/A2C rollout steps per env (default 128; A2C 8)")
@@ -236,7 +239,8 @@ def train_policy_main(argv: list[str] | None = None) -> int:
         cfg = PolicyConfig(
             algo=args.algo, obs=args.obs, scenario=args.scenario, neighbours=args.neighbours,
             timesteps=args.timesteps, n_envs=args.n_envs,
-            seed=args.seed, image_net=args.image_net, learning_rate=args.lr or defaults[0],
+            seed=args.seed, image_net=args.image_net, contact_features=args.contact_features,
+            learning_rate=args.lr or defaults[0],
             n_steps=args.n_steps or defaults[1], checkpoint_every=args.checkpoint_every,
             eval_episodes=args.eval_episodes, eval_seed=args.eval_seed, record_eval=not args.no_record_eval,
             warm_start=str(args.warm_start or ""), warm_start_epochs=args.warm_start_epochs,

@@ -65,6 +65,46 @@ def test_extractor_output_size_per_mode(mode: str) -> None:
     assert set(ext.keys) == set(space.spaces)
 
 
+def test_contact_features_against_hand_values() -> None:
+    from lcmodels.policy.extractor import CONTACT_BODY_M, ContactFeatures
+    from lcsim.core import CURRENT_FEATURES
+
+    col = {name: i for i, name in enumerate(CURRENT_FEATURES)}
+    cur = torch.zeros(1, 5, len(CURRENT_FEATURES))
+    cur[0, 0, col["vx_mps"]] = 8.0  # the ego's own row is not a slot
+    # A leader 20 m ahead, 2 m/s slower; a follower 10 m behind, 1 m/s faster; a leader pulling away; an empty slot.
+    for row, (x, vx) in enumerate([(20.0, -2.0), (-10.0, 1.0), (30.0, 3.0)], start=1):
+        cur[0, row, col["x_m"]], cur[0, row, col["vx_mps"]], cur[0, row, col["present"]] = x, vx, 1.0
+    ttc, gap, prox = ContactFeatures(4)(cur).reshape(3, 4)
+    expected_ttc = [(20.0 - CONTACT_BODY_M) / 2.0 / 10.0, (10.0 - CONTACT_BODY_M) / 1.0 / 10.0, 1.0, 1.0]
+    torch.testing.assert_close(ttc, torch.tensor(expected_ttc))
+    torch.testing.assert_close(gap, torch.tensor([(20 - CONTACT_BODY_M) / 50, (10 - CONTACT_BODY_M) / 50,
+                                                  (30 - CONTACT_BODY_M) / 50, 1.0]))
+    torch.testing.assert_close(prox, torch.tensor([5 / 20, 5 / 10, 5 / 30, 0.0]))
+
+
+@pytest.mark.parametrize("mode", ["pure", "hybrid"])
+def test_contact_features_keep_the_sensor_branch_width(mode: str) -> None:
+    space = policy_observation_space(tiny_scenario(), mode)
+    plain, contact = HybridExtractor(space), HybridExtractor(space, contact_features=True)
+    assert contact.features_dim == plain.features_dim
+    first = contact.branches["current"].net[0]
+    assert first.in_features == plain.branches["current"].net[1].in_features + 3 * 8
+    batch = {k: torch.as_tensor(np.stack([s.sample() for _ in range(2)])).float() for k, s in space.spaces.items()}
+    assert contact(batch).shape == (2, contact.features_dim)
+
+
+def test_runs_stored_before_contact_features_read_as_without_them() -> None:
+    stored = PolicyConfig().to_dict()
+    assert stored["contact_features"] is True
+    del stored["contact_features"]
+    assert PolicyConfig.from_dict(stored).contact_features is False
+    env = PolicyVecEnv(LaneChangeSB3VecEnv(2, scenario_for_mode(tiny_scenario(), "pure")), "pure")
+    inputs = {flag: build_model(_tiny(obs="pure", contact_features=flag), env).policy.features_extractor
+              .branches["current"].net[-4].in_features for flag in (False, True)}  # fmt: skip
+    assert inputs == {False: 9 * 9, True: 9 * 9 + 3 * 8}
+
+
 def test_vgg16_and_compact_on_a_120px_batch() -> None:
     x = torch.rand(2, 3, 120, 120)
     vgg = VGG16()

@@ -5,7 +5,9 @@
   compact VGG-style default (:class:`CompactVGG`, three 3x3-convolution blocks on the image average-pooled
   to 40x40; about 4000x fewer multiply-adds, so it trains on a CPU).
 - ``current`` (1+K, 9): the ego and its K neighbour slots (:data:`lcsim.core.CURRENT_FEATURES`),
-  scaled per column to order one, flattened, two-layer MLP.
+  scaled per column to order one, flattened, two-layer MLP. With ``contact_features`` the MLP also gets,
+  per slot, the time to contact, the bumper gap and its inverse (:class:`ContactFeatures`): quotients a
+  ReLU network approximates poorly from the raw columns, and the quantities a lane change hinges on.
 - ``prediction`` (K, F, 2): predicted neighbour positions in the ego frame, scaled, flattened, MLP.
 
 The output size is the sum of the branch sizes and is computed here (``features_dim``), so the policy
@@ -21,12 +23,19 @@ from gymnasium import spaces
 from stable_baselines3.common.torch_layers import BaseFeaturesExtractor
 from torch import nn
 
+from lcsim.core import CURRENT_FEATURES
+
 ImageNet = Literal["compact", "vgg16"]
 IMAGE_NETS: tuple[str, ...] = ("compact", "vgg16")
 
 # Scales of the `current` columns x, y, vx, vy, yaw, speed, lane, target_lane, present.
 CURRENT_SCALE = (50.0, 10.0, 10.0, 2.0, 1.0, 10.0, 4.0, 4.0, 1.0)
 PREDICTION_SCALE = (50.0, 10.0)
+# ContactFeatures: bumper gap = |x| - CONTACT_BODY_M (the mean of the ego's and a traffic vehicle's length,
+# 4.18 m and 5.37 m, rounded), times to contact capped at CONTACT_HORIZON_S.
+CONTACT_BODY_M = 4.8
+CONTACT_HORIZON_S = 10.0
+_X, _VX, _PRESENT = (CURRENT_FEATURES.index(name) for name in ("x_m", "vx_mps", "present"))
 
 # torchvision's VGG-16 layer plan ("D"): channels, "M" = 2x2 max pooling.
 VGG16_PLAN: tuple[int | str, ...] = (64, 64, "M", 128, 128, "M", 256, 256, 256, "M", 512, 512, 512, "M",
@@ -109,6 +118,50 @@ class _ScaledMLP(nn.Module):
         return self.net(x * self.inv_scale)
 
 
+class ContactFeatures(nn.Module):
+    """Per neighbour slot of ``current``: time to contact, bumper gap and proximity, each in [0, 1].
+
+    From the slot's relative position ``x`` and velocity ``vx`` along the ego's heading (columns 0 and 2):
+    the gap is ``|x| - CONTACT_BODY_M`` (at least 0), the closing speed ``-sign(x) vx`` (a leader that is
+    slower, a follower that is faster), the time to contact ``gap / closing`` when closing, else
+    ``CONTACT_HORIZON_S``. Outputs ``(B, 3K)``: ``ttc / horizon`` (capped at 1), ``gap / 50 m`` (capped at
+    1), ``5 m / max(|x|, 1 m)``; an empty slot reads 1, 1, 0 (far, no contact).
+    """
+
+    def __init__(self, slots: int) -> None:
+        super().__init__()
+        self.out_features = 3 * slots
+
+    def forward(self, current: torch.Tensor) -> torch.Tensor:
+        nb = current[:, 1:]
+        x, vx, present = nb[..., _X], nb[..., _VX], nb[..., _PRESENT] > 0.5
+        gap = (x.abs() - CONTACT_BODY_M).clamp(min=0.0)
+        closing = -torch.sign(x) * vx
+        ttc = torch.where(closing > 0.05, gap / closing.clamp(min=0.05), torch.full_like(gap, CONTACT_HORIZON_S))
+        ones = torch.ones_like(gap)
+        return torch.cat([
+            torch.where(present, ttc.clamp(max=CONTACT_HORIZON_S) / CONTACT_HORIZON_S, ones),
+            torch.where(present, gap.clamp(max=50.0) / 50.0, ones),
+            torch.where(present, 5.0 / x.abs().clamp(min=1.0), torch.zeros_like(gap)),
+        ], dim=1)
+
+
+class _SensorMLP(nn.Module):
+    """The ``current`` branch: :class:`_ScaledMLP`'s scaled, flattened columns, plus :class:`ContactFeatures`."""
+
+    def __init__(self, shape: tuple[int, ...], hidden: int, out: int) -> None:
+        super().__init__()
+        if len(shape) != 2 or shape[-1] != len(CURRENT_SCALE):
+            raise ValueError(f"expected (1+K, {len(CURRENT_SCALE)}) sensor data, got shape {shape}")
+        self.register_buffer("inv_scale", 1.0 / torch.tensor(CURRENT_SCALE, dtype=torch.float32))
+        self.contact = ContactFeatures(int(shape[0]) - 1)
+        n = int(shape[0]) * int(shape[1]) + self.contact.out_features
+        self.net = nn.Sequential(nn.Linear(n, hidden), nn.ReLU(), nn.Linear(hidden, out), nn.ReLU())
+
+    def forward(self, x: torch.Tensor) -> torch.Tensor:
+        return self.net(torch.cat([(x * self.inv_scale).flatten(1), self.contact(x)], dim=1))
+
+
 class HybridExtractor(BaseFeaturesExtractor):
     """stable-baselines3 features extractor over a ``Dict`` observation (see the module docstring).
 
@@ -117,10 +170,13 @@ class HybridExtractor(BaseFeaturesExtractor):
         image_net: ``"compact"`` (default) or ``"vgg16"``.
         image_features: width of the image branch (10 in the paper).
         sensor_features, prediction_features: widths of the other branches.
+        contact_features: the sensor branch also gets :class:`ContactFeatures` (off in checkpoints saved
+            before the option existed, which load as they were).
     """
 
     def __init__(self, observation_space: spaces.Dict, image_net: str = "compact", image_features: int = 10,
-                 sensor_features: int = 64, prediction_features: int = 64, hidden: int = 128) -> None:
+                 sensor_features: int = 64, prediction_features: int = 64, hidden: int = 128,
+                 contact_features: bool = False) -> None:
         if "current" not in observation_space.spaces:
             raise ValueError(f"the observation needs a 'current' key, got {sorted(observation_space.spaces)}")
         branches: dict[str, nn.Module] = {}
@@ -131,7 +187,8 @@ class HybridExtractor(BaseFeaturesExtractor):
                 branches[key] = make_image_net(image_net, shape[0], shape[1], image_features)
                 dims += image_features
             elif key == "current":
-                branches[key] = _ScaledMLP(shape, CURRENT_SCALE, hidden, sensor_features)
+                branches[key] = (_SensorMLP(shape, hidden, sensor_features) if contact_features
+                                 else _ScaledMLP(shape, CURRENT_SCALE, hidden, sensor_features))
                 dims += sensor_features
             elif key == "prediction":
                 branches[key] = _ScaledMLP(shape, PREDICTION_SCALE, hidden, prediction_features)
