@@ -358,3 +358,26 @@ def test_dagger_round_labels_the_policys_states_with_the_oracle_and_saves_a_load
     assert loaded.meta["dagger"]["round"] == 1
     with pytest.raises(FileExistsError):
         dagger(tmp_path / "bc", tmp_path / "dg", rounds=1, episodes=1, epochs=1)
+
+
+def test_dagger_resumed_gives_the_rounds_of_an_uninterrupted_run(tmp_path: Path) -> None:
+    from lcmodels.policy.dagger import dagger
+
+    config = scenario_for_mode(tiny_scenario(), "pure")
+    record_episodes(config, [1, 2], "oracle", tmp_path / "demos", scenario="tiny", images=False)
+    train_policy(_tiny(obs="pure", timesteps=0, warm_start=str(tmp_path / "demos"), warm_start_epochs=2,
+                       eval_episodes=0), tmp_path / "bc")  # fmt: skip
+    args = dict(episodes=2, epochs=1, seed=7, workers=1, eval_episodes=0)
+    straight = dagger(tmp_path / "bc", tmp_path / "straight", rounds=2, **args)
+    dagger(tmp_path / "bc", tmp_path / "parts", rounds=1, **args)
+    resumed = dagger(tmp_path / "bc", tmp_path / "parts", rounds=2, resume=True, **args)
+    assert [r["round"] for r in resumed] == [1, 2]
+    for key in ("states_labelled", "training_states", "epoch_losses"):
+        assert resumed[1][key] == straight[1][key], key
+    a = load_policy(tmp_path / "straight" / "round2" / "policy.zip").model.policy.state_dict()
+    b = load_policy(tmp_path / "parts" / "round2" / "policy.zip").model.policy.state_dict()
+    assert all(torch.equal(a[k], b[k]) for k in a)
+    with pytest.raises(ValueError, match="labels: plan there, winning asked"):
+        dagger(tmp_path / "bc", tmp_path / "parts", rounds=3, resume=True, **{**args, "labels": "winning"})
+    with pytest.raises(FileNotFoundError, match="no DAgger rounds"):
+        dagger(tmp_path / "bc", tmp_path / "empty", rounds=1, resume=True, **args)

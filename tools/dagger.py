@@ -9,10 +9,12 @@ episodes. See lcmodels.policy.dagger.
     lc-record --driver oracle --episodes 200 --out runs/oracle-demos --workers 2
     lc-train-policy --obs hybrid --predictor P.pt --warm-start runs/oracle-demos --timesteps 0 --out runs/bc
     python tools/dagger.py runs/bc --rounds 2 --episodes 100 --out runs/bc-dagger
-    lc-eval runs/bc-dagger/round2/policy.zip --episodes 200
+    python tools/dagger.py runs/bc --rounds 4 --episodes 100 --out runs/bc-dagger --resume   # rounds 3 and 4
+    lc-eval runs/bc-dagger/round4/policy.zip --episodes 200
 
 Outputs in --out: round<r>/policy.zip (loadable by lc-eval and lc-record --driver policy:...),
-round<r>/metrics.json (collection, training and held-out evaluation), dagger.json (all rounds).
+round<r>/metrics.json (collection, training and held-out evaluation), round<r>/states.npz (the states
+the policy drove into and their labels, for --resume), dagger.json (all rounds).
 """
 
 from __future__ import annotations
@@ -28,7 +30,7 @@ def main(argv: list[str] | None = None) -> int:
                                  formatter_class=argparse.RawDescriptionHelpFormatter,
                                  epilog="\n\n".join(__doc__.split("\n\n")[1:]))  # fmt: skip
     ap.add_argument("run", help="lc-train-policy run directory (warm-started: its demonstrations stay in the data)")
-    ap.add_argument("--out", required=True, help="new directory for the rounds")
+    ap.add_argument("--out", required=True, help="directory for the rounds: a new one, or one to --resume")
     ap.add_argument("--rounds", type=int, default=2, help="DAgger rounds (2)")
     ap.add_argument("--episodes", type=int, default=100, help="episodes the policy drives per round (100)")
     ap.add_argument("--epochs", type=int, default=10, help="behaviour-cloning epochs per round over all states (10)")
@@ -40,6 +42,9 @@ def main(argv: list[str] | None = None) -> int:
                     help="plan: the oracle's decision at every state; winning: keep the policy's own decision "
                     "where the episode can still be won after it, correct only the losing ones (plan)")
     ap.add_argument("--threads", type=int, default=2, help="torch threads for training (2)")
+    ap.add_argument("--resume", action="store_true",
+                    help="continue the rounds already in --out (same run, --episodes, --seed, --labels) up to "
+                    "--rounds in all")
     args = ap.parse_args(argv)
     if args.eval_episodes < 0 or args.threads < 1 or not 0 <= args.seed < 1_000_000_000:
         print("dagger: error: --eval-episodes >= 0, --threads >= 1, 0 <= --seed < 10^9 (evaluation's seeds)",
@@ -51,7 +56,7 @@ def main(argv: list[str] | None = None) -> int:
     try:
         dagger(args.run, args.out, rounds=args.rounds, episodes=args.episodes, epochs=args.epochs, seed=args.seed,
                workers=args.workers, eval_episodes=args.eval_episodes, eval_seed=args.eval_seed, labels=args.labels,
-               progress=lambda msg: print(msg, flush=True))  # fmt: skip
+               resume=args.resume, progress=lambda msg: print(msg, flush=True))  # fmt: skip
     except (ValueError, OSError) as exc:
         print(f"dagger: error: {str(exc).splitlines()[0]}", file=sys.stderr)
         return 2

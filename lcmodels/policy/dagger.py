@@ -13,7 +13,9 @@ not be in) and errs more. DAgger (Ross et al., 2011) closes that loop. Each roun
 3. the labelled states join the demonstrations and the policy is trained on all of them (behaviour
    cloning, :func:`lcmodels.policy.warmstart.pretrain`, without the value term: the labels carry no
    return);
-4. the policy is saved as ``round<r>/policy.zip`` and evaluated on the held-out episodes.
+4. the policy is saved as ``round<r>/policy.zip`` (with the round's labelled states in
+   ``round<r>/states.npz``, so that a later call can continue the rounds) and evaluated on the
+   held-out episodes.
 
 The expert sees the future; the policy sees only its observation. What a round teaches is which action
 the future rewards in states like the ones the policy reaches.
@@ -116,6 +118,33 @@ def collect(policy_path: str | os.PathLike[str], user_seeds: Sequence[int], *,
     return Collected(obs, np.asarray(labels_, dtype=np.int64), agreed, searches, outcomes, harmless)
 
 
+_STATES = "states.npz"
+
+
+def _finished_rounds(out: Path, run_dir: Path, *, episodes: int, seed: int, labels: str) -> list[dict[str, Any]]:
+    """The records of the rounds in ``out`` that can be resumed, checked against the arguments."""
+    try:
+        book = json.loads((out / "dagger.json").read_text())
+    except (OSError, ValueError) as exc:
+        raise FileExistsError(f"{out} is not empty and holds no readable dagger.json ({exc})") from exc
+    records = book.get("rounds") or []
+    if not records:
+        raise FileNotFoundError(f"{out}/dagger.json lists no finished round")
+    if Path(book.get("run_dir", "")).resolve() != run_dir.resolve():
+        raise ValueError(f"{out} continues the run {book.get('run_dir')}, not {run_dir}")
+    first = records[0]
+    differs = [f"{name}: {have} there, {want} asked" for name, have, want in (
+        ("episodes", first.get("episodes"), episodes), ("seed", first.get("user_seeds", [None])[0], seed),
+        ("labels", first.get("labels"), labels)) if have != want]
+    if differs:
+        raise ValueError(f"cannot resume {out}: " + "; ".join(differs))
+    for record in records:
+        if record.get("states_labelled") and not (out / f"round{record['round']}" / _STATES).is_file():
+            raise FileNotFoundError(f"{out}/round{record['round']}/{_STATES} is missing (rounds made before DAgger "
+                                    "kept its states cannot be resumed)")
+    return records
+
+
 def _collect_job(args: tuple[str, list[int], str | None, str]) -> Collected:
     path, seeds, predictor, labels = args
     return collect(path, seeds, predictor=predictor, labels=labels)
@@ -133,9 +162,10 @@ def dagger(
     eval_episodes: int = 200,
     eval_seed: int = 0,
     labels: str = "plan",
+    resume: bool = False,
     progress: Callable[[str], None] | None = None,
 ) -> list[dict[str, Any]]:
-    """Run DAgger rounds from a warm-started ``lc-train-policy`` run; returns each round's record.
+    """Run DAgger rounds from a warm-started ``lc-train-policy`` run; returns every round's record.
 
     Args:
         run_dir: a run directory with ``policy.zip`` and ``run.json`` whose config names the demonstrations
@@ -145,6 +175,10 @@ def dagger(
             keep them apart from the demonstrations' and from evaluation's, which start at 10^9).
         epochs: behaviour-cloning epochs over all labelled states per round.
         labels: ``"plan"`` or ``"winning"``, as in :func:`collect`.
+        resume: continue the rounds already in ``out`` (made with the same run, episodes, seed and labels)
+            up to ``rounds`` in all: their labelled states rejoin the training set and the last round's
+            policy is trained on. The result is the one an uninterrupted call gives (each round trains
+            with a fresh optimiser and a seed of its own).
     """
     run_dir, out = Path(run_dir), Path(out)
     say = progress or (lambda _msg: None)
@@ -152,8 +186,13 @@ def dagger(
         raise ValueError(f"labels must be one of {', '.join(LABELS)}, got {labels!r}")
     if min(rounds, episodes, epochs, workers) < 1:
         raise ValueError("rounds, episodes, epochs and workers must be >= 1")
+    done: list[dict[str, Any]] = []
     if out.exists() and any(out.iterdir()):
-        raise FileExistsError(f"{out} exists and is not empty; choose a new directory")
+        if not resume:
+            raise FileExistsError(f"{out} exists and is not empty; choose a new directory, or resume its rounds")
+        done = _finished_rounds(out, run_dir, episodes=episodes, seed=seed, labels=labels)
+    elif resume:
+        raise FileNotFoundError(f"{out} holds no DAgger rounds to resume")
     policy_path = run_dir / "policy.zip"
     if not policy_path.is_file() or not (run_dir / "run.json").is_file():
         raise FileNotFoundError(f"{run_dir} is not a finished lc-train-policy run (policy.zip, run.json)")
@@ -172,21 +211,35 @@ def dagger(
         targets.append(demos.actions)
         say(f"demonstrations: {len(demos)} decisions of {demos.episodes} episodes from {demos_dir}")
     out.mkdir(parents=True, exist_ok=True)
-    records: list[dict[str, Any]] = []
+    records: list[dict[str, Any]] = list(done)
     current = policy_path
+    for record in done:
+        if record["states_labelled"]:
+            with np.load(out / f"round{record['round']}" / _STATES) as states:
+                for k in data:
+                    data[k].append(states[k])
+                targets.append(states["labels"])
+        current = out / f"round{record['round']}" / "policy.zip"
+    if done:
+        model = load_policy(current, predictor=predictor).model
+        say(f"resuming after round {len(done)}: {sum(len(t) for t in targets)} states, policy {current}")
     ctx = multiprocessing.get_context("spawn")
-    for r in range(1, rounds + 1):
+    for r in range(len(done) + 1, rounds + 1):
         t0 = time.perf_counter()
         seeds = [seed + (r - 1) * episodes + i for i in range(episodes)]
         parts = [seeds[i::workers] for i in range(workers) if seeds[i::workers]]
         with ProcessPoolExecutor(len(parts), mp_context=ctx) as pool:
             got = list(pool.map(_collect_job, [(str(current), p, predictor, labels) for p in parts]))
-        states = sum(len(g.labels) for g in got)
-        for g in got:
-            if len(g.labels):
-                for k in data:
-                    data[k].append(g.obs[k])
-                targets.append(g.labels)
+        kept = [g for g in got if len(g.labels)]
+        states = sum(len(g.labels) for g in kept)
+        if kept:
+            round_obs = {k: np.concatenate([g.obs[k] for g in kept]) for k in data}
+            round_labels = np.concatenate([g.labels for g in kept])
+            for k in data:
+                data[k].append(round_obs[k])
+            targets.append(round_labels)
+            (out / f"round{r}").mkdir(parents=True, exist_ok=True)
+            np.savez_compressed(out / f"round{r}" / _STATES, labels=round_labels, **round_obs)
         outcomes = [o for g in got for o in g.outcomes]
         collect_s = time.perf_counter() - t0
         say(f"round {r}: the policy drove {episodes} episodes ({outcomes.count('success')} successes), "
