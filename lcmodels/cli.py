@@ -195,6 +195,9 @@ def train_policy_parser() -> argparse.ArgumentParser:
                    help="directory of recorded MCAP episodes to pretrain on (behaviour cloning)")
     p.add_argument("--warm-start-epochs", type=_positive_int, default=d.warm_start_epochs,
                    help="behaviour-cloning epochs (default %(default)s)")
+    p.add_argument("--init-policy", type=Path, default=None,
+                   help="a policy.zip to start online training from (a cloned run's, a DAgger round's); same "
+                   "observation mode, predictor, scenario and network")
     p.add_argument("--checkpoint-every", type=_positive_int, default=d.checkpoint_every,
                    help="timesteps between checkpoints (default %(default)s)")
     p.add_argument("--eval-episodes", type=int_at_least(0), default=d.eval_episodes,
@@ -234,6 +237,8 @@ def train_policy_main(argv: list[str] | None = None) -> int:
         return fail(f"--predictor {args.predictor} does not exist")
     if args.warm_start is not None and not args.warm_start.exists():
         return fail(f"--warm-start {args.warm_start} does not exist")
+    if args.init_policy is not None and not args.init_policy.is_file():
+        return fail(f"--init-policy {args.init_policy} does not exist")
     defaults = {"a2c": (7e-4, 8), "dqn": (1e-4, 128)}.get(args.algo, (3e-4, 128))
     try:
         cfg = PolicyConfig(
@@ -244,6 +249,7 @@ def train_policy_main(argv: list[str] | None = None) -> int:
             n_steps=args.n_steps or defaults[1], checkpoint_every=args.checkpoint_every,
             eval_episodes=args.eval_episodes, eval_seed=args.eval_seed, record_eval=not args.no_record_eval,
             warm_start=str(args.warm_start or ""), warm_start_epochs=args.warm_start_epochs,
+            init_policy=str(args.init_policy or ""),
         )  # fmt: skip
     except ValueError as exc:
         return fail(str(exc))

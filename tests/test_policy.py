@@ -231,6 +231,28 @@ def test_zero_timesteps_with_a_warm_start_gives_the_behaviour_cloned_policy(tmp_
         _tiny(timesteps=0)  # nothing to train without a warm start
 
 
+def test_init_policy_starts_online_training_from_its_weights(tmp_path: Path) -> None:
+    config = scenario_for_mode(tiny_scenario(), "pure")
+    record_episodes(config, [1, 2], "oracle", tmp_path / "demos", scenario="tiny", images=False)
+    train_policy(_tiny(obs="pure", timesteps=0, warm_start=str(tmp_path / "demos"), warm_start_epochs=2,
+                       eval_episodes=0), tmp_path / "bc")  # fmt: skip
+    start = tmp_path / "bc" / "policy.zip"
+    fresh = train_policy(_tiny(obs="pure", learning_rate=1e-12, eval_episodes=0), tmp_path / "fresh")
+    res = train_policy(_tiny(obs="pure", learning_rate=1e-12, eval_episodes=0, init_policy=str(start)),
+                       tmp_path / "init")  # fmt: skip
+    assert res.metrics["train"]["warm_start"]["sha256"] == file_sha256(start)
+    want = load_policy(start).model.policy.state_dict()
+    for run, same in ((tmp_path / "init", True), (tmp_path / "fresh", False)):  # a learning rate of ~0 keeps them
+        got = load_policy(run / "policy.zip").model.policy.state_dict()
+        close = all(torch.allclose(got[k], want[k], atol=1e-6) for k in want)
+        assert close == same, run
+    assert fresh.timesteps == res.timesteps
+    with pytest.raises(ValueError, match="observation mode"):
+        train_policy(_tiny(obs="image", eval_episodes=0, init_policy=str(start)), tmp_path / "other")
+    with pytest.raises(ValueError, match="init_policy"):
+        _tiny(obs="pure", warm_start=str(tmp_path / "demos"), init_policy=str(start))
+
+
 def test_demonstrations_are_observed_the_policys_way(tmp_path: Path) -> None:
     """Episodes recorded with the nearest-vehicle observation serve a policy that observes lane slots."""
     import dataclasses

@@ -8,7 +8,7 @@ A run directory holds::
                               mean return and safe forward distance over the last 100 episodes
     tb/                       TensorBoard (SB3's scalars plus lc/*)
     train_episode_seeds.npy   simulator seeds of every training episode (for the held-out check)
-    warm_start.json           behaviour-cloning losses, when warm-started
+    warm_start.json           behaviour-cloning losses when warm-started, or the --init-policy started from
     policy.zip                the final policy
     eval/metrics.json         held-out evaluation (see lcmodels.policy.evaluate); eval/episodes/*.mcap
     metrics.json              training summary + evaluation, what lc-experiment reads
@@ -121,6 +121,9 @@ class PolicyConfig(_JsonMixin):
     warm_start: str = ""
     """Directory of recorded MCAP episodes to pretrain on ('' = none)."""
     warm_start_epochs: int = 10
+    init_policy: str = ""
+    """A ``policy.zip`` (a behaviour-cloned run's, a DAgger round's) whose weights start the online
+    training ('' = none): same algorithm, observation mode, predictor, scenario and network as this run."""
 
     def __post_init__(self) -> None:
         _check(self.algo in ALGOS, self, "algo", f"must be one of {', '.join(ALGOS)}", self.algo)
@@ -135,6 +138,9 @@ class PolicyConfig(_JsonMixin):
                   "n_epochs", "reward_scale", "buffer_size", "target_update_interval", "checkpoint_every",
                   "eval_batch", "warm_start_epochs")
         _non_negative(self, "timesteps", "ent_coef", "learning_starts", "eval_episodes", "seed", "eval_seed")
+        _check(not (self.warm_start and self.init_policy), self, "init_policy",
+               "cannot be combined with warm_start (clone first, then start from that run's policy.zip)",
+               self.init_policy)  # fmt: skip
         _check(self.timesteps > 0 or bool(self.warm_start), self, "timesteps",
                "must be > 0 without a warm start (0 with one: behaviour cloning only)", self.timesteps)  # fmt: skip
         _check(0 < self.gamma <= 1, self, "gamma", "must be in (0, 1]", self.gamma)
@@ -415,6 +421,9 @@ def _train(cfg: PolicyConfig, run: _Run, pred: Predictor | None, device: str, lo
         if cfg.warm_start:
             warm = _warm_start(cfg, model, pred, config)
             write_json(out / "warm_start.json", warm)
+        elif cfg.init_policy:
+            warm = _init_policy(cfg, model, run, config, device)
+            write_json(out / "warm_start.json", warm)
     env.seed(train_seed_base(cfg.seed, run.start_timesteps))
     model.set_logger(configure(tb, ["tensorboard"]))
     every = log_every or (cfg.n_envs * cfg.n_steps if cfg.algo != "dqn" else 2048)
@@ -432,6 +441,26 @@ def _train(cfg: PolicyConfig, run: _Run, pred: Predictor | None, device: str, lo
             "resumed_from": run.start_timesteps, "warm_start": warm}  # fmt: skip
     env.close()
     return info
+
+
+def _init_policy(cfg: PolicyConfig, model: BaseAlgorithm, run: _Run, config: ScenarioConfig,
+                 device: str) -> dict[str, Any]:
+    """Copy the weights of ``cfg.init_policy`` into ``model``, after checking that it fits this run."""
+    from lcmodels.policy.checkpoint import load_policy
+
+    path = Path(cfg.init_policy)
+    if not path.is_file():
+        raise ValueError(f"init_policy {path} does not exist")
+    loaded = load_policy(path, obs_mode=cfg.obs, scenario=config, device=device,
+                         predictor=run.predictor["path"] if run.predictor else None)  # fmt: skip
+    if loaded.meta.get("algo") != cfg.algo:
+        raise ValueError(f"init_policy {path} is a {loaded.meta.get('algo')} policy, this run trains {cfg.algo}")
+    try:
+        model.policy.load_state_dict(loaded.model.policy.state_dict())
+    except RuntimeError as exc:
+        raise ValueError(f"init_policy {path} has another network: {str(exc).splitlines()[0]}") from exc
+    log.info("starting from the weights of %s", path)
+    return {"init_policy": str(path.resolve()), "sha256": file_sha256(path)}
 
 
 def _warm_start(cfg: PolicyConfig, model: BaseAlgorithm, pred: Predictor | None,
