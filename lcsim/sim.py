@@ -39,7 +39,7 @@ _SCALAR_LANE_CHANGES = 6
 # Up to this many environments the neighbour index is updated rather than rebuilt when nothing but the
 # gaps changed (all environments must qualify, which becomes rare on large batches).
 _INCREMENTAL_INDEX_MAX_ENVS = 8
-_NO_ENVS = np.zeros(0, dtype=np.int64)
+_NONE = np.zeros(0, dtype=np.int64)  # no environment, no vehicle
 _ALL_ONE_ENV = np.ones(1, dtype=bool)
 
 SubstepHook = Callable[["HighwaySim"], None]
@@ -205,7 +205,7 @@ class HighwaySim:
     def substep(self) -> None:
         """Advance every environment by one simulation step (frozen environments stay as they are)."""
         single = self.num_envs == 1  # (single-environment paths on Python scalars: the same results)
-        frozen = _NO_ENVS if single and not self.frozen.item(0) else self.frozen.nonzero()[0]
+        frozen = _NONE if single and not self.frozen.item(0) else self.frozen.nonzero()[0]
         saved = self._save(frozen) if frozen.size else None
         tc, dt = self.config.traffic, self.dt
         index = self.index if self.index is not None else self._build_index()
@@ -472,10 +472,13 @@ class HighwaySim:
         assert index is not None
         n = self.num_vehicles
         self.collision_with[:] = -1
-        cand = index.gap < 1.0
-        if frozen is not None:
-            cand[frozen] = False
-        va = cand.ravel().nonzero()[0]
+        if self.num_envs == 1 and (frozen is not None or index.gap.min() >= 1.0):
+            va = _NONE  # (one environment: no candidate, known from one reduction)
+        else:
+            cand = index.gap < 1.0
+            if frozen is not None:
+                cand[frozen] = False
+            va = cand.ravel().nonzero()[0]
         if va.size:
             vb = index.lead_flat.take(va)
             x, y, yaw, length, width = self.x, self.y, self.yaw, self.length, self.width

@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import math
+
 import numpy as np
 
 from lcsim.config import TrafficConfig
@@ -20,7 +22,7 @@ def idm_accel(v: np.ndarray, v0: np.ndarray, gap: np.ndarray, dv: np.ndarray, cf
     a, b = cfg.idm_max_accel_mps2, cfg.idm_comfort_decel_mps2
     # In-place steps where the operand is a fresh array (a numpy scalar when the inputs are 0-d).
     s_star = v * dv
-    s_star /= 2.0 * np.sqrt(a * b)
+    s_star /= 2.0 * math.sqrt(a * b)  # (IEEE sqrt either way; math's costs no numpy call)
     s_star += v * cfg.idm_time_headway_s
     s_star = np.maximum(s_star, 0.0)
     s_star += cfg.idm_min_gap_m
