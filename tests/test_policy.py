@@ -217,11 +217,17 @@ def test_warm_start_lowers_the_behaviour_cloning_loss(tmp_path: Path) -> None:
     assert after < before * 0.8, (before, after, losses)
 
 
-def test_zero_timesteps_with_a_warm_start_gives_the_behaviour_cloned_policy(tmp_path: Path) -> None:
+def test_zero_timesteps_with_a_warm_start_gives_the_behaviour_cloned_policy(
+        tmp_path: Path, caplog: pytest.LogCaptureFixture) -> None:
     config = scenario_for_mode(tiny_scenario(), "pure")
     record_episodes(config, [1, 2], "oracle", tmp_path / "demos", scenario="tiny", images=False)
     cfg = _tiny(obs="pure", timesteps=0, warm_start=str(tmp_path / "demos"), warm_start_epochs=3, eval_episodes=0)
-    res = train_policy(cfg, tmp_path / "run")
+    with caplog.at_level("INFO", logger="lcmodels.policy.train"):
+        res = train_policy(cfg, tmp_path / "run")
+    said = [r.getMessage() for r in caplog.records]
+    assert "warm start: read 1/2 episodes" in said and "warm start: read 2/2 episodes" in said  # progress
+    assert [m.split(",")[0] for m in said if m.startswith("warm start: epoch")] == [
+        "warm start: epoch 1/3", "warm start: epoch 2/3", "warm start: epoch 3/3"]
     warm = res.metrics["train"]["warm_start"]
     assert res.timesteps == 0 and warm["nll_after"] < warm["nll_before"]
     demos = load_demonstrations(tmp_path / "demos", "pure", None, scenario=config)

@@ -41,7 +41,7 @@ from lcmodels.fileio import write_json
 from lcmodels.policy.checkpoint import load_policy, save_policy
 from lcmodels.policy.evaluate import PolicyDriver, evaluate
 from lcmodels.policy.obs import build_observation, mode_keys, scenario_for_mode
-from lcmodels.policy.warmstart import Demonstrations, load_demonstrations, pretrain
+from lcmodels.policy.warmstart import Demonstrations, every_tenth, load_demonstrations, pretrain
 from lcsim.core import KEEP, RUNNING, SUCCESS, LaneChangeCore
 from lcsim.oracle import search_from
 
@@ -205,7 +205,8 @@ def dagger(
     data: dict[str, list[np.ndarray]] = {k: [] for k in mode_keys(mode)}
     targets: list[np.ndarray] = []
     if demos_dir:
-        demos = load_demonstrations(demos_dir, mode, loaded.predictor, scenario=config)
+        demos = load_demonstrations(demos_dir, mode, loaded.predictor, scenario=config,
+                                    progress=every_tenth(say, "demonstrations: read {}/{} episodes"))
         for k in data:
             data[k].append(demos.obs[k])
         targets.append(demos.actions)

@@ -465,13 +465,15 @@ def _init_policy(cfg: PolicyConfig, model: BaseAlgorithm, run: _Run, config: Sce
 
 def _warm_start(cfg: PolicyConfig, model: BaseAlgorithm, pred: Predictor | None,
                 config: ScenarioConfig) -> dict[str, Any]:
-    from lcmodels.policy.warmstart import bc_loss, load_demonstrations, pretrain
+    from lcmodels.policy.warmstart import bc_loss, every_tenth, load_demonstrations, pretrain
 
     t0 = time.perf_counter()
     demos = load_demonstrations(cfg.warm_start, cfg.obs, pred, gamma=cfg.gamma, reward_scale=cfg.reward_scale,
-                                scenario=config)  # fmt: skip
+                                scenario=config, progress=every_tenth(log.info, "warm start: read {}/{} episodes"))  # fmt: skip
     before = bc_loss(model, demos)
-    losses = pretrain(model, demos, epochs=cfg.warm_start_epochs, seed=cfg.seed)
+    epochs = cfg.warm_start_epochs
+    losses = pretrain(model, demos, epochs=epochs, seed=cfg.seed,
+                      progress=lambda e, loss: log.info("warm start: epoch %d/%d, loss %.4f", e, epochs, loss))
     after = bc_loss(model, demos)
     log.info("warm start on %d decisions of %d episodes: NLL %.3f -> %.3f", len(demos), demos.episodes, before, after)
     return {"data": cfg.warm_start, "episodes": demos.episodes, "decisions": len(demos), "nll_before": before,

@@ -61,6 +61,14 @@ def _discounted(rewards: np.ndarray, gamma: float) -> np.ndarray:
     return out
 
 
+def every_tenth(say: Callable[[str], None], message: str) -> Callable[[int, int], None]:
+    """A (done, total) progress callback that says ``message.format(done, total)`` at each tenth of the total."""
+    def report(done: int, total: int) -> None:
+        if done == total or done * 10 // total != (done - 1) * 10 // total:
+            say(message.format(done, total))
+    return report
+
+
 def load_demonstrations(
     data: str | os.PathLike[str],
     mode: str,
@@ -70,11 +78,13 @@ def load_demonstrations(
     reward_scale: float = 1.0,
     scenario: ScenarioConfig | None = None,
     max_episodes: int | None = None,
+    progress: Callable[[int, int], None] | None = None,
 ) -> Demonstrations:
     """Read every ``.mcap`` in ``data`` (a directory or one file) into demonstrations for ``mode``.
 
     ``scenario``, when given, must equal the recorded episodes' (apart from rendering); ``ValueError``
-    otherwise, and when there are no recorded decisions.
+    otherwise, and when there are no recorded decisions. ``progress`` is called with (episodes read,
+    episodes in all) after each episode.
     """
     data = Path(data)
     paths = [data] if data.is_file() else list_episodes(data)
@@ -86,7 +96,9 @@ def load_demonstrations(
     actions: list[np.ndarray] = []
     returns: list[np.ndarray] = []
     used = 0
-    for path in paths:
+    for done, path in enumerate(paths, start=1):
+        if progress is not None and done > 1:
+            progress(done - 1, len(paths))
         episode = read_episode(path)
         if episode.steps.empty:
             continue
@@ -106,6 +118,8 @@ def load_demonstrations(
         actions.append(episode.steps["action"].to_numpy(dtype=np.int64))
         returns.append(_discounted(episode.steps["reward"].to_numpy(dtype=np.float64) * reward_scale, gamma))
         used += 1
+    if progress is not None:
+        progress(len(paths), len(paths))
     if not actions:
         raise ValueError(f"no recorded decisions in {data}")
     return Demonstrations({k: np.concatenate(v) for k, v in chunks.items()}, np.concatenate(actions),
