@@ -221,7 +221,9 @@ def dagger(
                     data[k].append(states[k])
                 targets.append(states["labels"])
         current = out / f"round{record['round']}" / "policy.zip"
-    if done:
+    if len(done) >= rounds:
+        say(f"{out} already holds {len(done)} rounds; nothing to do for --rounds {rounds}")
+    elif done:
         model = load_policy(current, predictor=predictor).model
         say(f"resuming after round {len(done)}: {sum(len(t) for t in targets)} states, policy {current}")
     ctx = multiprocessing.get_context("spawn")
