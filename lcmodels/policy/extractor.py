@@ -6,7 +6,7 @@
   to 40x40; about 4000x fewer multiply-adds, so it trains on a CPU).
 - ``current`` (1+K, 9): the ego and its K neighbour slots (:data:`lcsim.core.CURRENT_FEATURES`),
   scaled per column to order one, flattened, two-layer MLP. With ``contact_features`` the MLP also gets,
-  per slot, the time to contact, the bumper gap and its inverse (:class:`ContactFeatures`): quotients a
+  per slot, the time to contact, the bumper gap and a proximity (:class:`ContactFeatures`): quotients a
   ReLU network approximates poorly from the raw columns, and the quantities a lane change hinges on.
 - ``prediction`` (K, F, 2): predicted neighbour positions in the ego frame, scaled, flattened, MLP.
 
