@@ -88,7 +88,7 @@ def test_contact_features_keep_the_sensor_branch_width(mode: str) -> None:
     space = policy_observation_space(tiny_scenario(), mode)
     plain, contact = HybridExtractor(space), HybridExtractor(space, contact_features=True)
     assert contact.features_dim == plain.features_dim
-    first = contact.branches["current"].net[0]
+    first = contact.branches["current"].net[1]
     assert first.in_features == plain.branches["current"].net[1].in_features + 3 * 8
     batch = {k: torch.as_tensor(np.stack([s.sample() for _ in range(2)])).float() for k, s in space.spaces.items()}
     assert contact(batch).shape == (2, contact.features_dim)

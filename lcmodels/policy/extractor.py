@@ -16,6 +16,7 @@ and value heads adapt to whichever keys the observation mode keeps.
 
 from __future__ import annotations
 
+import math
 from typing import Literal
 
 import torch
@@ -101,23 +102,6 @@ def make_image_net(name: str, in_channels: int, size: int, out_features: int) ->
     raise ValueError(f"unknown image network {name!r}; choose one of {', '.join(IMAGE_NETS)}")
 
 
-class _ScaledMLP(nn.Module):
-    """Divide the last axis by fixed scales, flatten, two linear layers with ReLU."""
-
-    def __init__(self, shape: tuple[int, ...], scale: tuple[float, ...], hidden: int, out: int) -> None:
-        super().__init__()
-        if shape[-1] != len(scale):
-            raise ValueError(f"expected a last axis of {len(scale)} columns, got shape {shape}")
-        self.register_buffer("inv_scale", 1.0 / torch.tensor(scale, dtype=torch.float32))
-        n = 1
-        for s in shape:
-            n *= int(s)
-        self.net = nn.Sequential(nn.Flatten(), nn.Linear(n, hidden), nn.ReLU(), nn.Linear(hidden, out), nn.ReLU())
-
-    def forward(self, x: torch.Tensor) -> torch.Tensor:
-        return self.net(x * self.inv_scale)
-
-
 class ContactFeatures(nn.Module):
     """Per neighbour slot of ``current``: time to contact, bumper gap and proximity, each in [0, 1].
 
@@ -146,20 +130,26 @@ class ContactFeatures(nn.Module):
         ], dim=1)
 
 
-class _SensorMLP(nn.Module):
-    """The ``current`` branch: :class:`_ScaledMLP`'s scaled, flattened columns, plus :class:`ContactFeatures`."""
+class _ScaledMLP(nn.Module):
+    """Divide the last axis by fixed scales, flatten, append ``extra(x)`` when given (the sensor branch's
+    :class:`ContactFeatures`), then two linear layers with ReLU."""
 
-    def __init__(self, shape: tuple[int, ...], hidden: int, out: int) -> None:
+    def __init__(self, shape: tuple[int, ...], scale: tuple[float, ...], hidden: int, out: int,
+                 extra: ContactFeatures | None = None) -> None:
         super().__init__()
-        if len(shape) != 2 or shape[-1] != len(CURRENT_SCALE):
-            raise ValueError(f"expected (1+K, {len(CURRENT_SCALE)}) sensor data, got shape {shape}")
-        self.register_buffer("inv_scale", 1.0 / torch.tensor(CURRENT_SCALE, dtype=torch.float32))
-        self.contact = ContactFeatures(int(shape[0]) - 1)
-        n = int(shape[0]) * int(shape[1]) + self.contact.out_features
-        self.net = nn.Sequential(nn.Linear(n, hidden), nn.ReLU(), nn.Linear(hidden, out), nn.ReLU())
+        if shape[-1] != len(scale):
+            raise ValueError(f"expected a last axis of {len(scale)} columns, got shape {shape}")
+        self.register_buffer("inv_scale", 1.0 / torch.tensor(scale, dtype=torch.float32))
+        self.extra = extra
+        n = extra.out_features if extra is not None else 0
+        n += math.prod(int(s) for s in shape)
+        self.net = nn.Sequential(nn.Flatten(), nn.Linear(n, hidden), nn.ReLU(), nn.Linear(hidden, out), nn.ReLU())
 
     def forward(self, x: torch.Tensor) -> torch.Tensor:
-        return self.net(torch.cat([(x * self.inv_scale).flatten(1), self.contact(x)], dim=1))
+        scaled = x * self.inv_scale
+        if self.extra is None:
+            return self.net(scaled)
+        return self.net(torch.cat([scaled.flatten(1), self.extra(x)], dim=1))
 
 
 class HybridExtractor(BaseFeaturesExtractor):
@@ -187,8 +177,8 @@ class HybridExtractor(BaseFeaturesExtractor):
                 branches[key] = make_image_net(image_net, shape[0], shape[1], image_features)
                 dims += image_features
             elif key == "current":
-                branches[key] = (_SensorMLP(shape, hidden, sensor_features) if contact_features
-                                 else _ScaledMLP(shape, CURRENT_SCALE, hidden, sensor_features))
+                contact = ContactFeatures(int(shape[0]) - 1) if contact_features else None
+                branches[key] = _ScaledMLP(shape, CURRENT_SCALE, hidden, sensor_features, extra=contact)
                 dims += sensor_features
             elif key == "prediction":
                 branches[key] = _ScaledMLP(shape, PREDICTION_SCALE, hidden, prediction_features)
