@@ -17,7 +17,7 @@ from __future__ import annotations
 
 import dataclasses
 import os
-from collections.abc import Callable
+from collections.abc import Callable, Iterator
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -69,6 +69,14 @@ def every_tenth(say: Callable[[str], None], message: str) -> Callable[[int, int]
     return report
 
 
+def _reporting(items: list[Path], progress: Callable[[int, int], None] | None) -> Iterator[Path]:
+    """``items``, calling ``progress(done, total)`` once the loop body has finished with each one."""
+    for done, item in enumerate(items, start=1):
+        yield item
+        if progress is not None:
+            progress(done, len(items))
+
+
 def load_demonstrations(
     data: str | os.PathLike[str],
     mode: str,
@@ -96,9 +104,7 @@ def load_demonstrations(
     actions: list[np.ndarray] = []
     returns: list[np.ndarray] = []
     used = 0
-    for done, path in enumerate(paths, start=1):
-        if progress is not None and done > 1:
-            progress(done - 1, len(paths))
+    for path in _reporting(paths, progress):
         episode = read_episode(path)
         if episode.steps.empty:
             continue
@@ -118,8 +124,6 @@ def load_demonstrations(
         actions.append(episode.steps["action"].to_numpy(dtype=np.int64))
         returns.append(_discounted(episode.steps["reward"].to_numpy(dtype=np.float64) * reward_scale, gamma))
         used += 1
-    if progress is not None:
-        progress(len(paths), len(paths))
     if not actions:
         raise ValueError(f"no recorded decisions in {data}")
     return Demonstrations({k: np.concatenate(v) for k, v in chunks.items()}, np.concatenate(actions),
