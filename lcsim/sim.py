@@ -251,11 +251,13 @@ class HighwaySim:
                 self.target_lane[0, 0] = ego_target if self.ego_lc_active.item(0) else self.lane.item(0)
             self.step[0] = self.step.item(0) + 1
             self.t_s[0] = self.t_s.item(0) + dt
+            self.hist_count[0] = self.hist_count.item(0) + 1
         else:
             if not self.autopilot_ego:
                 self.target_lane[:, 0] = np.where(self.ego_lc_active, ego_target, self.lane[:, 0])
             self.step += 1
             self.t_s += dt
+            self.hist_count += 1  # (restoring frozen environments leaves it: their history is written too)
 
         if saved is not None:  # frozen environments get their state back before the index is built
             self._restore(frozen, saved)
@@ -269,10 +271,6 @@ class HighwaySim:
         self.hist_ptr = (self.hist_ptr + 1) % self.history_len
         self.hist[:, self.hist_ptr, :, 0] = self.x
         self.hist[:, self.hist_ptr, :, 1] = self.y
-        if single:
-            self.hist_count[0] = self.hist_count.item(0) + 1
-        else:
-            self.hist_count += 1
         for hook in self.hooks:
             hook(self)
 
