@@ -12,8 +12,8 @@ from functools import lru_cache
 import numpy as np
 
 _MASK = (1 << 64) - 1
-_GOLDEN_INT, _M1_INT, _M2_INT = 0x9E3779B97F4A7C15, 0xBF58476D1CE4E5B9, 0x94D049BB133111EB
-_GOLDEN, _M1, _M2 = np.uint64(_GOLDEN_INT), np.uint64(_M1_INT), np.uint64(_M2_INT)
+_M2_INT = 0x94D049BB133111EB  # (also folded into the stream constant as a Python int)
+_GOLDEN, _M1, _M2 = np.uint64(0x9E3779B97F4A7C15), np.uint64(0xBF58476D1CE4E5B9), np.uint64(_M2_INT)
 _S11, _S27, _S30, _S31 = np.uint64(11), np.uint64(27), np.uint64(30), np.uint64(31)
 _STEP_STRIDE = np.uint64(1 << 20)
 
