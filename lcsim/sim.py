@@ -243,16 +243,15 @@ class HighwaySim:
         if not self.autopilot_ego:
             self._ego_step(index.gap[:, 0], new_x, new_y, new_yaw, new_speed, acc)
         self.x, self.y, self.yaw, self.speed, self.accel = new_x, new_y, new_yaw, new_speed, acc
-        lane = np.floor(new_y / self.road.lane_width)  # as road.lane_of, inlined
-        self.lane = np.minimum(np.maximum(lane, 0), self.road.num_lanes - 1).astype(np.int64)
-        self.target_lane = np.where(self.lc_active, self.target_lane, self.lane)
         if single:
-            if not self.autopilot_ego:
-                self.target_lane[0, 0] = ego_target if self.ego_lc_active.item(0) else self.lane.item(0)
+            self._relane_one(changing, ego_target)
             self.step[0] = self.step.item(0) + 1
             self.t_s[0] = self.t_s.item(0) + dt
             self.hist_count[0] = self.hist_count.item(0) + 1
         else:
+            lane = np.floor(new_y / self.road.lane_width)  # as road.lane_of, inlined
+            self.lane = np.minimum(np.maximum(lane, 0), self.road.num_lanes - 1).astype(np.int64)
+            self.target_lane = np.where(self.lc_active, self.target_lane, self.lane)
             if not self.autopilot_ego:
                 self.target_lane[:, 0] = np.where(self.ego_lc_active, ego_target, self.lane[:, 0])
             self.step += 1
@@ -273,6 +272,26 @@ class HighwaySim:
         self.hist[:, self.hist_ptr, :, 1] = self.y
         for hook in self.hooks:
             hook(self)
+
+    def _relane_one(self, changing: np.ndarray, ego_target: int) -> None:
+        """``lane`` and ``target_lane`` after a substep of a single environment, for the vehicles that can
+        have moved sideways only: the lane changers (``changing``, whose ``lc_active`` may also have
+        flipped) and the ego. Every other vehicle kept its ``y``, has no change in progress and so keeps
+        ``target_lane == lane`` (as the full update in :meth:`substep` would set it): the same arrays, in
+        a few scalar operations instead of six passes over every vehicle. New arrays, as the full update
+        makes: a hook may hold the previous ones."""
+        lane, target = self.lane.copy(), self.target_lane.copy()
+        y, active, lw, top = self.y, self.lc_active, self.road.lane_width, self.road.num_lanes - 1
+        for v in changing.tolist():
+            k = min(max(math.floor(y.item(v) / lw), 0), top)  # as road.lane_of, on a float
+            lane[0, v] = k
+            if not active.item(v):
+                target[0, v] = k
+        if not self.autopilot_ego:
+            k = min(max(math.floor(y.item(0) / lw), 0), top)
+            lane[0, 0] = k
+            target[0, 0] = ego_target if self.ego_lc_active.item(0) else k
+        self.lane, self.target_lane = lane, target
 
     def _lateral_few(self, changing: list[int], new_speed: np.ndarray, new_y: np.ndarray, new_yaw: np.ndarray) -> None:
         """The minimum-jerk lateral update of :meth:`substep` for a few vehicles, on Python floats.
@@ -493,8 +512,8 @@ class HighwaySim:
         if self.num_envs == 1:  # the same on floats (floor of a float is exact either way)
             y_prev, y_now = ego_y_prev.item(0), self.y.item(0)
             k_prev, k_new = math.floor(y_prev / lw), math.floor(y_now / lw)
-            self.lane_invasion = np.array([max(k_prev, k_new) if k_prev != k_new else -1], dtype=np.int64)
-            self.off_road = np.array([y_now < 0.0 or y_now > self.road.width])
+            self.lane_invasion[0] = max(k_prev, k_new) if k_prev != k_new else -1  # (in place, as collision_with)
+            self.off_road[0] = y_now < 0.0 or y_now > self.road.width
             return
         ego_y = self.y[:, 0]
         k_prev, k_new = np.floor(ego_y_prev / lw), np.floor(ego_y / lw)

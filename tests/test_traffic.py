@@ -81,3 +81,28 @@ def test_updated_neighbour_index_equals_a_full_build(num_envs):
         if step % 10 == 0:
             core.step(np.array([step // 10 % 3, 2 - step // 10 % 3][:num_envs]))
     assert kinds["shared"] > 100 and kinds["relaned"] > 10 and kinds["rebuilt"] > 10, kinds
+
+
+@pytest.mark.parametrize(("num_envs", "autopilot_ego"), [(1, False), (1, True), (2, False)])
+def test_lanes_follow_the_positions_after_every_substep(num_envs, autopilot_ego):
+    """``lane`` is the lane of ``y``; ``target_lane`` is ``lane`` but during a change (the ego's: while its
+    path runs). A single environment redoes only the vehicles that moved sideways: check both against the
+    formula over every vehicle, through traffic and ego lane changes."""
+    from lcsim.sim import HighwaySim
+
+    cfg = ScenarioConfig(render_image=False, traffic=TrafficConfig(random_lane_change_rate_per_min=3.0))
+    sim = HighwaySim(cfg, num_envs, autopilot_ego=autopilot_ego)
+    sim.reset(np.arange(num_envs), [5 + k for k in range(num_envs)])
+    changes = 0
+    for step in range(400):
+        if not autopilot_ego and step % 40 == 0:
+            sim.start_lane_change(np.ones(num_envs, dtype=bool), np.where(sim.target_lane[:, 0] > 0, -1, 1))
+        sim.substep()
+        lane = np.clip(np.floor(sim.y / sim.road.lane_width), 0, sim.road.num_lanes - 1).astype(np.int64)
+        np.testing.assert_array_equal(sim.lane, lane, err_msg=f"step {step}")
+        changing = sim.lc_active.copy()
+        if not autopilot_ego:
+            changing[:, 0] = sim.ego_lc_active
+        np.testing.assert_array_equal(sim.target_lane[~changing], lane[~changing], err_msg=f"step {step}")
+        changes += int((sim.target_lane != sim.lane).sum())
+    assert changes > 50, changes  # lane changes were under way
