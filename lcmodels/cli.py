@@ -188,7 +188,9 @@ def train_policy_parser() -> argparse.ArgumentParser:
     p.add_argument("--contact-features", action=argparse.BooleanOptionalAction, default=d.contact_features,
                    help="give the sensor branch each neighbour slot's time to contact, gap and proximity "
                    "(default on)")
-    p.add_argument("--lr", type=float, default=None, help="learning rate (default 3e-4; A2C 7e-4; DQN 1e-4)")
+    p.add_argument("--lr", type=float, default=None,
+                   help="learning rate (default 3e-4, and 3e-5 for PPO after --warm-start or --init-policy, which "
+                   "keeps what the clone learnt; A2C 7e-4; DQN 1e-4)")
     p.add_argument("--n-steps", type=_positive_int, default=None,
                    help="PPO/A2C rollout steps per env (default 128; A2C 8)")
     p.add_argument("--warm-start", type=Path, default=None,
@@ -229,7 +231,7 @@ def train_policy_main(argv: list[str] | None = None) -> int:
     import torch
 
     from lcmodels.policy.obs import needs_predictor
-    from lcmodels.policy.train import PolicyConfig, train_policy
+    from lcmodels.policy.train import PolicyConfig, default_learning_rate, train_policy
 
     if needs_predictor(args.obs) and args.predictor is None:
         return fail(f"--obs {args.obs} needs --predictor (a predictor.pt from lc-train-predictor)")
@@ -239,14 +241,15 @@ def train_policy_main(argv: list[str] | None = None) -> int:
         return fail(f"--warm-start {args.warm_start} does not exist")
     if args.init_policy is not None and not args.init_policy.is_file():
         return fail(f"--init-policy {args.init_policy} does not exist")
-    defaults = {"a2c": (7e-4, 8), "dqn": (1e-4, 128)}.get(args.algo, (3e-4, 128))
+    fine_tune = args.warm_start is not None or args.init_policy is not None
+    learning_rate = args.lr if args.lr is not None else default_learning_rate(args.algo, fine_tune)
     try:
         cfg = PolicyConfig(
             algo=args.algo, obs=args.obs, scenario=args.scenario, neighbours=args.neighbours,
             timesteps=args.timesteps, n_envs=args.n_envs,
             seed=args.seed, image_net=args.image_net, contact_features=args.contact_features,
-            learning_rate=args.lr or defaults[0],
-            n_steps=args.n_steps or defaults[1], checkpoint_every=args.checkpoint_every,
+            learning_rate=learning_rate,
+            n_steps=args.n_steps or (8 if args.algo == "a2c" else 128), checkpoint_every=args.checkpoint_every,
             eval_episodes=args.eval_episodes, eval_seed=args.eval_seed, record_eval=not args.no_record_eval,
             warm_start=str(args.warm_start or ""), warm_start_epochs=args.warm_start_epochs,
             init_policy=str(args.init_policy or ""),

@@ -188,10 +188,12 @@ def method_timesteps(preset: Preset, method: Method) -> int:
 
 def policy_config(preset: Preset, method: Method, seed: int, demos: Path | None) -> Any:
     """The :class:`~lcmodels.policy.train.PolicyConfig` of one (method, seed) run."""
-    from lcmodels.policy.train import PolicyConfig
+    from lcmodels.policy.train import PolicyConfig, default_learning_rate
 
-    lr, n_steps = {"a2c": (7e-4, preset.a2c_n_steps), "dqn": (1e-4, preset.ppo_n_steps)}.get(
-        method.algo, (3e-4, preset.ppo_n_steps))
+    # The warm-started row keeps the algorithm's rate (not the fine-tuning one of lc-train-policy), so
+    # that it differs from the row trained from scratch by the warm start alone, as the stored results did.
+    lr = default_learning_rate(method.algo)
+    n_steps = preset.a2c_n_steps if method.algo == "a2c" else preset.ppo_n_steps
     batch = preset.dqn_batch_size if method.algo == "dqn" else preset.ppo_batch_size
     return PolicyConfig(
         algo=method.algo, obs=method.obs, scenario=preset.scenario, timesteps=method_timesteps(preset, method),

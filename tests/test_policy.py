@@ -29,7 +29,7 @@ from lcmodels.policy import (
 )
 from lcmodels.policy.evaluate import PolicyDriver, evaluate, wilson_interval
 from lcmodels.policy.obs import OBS_MODES, policy_observation_space, scenario_for_mode
-from lcmodels.policy.train import build_model, tiny_scenario
+from lcmodels.policy.train import build_model, default_learning_rate, tiny_scenario
 from lcmodels.predictor import Predictor, PredictorConfig, TrajectoryTransformer
 from lcsim.sb3 import LaneChangeSB3VecEnv
 
@@ -255,6 +255,13 @@ def test_init_policy_starts_online_training_from_its_weights(tmp_path: Path) -> 
     assert fresh.timesteps == res.timesteps
     with pytest.raises(ValueError, match="observation mode"):
         train_policy(_tiny(obs="image", eval_episodes=0, init_policy=str(start)), tmp_path / "other")
+    # From the command line, PPO continuing from a policy defaults to a tenth of the usual learning rate
+    assert train_policy_main(["--obs", "pure", "--scenario", "tiny", "--timesteps", "64", "--n-envs", "2",
+                              "--n-steps", "32", "--eval-episodes", "0", "--init-policy", str(start),
+                              "--out", str(tmp_path / "cli"), "-q"]) == 0  # fmt: skip
+    stored = json.loads((tmp_path / "cli" / "run.json").read_text())["config"]
+    assert stored["learning_rate"] == 3e-5 == default_learning_rate("ppo", fine_tune=True)
+    assert default_learning_rate("ppo") == 3e-4 and default_learning_rate("dqn", fine_tune=True) == 1e-4
     with pytest.raises(ValueError, match="init_policy"):
         _tiny(obs="pure", warm_start=str(tmp_path / "demos"), init_policy=str(start))
 

@@ -75,6 +75,22 @@ PROGRESS_COLUMNS = ("timesteps", "wall_s", "episodes_total", "window", "success_
 _RESUMABLE_FIELDS = ("timesteps", "checkpoint_every", "eval_episodes", "eval_seed", "eval_batch", "record_eval")
 
 
+_LEARNING_RATES = {"ppo": 3e-4, "a2c": 7e-4, "dqn": 1e-4}
+FINE_TUNE_LEARNING_RATES = {"ppo": 3e-5}
+"""PPO from a warm start or an initial policy learns at a tenth of its default rate: from the same clone
+(69.5% held-out success), 300k steps at 3e-4 fell to 61.0% and at 3e-5 rose to 75.5%
+(docs/results/lanes/NOTE.md); PPO from DAgger at 3e-5 gave the project's best policy (docs/results/contact).
+A2C and DQN were not measured that way and keep their rates."""
+
+
+def default_learning_rate(algo: str, fine_tune: bool = False) -> float:
+    """The learning rate a run gets when none is given: per algorithm, or :data:`FINE_TUNE_LEARNING_RATES`
+    when it continues from a warm start or an initial policy (``fine_tune``)."""
+    if algo not in _LEARNING_RATES:
+        raise ValueError(f"unknown algorithm {algo!r}; choose one of {', '.join(_LEARNING_RATES)}")
+    return FINE_TUNE_LEARNING_RATES.get(algo, _LEARNING_RATES[algo]) if fine_tune else _LEARNING_RATES[algo]
+
+
 @dataclass(frozen=True, slots=True, kw_only=True)
 class PolicyConfig(_JsonMixin):
     """Everything that defines a policy training run (stored in ``run.json``)."""
