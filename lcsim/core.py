@@ -78,6 +78,7 @@ class LaneChangeCore:
             self._lane_searches[(offset, ahead)] = max(rank, self._lane_searches.get((offset, ahead), 0))
         self.milestone_x = np.asarray(config.reward.milestones) * config.route_length_m
         self.milestone_r = np.asarray(config.reward.milestone_rewards)
+        self._next_x = np.append(self.milestone_x, np.inf)  # indexed by next_milestone: none left, none hit
         self.next_milestone = np.zeros(num_envs, dtype=np.int64)
         self.outcome = np.full(num_envs, RUNNING, dtype=object)
         self.seeds = np.zeros(num_envs, dtype=np.int64)
@@ -159,10 +160,11 @@ class LaneChangeCore:
         rc = cfg.reward
         milestone_reward = np.zeros(self.num_envs)
         reached = sim.x[:, 0]
-        for i, (mx, mr) in enumerate(zip(self.milestone_x, self.milestone_r, strict=True)):
-            hit = (self.next_milestone == i) & (reached >= mx) & ~collided & ~left_road
-            milestone_reward += np.where(hit, mr, 0.0)
+        hit = ~(collided | left_road) & (reached >= self._next_x.take(self.next_milestone))
+        while hit.any():  # milestones in order, each once (a short route can pass two in one decision)
+            milestone_reward += np.where(hit, self.milestone_r.take(self.next_milestone, mode="clip"), 0.0)
             self.next_milestone += hit
+            hit &= reached >= self._next_x.take(self.next_milestone)
         components = {
             "collision": np.where(collided, rc.collision, 0.0),
             "off_road": np.where(left_road | refused, rc.off_road, 0.0),

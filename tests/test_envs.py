@@ -90,3 +90,30 @@ def test_sb3_adapter_autoreset_and_masks():
                 assert "terminal_observation" in info and "is_success" in info
                 assert info["TimeLimit.truncated"] == (info["outcome"] == "timeout")
     assert done_seen
+
+
+def test_success_milestones_are_paid_once_each_in_order_as_the_ego_passes_them():
+    """Each decision pays the rewards of the milestones the ego passed during it, once each, in order;
+    two close milestones are passed in one decision."""
+    from lcsim.config import EgoConfig, RewardConfig
+    from lcsim.core import KEEP, LaneChangeCore
+
+    cfg = small_config(ego=EgoConfig(adaptive_cruise=True), render_image=False, time_limit_s=60.0,
+                       reward=RewardConfig(milestones=(0.2, 0.2001, 0.6, 1.0), milestone_rewards=(1.0, 2.0, 4.0, 8.0)))
+    core = LaneChangeCore(cfg, 2)
+    core.reset([0, 1], [3, 4])
+    marks = np.array(cfg.reward.milestones) * cfg.route_length_m
+    paid, both_at_once = np.zeros(2), False
+    while (core.outcome == "").any():
+        before = core.sim.x[:, 0].copy()
+        running = core.outcome == ""
+        res = core.step(np.full(2, KEEP))
+        after = core.sim.x[:, 0]
+        for e in np.flatnonzero(running):
+            passed = (before[e] < marks) & (marks <= after[e])
+            want = float(np.sum(np.array(cfg.reward.milestone_rewards)[passed]))
+            assert res.components["success"][e] == want, (e, before[e], after[e])
+            both_at_once |= bool(passed[0] and passed[1])
+        paid += res.components["success"]
+    assert list(core.outcome) == ["success", "success"] and list(paid) == [15.0, 15.0]
+    assert both_at_once
