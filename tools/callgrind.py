@@ -22,7 +22,7 @@ def instructions(code: str, *args: str) -> int:
     String hashing is seeded the same in every run (``PYTHONHASHSEED=0``), and the BLAS and OpenMP
     libraries numpy (and torch) load get one thread: their idle worker threads spin for a while, which
     callgrind counts too, so that with the default pools the same work varied by +-3% from run to run
-    (and by 0.001% with one thread).
+    (and by 0.002% with one thread).
     """
     cmd = ["valgrind", "--tool=callgrind", "--callgrind-out-file=/dev/null", sys.executable, "-c", code, *args]
     one = {name: "1" for name in ("OPENBLAS_NUM_THREADS", "OMP_NUM_THREADS", "MKL_NUM_THREADS")}
