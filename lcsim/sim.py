@@ -282,15 +282,16 @@ class HighwaySim:
         makes: a hook may hold the previous ones."""
         lane, target = self.lane.copy(), self.target_lane.copy()
         y, active, lw, top = self.y, self.lc_active, self.road.lane_width, self.road.num_lanes - 1
-        for v in changing.tolist():
+        movers = changing.tolist()
+        if not self.autopilot_ego:
+            movers.append(0)  # (the ego's lc_active is never set: its own change is ego_lc_active)
+        for v in movers:
             k = min(max(math.floor(y.item(v) / lw), 0), top)  # as road.lane_of, on a float
             lane[0, v] = k
             if not active.item(v):
                 target[0, v] = k
-        if not self.autopilot_ego:
-            k = min(max(math.floor(y.item(0) / lw), 0), top)
-            lane[0, 0] = k
-            target[0, 0] = ego_target if self.ego_lc_active.item(0) else k
+        if not self.autopilot_ego and self.ego_lc_active.item(0):
+            target[0, 0] = ego_target
         self.lane, self.target_lane = lane, target
 
     def _lateral_few(self, changing: list[int], new_speed: np.ndarray, new_y: np.ndarray, new_yaw: np.ndarray) -> None:

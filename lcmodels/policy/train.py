@@ -113,7 +113,7 @@ class PolicyConfig(_JsonMixin):
     """The sensor branch also gets each slot's time to contact, gap and proximity
     (``lcmodels.policy.extractor.ContactFeatures``). Cloning the oracle in ``pure`` mode: 69.5% held-out
     success without, 77.0% with (docs/results/contact). Runs stored before the option existed read as off."""
-    learning_rate: float = 3e-4
+    learning_rate: float = _LEARNING_RATES["ppo"]
     gamma: float = 0.95
     """0.95 (a 10 s horizon at 2 decisions/s): PPO pure reached 24% held-out success in 150k steps with
     0.95 and no entropy bonus, 7% with 0.99 and 0.01 in 100k (measured, 200 episodes)."""
