@@ -298,20 +298,22 @@ class LaneChangeCore:
         rvx[:, 0], rvy[:, 0] = ev[:, 0] * c[:, 0], ev[:, 0] * s[:, 0]  # the ego row holds its own velocity
         rel_yaw = yaw - eyaw
         rel_yaw[:, 0] = eyaw[:, 0]
-        cur = np.stack([
+        # Features first (np.array of the list: one copy, cheaper than np.stack), then moved last in the
+        # float32 copy.
+        cur = np.array([
             c * dx + s * dy, -s * dx + c * dy,
             c * rvx + s * rvy, -s * rvx + c * rvy,
             rel_yaw, speed,
-            sim.lane.take(flat).astype(np.float64), sim.target_lane.take(flat).astype(np.float64),
-            np.ones_like(dx),
-        ], axis=-1)
-        cur *= present[..., None]
+            sim.lane.take(flat), sim.target_lane.take(flat),  # (small integers: exact in float64)
+            np.ones(dx.shape),
+        ], dtype=np.float64)
+        cur *= present
         pos, valid = sim.history(nb, ids)  # (B, K, H, 2), (B, K, H)
         hdx, hdy = pos[..., 0] - ex[:, :, None], pos[..., 1] - ey[:, :, None]
         c3, s3 = c[:, :, None], s[:, :, None]
-        hist = np.stack([(c3 * hdx + s3 * hdy) * valid, (-s3 * hdx + c3 * hdy) * valid,
-                         valid.astype(np.float64)], axis=-1)
-        obs = {"current": cur.astype(np.float32), "history": hist.astype(np.float32)}
+        hist = np.array([(c3 * hdx + s3 * hdy) * valid, (-s3 * hdx + c3 * hdy) * valid, valid], dtype=np.float64)
+        obs = {"current": np.ascontiguousarray(cur.transpose(1, 2, 0), dtype=np.float32),
+               "history": np.ascontiguousarray(hist.transpose(1, 2, 3, 0), dtype=np.float32)}
         if self.renderer is not None:
             if every:
                 obs["image"] = self.renderer.render(sim.x, sim.y, sim.yaw, sim.length, sim.width)

@@ -116,7 +116,7 @@ class LaneIndex:
         lead: ``(E, N)`` each vehicle's leader (nearest vehicle ahead in any lane it belongs to), -1.
     """
 
-    __slots__ = ("_ahead", "_behind", "_c", "_flat", "_lead", "_lead_flat", "_lead_half_len", "_none", "_pos_of",
+    __slots__ = ("_ahead", "_behind", "_c", "_flat", "_lead", "_lead_flat", "_lead_half_len", "_none_idx", "_pos_of",
                  "extra", "gap", "lead_speed", "lohi", "margin", "member", "num_lanes", "order")
 
     def __init__(self, x: np.ndarray, y: np.ndarray, yaw: np.ndarray, speed: np.ndarray, length: np.ndarray,
@@ -164,10 +164,20 @@ class LaneIndex:
         lead_flat = lead_flat.reshape(e, n)
         self._lead_flat = lead_flat
         self._lead: np.ndarray | None = None
-        self._none = none = lead_flat == c.sentinel
+        self._none_idx = (lead_flat == c.sentinel).ravel().nonzero()[0]  # flat indices of those without a leader
         self._lead_half_len = 0.5 * (length + length.take(lead_flat, mode="clip"))
-        self.gap = np.where(none, np.inf, x.take(lead_flat, mode="clip") - x - self._lead_half_len)
-        self.lead_speed = np.where(none, 0.0, speed.take(lead_flat, mode="clip"))
+        self._leader_gaps(x, speed)
+
+    def _leader_gaps(self, x: np.ndarray, speed: np.ndarray) -> None:
+        """``gap`` and ``lead_speed`` from the leaders (inf and 0 where none; the few are put afterwards)."""
+        lead_flat, none = self._lead_flat, self._none_idx
+        gap = x.take(lead_flat, mode="clip")
+        gap -= x
+        gap -= self._lead_half_len
+        gap.put(none, np.inf)
+        lead_speed = speed.take(lead_flat, mode="clip")
+        lead_speed.put(none, 0.0)
+        self.gap, self.lead_speed = gap, lead_speed
 
     def after_move(self, x: np.ndarray, y: np.ndarray, yaw: np.ndarray, speed: np.ndarray, length: np.ndarray,
                    width: np.ndarray, extra_lane: np.ndarray, lane_width: float, moved: np.ndarray,
@@ -176,14 +186,14 @@ class LaneIndex:
 
         Valid when only the vehicles at flat indices ``moved`` (into E x N) can have changed ``y``, ``yaw``
         or ``extra_lane`` since this index was built (``x`` and ``speed`` may have changed everywhere).
-        When the order holds, the lanes touched are recomputed for the moved vehicles only: if none
-        changed (most steps), every structure but the gaps is shared; otherwise their membership
-        columns are updated and the lane tables and leaders rebuilt from them. Either way the result is
+        When the order holds, the lanes touched are recomputed for the moved vehicles only: if no lane
+        membership changed (most steps), every structure but the gaps is shared; otherwise the changed
+        membership columns are updated and the lane tables and leaders rebuilt from them. Either way the result is
         the one a full build gives, bit for bit (tested against it).
         """
         e = x.shape[0]
         xs = x.take(self._flat[:-1].T if e > 1 else self.order)  # positions in the previous sorted order
-        if not (xs[:, 1:] > xs[:, :-1]).all():
+        if np.count_nonzero(xs[:, 1:] <= xs[:, :-1]):
             return None
         # The moved vehicles on Python floats: the operations of _half_lateral_extent and of the build,
         # in the same order (IEEE arithmetic and sqrt; the sine still comes from numpy).
@@ -202,24 +212,29 @@ class LaneIndex:
                 changed.append((moved.item(k), lo, hi, new_extra[k]))
         new = object.__new__(LaneIndex)
         new._c, new._flat, new.margin, new.num_lanes, new.order = self._c, self._flat, self.margin, self.num_lanes, self.order
-        new._pos_of, new.extra = self._pos_of, extra_lane
-        if not changed:
+        new._pos_of, new.extra, new.lohi = self._pos_of, extra_lane, self.lohi
+        columns = []  # (sorted position, environment, lane membership) where the membership changes
+        if changed:
+            n = self.order.shape[1]
+            new.lohi = self.lohi.copy()
+            new_lohi = new.lohi.reshape(2, -1)
+            pos_of = new.pos_of
+            for f, lo, hi, lane_extra in changed:
+                new_lohi[0, f], new_lohi[1, f] = lo, hi
+                p, env = pos_of.item(f), f // n
+                column = [lo <= lane <= hi or lane == lane_extra for lane in range(self.num_lanes)]
+                if column != self.member[:, p, env].tolist():
+                    columns.append((p, env, column))
+        if not columns:
+            # Most steps; also a lane changer's body entering its target lane, already a member of it.
             new._ahead, new._behind, new._lead = self._ahead, self._behind, self._lead
-            new._lead_flat, new._lead_half_len, new._none = self._lead_flat, self._lead_half_len, self._none
-            new.member, new.lohi = self.member, self.lohi
-            lead_flat, none = self._lead_flat, self._none
-            new.gap = np.where(none, np.inf, x.take(lead_flat, mode="clip") - x - self._lead_half_len)
-            new.lead_speed = np.where(none, 0.0, speed.take(lead_flat, mode="clip"))
+            new._lead_flat, new._lead_half_len, new._none_idx = self._lead_flat, self._lead_half_len, self._none_idx
+            new.member = self.member
+            new._leader_gaps(x, speed)
             return new
-        n = self.order.shape[1]
-        new.lohi, new.member = self.lohi.copy(), self.member.copy()
-        new_lohi = new.lohi.reshape(2, -1)
-        pos_of = new.pos_of
-        for f, lo, hi, lane_extra in changed:
-            new_lohi[0, f], new_lohi[1, f] = lo, hi
-            env = f // n
-            new.member[:, pos_of.item(f), env] = [lo <= lane <= hi or lane == lane_extra
-                                                  for lane in range(self.num_lanes)]
+        new.member = self.member.copy()
+        for p, env, column in columns:
+            new.member[:, p, env] = column
         new._link(x, speed, length)
         return new
 

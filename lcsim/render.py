@@ -96,8 +96,8 @@ class BevRenderer:
         env, is_ego, r0, r1, c0, c1, ok = self._boxes(x, y, yaw, length, width)
         if ok.size <= _LOOP_MAX_BOXES:
             # Few boxes (a single environment): one slice assignment per box beats building pixel indices.
-            boxes = zip(np.broadcast_to(env[:, None], ok.shape).ravel().tolist(),
-                        np.broadcast_to(is_ego[:, None], ok.shape).ravel().tolist(),
+            strips = range(ok.shape[1])
+            boxes = zip([k for k in env.tolist() for _ in strips], [own for own in is_ego.tolist() for _ in strips],
                         r0.ravel().tolist(), r1.ravel().tolist(), c0.ravel().tolist(), c1.ravel().tolist(),
                         ok.ravel().tolist(), strict=True)
             ego_boxes = []
@@ -140,20 +140,21 @@ class BevRenderer:
         reach = math.sqrt(2.0) * (self.half_extent + float(length.max()) + float(width.max())) + 1.0
         near = d2 <= reach * reach
         near[:, 0] = True
-        if n > k and int(near.sum(axis=1).max()) > k:  # crowded: the nearest k, ties by index
+        crowded = np.count_nonzero(near) > k if e == 1 else int(near.sum(axis=1).max()) > k
+        if n > k and crowded:  # the nearest k, ties by index
             d2[:, 0] = -1.0
             sel = np.argsort(d2, axis=1, kind="stable")[:, :k]
             near[:] = False
             near[np.arange(e)[:, None], sel] = True
-        vi = np.flatnonzero(near)
+        vi = near.ravel().nonzero()[0]
         env = vi // n
         # Along (u, metres ahead of the ego) and across (v, metres left) stacked on a leading axis of 2:
         # the same elementwise operations as one array per axis, in half the calls.
         px, py, yaws, lengths, widths = x.take(vi), y.take(vi), yaw.take(vi), length.take(vi), width.take(vi)
-        cs = np.stack([np.cos(yaws), np.sin(yaws)])[:, :, None]  # (2, M, 1): cos, sin
+        cs = np.array([np.cos(yaws), np.sin(yaws)])[:, :, None]  # (2, M, 1): cos, sin
         lx = lengths[:, None] * _STRIP_FRAC  # (M, strips) strip centres along the body
-        centre = np.stack([px, py])[:, :, None] + cs * lx
-        centre -= np.stack([ex.take(env), ey.take(env)])[:, :, None]  # (2, M, strips)
+        centre = np.array([px, py])[:, :, None] + cs * lx
+        centre -= np.array([ex.take(env), ey.take(env)])[:, :, None]  # (2, M, strips)
         hl = (lengths / (2 * _STRIPS))[:, None]
         hw = (0.5 * widths)[:, None]
         a = np.abs(cs)

@@ -30,7 +30,16 @@ def _counters(n: int) -> np.ndarray:
     return np.arange(n, dtype=np.uint64)[None, :]
 
 
-def uniform(key: np.ndarray, step: np.ndarray, n: int, stream: int = 0) -> np.ndarray:
+def stream_base(key: np.ndarray, stream: int = 0) -> np.ndarray:
+    """``(E,)`` uint64: the part of :func:`uniform` that depends on the key and stream only (a caller that
+    draws from one stream many times with fixed keys computes it once)."""
+    # Only arrays take part in the wrapping arithmetic (numpy warns on overflowing scalar operations,
+    # and an errstate context costs more than the draws): the stream constant is a Python int.
+    return _mix(key.astype(np.uint64) ^ np.uint64((stream * _M2_INT) & _MASK))
+
+
+def uniform(key: np.ndarray, step: np.ndarray, n: int, stream: int = 0, *, base: np.ndarray | None = None,
+            ) -> np.ndarray:
     """Uniform draws in [0, 1).
 
     Args:
@@ -38,13 +47,13 @@ def uniform(key: np.ndarray, step: np.ndarray, n: int, stream: int = 0) -> np.nd
         step: ``(E,)`` int64 simulation step of each environment.
         n: number of draws per environment (one per vehicle).
         stream: separates independent uses at the same step.
+        base: ``stream_base(key, stream)`` when the caller keeps it (the same draws, fewer operations).
 
     Returns:
         ``(E, n)`` float64.
     """
-    # Only arrays take part in the wrapping arithmetic (numpy warns on overflowing scalar operations,
-    # and an errstate context costs more than the draws): the stream constant is a Python int.
-    base = _mix(key.astype(np.uint64) ^ np.uint64((stream * _M2_INT) & _MASK))
+    if base is None:
+        base = stream_base(key, stream)
     ctr = step.astype(np.uint64)[:, None] * _STEP_STRIDE
     ctr = ctr + _counters(n)
     ctr *= _GOLDEN

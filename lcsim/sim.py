@@ -40,6 +40,7 @@ _SCALAR_LANE_CHANGES = 6
 # gaps changed (all environments must qualify, which becomes rare on large batches).
 _INCREMENTAL_INDEX_MAX_ENVS = 8
 _NONE = np.zeros(0, dtype=np.int64)  # no environment, no vehicle
+_LANE_CHANGE_STREAM = 1  # the random-number stream of the traffic's spontaneous lane changes
 _ALL_ONE_ENV = np.ones(1, dtype=bool)
 
 SubstepHook = Callable[["HighwaySim"], None]
@@ -93,6 +94,7 @@ class HighwaySim:
         self.step = np.zeros(e, dtype=np.int64)
         self.t_s = f64(e)
         self.key = np.zeros(e, dtype=np.uint64)
+        self.lane_change_base = rng.stream_base(self.key, _LANE_CHANGE_STREAM)  # (kept with key by reset)
         self.collision_with = np.full(e, -1, dtype=np.int64)
         self.lane_invasion = np.full(e, -1, dtype=np.int64)
         self.off_road = np.zeros(e, dtype=bool)
@@ -124,6 +126,7 @@ class HighwaySim:
         self.index = self._build_index()
         self.hist[env_ids] = np.stack([self.x[env_ids], self.y[env_ids]], axis=-1)[:, None]
         self.hist_count[env_ids] = 1
+        self.lane_change_base = rng.stream_base(self.key, _LANE_CHANGE_STREAM)
 
     def _spawn(self, e: int, gen: np.random.Generator) -> None:
         _cfg, tc, ec, road = self.config, self.config.traffic, self.config.ego, self.road
@@ -278,21 +281,33 @@ class HighwaySim:
         have moved sideways only: the lane changers (``changing``, whose ``lc_active`` may also have
         flipped) and the ego. Every other vehicle kept its ``y``, has no change in progress and so keeps
         ``target_lane == lane`` (as the full update in :meth:`substep` would set it): the same arrays, in
-        a few scalar operations instead of six passes over every vehicle. New arrays, as the full update
-        makes: a hook may hold the previous ones."""
-        lane, target = self.lane.copy(), self.target_lane.copy()
+        a few scalar operations instead of six passes over every vehicle. An array that changes is a new
+        one, as the full update makes (a hook may hold the previous one); one that does not (most substeps)
+        is kept."""
+        lane, target = self.lane, self.target_lane
         y, active, lw, top = self.y, self.lc_active, self.road.lane_width, self.road.num_lanes - 1
         movers = changing.tolist()
         if not self.autopilot_ego:
             movers.append(0)  # (the ego's lc_active is never set: its own change is ego_lc_active)
+        new_lane, new_target = [], []  # (vehicle, value) where the value changes
         for v in movers:
             k = min(max(math.floor(y.item(v) / lw), 0), top)  # as road.lane_of, on a float
-            lane[0, v] = k
-            if not active.item(v):
-                target[0, v] = k
+            if lane.item(v) != k:
+                new_lane.append((v, k))
+            if not active.item(v) and target.item(v) != k:
+                new_target.append((v, k))
         if not self.autopilot_ego and self.ego_lc_active.item(0):
-            target[0, 0] = ego_target
-        self.lane, self.target_lane = lane, target
+            new_target = [(v, k) for v, k in new_target if v != 0]
+            if target.item(0) != ego_target:
+                new_target.append((0, ego_target))
+        if new_lane:
+            self.lane = lane = lane.copy()
+            for v, k in new_lane:
+                lane[0, v] = k
+        if new_target:
+            self.target_lane = target = target.copy()
+            for v, k in new_target:
+                target[0, v] = k
 
     def _lateral_few(self, changing: list[int], new_speed: np.ndarray, new_y: np.ndarray, new_yaw: np.ndarray) -> None:
         """The minimum-jerk lateral update of :meth:`substep` for a few vehicles, on Python floats.
@@ -423,7 +438,8 @@ class HighwaySim:
         # A leader exists exactly where the gap is finite.
         blocked = (gap < np.inf) & (gap >= tc.blocked_gap_min_m) & (gap <= tc.blocked_gap_max_m) & (
             index.lead_speed < self.v0 - tc.blocked_speed_margin_kmh / 3.6)
-        spontaneous = rng.uniform(self.key, self.step, n, stream=1) < self.p_spontaneous
+        spontaneous = rng.uniform(self.key, self.step, n, stream=_LANE_CHANGE_STREAM,
+                                  base=self.lane_change_base) < self.p_spontaneous
         want = (cand & (blocked | spontaneous)).ravel().nonzero()[0]  # flat (E * N) indices of the few that want to
         if not want.size:
             return
@@ -490,7 +506,7 @@ class HighwaySim:
         assert index is not None
         n = self.num_vehicles
         self.collision_with[:] = -1
-        if self.num_envs == 1 and (frozen is not None or index.gap.min() >= 1.0):
+        if self.num_envs == 1 and (frozen is not None or not np.count_nonzero(index.gap < 1.0)):
             va = _NONE  # (one environment: no candidate, known from one reduction)
         else:
             cand = index.gap < 1.0

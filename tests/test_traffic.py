@@ -72,7 +72,7 @@ def test_updated_neighbour_index_equals_a_full_build(num_envs):
             kinds["shared" if sim.index.member is before.member else "relaned"] += 1
         full = LaneIndex(sim.x, sim.y, sim.yaw, sim.speed, sim.length, sim.width,
                          np.where(sim.lc_active, sim.target_lane, -1), sim.road.lane_width, sim.road.num_lanes)
-        for name in ("order", "member", "lohi", "gap", "lead_speed", "lead_flat", "lead", "pos_of"):
+        for name in ("order", "member", "lohi", "extra", "gap", "lead_speed", "lead_flat", "lead", "pos_of"):
             np.testing.assert_array_equal(getattr(sim.index, name), getattr(full, name), err_msg=f"{name}, step {step}")
         lanes = np.tile(np.arange(-1, sim.road.num_lanes + 1), (num_envs, 1))
         for ahead in (True, False):
