@@ -225,8 +225,12 @@ class HighwaySim:
 
         # Traffic: ballistic longitudinal update, minimum-jerk lateral profile while changing lanes
         # (computed for the few vehicles changing lanes only).
-        new_speed = np.maximum(speed + acc * dt, 0.0)
-        new_x = self.x + 0.5 * (speed + new_speed) * dt
+        new_speed = acc * dt
+        new_speed += speed
+        np.maximum(new_speed, 0.0, out=new_speed)
+        new_x = speed + new_speed
+        new_x *= 0.5 * dt  # (= 0.5 * (v + v') * dt bit for bit: halving is exact)
+        new_x += self.x
         new_y, new_yaw = self.y.copy(), np.zeros(self.yaw.shape)
         changing = self.lc_active.ravel().nonzero()[0]
         if 0 < changing.size <= _SCALAR_LANE_CHANGES:
