@@ -70,7 +70,10 @@ class LaneChangeCore:
         self.config = config
         self.sim = HighwaySim(config, num_envs, autopilot_ego=autopilot_ego)
         self.num_envs = num_envs
-        self.renderer = BevRenderer(config.road, config.render) if config.render_image else None
+        self.renderer = None
+        if config.render_image:
+            extent = max(config.traffic.length_m, config.ego.length_m) + max(config.traffic.width_m, config.ego.width_m)
+            self.renderer = BevRenderer(config.road, config.render, vehicle_extent_m=extent)
         self.k = config.num_neighbours
         # Lane slots: how many members each (lane offset, ahead) search must return.
         self._lane_searches: dict[tuple[int, bool], int] = {}

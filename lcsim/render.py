@@ -49,8 +49,12 @@ class BevRenderer:
     """Renders ``(E, 3, S, S)`` uint8 images around vehicle 0 of each environment."""
 
     def __init__(self, road: RoadConfig, render: RenderConfig, size_px: int | None = None,
-                 resolution_m_per_px: float | None = None) -> None:
+                 resolution_m_per_px: float | None = None, vehicle_extent_m: float | None = None) -> None:
+        """``vehicle_extent_m``: an upper bound of any vehicle's length + width (m), when the caller knows
+        one (it only bounds which vehicles are rasterised: any bound gives the same image); None: taken
+        from the arrays at each call."""
         self.road = road
+        self.vehicle_extent_m = vehicle_extent_m
         self.size = s = size_px or render.image_size_px
         self.res = resolution_m_per_px or render.resolution_m_per_px
         self.max_vehicles = render.max_vehicles_drawn
@@ -137,7 +141,10 @@ class BevRenderer:
         k = min(n, self.max_vehicles + 1)
         ex, ey = x[:, :1], y[:, :1]
         d2 = (x - ex) ** 2 + (y - ey) ** 2
-        reach = math.sqrt(2.0) * (self.half_extent + float(length.max()) + float(width.max())) + 1.0
+        extent = self.vehicle_extent_m
+        if extent is None:
+            extent = float(length.max()) + float(width.max())
+        reach = math.sqrt(2.0) * (self.half_extent + extent) + 1.0
         near = d2 <= reach * reach
         near[:, 0] = True
         crowded = np.count_nonzero(near) > k if e == 1 else int(near.sum(axis=1).max()) > k
@@ -162,7 +169,8 @@ class BevRenderer:
         # Pixel i has its centre at s/2 - i - 0.5 (in pixels): covered rows/cols are the centres inside.
         first = np.maximum(np.ceil(s / 2 - 0.5 - (centre + half) / res), 0).astype(np.intp)
         last = np.minimum(np.floor(s / 2 - 0.5 - (centre - half) / res), s - 1).astype(np.intp)
-        ok = (first <= last).all(axis=0)
+        fits = first <= last
+        ok = fits[0] & fits[1]
         return env, vi == env * n, first[0], last[0], first[1], last[1], ok
 
     def _covered(self, parts: tuple[tuple[np.ndarray, ...], ...]) -> list[tuple[np.ndarray, np.ndarray, int]]:

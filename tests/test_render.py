@@ -70,3 +70,22 @@ def test_few_boxes_path_equals_pixel_index_path(monkeypatch):
     indexed = renderer.render(x, y, yaw, sim.length, sim.width)
     assert (_classes(loop[0]) == VEHICLE).any() and (_classes(loop[0]) == EGO).any()
     np.testing.assert_array_equal(loop, indexed)
+
+
+def test_vehicle_extent_hint_gives_the_same_images():
+    """The environment's renderer is told the largest vehicle (length + width) from the config; one that
+    takes it from the arrays at each call draws the same images, crowded or not."""
+    cfg = ScenarioConfig()
+    core = LaneChangeCore(cfg, 2)
+    core.reset([0, 1], [4, 5])
+    assert core.renderer.vehicle_extent_m is not None
+    plain = BevRenderer(cfg.road, cfg.render)
+    sim = core.sim
+    for action in (2, 1, 0, 1, 1):
+        core.step(np.array([action, 2 - action]))
+        np.testing.assert_array_equal(core.renderer.render(sim.x, sim.y, sim.yaw, sim.length, sim.width),
+                                      plain.render(sim.x, sim.y, sim.yaw, sim.length, sim.width))
+    x = sim.x.copy()
+    x[:, 1:] = x[:, :1] + np.linspace(-25.0, 25.0, x.shape[1] - 1)  # everyone close: the nearest few drawn
+    np.testing.assert_array_equal(core.renderer.render(x, sim.y, sim.yaw, sim.length, sim.width),
+                                  plain.render(x, sim.y, sim.yaw, sim.length, sim.width))
