@@ -105,6 +105,20 @@ def sorted_order(x: np.ndarray, previous: np.ndarray | None = None) -> np.ndarra
     return order
 
 
+def _swap_permutation(xs: np.ndarray) -> np.ndarray | None:
+    """For positions ``xs`` (one environment, in the previous sorted order) that are out of order only
+    where two neighbours swapped places (an overtaking within the step), the ``(N + 1,)`` permutation of
+    sorted positions that sorts them (new position q holds the vehicle of old position ``perm[q]``; the
+    last entry is the "no vehicle" row). None when disjoint neighbour swaps do not sort them strictly."""
+    p = (xs[1:] <= xs[:-1]).nonzero()[0]
+    if p.size > 1 and np.count_nonzero(p[1:] == p[:-1] + 1):  # a vehicle passed two: not a pair swap
+        return None
+    perm = np.arange(xs.size + 1)
+    perm[p], perm[p + 1] = p + 1, p
+    s = xs.take(perm[:-1])
+    return None if np.count_nonzero(s[1:] <= s[:-1]) else perm
+
+
 class LaneIndex:
     """Neighbour structure of one simulation step for E environments.
 
@@ -182,19 +196,23 @@ class LaneIndex:
     def after_move(self, x: np.ndarray, y: np.ndarray, yaw: np.ndarray, speed: np.ndarray, length: np.ndarray,
                    width: np.ndarray, extra_lane: np.ndarray, lane_width: float, moved: np.ndarray,
                    ) -> LaneIndex | None:
-        """The index of the new state from this one, or None when the sorted order changed (build afresh).
+        """The index of the new state from this one, or None when the sorted order changed otherwise than
+        by neighbours swapping places in one environment (build afresh).
 
         Valid when only the vehicles at flat indices ``moved`` (into E x N) can have changed ``y``, ``yaw``
         or ``extra_lane`` since this index was built (``x`` and ``speed`` may have changed everywhere).
-        When the order holds, the lanes touched are recomputed for the moved vehicles only: if no lane
-        membership changed (most steps), every structure but the gaps is shared; otherwise the changed
-        membership columns are updated and the lane tables and leaders rebuilt from them. Either way the result is
-        the one a full build gives, bit for bit (tested against it).
+        The lanes touched are recomputed for the moved vehicles only. If no lane membership changed and
+        the order holds (most steps), every structure but the gaps is shared; otherwise the membership
+        columns are permuted (swaps) and updated (moved vehicles), and the lane tables and leaders rebuilt
+        from them. Either way the result is the one a full build gives, bit for bit (tested against it).
         """
         e = x.shape[0]
         xs = x.take(self._flat[:-1].T if e > 1 else self.order)  # positions in the previous sorted order
+        perm = None
         if np.count_nonzero(xs[:, 1:] <= xs[:, :-1]):
-            return None
+            perm = _swap_permutation(xs[0]) if e == 1 else None
+            if perm is None:
+                return None
         # The moved vehicles on Python floats: the operations of _half_lateral_extent and of the build,
         # in the same order (IEEE arithmetic and sqrt; the sine still comes from numpy).
         sines = np.sin(yaw.take(moved)).tolist()
@@ -211,8 +229,13 @@ class LaneIndex:
             if lo != old_lo[k] or hi != old_hi[k] or new_extra[k] != old_extra[k]:
                 changed.append((moved.item(k), lo, hi, new_extra[k]))
         new = object.__new__(LaneIndex)
-        new._c, new._flat, new.margin, new.num_lanes, new.order = self._c, self._flat, self.margin, self.num_lanes, self.order
-        new._pos_of, new.extra, new.lohi = self._pos_of, extra_lane, self.lohi
+        new._c, new.margin, new.num_lanes = self._c, self.margin, self.num_lanes
+        new.extra, new.lohi = extra_lane, self.lohi
+        if perm is None:
+            new.order, new._flat, new._pos_of, member = self.order, self._flat, self._pos_of, self.member
+        else:  # neighbours swapped places: the same tables with their positions permuted, then relinked
+            new.order, new._flat, new._pos_of = self.order[:, perm[:-1]], self._flat[perm], None
+            member = self.member[:, perm[:-1]]
         columns = []  # (sorted position, environment, lane membership) where the membership changes
         if changed:
             n = self.order.shape[1]
@@ -223,18 +246,20 @@ class LaneIndex:
                 new_lohi[0, f], new_lohi[1, f] = lo, hi
                 p, env = pos_of.item(f), f // n
                 column = [lo <= lane <= hi or lane == lane_extra for lane in range(self.num_lanes)]
-                if column != self.member[:, p, env].tolist():
+                if column != member[:, p, env].tolist():
                     columns.append((p, env, column))
-        if not columns:
+        if not columns and perm is None:
             # Most steps; also a lane changer's body entering its target lane, already a member of it.
             new._ahead, new._behind, new._lead = self._ahead, self._behind, self._lead
             new._lead_flat, new._lead_half_len, new._none_idx = self._lead_flat, self._lead_half_len, self._none_idx
-            new.member = self.member
+            new.member = member
             new._leader_gaps(x, speed)
             return new
-        new.member = self.member.copy()
-        for p, env, column in columns:
-            new.member[:, p, env] = column
+        if columns:
+            member = member.copy() if member is self.member else member
+            for p, env, column in columns:
+                member[:, p, env] = column
+        new.member = member
         new._link(x, speed, length)
         return new
 
