@@ -200,6 +200,10 @@ def train_policy_parser() -> argparse.ArgumentParser:
     p.add_argument("--init-policy", type=Path, default=None,
                    help="a policy.zip to start online training from (a cloned run's, a DAgger round's); same "
                    "observation mode, predictor, scenario and network")
+    p.add_argument("--freeze-image", action="store_true",
+                   help="with --init-policy (image, hybrid): keep its image branch fixed and run it once per step "
+                   "in the environment wrapper, so PPO's epochs do not re-run the network (several times the "
+                   "steps per minute); policy.zip stays a plain policy")
     p.add_argument("--checkpoint-every", type=_positive_int, default=d.checkpoint_every,
                    help="timesteps between checkpoints (default %(default)s)")
     p.add_argument("--eval-episodes", type=int_at_least(0), default=d.eval_episodes,
@@ -252,7 +256,7 @@ def train_policy_main(argv: list[str] | None = None) -> int:
             n_steps=args.n_steps or (8 if args.algo == "a2c" else 128), checkpoint_every=args.checkpoint_every,
             eval_episodes=args.eval_episodes, eval_seed=args.eval_seed, record_eval=not args.no_record_eval,
             warm_start=str(args.warm_start or ""), warm_start_epochs=args.warm_start_epochs,
-            init_policy=str(args.init_policy or ""),
+            init_policy=str(args.init_policy or ""), freeze_image=args.freeze_image,
         )  # fmt: skip
     except ValueError as exc:
         return fail(str(exc))

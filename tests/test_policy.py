@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import dataclasses
 import json
 from pathlib import Path
 
@@ -202,6 +203,22 @@ def test_checkpoint_refuses_another_predictor(tmp_path: Path, predictor_path: Pa
     bad.write_bytes((tmp_path / "run" / "policy.zip").read_bytes()[:500])
     with pytest.raises(ValueError, match="corrupt or truncated"):
         read_meta(bad)
+    # weights whose names do not fit the network (an older version's): refused, not loaded half-random
+    import io
+    import zipfile
+
+    renamed = tmp_path / "renamed.zip"
+    with zipfile.ZipFile(tmp_path / "run" / "policy.zip") as zin, zipfile.ZipFile(renamed, "w") as zout:
+        for item in zin.infolist():
+            data = zin.read(item.filename)
+            if item.filename == "policy.pth":
+                state = torch.load(io.BytesIO(data), weights_only=True)
+                buf = io.BytesIO()
+                torch.save({k.replace("current.net.1.", "current.net.0."): v for k, v in state.items()}, buf)
+                data = buf.getvalue()
+            zout.writestr(item, data)
+    with pytest.raises(ValueError, match="do not fit"):
+        load_policy(renamed)
 
 
 def test_warm_start_lowers_the_behaviour_cloning_loss(tmp_path: Path) -> None:
@@ -416,3 +433,53 @@ def test_dagger_resumed_gives_the_rounds_of_an_uninterrupted_run(tmp_path: Path)
         dagger(tmp_path / "bc", tmp_path / "parts", rounds=3, resume=True, **{**args, "labels": "winning"})
     with pytest.raises(FileNotFoundError, match="no DAgger rounds"):
         dagger(tmp_path / "bc", tmp_path / "empty", rounds=1, resume=True, **args)
+
+
+def test_frozen_image_branch_trains_faster_form_and_saves_a_plain_policy(tmp_path: Path, predictor_path: Path) -> None:
+    """``freeze_image``: the image branch of the initial policy runs in the observation wrapper; the run's
+    policy.zip is a plain hybrid policy with that branch unchanged, acting as the training form did; the
+    training checkpoint is refused as a policy; a resume needs only the run directory."""
+    from stable_baselines3 import PPO
+
+    from lcmodels.policy.extractor import IMAGE_FEATURES, ImageEncoder, make_image_net
+
+    train_policy(_tiny(obs="hybrid", timesteps=64, eval_episodes=0), tmp_path / "start", predictor=predictor_path)
+    start = tmp_path / "init.zip"
+    (tmp_path / "start" / "policy.zip").rename(start)
+    out = tmp_path / "frozen"
+    cfg = _tiny(obs="hybrid", timesteps=128, init_policy=str(start), freeze_image=True)
+    res = train_policy(cfg, out, predictor=predictor_path)
+    assert EVAL_KEYS <= set(res.metrics["eval"]) and res.timesteps == 128
+    before = load_policy(start).model.policy.state_dict()
+    plain = load_policy(out / "policy.zip")
+    after = plain.model.policy.state_dict()
+    image_keys = [k for k in before if ".branches.image." in k]
+    assert image_keys and all(torch.equal(before[k], after[k]) for k in image_keys)  # frozen
+    assert not all(torch.equal(before[k], after[k]) for k in before)  # the rest trained
+    # The plain policy acts as the training form does on the same observations, each as its wrapper builds them.
+    training_form = PPO.load(out / "checkpoints" / "latest.zip")
+    net = make_image_net("compact", 3, plain.scenario.render.image_size_px, 10)
+    net.load_state_dict(torch.load(out / "image_encoder.pt", weights_only=True))
+    base = LaneChangeSB3VecEnv(3, plain.scenario)
+    base.seed(5)
+    raw = base.reset()
+    obs = PolicyVecEnv(base, "hybrid", plain.predictor)._convert(raw)
+    wrapper = PolicyVecEnv(base, "hybrid", plain.predictor, image_encoder=ImageEncoder(net, "compact", 10))
+    feats = wrapper._convert(raw)
+    assert set(feats) == set(wrapper.observation_space.spaces) == {"current", IMAGE_FEATURES, "prediction"}
+    assert feats[IMAGE_FEATURES].shape == (3, 10) and feats[IMAGE_FEATURES].any()
+
+    def probs(model, o):
+        t, _ = model.policy.obs_to_tensor(o)
+        with torch.no_grad():
+            return model.policy.get_distribution(t).distribution.probs
+
+    torch.testing.assert_close(probs(plain.model, obs), probs(training_form, feats), rtol=1e-4, atol=1e-6)
+    with pytest.raises(ValueError, match="training checkpoint"):
+        load_policy(out / "checkpoints" / "latest.zip")
+    start.unlink()  # resuming reads the branch kept in the run directory
+    res = train_policy(dataclasses.replace(cfg, timesteps=192), out, predictor=predictor_path)
+    assert res.metrics["train"]["resumed_from"] == 128 and res.timesteps == 192
+    for bad in (dict(obs="hybrid", freeze_image=True), dict(obs="pure", init_policy=str(start), freeze_image=True)):
+        with pytest.raises(ValueError, match="freeze_image"):
+            _tiny(**bad)

@@ -12,6 +12,7 @@ from __future__ import annotations
 import contextlib
 import json
 import os
+import warnings
 import zipfile
 from dataclasses import dataclass
 from pathlib import Path
@@ -131,6 +132,9 @@ def load_policy(path: str | os.PathLike[str], *, obs_mode: str | None = None,
     from lcmodels.policy.obs import needs_predictor
 
     meta = read_meta(path)
+    if meta.get("training_form"):
+        raise ValueError(f"{path} is a training checkpoint of a frozen-image run (it sees the image branch's "
+                         "features, not the image), for resuming only: use the run's policy.zip")
     algo = meta.get("algo")
     if algo not in ALGOS:
         raise ValueError(f"{path}: unknown algorithm {algo!r} in the checkpoint")
@@ -149,8 +153,18 @@ def load_policy(path: str | os.PathLike[str], *, obs_mode: str | None = None,
     if problems:
         raise ValueError(f"{path} does not match: " + "; ".join(problems))
     loaded_predictor = Predictor.load(pred_path) if pred_path is not None else None
-    try:
-        model = ALGOS[algo].load(path, device=device)
-    except Exception as exc:  # SB3 raises many types for damaged archives
-        raise ValueError(f"{path}: could not load the weights (corrupt?): {exc}") from exc
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        try:
+            model = ALGOS[algo].load(path, device=device)
+        except Exception as exc:  # SB3 raises many types for damaged archives
+            raise ValueError(f"{path}: could not load the weights (corrupt?): {exc}") from exc
+    for w in caught:
+        # SB3 loads weights whose names do not fit the network "without exact match", leaving those
+        # layers at their random start: a policy that silently is not the one saved.
+        if "exact_match" in str(w.message):
+            detail = next((line.strip() for line in str(w.message).splitlines() if "Missing key" in line), "")
+            raise ValueError(f"{path}: its weights do not fit this version's network (saved before a change to "
+                             f"it?): {detail[:200]}")
+        warnings.warn_explicit(w.message, w.category, w.filename, w.lineno)
     return LoadedPolicy(model, meta, loaded_predictor, ScenarioConfig.from_dict(meta["scenario"]))

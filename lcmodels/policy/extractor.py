@@ -19,6 +19,7 @@ from __future__ import annotations
 import math
 from typing import Literal
 
+import numpy as np
 import torch
 from gymnasium import spaces
 from stable_baselines3.common.torch_layers import BaseFeaturesExtractor
@@ -102,6 +103,35 @@ def make_image_net(name: str, in_channels: int, size: int, out_features: int) ->
     raise ValueError(f"unknown image network {name!r}; choose one of {', '.join(IMAGE_NETS)}")
 
 
+IMAGE_FEATURES = "image_features"
+"""The observation key that replaces ``image`` when the image branch is frozen and run by the environment
+wrapper (:class:`ImageEncoder`): what the branch would output, so the extractor passes it through."""
+
+
+class ImageEncoder:
+    """A frozen image branch run outside the policy: ``(B, 3, S, S)`` uint8 images -> ``(B, F)`` float32.
+
+    The same computation as the branch inside :class:`HybridExtractor` (stable-baselines3 scales images to
+    [0, 1] by dividing by 255 before the extractor sees them), without gradients. Training with it in the
+    observation wrapper stores F numbers per step in the rollout buffer instead of an image, so the
+    policy's update epochs do not run the network again.
+    """
+
+    def __init__(self, net: nn.Module, image_net: str, out_features: int) -> None:
+        self.net = net.eval()
+        for p in self.net.parameters():
+            p.requires_grad_(False)
+        self.image_net, self.out_features = image_net, out_features
+
+    def __call__(self, images: np.ndarray) -> np.ndarray:
+        with torch.no_grad():
+            x = torch.as_tensor(np.asarray(images)).float() / 255.0
+            return self.net(x).numpy().astype(np.float32, copy=False)
+
+    def state_dict(self) -> dict[str, torch.Tensor]:
+        return self.net.state_dict()
+
+
 class ContactFeatures(nn.Module):
     """Per neighbour slot of ``current``: time to contact, bumper gap and proximity, each in [0, 1].
 
@@ -183,8 +213,12 @@ class HybridExtractor(BaseFeaturesExtractor):
             elif key == "prediction":
                 branches[key] = _ScaledMLP(shape, PREDICTION_SCALE, hidden, prediction_features)
                 dims += prediction_features
+            elif key == IMAGE_FEATURES:  # the image branch's output, computed outside (ImageEncoder)
+                branches[key] = nn.Identity()
+                dims += int(shape[0])
             else:
-                raise ValueError(f"no branch for observation key {key!r} (known: current, image, prediction)")
+                raise ValueError(f"no branch for observation key {key!r} (known: current, image, "
+                                 f"{IMAGE_FEATURES}, prediction)")
         super().__init__(observation_space, features_dim=dims)
         self.branches = nn.ModuleDict(branches)
         self.keys = tuple(branches)

@@ -26,6 +26,7 @@ import numpy as np
 from gymnasium import spaces
 from stable_baselines3.common.vec_env import VecEnv, VecEnvWrapper
 
+from lcmodels.policy.extractor import IMAGE_FEATURES, ImageEncoder
 from lcmodels.predictor.inference import Predictor
 from lcsim.config import ScenarioConfig
 from lcsim.core import COLLISION, OFF_ROAD, OUTCOMES
@@ -56,13 +57,17 @@ def scenario_for_mode(config: ScenarioConfig, mode: str) -> ScenarioConfig:
     return dataclasses.replace(config, render_image="image" in mode_keys(mode))
 
 
-def policy_observation_space(config: ScenarioConfig, mode: str, future_steps: int = 10) -> spaces.Dict:
-    """The observation space a policy of ``mode`` sees in ``config``."""
+def policy_observation_space(config: ScenarioConfig, mode: str, future_steps: int = 10,
+                             image_features: int | None = None) -> spaces.Dict:
+    """The observation space a policy of ``mode`` sees in ``config``; with ``image_features``, a frozen
+    image branch's ``(image_features,)`` output (key ``image_features``) in place of the image."""
     base = observation_space(scenario_for_mode(config, mode))
     out: dict[str, spaces.Space] = {}
     for key in mode_keys(mode):
         if key == "prediction":
             out[key] = spaces.Box(-1.0e4, 1.0e4, (config.num_neighbours, future_steps, 2), np.float32)
+        elif key == "image" and image_features is not None:
+            out[IMAGE_FEATURES] = spaces.Box(-np.inf, np.inf, (image_features,), np.float32)
         else:
             out[key] = base.spaces[key]
     return spaces.Dict(out)
@@ -123,21 +128,27 @@ class PolicyVecEnv(VecEnvWrapper):
         mode: one of :data:`OBS_MODES`.
         predictor: required by ``prediction`` and ``hybrid``.
         reward_scale: rewards handed to the learner are multiplied by this; statistics stay unscaled.
+        image_encoder: a frozen image branch; when given, the policy sees its output (key
+            ``image_features``) in place of the image (``image`` and ``hybrid`` modes).
     """
 
     def __init__(self, venv: VecEnv, mode: str, predictor: Predictor | None = None,
-                 reward_scale: float = 1.0) -> None:
+                 reward_scale: float = 1.0, image_encoder: ImageEncoder | None = None) -> None:
         self.mode = mode
         if needs_predictor(mode) and predictor is None:
             raise ValueError(f"observation mode {mode!r} needs a trained predictor (--predictor)")
+        if image_encoder is not None and "image" not in mode_keys(mode):
+            raise ValueError(f"observation mode {mode!r} has no image to encode")
         self.predictor = predictor if needs_predictor(mode) else None
+        self.image_encoder = image_encoder
         base: Any = venv
         while not hasattr(base, "venv") or not hasattr(base.venv, "core"):
             base = base.venv
         self.core = base.venv.core
         config: ScenarioConfig = base.venv.config
         future = predictor.future_steps if self.predictor is not None else 10
-        super().__init__(venv, observation_space=policy_observation_space(config, mode, future))
+        features = image_encoder.out_features if image_encoder is not None else None
+        super().__init__(venv, observation_space=policy_observation_space(config, mode, future, features))
         self.reward_scale = float(reward_scale)
         self.forward_per_m = config.reward.forward_per_m
         n = self.num_envs
@@ -152,7 +163,10 @@ class PolicyVecEnv(VecEnvWrapper):
         """Simulator seeds of every episode started (what the held-out check compares against)."""
 
     def _convert(self, obs: dict[str, np.ndarray]) -> dict[str, np.ndarray]:
-        return build_observation(obs, self.mode, self.predictor)
+        out = build_observation(obs, self.mode, self.predictor)
+        if self.image_encoder is not None:
+            out[IMAGE_FEATURES] = self.image_encoder(out.pop("image"))
+        return out
 
     def reset(self) -> dict[str, np.ndarray]:
         obs = self.venv.reset()

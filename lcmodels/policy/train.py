@@ -41,8 +41,21 @@ from stable_baselines3.common.logger import configure
 from lcmodels.fileio import file_sha256, write_json
 from lcmodels.policy.checkpoint import ALGOS, LoadedPolicy, save_policy
 from lcmodels.policy.evaluate import EVAL_SEED_BASE, PolicyDriver, evaluate
-from lcmodels.policy.extractor import IMAGE_NETS, HybridExtractor
-from lcmodels.policy.obs import OBS_MODES, EpisodeStats, PolicyVecEnv, needs_predictor, scenario_for_mode
+from lcmodels.policy.extractor import (
+    IMAGE_FEATURES,
+    IMAGE_NETS,
+    HybridExtractor,
+    ImageEncoder,
+    make_image_net,
+)
+from lcmodels.policy.obs import (
+    OBS_MODES,
+    EpisodeStats,
+    PolicyVecEnv,
+    mode_keys,
+    needs_predictor,
+    scenario_for_mode,
+)
 from lcmodels.predictor.inference import Predictor
 from lcsim import light_scenario
 from lcsim.config import (
@@ -95,7 +108,7 @@ def default_learning_rate(algo: str, fine_tune: bool = False) -> float:
 class PolicyConfig(_JsonMixin):
     """Everything that defines a policy training run (stored in ``run.json``)."""
 
-    LEGACY_DEFAULTS: ClassVar[dict[str, Any]] = {"contact_features": False}
+    LEGACY_DEFAULTS: ClassVar[dict[str, Any]] = {"contact_features": False, "freeze_image": False}
 
     algo: str = "ppo"
     obs: str = "hybrid"
@@ -140,6 +153,12 @@ class PolicyConfig(_JsonMixin):
     init_policy: str = ""
     """A ``policy.zip`` (a behaviour-cloned run's, a DAgger round's) whose weights start the online
     training ('' = none): same algorithm, observation mode, predictor, scenario and network as this run."""
+    freeze_image: bool = False
+    """With ``init_policy`` in the ``image`` and ``hybrid`` modes: the image branch keeps the initial
+    policy's weights and runs once per step in the observation wrapper, so the rollout buffer holds its
+    features instead of the image and the update epochs never run the network (several times the online
+    steps per minute in ``hybrid`` mode). ``policy.zip`` is a plain policy of the mode, image branch
+    included; ``checkpoints/latest.zip`` is in the training form, for resuming only."""
 
     def __post_init__(self) -> None:
         _check(self.algo in ALGOS, self, "algo", f"must be one of {', '.join(ALGOS)}", self.algo)
@@ -157,6 +176,10 @@ class PolicyConfig(_JsonMixin):
         _check(not (self.warm_start and self.init_policy), self, "init_policy",
                "cannot be combined with warm_start (clone first, then start from that run's policy.zip)",
                self.init_policy)  # fmt: skip
+        _check(not self.freeze_image or bool(self.init_policy), self, "freeze_image",
+               "needs init_policy (a policy whose image branch is trained already)", self.freeze_image)
+        _check(not self.freeze_image or "image" in mode_keys(self.obs), self, "freeze_image",
+               f"needs an observation mode with the image (image, hybrid), not {self.obs!r}", self.freeze_image)
         _check(self.timesteps > 0 or bool(self.warm_start), self, "timesteps",
                "must be > 0 without a warm start (0 with one: behaviour cloning only)", self.timesteps)  # fmt: skip
         _check(0 < self.gamma <= 1, self, "gamma", "must be in (0, 1]", self.gamma)
@@ -275,17 +298,22 @@ class _Run:
     def wall_s(self) -> float:
         return self.wall_before + time.perf_counter() - self.t_start
 
-    def meta(self, timesteps: int) -> dict[str, Any]:
-        return {"algo": self.cfg.algo, "obs_mode": self.cfg.obs, "image_net": self.cfg.image_net,
+    def meta(self, timesteps: int, training_form: bool = False) -> dict[str, Any]:
+        """The checkpoint metadata; ``training_form``: a frozen-image run's checkpoint, which sees the image
+        branch's features in place of the image (resumable, not loadable as a policy)."""
+        meta = {"algo": self.cfg.algo, "obs_mode": self.cfg.obs, "image_net": self.cfg.image_net,
                 "scenario_name": self.cfg.scenario, "scenario": self.cfg.scenario_config().to_dict(),
                 "predictor": self.predictor, "train_config": self.cfg.to_dict(), "timesteps": timesteps}  # fmt: skip
+        if training_form:
+            meta["training_form"] = IMAGE_FEATURES
+        return meta
 
     def all_seeds(self) -> np.ndarray:
         new = np.asarray(self.env.episode_seeds if self.env is not None else [], dtype=np.int64)
         return np.concatenate([self.prior_seeds, new])
 
     def checkpoint(self, model: BaseAlgorithm, t: int, episodes_total: int) -> None:
-        save_policy(model, self.ckpt, self.meta(t))
+        save_policy(model, self.ckpt, self.meta(t, training_form=self.cfg.freeze_image))
         np.save(self.seeds_path, self.all_seeds())
         write_json(self.ckpt_state, {"timesteps": t, "wall_s": self.wall_s(), "episodes_total": episodes_total})
 
@@ -426,7 +454,8 @@ def _train(cfg: PolicyConfig, run: _Run, pred: Predictor | None, device: str, lo
         (out / "progress.csv").unlink()  # a previous attempt died before its first checkpoint
     config = cfg.scenario_config()
     base = LaneChangeSB3VecEnv(cfg.n_envs, config)
-    env = PolicyVecEnv(base, cfg.obs, pred, reward_scale=cfg.reward_scale)
+    encoder = _frozen_image_encoder(cfg, run, config, device) if cfg.freeze_image else None
+    env = PolicyVecEnv(base, cfg.obs, pred, reward_scale=cfg.reward_scale, image_encoder=encoder)
     run.env = env
     tb = str(out / "tb")
     warm: dict[str, Any] | None = None
@@ -452,6 +481,8 @@ def _train(cfg: PolicyConfig, run: _Run, pred: Predictor | None, device: str, lo
     if callback.last_log != t:
         callback._log(t)
     run.checkpoint(model, t, callback.episodes_total)
+    if encoder is not None:
+        model = _with_image_branch(cfg, model, encoder, PolicyVecEnv(base, cfg.obs, pred), device)
     save_policy(model, final, run.meta(t))
     info = {"timesteps": t, "wall_s": run.wall_s(), "episodes": callback.episodes_total,
             "resumed_from": run.start_timesteps, "warm_start": warm}  # fmt: skip
@@ -471,12 +502,62 @@ def _init_policy(cfg: PolicyConfig, model: BaseAlgorithm, run: _Run, config: Sce
                          predictor=run.predictor["path"] if run.predictor else None)  # fmt: skip
     if loaded.meta.get("algo") != cfg.algo:
         raise ValueError(f"init_policy {path} is a {loaded.meta.get('algo')} policy, this run trains {cfg.algo}")
+    state = loaded.model.policy.state_dict()
+    if cfg.freeze_image:  # the image branch runs in the observation wrapper (_frozen_image_encoder)
+        state = {k: v for k, v in state.items() if _IMAGE_BRANCH not in k}
     try:
-        model.policy.load_state_dict(loaded.model.policy.state_dict())
+        model.policy.load_state_dict(state)
     except RuntimeError as exc:
         raise ValueError(f"init_policy {path} has another network: {str(exc).splitlines()[0]}") from exc
     log.info("starting from the weights of %s", path)
     return {"init_policy": str(path.resolve()), "sha256": file_sha256(path)}
+
+
+_IMAGE_BRANCH = ".branches.image."  # in the policy's state-dict keys
+
+
+def _frozen_image_encoder(cfg: PolicyConfig, run: _Run, config: ScenarioConfig, device: str) -> ImageEncoder:
+    """The frozen image branch of a ``freeze_image`` run: ``init_policy``'s, kept in the run directory
+    (``image_encoder.pt``) on the first start so that a resume does not depend on that file."""
+    from lcmodels.policy.checkpoint import load_policy
+
+    path = run.out / "image_encoder.pt"
+    if path.exists():
+        try:
+            state = torch.load(path, map_location="cpu", weights_only=True)
+        except Exception as exc:  # torch raises several types for a damaged file
+            raise ValueError(f"{path} is not readable (corrupt or truncated?): {str(exc).splitlines()[0]}") from exc
+    else:
+        loaded = load_policy(cfg.init_policy, obs_mode=cfg.obs, scenario=config, device=device,
+                             predictor=run.predictor["path"] if run.predictor else None)  # fmt: skip
+        extractor = loaded.model.policy.features_extractor
+        if not isinstance(extractor, HybridExtractor) or "image" not in extractor.branches:
+            raise ValueError(f"init_policy {cfg.init_policy} has no image branch to freeze")
+        state = {k: v.detach().cpu() for k, v in extractor.branches["image"].state_dict().items()}
+        tmp = path.with_suffix(".partial")
+        torch.save(state, tmp)
+        tmp.replace(path)
+    net = make_image_net(cfg.image_net, 3, config.render.image_size_px, cfg.image_features)
+    try:
+        net.load_state_dict(state)
+    except RuntimeError as exc:
+        raise ValueError(f"the image branch of {cfg.init_policy} is not a {cfg.image_net} network with "
+                         f"{cfg.image_features} features: {str(exc).splitlines()[0]}") from exc
+    return ImageEncoder(net, cfg.image_net, cfg.image_features)
+
+
+def _with_image_branch(cfg: PolicyConfig, model: BaseAlgorithm, encoder: ImageEncoder, env: PolicyVecEnv,
+                       device: str) -> BaseAlgorithm:
+    """A plain policy of the mode (``env``: the wrapper without the encoder) with ``model``'s weights and
+    the frozen image branch: the same function of the observation, in a file any loader reads."""
+    plain = build_model(cfg, env, None, device)
+    trained = model.policy.state_dict()
+    image = encoder.state_dict()
+    state = {k: image[k.split(_IMAGE_BRANCH, 1)[1]] if _IMAGE_BRANCH in k else trained[k]
+             for k in plain.policy.state_dict()}
+    plain.policy.load_state_dict(state)
+    plain.num_timesteps = model.num_timesteps
+    return plain
 
 
 def _warm_start(cfg: PolicyConfig, model: BaseAlgorithm, pred: Predictor | None,
