@@ -12,8 +12,12 @@ import json
 import logging
 import sys
 from pathlib import Path
+from typing import TYPE_CHECKING, Any
 
 from lcsim.cli import int_at_least
+
+if TYPE_CHECKING:
+    from lcsim.config import ScenarioConfig
 
 TRAIN_PREDICTOR_EPILOG = """examples:
   lc-record --scenario corpus --episodes 24 --seed 100 --out runs/corpus --workers 2
@@ -301,6 +305,20 @@ Evaluation episode i uses the user seed 1000000000 + 100000 * SEED + i, disjoint
 Prints outcome rates (fractions) and means with 95% intervals; --json-out writes them as JSON; every
 episode is recorded to MCAP under --out (actions, reward components, predictions the policy saw).
 """
+
+
+def heldout_driver(args: argparse.Namespace) -> tuple[Any, ScenarioConfig]:
+    """The driver and scenario named by :func:`add_heldout_arguments`' ``policy`` and ``--predictor``
+    (a built-in driver runs the paper scenario without the image). ``ValueError`` with a one-line message
+    for a checkpoint that is missing, unreadable or does not fit its predictor."""
+    from lcmodels.policy.evaluate import driver_for
+    from lcsim.config import paper_scenario
+
+    try:
+        driver, config = driver_for(args.policy, predictor=args.predictor)
+    except (ValueError, OSError) as exc:
+        raise ValueError(str(exc).splitlines()[0]) from exc
+    return driver, config or paper_scenario(render_image=False)
 
 
 def add_heldout_arguments(p: argparse.ArgumentParser, episodes: int = 200) -> None:

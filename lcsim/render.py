@@ -147,8 +147,8 @@ class BevRenderer:
         reach = math.sqrt(2.0) * (self.half_extent + extent) + 1.0
         near = d2 <= reach * reach
         near[:, 0] = True
-        crowded = np.count_nonzero(near) > k if e == 1 else int(near.sum(axis=1).max()) > k
-        if n > k and crowded:  # the nearest k, ties by index
+        if n > k and (np.count_nonzero(near) if e == 1 else int(near.sum(axis=1).max())) > k:
+            # crowded: the nearest k, ties by index
             d2[:, 0] = -1.0
             sel = np.argsort(d2, axis=1, kind="stable")[:, :k]
             near[:] = False

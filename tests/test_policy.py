@@ -464,7 +464,7 @@ def test_frozen_image_branch_trains_faster_form_and_saves_a_plain_policy(tmp_pat
     base.seed(5)
     raw = base.reset()
     obs = PolicyVecEnv(base, "hybrid", plain.predictor)._convert(raw)
-    wrapper = PolicyVecEnv(base, "hybrid", plain.predictor, image_encoder=ImageEncoder(net, "compact", 10))
+    wrapper = PolicyVecEnv(base, "hybrid", plain.predictor, image_encoder=ImageEncoder(net, 10))
     feats = wrapper._convert(raw)
     assert set(feats) == set(wrapper.observation_space.spaces) == {"current", IMAGE_FEATURES, "prediction"}
     assert feats[IMAGE_FEATURES].shape == (3, 10) and feats[IMAGE_FEATURES].any()

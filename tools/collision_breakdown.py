@@ -25,9 +25,8 @@ import sys
 
 import numpy as np
 
-from lcmodels.cli import _fail, add_heldout_arguments
-from lcmodels.policy.evaluate import driver_for, eval_user_seeds
-from lcsim.config import paper_scenario
+from lcmodels.cli import _fail, add_heldout_arguments, heldout_driver
+from lcmodels.policy.evaluate import eval_user_seeds
 from lcsim.core import KEEP, RUNNING, LaneChangeCore
 from lcsim.envs import episode_seed
 
@@ -93,10 +92,9 @@ def main(argv: list[str] | None = None) -> int:
     if args.window_s <= 0:
         parser.error("--window-s must be > 0")
     try:
-        driver, config = driver_for(args.policy, predictor=args.predictor)
-    except (ValueError, OSError) as exc:
-        return _fail(parser.prog, str(exc).splitlines()[0])
-    config = config or paper_scenario(render_image=False)
+        driver, config = heldout_driver(args)
+    except ValueError as exc:
+        return _fail(parser.prog, str(exc))
     window = max(1, round(args.window_s / config.decision_period_s)) + 1  # + the decision of the contact
     counts = breakdown(driver, config, episodes=args.episodes, seed=args.seed, batch=args.batch,
                        window_decisions=window, front_gap_m=args.front_gap_m, rear_gap_m=args.rear_gap_m)

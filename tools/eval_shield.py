@@ -20,9 +20,8 @@ import time
 
 import numpy as np
 
-from lcmodels.cli import _fail, add_heldout_arguments
-from lcmodels.policy.evaluate import driver_for, evaluate
-from lcsim.config import paper_scenario
+from lcmodels.cli import _fail, add_heldout_arguments, heldout_driver
+from lcmodels.policy.evaluate import evaluate
 from lcsim.core import KEEP, LaneChangeCore
 
 
@@ -65,10 +64,9 @@ def main(argv: list[str] | None = None) -> int:
     if args.rear_gap_m < 0 or args.headway_s < 0:
         parser.error("--rear-gap-m and --headway-s must be >= 0")
     try:
-        driver, config = driver_for(args.policy, predictor=args.predictor)
-    except (ValueError, OSError) as exc:
-        return _fail(parser.prog, str(exc).splitlines()[0])
-    config = config or paper_scenario(render_image=False)
+        driver, config = heldout_driver(args)
+    except ValueError as exc:
+        return _fail(parser.prog, str(exc))
     shield = None
     if args.front_gap_m >= 0:
         shield = driver = GapShield(driver, front_gap_m=args.front_gap_m, rear_gap_m=args.rear_gap_m,

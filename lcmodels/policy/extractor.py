@@ -117,11 +117,11 @@ class ImageEncoder:
     policy's update epochs do not run the network again.
     """
 
-    def __init__(self, net: nn.Module, image_net: str, out_features: int) -> None:
+    def __init__(self, net: nn.Module, out_features: int) -> None:
         self.net = net.eval()
         for p in self.net.parameters():
             p.requires_grad_(False)
-        self.image_net, self.out_features = image_net, out_features
+        self.out_features = out_features
 
     def __call__(self, images: np.ndarray) -> np.ndarray:
         with torch.no_grad():

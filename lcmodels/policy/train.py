@@ -454,7 +454,9 @@ def _train(cfg: PolicyConfig, run: _Run, pred: Predictor | None, device: str, lo
         (out / "progress.csv").unlink()  # a previous attempt died before its first checkpoint
     config = cfg.scenario_config()
     base = LaneChangeSB3VecEnv(cfg.n_envs, config)
-    encoder = _frozen_image_encoder(cfg, run, config, device) if cfg.freeze_image else None
+    # The initial policy, loaded once: its weights start the model, its image branch (when frozen) the wrapper.
+    initial = _load_init_policy(cfg, run, config, device) if cfg.init_policy and not resume else None
+    encoder = _frozen_image_encoder(cfg, run, config, initial) if cfg.freeze_image else None
     env = PolicyVecEnv(base, cfg.obs, pred, reward_scale=cfg.reward_scale, image_encoder=encoder)
     run.env = env
     tb = str(out / "tb")
@@ -467,7 +469,8 @@ def _train(cfg: PolicyConfig, run: _Run, pred: Predictor | None, device: str, lo
             warm = _warm_start(cfg, model, pred, config)
             write_json(out / "warm_start.json", warm)
         elif cfg.init_policy:
-            warm = _init_policy(cfg, model, run, config, device)
+            assert initial is not None
+            warm = _init_policy(cfg, model, initial)
             write_json(out / "warm_start.json", warm)
     env.seed(train_seed_base(cfg.seed, run.start_timesteps))
     model.set_logger(configure(tb, ["tensorboard"]))
@@ -490,9 +493,8 @@ def _train(cfg: PolicyConfig, run: _Run, pred: Predictor | None, device: str, lo
     return info
 
 
-def _init_policy(cfg: PolicyConfig, model: BaseAlgorithm, run: _Run, config: ScenarioConfig,
-                 device: str) -> dict[str, Any]:
-    """Copy the weights of ``cfg.init_policy`` into ``model``, after checking that it fits this run."""
+def _load_init_policy(cfg: PolicyConfig, run: _Run, config: ScenarioConfig, device: str) -> LoadedPolicy:
+    """``cfg.init_policy``, after checking that it fits this run (mode, predictor, scenario, algorithm)."""
     from lcmodels.policy.checkpoint import load_policy
 
     path = Path(cfg.init_policy)
@@ -502,6 +504,12 @@ def _init_policy(cfg: PolicyConfig, model: BaseAlgorithm, run: _Run, config: Sce
                          predictor=run.predictor["path"] if run.predictor else None)  # fmt: skip
     if loaded.meta.get("algo") != cfg.algo:
         raise ValueError(f"init_policy {path} is a {loaded.meta.get('algo')} policy, this run trains {cfg.algo}")
+    return loaded
+
+
+def _init_policy(cfg: PolicyConfig, model: BaseAlgorithm, loaded: LoadedPolicy) -> dict[str, Any]:
+    """Copy the weights of the initial policy ``loaded`` (``cfg.init_policy``) into ``model``."""
+    path = Path(cfg.init_policy)
     state = loaded.model.policy.state_dict()
     if cfg.freeze_image:  # the image branch runs in the observation wrapper (_frozen_image_encoder)
         state = {k: v for k, v in state.items() if _IMAGE_BRANCH not in k}
@@ -516,11 +524,10 @@ def _init_policy(cfg: PolicyConfig, model: BaseAlgorithm, run: _Run, config: Sce
 _IMAGE_BRANCH = ".branches.image."  # in the policy's state-dict keys
 
 
-def _frozen_image_encoder(cfg: PolicyConfig, run: _Run, config: ScenarioConfig, device: str) -> ImageEncoder:
-    """The frozen image branch of a ``freeze_image`` run: ``init_policy``'s, kept in the run directory
-    (``image_encoder.pt``) on the first start so that a resume does not depend on that file."""
-    from lcmodels.policy.checkpoint import load_policy
-
+def _frozen_image_encoder(cfg: PolicyConfig, run: _Run, config: ScenarioConfig,
+                          initial: LoadedPolicy | None) -> ImageEncoder:
+    """The frozen image branch of a ``freeze_image`` run: the initial policy's, kept in the run directory
+    (``image_encoder.pt``) on the first start so that a resume (``initial`` None) does not need that file."""
     path = run.out / "image_encoder.pt"
     if path.exists():
         try:
@@ -528,9 +535,8 @@ def _frozen_image_encoder(cfg: PolicyConfig, run: _Run, config: ScenarioConfig, 
         except Exception as exc:  # torch raises several types for a damaged file
             raise ValueError(f"{path} is not readable (corrupt or truncated?): {str(exc).splitlines()[0]}") from exc
     else:
-        loaded = load_policy(cfg.init_policy, obs_mode=cfg.obs, scenario=config, device=device,
-                             predictor=run.predictor["path"] if run.predictor else None)  # fmt: skip
-        extractor = loaded.model.policy.features_extractor
+        assert initial is not None, "a first start has the initial policy"
+        extractor = initial.model.policy.features_extractor
         if not isinstance(extractor, HybridExtractor) or "image" not in extractor.branches:
             raise ValueError(f"init_policy {cfg.init_policy} has no image branch to freeze")
         state = {k: v.detach().cpu() for k, v in extractor.branches["image"].state_dict().items()}
@@ -543,7 +549,7 @@ def _frozen_image_encoder(cfg: PolicyConfig, run: _Run, config: ScenarioConfig, 
     except RuntimeError as exc:
         raise ValueError(f"the image branch of {cfg.init_policy} is not a {cfg.image_net} network with "
                          f"{cfg.image_features} features: {str(exc).splitlines()[0]}") from exc
-    return ImageEncoder(net, cfg.image_net, cfg.image_features)
+    return ImageEncoder(net, cfg.image_features)
 
 
 def _with_image_branch(cfg: PolicyConfig, model: BaseAlgorithm, encoder: ImageEncoder, env: PolicyVecEnv,
