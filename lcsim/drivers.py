@@ -105,6 +105,9 @@ class LookaheadConfig:
     horizon_decisions: int = 16
     """Decisions simulated after the candidate one (16 x 0.5 s = 8 s): the ego gains only ~1.7 m/s
     on the traffic, so a trap (a slow leader with both side lanes occupied) closes over seconds."""
+    blind: bool = False
+    """Imagine futures with the traffic's random draws redrawn (:meth:`HighwaySim.redraw_future`): the
+    planner knows the traffic's rules and present state, not its coming random lane changes."""
 
     def __post_init__(self) -> None:
         if not isinstance(self.horizon_decisions, int) or self.horizon_decisions < 1:
@@ -112,30 +115,40 @@ class LookaheadConfig:
 
 
 class LookaheadDriver:
-    """A privileged planner: the rule-based driver, checked against the simulator's own future.
+    """A privileged planner: a driver (the rule-based one by default), checked against the simulator's future.
 
     Before each decision it copies the whole simulator (every environment, with its random state)
-    three times, applies right / keep / left in the copies, follows the rule-based driver for
-    ``horizon_decisions`` more decisions and keeps the rule's choice if that future is collision-free;
-    otherwise it takes a surviving alternative (keep first). It sees exactly what will happen, which
-    no policy can, so it is an *upper reference* for what the scenario allows, not a baseline to beat:
-    what it fails is (close to) unavoidable without braking. About 50x the cost of a decision.
+    three times, applies right / keep / left in the copies, follows the ``rollout`` driver for
+    ``horizon_decisions`` more decisions and keeps that driver's own choice if its future is
+    collision-free; otherwise it takes a surviving alternative (keep first). Unless ``blind``, it sees
+    exactly what will happen, which no policy can, so it is an *upper reference* for what the scenario
+    allows, not a baseline to beat. Blind, it is one step of policy improvement over its rollout driver
+    that a policy could in principle learn (a teacher for DAgger). About 50x the cost of a decision.
+
+    A rollout driver that reads the observation sets ``needs_observation = True``; it gets the imagined
+    copy's observation, which has no image (the copies do not render).
     """
 
     name = "lookahead"
 
-    def __init__(self, config: LookaheadConfig | None = None, rule: RuleBasedDriver | None = None) -> None:
+    def __init__(self, config: LookaheadConfig | None = None, rule: Driver | None = None) -> None:
         self.config = config or LookaheadConfig()
         self.rule = rule or RuleBasedDriver()
+        self._observe = bool(getattr(self.rule, "needs_observation", False))
+        if self.config.blind:
+            self.name = "lookahead-blind"
 
     def survives(self, core: LaneChangeCore, actions: np.ndarray) -> np.ndarray:
-        """``(E,)`` bool: no collision or off-road within the horizon after ``actions``, then the rule."""
+        """``(E,)`` bool: no collision or off-road within the horizon after ``actions``, then the rollout driver."""
         future = imagined_copy(core)
+        if self.config.blind:
+            future.sim.redraw_future(1)
         future.step(actions)
         for _ in range(self.config.horizon_decisions):
             if (future.outcome != RUNNING).all():  # ended environments stay frozen; nothing left to see
                 break
-            future.step(self.rule({}, future.action_mask(), future))
+            obs = future.observe() if self._observe else {}
+            future.step(self.rule(obs, future.action_mask(), future))
         return np.isin(future.outcome, (RUNNING, SUCCESS, TIMEOUT))
 
     def __call__(self, obs: dict[str, np.ndarray], action_mask: np.ndarray, core: LaneChangeCore) -> np.ndarray:
@@ -185,6 +198,7 @@ def _oracle(seed: int) -> Driver:
 _FACTORIES: dict[str, Callable[[int], Driver]] = {
     "rule": lambda seed: RuleBasedDriver(),
     "lookahead": lambda seed: LookaheadDriver(),
+    "lookahead-blind": lambda seed: LookaheadDriver(LookaheadConfig(blind=True)),
     "oracle": _oracle,
     "keep": lambda seed: KeepLaneDriver(),
     "random": RandomDriver,

@@ -41,6 +41,7 @@ _SCALAR_LANE_CHANGES = 6
 _INCREMENTAL_INDEX_MAX_ENVS = 8
 _NONE = np.zeros(0, dtype=np.int64)  # no environment, no vehicle
 _LANE_CHANGE_STREAM = 1  # the random-number stream of the traffic's spontaneous lane changes
+_REDRAW_STREAM = 2  # mixes the salt of redraw_future into the keys
 _ALL_ONE_ENV = np.ones(1, dtype=bool)
 
 SubstepHook = Callable[["HighwaySim"], None]
@@ -126,6 +127,19 @@ class HighwaySim:
         self.index = self._build_index()
         self.hist[env_ids] = np.stack([self.x[env_ids], self.y[env_ids]], axis=-1)[:, None]
         self.hist_count[env_ids] = 1
+        self.lane_change_base = rng.stream_base(self.key, _LANE_CHANGE_STREAM)
+
+    def redraw_future(self, salt: int) -> None:
+        """Give every environment's traffic other random draws from now on (``salt`` >= 1 picks which).
+
+        The traffic's spontaneous lane changes are drawn from a counter-based stream keyed by the episode
+        seed, so a copy of the simulator foresees them exactly. A planner that imagines futures in a copy
+        it has redrawn knows the traffic's rules and present state but not its coming random choices: what
+        an onboard predictor could know.
+        """
+        if salt < 1:
+            raise ValueError(f"salt must be >= 1 (0 would keep the episode's own draws), got {salt}")
+        self.key = self.key ^ rng.stream_base(np.array([salt], dtype=np.uint64), _REDRAW_STREAM)[0]
         self.lane_change_base = rng.stream_base(self.key, _LANE_CHANGE_STREAM)
 
     def _spawn(self, e: int, gen: np.random.Generator) -> None:

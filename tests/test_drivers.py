@@ -4,10 +4,12 @@ lookahead planner only ever overrides the rule with a decision that survives its
 import collections
 
 import numpy as np
+import pytest
 
+from lcsim import rng
 from lcsim.config import EgoConfig, ScenarioConfig, TrafficConfig
 from lcsim.core import KEEP, LaneChangeCore
-from lcsim.drivers import LookaheadConfig, LookaheadDriver, make_driver
+from lcsim.drivers import LookaheadConfig, LookaheadDriver, imagined_copy, make_driver
 from lcsim.envs import LaneChangeVectorEnv
 from tests.conftest import small_config
 
@@ -68,16 +70,43 @@ def test_lookahead_picks_a_surviving_decision_and_leaves_the_simulator_untouched
     assert decisions > 5 and len(calls) == decisions * cfg.steps_per_decision
 
 
-def test_lookahead_driver_is_deterministic_and_named():
-    assert make_driver("lookahead").name == "lookahead"
+@pytest.mark.parametrize("blind", [False, True])
+def test_lookahead_driver_is_deterministic_and_named(blind: bool):
+    name = "lookahead-blind" if blind else "lookahead"
+    assert make_driver(name).name == name
     runs = []
     for _ in range(2):
         core = LaneChangeCore(small_config(render_image=False), 2)
         core.reset([0, 1], [7, 8])
-        driver, actions = LookaheadDriver(LookaheadConfig(horizon_decisions=4)), []
+        driver, actions = LookaheadDriver(LookaheadConfig(horizon_decisions=4, blind=blind)), []
         while (core.outcome == "").all():
             actions.append(driver({}, core.action_mask(), core))
             core.step(actions[-1])
         runs.append((np.stack(actions), core.sim.x.copy(), core.outcome.copy()))
     assert np.array_equal(runs[0][0], runs[1][0]) and np.array_equal(runs[0][1], runs[1][1])
     assert list(runs[0][2]) == list(runs[1][2])
+
+
+def test_redraw_future_keeps_the_present_and_redraws_the_traffics_coming_choices():
+    core = LaneChangeCore(small_config(render_image=False), 3)
+    core.reset(range(3), [21, 22, 23])
+    for _ in range(3):
+        core.step(np.full(3, KEEP))
+    seen, blind, blind_again = imagined_copy(core), imagined_copy(core), imagined_copy(core)
+    blind.sim.redraw_future(1)
+    blind_again.sim.redraw_future(1)
+    for name in ("x", "y", "speed", "lane", "step"):
+        assert np.array_equal(getattr(blind.sim, name), getattr(core.sim, name)), name  # the present is kept
+
+    def draws(sim):  # the lane-change stream's draws of the next 50 steps, as the simulator makes them
+        return np.stack([rng.uniform(sim.key, sim.step + k, sim.num_vehicles, stream=1, base=sim.lane_change_base)
+                         for k in range(50)])
+
+    assert np.array_equal(draws(seen.sim), draws(core.sim))
+    assert not np.isclose(draws(blind.sim), draws(core.sim)).any()
+    for future in (blind, blind_again):
+        for _ in range(20):
+            future.step(np.full(3, KEEP))
+    assert np.array_equal(blind.sim.x, blind_again.sim.x) and np.array_equal(blind.sim.lane, blind_again.sim.lane)
+    with pytest.raises(ValueError, match="salt"):
+        blind.sim.redraw_future(0)
