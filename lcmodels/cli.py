@@ -324,8 +324,9 @@ def heldout_driver(args: argparse.Namespace) -> tuple[Any, ScenarioConfig]:
 def add_heldout_arguments(p: argparse.ArgumentParser, episodes: int = 200) -> None:
     """Who drives which held-out episodes: ``policy``, ``--episodes``, ``--seed``, ``--predictor``, ``--batch``
     (lc-eval's arguments, shared by the tools that run the same episodes)."""
-    p.add_argument("policy", help="policy checkpoint (policy.zip), or a built-in driver: rule / lookahead / oracle (privileged "
-                   "planners, upper references) / keep / random")
+    p.add_argument("policy", help="policy checkpoint (policy.zip), or a built-in driver: rule / lookahead / "
+                   "lookahead-blind / oracle (planners, upper references) / keep / random, or lookahead:POLICY / "
+                   "lookahead-blind:POLICY (the lookahead following a policy without image in its imagined futures)")
     p.add_argument("--episodes", type=_positive_int, default=episodes, help="episodes (default %(default)s)")
     p.add_argument("--seed", type=int_at_least(0), default=0, help="evaluation seed (default %(default)s)")
     p.add_argument("--predictor", type=Path, default=None,
@@ -362,12 +363,12 @@ def eval_main(argv: list[str] | None = None) -> int:
     import numpy as np
     import torch
 
-    from lcmodels.policy.evaluate import driver_for, evaluate
+    from lcmodels.policy.evaluate import driver_for, evaluate, policy_path_of
     from lcmodels.policy.train import POLICY_SCENARIOS
     from lcsim.drivers import DRIVER_NAMES
 
     is_driver = args.policy in DRIVER_NAMES
-    ckpt = Path(args.policy.removeprefix("policy:"))
+    ckpt = policy_path_of(args.policy)
     if not is_driver and not ckpt.is_file():
         what = "is a directory" if ckpt.is_dir() else "does not exist"
         return fail(f"{args.policy} {what} (expected a policy.zip, or {' / '.join(DRIVER_NAMES)})")

@@ -24,7 +24,7 @@ import numpy as np
 from lcdata.record import EpisodeRecorder, episode_filename, episode_metadata, episode_seed
 from lcdata.writer import EpisodeWriter
 from lcmodels.policy.checkpoint import LoadedPolicy
-from lcmodels.policy.obs import EpisodeStats, build_observation, scenario_for_mode
+from lcmodels.policy.obs import EpisodeStats, build_observation, mode_keys, scenario_for_mode
 from lcsim.config import ScenarioConfig
 from lcsim.core import OUTCOMES, RUNNING, LaneChangeCore
 from lcsim.drivers import Driver
@@ -46,6 +46,9 @@ class PolicyDriver:
     After each call, :attr:`last_prediction` holds the ``(E, K, F, 2)`` ego-frame predictions the policy
     saw (``None`` when its mode has none).
     """
+
+    needs_observation = True
+    """It reads the observation (a :class:`lcsim.drivers.LookaheadDriver` builds one in its imagined futures)."""
 
     def __init__(self, policy: LoadedPolicy, *, deterministic: bool = True) -> None:
         self.policy = policy
@@ -197,21 +200,52 @@ def evaluate(
     return summary, results
 
 
+LOOKAHEAD_PREFIXES = ("lookahead:", "lookahead-blind:")
+"""``lookahead:POLICY`` / ``lookahead-blind:POLICY``: the lookahead planner with a policy as its rollout driver."""
+
+
+def policy_path_of(spec: str) -> Path:
+    """The checkpoint a :func:`driver_for` spec that is not a built-in driver names."""
+    prefix = next((p for p in LOOKAHEAD_PREFIXES if spec.startswith(p)), "policy:")
+    return Path(spec.removeprefix(prefix))
+
+
 def driver_for(spec: str, *, predictor: str | None = None, device: str = "cpu") -> tuple[Any, ScenarioConfig | None]:
-    """A driver from ``rule`` / ``lookahead`` / ``keep`` / ``random`` or a policy checkpoint path (``policy:`` prefix optional).
+    """A driver from a built-in name (:data:`lcsim.drivers.DRIVER_NAMES`), a policy checkpoint path (``policy:``
+    prefix optional), or ``lookahead:PATH`` / ``lookahead-blind:PATH``: :class:`lcsim.drivers.LookaheadDriver`
+    following that policy in its imagined futures (blind: with the traffic's random draws redrawn). The
+    policy must not read the image (the imagined futures are not rendered).
 
     Returns the driver and, for a policy, the scenario it was trained on (``None`` for lcsim drivers).
     """
     from lcmodels.policy.checkpoint import load_policy
-    from lcsim.drivers import DRIVER_NAMES, make_driver
+    from lcsim.drivers import DRIVER_NAMES, LookaheadConfig, LookaheadDriver, make_driver
 
     if spec in DRIVER_NAMES:
         return make_driver(spec), None
-    path = spec.removeprefix("policy:")
+    prefix = next((p for p in LOOKAHEAD_PREFIXES if spec.startswith(p)), None)
+    path = policy_path_of(spec)
     policy = load_policy(path, predictor=predictor, device=device)
     drv = PolicyDriver(policy)
-    return drv, drv.config
+    if prefix is None:
+        return drv, drv.config
+    if "image" in mode_keys(policy.obs_mode):
+        raise ValueError(f"{path}: a lookahead cannot follow a policy that reads the image (mode "
+                         f"{policy.obs_mode}): its imagined futures are not rendered")
+    planner = LookaheadDriver(LookaheadConfig(blind=prefix == "lookahead-blind:"), rule=drv)
+    planner.name = f"{planner.name}-{drv.name}"
+    return planner, drv.config
 
 
-__all__ = ["EVAL_SEED_BASE", "PolicyDriver", "driver_for", "eval_user_seeds", "evaluate", "mean_interval",
-           "summarize_with_intervals", "wilson_interval"]
+__all__ = [
+    "EVAL_SEED_BASE",
+    "LOOKAHEAD_PREFIXES",
+    "PolicyDriver",
+    "driver_for",
+    "eval_user_seeds",
+    "evaluate",
+    "mean_interval",
+    "policy_path_of",
+    "summarize_with_intervals",
+    "wilson_interval",
+]
