@@ -28,10 +28,12 @@ from lcmodels.policy import (
     read_meta,
     train_policy,
 )
-from lcmodels.policy.evaluate import PolicyDriver, evaluate, wilson_interval
+from lcmodels.policy.evaluate import PolicyDriver, driver_for, evaluate, wilson_interval
 from lcmodels.policy.obs import OBS_MODES, policy_observation_space, scenario_for_mode
 from lcmodels.policy.train import build_model, default_learning_rate, tiny_scenario
+from lcmodels.policy.warmstart import Demonstrations
 from lcmodels.predictor import Predictor, PredictorConfig, TrajectoryTransformer
+from lcsim.core import KEEP
 from lcsim.sb3 import LaneChangeSB3VecEnv
 
 EVAL_KEYS = {"success_rate", "collision_rate", "off_road_rate", "timeout_rate", "mean_safe_forward_m",
@@ -234,6 +236,21 @@ def test_warm_start_lowers_the_behaviour_cloning_loss(tmp_path: Path) -> None:
     assert after < before * 0.8, (before, after, losses)
 
 
+@pytest.mark.parametrize("heavier", [0, 2])
+def test_sample_weights_decide_between_conflicting_labels(heavier: int) -> None:
+    """The same states labelled both right and left: cloning follows the labels that weigh more."""
+    space = policy_observation_space(tiny_scenario(), "pure")
+    states = np.stack([space["current"].sample() for _ in range(8)] * 2)
+    labels = np.array([0] * 8 + [2] * 8)
+    weights = np.where(labels == heavier, 9.0, 1.0)
+    env = PolicyVecEnv(LaneChangeSB3VecEnv(2, scenario_for_mode(tiny_scenario(), "pure")), "pure")
+    model = build_model(_tiny(obs="pure"), env)
+    pretrain(model, Demonstrations({"current": states}, labels, np.zeros(16, np.float32), 0, weights),
+             epochs=60, batch_size=16, value_coef=0.0)  # fmt: skip
+    chosen, _ = model.predict({"current": states[:8]}, deterministic=True)
+    assert (chosen == heavier).all(), chosen
+
+
 def test_zero_timesteps_with_a_warm_start_gives_the_behaviour_cloned_policy(
         tmp_path: Path, caplog: pytest.LogCaptureFixture) -> None:
     config = scenario_for_mode(tiny_scenario(), "pure")
@@ -433,6 +450,46 @@ def test_dagger_resumed_gives_the_rounds_of_an_uninterrupted_run(tmp_path: Path)
         dagger(tmp_path / "bc", tmp_path / "parts", rounds=3, resume=True, **{**args, "labels": "winning"})
     with pytest.raises(FileNotFoundError, match="no DAgger rounds"):
         dagger(tmp_path / "bc", tmp_path / "empty", rounds=1, resume=True, **args)
+
+
+def test_dagger_with_a_driver_as_the_expert_labels_every_state_with_its_decision(tmp_path: Path) -> None:
+    from lcmodels.policy.dagger import collect_from_driver, dagger
+
+    train_policy(_tiny(obs="pure", timesteps=64, n_steps=16, eval_episodes=0), tmp_path / "run")
+    policy = tmp_path / "run" / "policy.zip"
+    keep = collect_from_driver(policy, [7, 8, 9], "keep", batch=2)
+    assert len(keep.labels) == len(keep.obs["current"]) > 0 and len(keep.outcomes) == 3
+    assert (keep.labels == KEEP).all() and keep.agreed <= len(keep.labels)
+    expert = f"lookahead-blind:{policy}"
+    got = collect_from_driver(policy, [7, 8, 9], expert, batch=2)
+    assert np.array_equal(got.obs["current"], keep.obs["current"])  # the policy drives: the same states
+    again = collect_from_driver(policy, [7, 8, 9], expert, batch=3)  # batching does not change a label
+    assert np.array_equal(np.sort(again.labels), np.sort(got.labels)) and again.agreed == got.agreed
+    records = dagger(tmp_path / "run", tmp_path / "dg", rounds=1, episodes=3, epochs=1, seed=7, workers=1,
+                     eval_episodes=0, expert=expert)  # fmt: skip
+    assert records[0]["expert"] == expert and records[0]["states_labelled"] == len(got.labels)
+    assert records[0]["training_states"] == len(got.labels)  # a run without demonstrations: its states only
+    with np.load(tmp_path / "dg" / "round1" / "states.npz") as kept:  # the policy's own decisions are kept
+        assert np.array_equal(kept["actions"], again.actions) and np.array_equal(kept["labels"], again.labels)
+    assert got.agreed == int((got.actions == got.labels).sum())
+    with pytest.raises(ValueError, match=r"correction weight: 1\.0 there, 5\.0 asked"):
+        dagger(tmp_path / "run", tmp_path / "dg", rounds=2, episodes=3, epochs=1, seed=7, workers=1,
+               eval_episodes=0, expert=expert, correction_weight=5.0, resume=True)  # fmt: skip
+    with pytest.raises(ValueError, match="there, oracle asked"):
+        dagger(tmp_path / "run", tmp_path / "dg", rounds=2, episodes=3, epochs=1, seed=7, workers=1,
+               eval_episodes=0, resume=True)  # fmt: skip
+
+
+def test_a_lookahead_follows_a_policy_without_image_and_refuses_one_with(tmp_path: Path) -> None:
+    train_policy(_tiny(obs="pure", timesteps=64, n_steps=16, eval_episodes=0), tmp_path / "pure")
+    driver, config = driver_for(f"lookahead:{tmp_path / 'pure' / 'policy.zip'}")
+    assert driver.name == "lookahead-ppo-pure" and config.render_image is False
+    summary, _ = evaluate(driver, config, episodes=2, batch=2)
+    assert summary["episodes"] == 2
+    train_policy(_tiny(obs="image", timesteps=32, n_steps=16, eval_episodes=0), tmp_path / "image")
+    with pytest.raises(ValueError, match="reads the image"):
+        driver_for(f"lookahead-blind:{tmp_path / 'image' / 'policy.zip'}")
+    assert eval_main([f"lookahead-blind:{tmp_path / 'missing.zip'}", "--no-record"]) == 2
 
 
 def test_frozen_image_branch_trains_faster_form_and_saves_a_plain_policy(tmp_path: Path, predictor_path: Path) -> None:

@@ -1,5 +1,5 @@
 #!/usr/bin/env python
-"""DAgger with the oracle as the expert, from a warm-started lc-train-policy run.
+"""DAgger with the oracle (or another expert) as the expert, from an lc-train-policy run.
 
 Each round the policy drives new training episodes; the oracle (lcsim.oracle, which sees the future)
 labels every state the policy reaches with the decision of a winning plan from there; the policy is
@@ -10,6 +10,7 @@ episodes. See lcmodels.policy.dagger.
     lc-train-policy --obs hybrid --predictor P.pt --warm-start runs/oracle-demos --timesteps 0 --out runs/bc
     python tools/dagger.py runs/bc --rounds 2 --episodes 100 --out runs/bc-dagger
     python tools/dagger.py runs/bc --rounds 4 --episodes 100 --out runs/bc-dagger --resume   # rounds 3 and 4
+    python tools/dagger.py runs/ppo --expert lookahead-blind:runs/ppo/policy.zip --out runs/ppo-improved
     lc-eval runs/bc-dagger/round4/policy.zip --episodes 200
 
 Outputs in --out: round<r>/policy.zip (loadable by lc-eval and lc-record --driver policy:...),
@@ -41,6 +42,13 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--labels", choices=("plan", "winning"), default="plan",
                     help="plan: the oracle's decision at every state; winning: keep the policy's own decision "
                     "where the episode can still be won after it, correct only the losing ones (plan)")
+    ap.add_argument("--expert", default="oracle",
+                    help="who labels the states: oracle (sees the whole future; default), or a driver as lc-eval "
+                    "names it, e.g. lookahead-blind:runs/pure/policy.zip (the lookahead following that policy, "
+                    "without foreseeing the traffic's random lane changes)")
+    ap.add_argument("--correction-weight", type=float, default=1.0,
+                    help="weight in training of a state whose label differs from the policy's own decision, "
+                    "against 1 for one where they agree (1)")
     ap.add_argument("--threads", type=int, default=2, help="torch threads for training (2)")
     ap.add_argument("--resume", action="store_true",
                     help="continue the rounds already in --out (same run, --episodes, --seed, --labels) up to "
@@ -56,7 +64,8 @@ def main(argv: list[str] | None = None) -> int:
     try:
         dagger(args.run, args.out, rounds=args.rounds, episodes=args.episodes, epochs=args.epochs, seed=args.seed,
                workers=args.workers, eval_episodes=args.eval_episodes, eval_seed=args.eval_seed, labels=args.labels,
-               resume=args.resume, progress=lambda msg: print(msg, flush=True))  # fmt: skip
+               expert=args.expert, correction_weight=args.correction_weight, resume=args.resume,
+               progress=lambda msg: print(msg, flush=True))  # fmt: skip
     except (ValueError, OSError) as exc:
         print(f"dagger: error: {str(exc).splitlines()[0]}", file=sys.stderr)
         return 2

@@ -29,7 +29,7 @@ import os
 import time
 from collections.abc import Callable, Sequence
 from concurrent.futures import ProcessPoolExecutor
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from pathlib import Path
 from typing import Any
 
@@ -47,6 +47,8 @@ from lcsim.oracle import search_from
 
 LABELS = ("plan", "winning")
 """How :func:`collect` labels a state (see there)."""
+ORACLE = "oracle"
+"""The default expert of :func:`dagger`: :func:`lcsim.oracle.search_from`, which sees the whole future."""
 
 
 @dataclass
@@ -61,6 +63,8 @@ class Collected:
     harmless: int = 0
     """Decisions off the oracle's plan after which the episode could still be won (those states carry the
     policy's own decision as their label when ``labels="winning"``)."""
+    actions: np.ndarray | None = None
+    """The policy's own decision in each state (a label that differs from it is a correction)."""
 
 
 def collect(policy_path: str | os.PathLike[str], user_seeds: Sequence[int], *,
@@ -81,6 +85,7 @@ def collect(policy_path: str | os.PathLike[str], user_seeds: Sequence[int], *,
     keys = mode_keys(mode)
     rows: dict[str, list[np.ndarray]] = {k: [] for k in keys}
     labels_: list[int] = []
+    own: list[int] = []
     agreed = searches = harmless = 0
     outcomes: list[str] = []
     for user in user_seeds:
@@ -103,6 +108,7 @@ def collect(policy_path: str | os.PathLike[str], user_seeds: Sequence[int], *,
             for k in keys:
                 rows[k].append(pobs[k][0])
             labels_.append(label)
+            own.append(action)
             core.step(np.array([action]))
             if action == label:
                 agreed += 1
@@ -115,13 +121,61 @@ def collect(policy_path: str | os.PathLike[str], user_seeds: Sequence[int], *,
                 labels_[deviated[0]] = deviated[1]
         outcomes.append(str(core.outcome[0]))
     obs = {k: np.stack(v) if v else np.zeros((0,)) for k, v in rows.items()}
-    return Collected(obs, np.asarray(labels_, dtype=np.int64), agreed, searches, outcomes, harmless)
+    return Collected(obs, np.asarray(labels_, dtype=np.int64), agreed, searches, outcomes, harmless,
+                     np.asarray(own, dtype=np.int64))
+
+
+def collect_from_driver(policy_path: str | os.PathLike[str], user_seeds: Sequence[int], expert: str, *,
+                        predictor: str | os.PathLike[str] | None = None, threads: int = 1,
+                        batch: int = 20) -> Collected:
+    """Drive one episode per user seed with the policy, ``batch`` at a time, and label every state with the
+    decision of ``expert``, a driver spec of :func:`lcmodels.policy.evaluate.driver_for` (for example
+    ``lookahead-blind:runs/pure/policy.zip``, which sees no more of the future than the policy could).
+    States in the middle of a lane change, where only keep is allowed, are labelled keep."""
+    from lcmodels.policy.evaluate import driver_for
+
+    torch.set_num_threads(threads)
+    loaded = load_policy(policy_path, predictor=predictor)
+    mode, model = loaded.obs_mode, loaded.model
+    config = scenario_for_mode(loaded.scenario, mode)
+    teacher, teacher_config = driver_for(expert)
+    if teacher_config is not None and replace(teacher_config, render_image=False) != replace(config, render_image=False):
+        raise ValueError(f"the expert {expert} was trained on another scenario than {policy_path}")
+    keys = mode_keys(mode)
+    rows: dict[str, list[np.ndarray]] = {k: [] for k in keys}
+    labels_: list[np.ndarray] = []
+    own: list[np.ndarray] = []
+    agreed = 0
+    outcomes: list[str] = []
+    for start in range(0, len(user_seeds), batch):
+        chunk = user_seeds[start : start + batch]
+        core = LaneChangeCore(config, len(chunk))
+        core.reset(np.arange(len(chunk)), [episode_seed(int(u)) for u in chunk])
+        while (core.outcome == RUNNING).any():
+            live = np.flatnonzero(core.outcome == RUNNING)
+            obs, mask = core.observe(), core.action_mask()
+            pobs = build_observation(obs, mode, loaded.predictor)
+            actions = np.asarray(model.predict(pobs, deterministic=True)[0], dtype=np.int64).reshape(-1)
+            label = np.asarray(teacher(obs, mask, core), dtype=np.int64).reshape(-1)
+            label = np.where(mask.sum(axis=1) > 1, label, KEEP)[live]
+            for k in keys:
+                rows[k].append(pobs[k][live])
+            labels_.append(label)
+            own.append(actions[live])
+            agreed += int((label == actions[live]).sum())
+            core.step(actions)
+        outcomes += [str(o) for o in core.outcome]
+    obs_ = {k: np.concatenate(v) if v else np.zeros((0,)) for k, v in rows.items()}
+    labels = np.concatenate(labels_) if labels_ else np.zeros(0, dtype=np.int64)
+    actions_ = np.concatenate(own) if own else np.zeros(0, dtype=np.int64)
+    return Collected(obs_, labels, agreed, 0, outcomes, actions=actions_)
 
 
 _STATES = "states.npz"
 
 
-def _finished_rounds(out: Path, run_dir: Path, *, episodes: int, seed: int, labels: str) -> list[dict[str, Any]]:
+def _finished_rounds(out: Path, run_dir: Path, *, episodes: int, seed: int, labels: str, expert: str,
+                    correction_weight: float) -> list[dict[str, Any]]:
     """The records of the rounds in ``out`` that can be resumed, checked against the arguments."""
     try:
         book = json.loads((out / "dagger.json").read_text())
@@ -135,7 +189,8 @@ def _finished_rounds(out: Path, run_dir: Path, *, episodes: int, seed: int, labe
     first = records[0]
     differs = [f"{name}: {have} there, {want} asked" for name, have, want in (
         ("episodes", first.get("episodes"), episodes), ("seed", first.get("user_seeds", [None])[0], seed),
-        ("labels", first.get("labels"), labels)) if have != want]
+        ("labels", first.get("labels"), labels), ("expert", first.get("expert", ORACLE), expert),
+        ("correction weight", first.get("correction_weight", 1.0), correction_weight)) if have != want]
     if differs:
         raise ValueError(f"cannot resume {out}: " + "; ".join(differs))
     for record in records:
@@ -145,9 +200,11 @@ def _finished_rounds(out: Path, run_dir: Path, *, episodes: int, seed: int, labe
     return records
 
 
-def _collect_job(args: tuple[str, list[int], str | None, str]) -> Collected:
-    path, seeds, predictor, labels = args
-    return collect(path, seeds, predictor=predictor, labels=labels)
+def _collect_job(args: tuple[str, list[int], str | None, str, str]) -> Collected:
+    path, seeds, predictor, labels, expert = args
+    if expert == ORACLE:
+        return collect(path, seeds, predictor=predictor, labels=labels)
+    return collect_from_driver(path, seeds, expert, predictor=predictor)
 
 
 def dagger(
@@ -162,6 +219,8 @@ def dagger(
     eval_episodes: int = 200,
     eval_seed: int = 0,
     labels: str = "plan",
+    expert: str = ORACLE,
+    correction_weight: float = 1.0,
     resume: bool = False,
     progress: Callable[[str], None] | None = None,
 ) -> list[dict[str, Any]]:
@@ -174,7 +233,12 @@ def dagger(
         episodes: training episodes the policy drives per round (user seeds ``seed + r * episodes + i``:
             keep them apart from the demonstrations' and from evaluation's, which start at 10^9).
         epochs: behaviour-cloning epochs over all labelled states per round.
-        labels: ``"plan"`` or ``"winning"``, as in :func:`collect`.
+        labels: ``"plan"`` or ``"winning"``, as in :func:`collect` (the oracle's labels only).
+        expert: ``"oracle"`` (:func:`collect`) or a driver spec that labels the states instead
+            (:func:`collect_from_driver`), for example ``lookahead-blind:runs/pure/policy.zip``.
+        correction_weight: how much more a labelled state counts in training when its label differs from
+            the decision the policy took there (a correction), than one where they agree. An expert
+            that corrects one decision in a hundred needs this above 1 to be heard.
         resume: continue the rounds already in ``out`` (made with the same run, episodes, seed and labels)
             up to ``rounds`` in all: their labelled states rejoin the training set and the last round's
             policy is trained on. The result is the one an uninterrupted call gives (each round trains
@@ -186,11 +250,14 @@ def dagger(
         raise ValueError(f"labels must be one of {', '.join(LABELS)}, got {labels!r}")
     if min(rounds, episodes, epochs, workers) < 1:
         raise ValueError("rounds, episodes, epochs and workers must be >= 1")
+    if not correction_weight > 0:
+        raise ValueError(f"correction_weight must be > 0, got {correction_weight}")
     done: list[dict[str, Any]] = []
     if out.exists() and any(out.iterdir()):
         if not resume:
             raise FileExistsError(f"{out} exists and is not empty; choose a new directory, or resume its rounds")
-        done = _finished_rounds(out, run_dir, episodes=episodes, seed=seed, labels=labels)
+        done = _finished_rounds(out, run_dir, episodes=episodes, seed=seed, labels=labels, expert=expert,
+                                correction_weight=correction_weight)
     elif resume:
         raise FileNotFoundError(f"{out} holds no DAgger rounds to resume")
     policy_path = run_dir / "policy.zip"
@@ -204,12 +271,20 @@ def dagger(
     config = scenario_for_mode(loaded.scenario, mode)
     data: dict[str, list[np.ndarray]] = {k: [] for k in mode_keys(mode)}
     targets: list[np.ndarray] = []
+    weights: list[np.ndarray] = []
+
+    def weigh(labels_: np.ndarray, own: np.ndarray | None) -> np.ndarray:
+        if own is None:  # demonstrations, or states kept before DAgger kept the policy's own decisions
+            return np.ones(len(labels_), dtype=np.float32)
+        return np.where(labels_ != own, correction_weight, 1.0).astype(np.float32)
+
     if demos_dir:
         demos = load_demonstrations(demos_dir, mode, loaded.predictor, scenario=config,
                                     progress=every_tenth(say, "demonstrations: read {}/{} episodes"))
         for k in data:
             data[k].append(demos.obs[k])
         targets.append(demos.actions)
+        weights.append(weigh(demos.actions, None))
         say(f"demonstrations: {len(demos)} decisions of {demos.episodes} episodes from {demos_dir}")
     out.mkdir(parents=True, exist_ok=True)
     records: list[dict[str, Any]] = list(done)
@@ -220,6 +295,7 @@ def dagger(
                 for k in data:
                     data[k].append(states[k])
                 targets.append(states["labels"])
+                weights.append(weigh(states["labels"], states["actions"] if "actions" in states else None))
         current = out / f"round{record['round']}" / "policy.zip"
     if len(done) >= rounds:
         say(f"{out} already holds {len(done)} rounds; nothing to do for --rounds {rounds}")
@@ -232,24 +308,26 @@ def dagger(
         seeds = [seed + (r - 1) * episodes + i for i in range(episodes)]
         parts = [seeds[i::workers] for i in range(workers) if seeds[i::workers]]
         with ProcessPoolExecutor(len(parts), mp_context=ctx) as pool:
-            got = list(pool.map(_collect_job, [(str(current), p, predictor, labels) for p in parts]))
+            got = list(pool.map(_collect_job, [(str(current), p, predictor, labels, expert) for p in parts]))
         kept = [g for g in got if len(g.labels)]
         states = sum(len(g.labels) for g in kept)
         if kept:
             round_obs = {k: np.concatenate([g.obs[k] for g in kept]) for k in data}
             round_labels = np.concatenate([g.labels for g in kept])
+            round_own = np.concatenate([g.actions for g in kept if g.actions is not None])
             for k in data:
                 data[k].append(round_obs[k])
             targets.append(round_labels)
+            weights.append(weigh(round_labels, round_own))
             (out / f"round{r}").mkdir(parents=True, exist_ok=True)
-            np.savez_compressed(out / f"round{r}" / _STATES, labels=round_labels, **round_obs)
+            np.savez_compressed(out / f"round{r}" / _STATES, labels=round_labels, actions=round_own, **round_obs)
         outcomes = [o for g in got for o in g.outcomes]
         collect_s = time.perf_counter() - t0
         say(f"round {r}: the policy drove {episodes} episodes ({outcomes.count('success')} successes), "
             f"{states} states labelled with {sum(g.searches for g in got)} searches in {collect_s:.0f} s")
         all_labels = np.concatenate(targets)
         train = Demonstrations({k: np.concatenate(v) for k, v in data.items()}, all_labels,
-                               np.zeros(len(all_labels), dtype=np.float32), 0)  # fmt: skip
+                               np.zeros(len(all_labels), dtype=np.float32), 0, np.concatenate(weights))  # fmt: skip
         t1 = time.perf_counter()
         losses = pretrain(model, train, epochs=epochs, value_coef=0.0, seed=r)
         train_s = time.perf_counter() - t1
@@ -261,7 +339,8 @@ def dagger(
         record: dict[str, Any] = {
             "round": r, "episodes": episodes, "user_seeds": [seeds[0], seeds[-1]], "states_labelled": states,
             "agreement": sum(g.agreed for g in got) / max(states, 1), "searches": sum(g.searches for g in got),
-            "labels": labels, "harmless_deviations": sum(g.harmless for g in got),
+            "labels": labels, "expert": expert, "correction_weight": correction_weight,
+            "harmless_deviations": sum(g.harmless for g in got),
             "policy_success_in_collection": outcomes.count("success") / len(outcomes),
             "training_states": len(all_labels), "epoch_losses": losses, "collect_s": collect_s,
             "train_s": train_s,
@@ -278,4 +357,4 @@ def dagger(
     return records
 
 
-__all__ = ["LABELS", "Collected", "collect", "dagger"]
+__all__ = ["LABELS", "ORACLE", "Collected", "collect", "collect_from_driver", "dagger"]

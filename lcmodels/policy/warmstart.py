@@ -47,6 +47,9 @@ class Demonstrations:
     actions: np.ndarray
     returns: np.ndarray
     episodes: int
+    weights: np.ndarray | None = None
+    """``(M,)`` how much each decision counts in :func:`pretrain` (on top of the action-frequency weights);
+    None: all alike."""
 
     def __len__(self) -> int:
         return len(self.actions)
@@ -158,6 +161,8 @@ def pretrain(
     counts = np.bincount(demos.actions, minlength=3).astype(np.float64)
     weights = np.where(counts > 0, 1.0 / np.sqrt(np.maximum(counts, 1.0) / n), 0.0)
     weights = torch.as_tensor(weights / weights[demos.actions].mean(), dtype=torch.float32, device=policy.device)
+    sample_w = None if demos.weights is None else torch.as_tensor(demos.weights / demos.weights.mean(),
+                                                                   dtype=torch.float32, device=policy.device)
     losses: list[float] = []
     for epoch in range(epochs):
         perm = gen.permutation(n)
@@ -167,15 +172,16 @@ def pretrain(
             obs = obs_as_tensor({k: v[idx] for k, v in demos.obs.items()}, policy.device)
             act = torch.as_tensor(demos.actions[idx], device=policy.device)
             ret = torch.as_tensor(demos.returns[idx], device=policy.device)
+            w = weights[act] if sample_w is None else weights[act] * sample_w[torch.as_tensor(idx)]
             if is_dqn:
                 q = policy.q_net(obs)  # type: ignore[attr-defined]
                 q_e = q.gather(1, act[:, None]).squeeze(1)
                 margins = torch.full_like(q, margin).scatter(1, act[:, None], 0.0)
-                loss = (weights[act] * ((q + margins).max(dim=1).values - q_e)).mean()
+                loss = (w * ((q + margins).max(dim=1).values - q_e)).mean()
                 loss = loss + value_coef * torch.nn.functional.mse_loss(q_e, ret)
             else:
                 values, log_prob, _entropy = policy.evaluate_actions(obs, act)  # type: ignore[attr-defined]
-                loss = -(weights[act] * log_prob).mean() + value_coef * torch.nn.functional.mse_loss(values.flatten(), ret)
+                loss = -(w * log_prob).mean() + value_coef * torch.nn.functional.mse_loss(values.flatten(), ret)
             optimizer.zero_grad()
             loss.backward()
             torch.nn.utils.clip_grad_norm_(policy.parameters(), 0.5)
