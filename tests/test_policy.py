@@ -12,7 +12,7 @@ import torch
 from gymnasium import spaces
 from stable_baselines3.common.env_checker import check_env
 
-from lcdata.record import record_episodes
+from lcdata.record import episode_seed, record_episodes
 from lcmodels.cli import eval_main, train_policy_main
 from lcmodels.fileio import file_sha256
 from lcmodels.policy import (
@@ -33,7 +33,7 @@ from lcmodels.policy.obs import OBS_MODES, policy_observation_space, scenario_fo
 from lcmodels.policy.train import build_model, default_learning_rate, tiny_scenario
 from lcmodels.policy.warmstart import Demonstrations
 from lcmodels.predictor import Predictor, PredictorConfig, TrajectoryTransformer
-from lcsim.core import KEEP
+from lcsim.core import KEEP, RUNNING, LaneChangeCore
 from lcsim.sb3 import LaneChangeSB3VecEnv
 
 EVAL_KEYS = {"success_rate", "collision_rate", "off_road_rate", "timeout_rate", "mean_safe_forward_m",
@@ -459,6 +459,15 @@ def test_dagger_with_a_driver_as_the_expert_labels_every_state_with_its_decision
     policy = tmp_path / "run" / "policy.zip"
     keep = collect_from_driver(policy, [7, 8, 9], "keep", batch=2)
     assert len(keep.labels) == len(keep.obs["current"]) > 0 and len(keep.outcomes) == 3
+    drv, decisions, with_choice = PolicyDriver(load_policy(policy)), 0, 0  # the same episodes, counted
+    core = LaneChangeCore(drv.config, 3)
+    core.reset(range(3), [episode_seed(u) for u in (7, 8, 9)])
+    while (core.outcome == RUNNING).any():
+        mask = core.action_mask()
+        decisions += int((core.outcome == RUNNING).sum())
+        with_choice += int(((core.outcome == RUNNING) & (mask.sum(axis=1) > 1)).sum())
+        core.step(drv(core.observe(), mask, core))
+    assert len(keep.labels) == with_choice < decisions  # mid-change states (no choice) are not kept
     assert (keep.labels == KEEP).all() and keep.agreed <= len(keep.labels)
     expert = f"lookahead-blind:{policy}"
     got = collect_from_driver(policy, [7, 8, 9], expert, batch=2)

@@ -131,7 +131,8 @@ def collect_from_driver(policy_path: str | os.PathLike[str], user_seeds: Sequenc
     """Drive one episode per user seed with the policy, ``batch`` at a time, and label every state with the
     decision of ``expert``, a driver spec of :func:`lcmodels.policy.evaluate.driver_for` (for example
     ``lookahead-blind:runs/pure/policy.zip``, which sees no more of the future than the policy could).
-    States in the middle of a lane change, where only keep is allowed, are labelled keep."""
+    Only states with a choice are kept: in the middle of a lane change the simulator ignores the decision,
+    and a label there ("keep") would teach the network something that matters nowhere."""
     from lcmodels.policy.evaluate import driver_for
 
     torch.set_num_threads(threads)
@@ -152,12 +153,11 @@ def collect_from_driver(policy_path: str | os.PathLike[str], user_seeds: Sequenc
         core = LaneChangeCore(config, len(chunk))
         core.reset(np.arange(len(chunk)), [episode_seed(int(u)) for u in chunk])
         while (core.outcome == RUNNING).any():
-            live = np.flatnonzero(core.outcome == RUNNING)
             obs, mask = core.observe(), core.action_mask()
+            live = np.flatnonzero((core.outcome == RUNNING) & (mask.sum(axis=1) > 1))
             pobs = build_observation(obs, mode, loaded.predictor)
             actions = np.asarray(model.predict(pobs, deterministic=True)[0], dtype=np.int64).reshape(-1)
-            label = np.asarray(teacher(obs, mask, core), dtype=np.int64).reshape(-1)
-            label = np.where(mask.sum(axis=1) > 1, label, KEEP)[live]
+            label = np.asarray(teacher(obs, mask, core), dtype=np.int64).reshape(-1)[live]
             for k in keys:
                 rows[k].append(pobs[k][live])
             labels_.append(label)
