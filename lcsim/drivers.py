@@ -108,17 +108,25 @@ class LookaheadConfig:
     blind: bool = False
     """Imagine futures with the traffic's random draws redrawn (:meth:`HighwaySim.redraw_future`): the
     planner knows the traffic's rules and present state, not its coming random lane changes."""
+    samples: int = 1
+    """Blind only: futures imagined per candidate decision, each redrawn with its own salt. A decision's
+    survival is the share of them it survives; the driver's own choice stands unless another survives
+    more of them."""
 
     def __post_init__(self) -> None:
         if not isinstance(self.horizon_decisions, int) or self.horizon_decisions < 1:
             raise ValueError(f"horizon_decisions must be an int >= 1, got {self.horizon_decisions!r}")
+        if not isinstance(self.samples, int) or self.samples < 1:
+            raise ValueError(f"samples must be an int >= 1, got {self.samples!r}")
+        if self.samples > 1 and not self.blind:
+            raise ValueError("samples > 1 needs blind=True (unredrawn copies all see the same future)")
 
 
 class LookaheadDriver:
     """A privileged planner: a driver (the rule-based one by default), checked against the simulator's future.
 
     Before each decision it copies the whole simulator (every environment, with its random state)
-    three times, applies right / keep / left in the copies, follows the ``rollout`` driver for
+    three times, applies right / keep / left in the copies, follows the driver ``rule`` for
     ``horizon_decisions`` more decisions and keeps that driver's own choice if its future is
     collision-free; otherwise it takes a surviving alternative (keep first). Unless ``blind``, it sees
     exactly what will happen, which no policy can, so it is an *upper reference* for what the scenario
@@ -138,11 +146,12 @@ class LookaheadDriver:
         if self.config.blind:
             self.name = "lookahead-blind"
 
-    def survives(self, core: LaneChangeCore, actions: np.ndarray) -> np.ndarray:
-        """``(E,)`` bool: no collision or off-road within the horizon after ``actions``, then the rollout driver."""
+    def survives(self, core: LaneChangeCore, actions: np.ndarray, salt: int = 1) -> np.ndarray:
+        """``(E,)`` bool: no collision or off-road within the horizon after ``actions``, then the driver
+        ``rule`` (in a future redrawn with ``salt`` when blind)."""
         future = imagined_copy(core)
         if self.config.blind:
-            future.sim.redraw_future(1)
+            future.sim.redraw_future(salt)
         future.step(actions)
         for _ in range(self.config.horizon_decisions):
             if (future.outcome != RUNNING).all():  # ended environments stay frozen; nothing left to see
@@ -157,12 +166,15 @@ class LookaheadDriver:
         choice = mask.sum(axis=1) > 1  # during a lane change only keep is allowed: nothing to look at
         if not choice.any():
             return planned
-        ok = np.zeros(mask.shape, dtype=bool)
+        alive = np.zeros(mask.shape)  # share of the imagined futures each decision survives
         for action in range(3):
-            if (mask[:, action] & choice).any():  # one imagined future per action someone can take
-                ok[:, action] = self.survives(core, np.where(mask[:, action], action, KEEP)) & mask[:, action]
-        fallback = np.where(ok[:, KEEP], KEEP, ok.argmax(axis=1))  # keep, else the first surviving change
-        override = choice & ~ok[np.arange(len(planned)), planned] & ok.any(axis=1)
+            if (mask[:, action] & choice).any():  # imagined futures per action someone can take
+                actions = np.where(mask[:, action], action, KEEP)
+                for salt in range(1, self.config.samples + 1):
+                    alive[:, action] += self.survives(core, actions, salt) & mask[:, action]
+        best = alive.max(axis=1)
+        fallback = np.where(alive[:, KEEP] >= best, KEEP, alive.argmax(axis=1))  # keep, else the first best change
+        override = choice & (alive[np.arange(len(planned)), planned] < best)
         return np.where(override, fallback, planned).astype(np.int64)
 
 

@@ -110,3 +110,31 @@ def test_redraw_future_keeps_the_present_and_redraws_the_traffics_coming_choices
     assert np.array_equal(blind.sim.x, blind_again.sim.x) and np.array_equal(blind.sim.lane, blind_again.sim.lane)
     with pytest.raises(ValueError, match="salt"):
         blind.sim.redraw_future(0)
+
+
+def test_blind_lookahead_with_several_futures_keeps_a_decision_that_survives_the_most_of_them():
+    cfg = small_config(render_image=False, traffic=TrafficConfig(num_vehicles=24, spawn_behind_m=40.0,
+                                                                 spawn_ahead_m=140.0))
+    core = LaneChangeCore(cfg, 4)
+    core.reset(range(4), [11, 12, 13, 14])
+    driver = LookaheadDriver(LookaheadConfig(horizon_decisions=6, blind=True, samples=3))
+    overridden = 0
+    for _ in range(30):
+        if (core.outcome != "").any():
+            break
+        mask = core.action_mask()
+        actions = driver({}, mask, core)
+        alive = np.stack([sum(driver.survives(core, np.where(mask[:, a], a, KEEP), salt) & mask[:, a]
+                              for salt in (1, 2, 3)) for a in range(3)], axis=1)
+        rows, choice = np.arange(4), mask.sum(axis=1) > 1
+        assert (alive[rows, actions] == alive.max(axis=1))[choice].all(), (actions, alive)
+        overridden += int((choice & (actions != driver.rule({}, mask, core))).sum())
+        core.step(actions)
+    assert overridden > 0  # the traffic is dense enough for the planner to overrule the rule
+
+
+def test_lookahead_config_refuses_samples_without_blindness():
+    with pytest.raises(ValueError, match="samples"):
+        LookaheadConfig(samples=2)
+    with pytest.raises(ValueError, match="samples"):
+        LookaheadConfig(blind=True, samples=0)
