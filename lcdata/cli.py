@@ -18,6 +18,7 @@ from lcdata.record import DRIVERS, episode_filename, iter_record_episodes
 from lcdata.writer_process import WRITER_MODES
 from lcsim.cli import int_at_least
 from lcsim.config import ScenarioConfig, corpus_scenario, paper_scenario
+from lcsim.drivers import POLICY_LOOKAHEADS
 
 SCENARIOS = ("lane-change", "corpus")
 DEFAULT_DRIVER = {"lane-change": "rule", "corpus": "autopilot"}
@@ -46,10 +47,18 @@ _positive_int = int_at_least(1)
 _non_negative_int = int_at_least(0)
 
 
+_POLICY_PREFIXES = ("policy:", *POLICY_LOOKAHEADS)
+
+
+def _policy_prefix(text: str) -> str | None:
+    return next((p for p in _POLICY_PREFIXES if text.startswith(p) and len(text) > len(p)), None)
+
+
 def _driver_spec(text: str) -> str:
-    if text in DRIVERS or (text.startswith("policy:") and len(text) > len("policy:")):
+    if text in DRIVERS or _policy_prefix(text):
         return text
-    raise argparse.ArgumentTypeError(f"invalid choice: {text!r} (choose from {', '.join(DRIVERS)} or policy:CKPT)")
+    raise argparse.ArgumentTypeError(f"invalid choice: {text!r} (choose from {', '.join(DRIVERS)}, policy:CKPT, "
+                                     "lookahead:CKPT or lookahead-blind:CKPT)")
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -65,9 +74,12 @@ def build_parser() -> argparse.ArgumentParser:
                    "corpus (20 autopilot vehicles, 2000 steps, no image). Default: %(default)s")  # fmt: skip
     p.add_argument("--episodes", type=_positive_int, default=1, help="number of episodes (default: 1)")
     p.add_argument("--seed", type=_non_negative_int, default=0, help="seed of the first episode (default: 0)")
-    p.add_argument("--driver", type=_driver_spec, default=None, metavar="{" + ",".join(DRIVERS) + ",policy:CKPT}",
+    p.add_argument("--driver", type=_driver_spec, default=None,
+                   metavar="{" + ",".join(DRIVERS) + ",policy:CKPT,lookahead:CKPT,lookahead-blind:CKPT}",
                    help="who drives the ego (default: rule for lane-change, autopilot for corpus); "
-                   "policy:CKPT drives with a trained policy (a policy.zip from lc-train-policy)")  # fmt: skip
+                   "policy:CKPT drives with a trained policy (a policy.zip from lc-train-policy); "
+                   "lookahead:CKPT / lookahead-blind:CKPT with the lookahead planner following that policy "
+                   "(one that does not read the image) in its imagined futures")  # fmt: skip
     p.add_argument("--out", type=pathlib.Path, required=True, help="output directory (created if missing)")
     p.add_argument("--workers", type=_positive_int, default=1, help="parallel processes (default: 1)")
     p.add_argument("--overwrite", action="store_true", help="replace episode files that already exist")
@@ -111,13 +123,14 @@ def _policy_driver(spec: str, args: argparse.Namespace, config: ScenarioConfig):
         raise UsageError("--driver policy:CKPT needs --scenario lane-change")
     if args.vehicles is not None or args.steps is not None:
         raise UsageError("a policy drives in the scenario it was trained on; drop --vehicles / --steps")
-    path = pathlib.Path(spec.removeprefix("policy:"))
+    prefix = _policy_prefix(spec) or "policy:"
+    path = pathlib.Path(spec.removeprefix(prefix))
     if not path.is_file():
         raise UsageError(f"policy checkpoint {path} does not exist")
     from lcmodels.policy.evaluate import driver_for  # lcmodels builds on lcdata: import only when asked
 
     try:
-        policy, policy_config = driver_for(str(path))
+        policy, policy_config = driver_for(f"{prefix}{path}")
     except ValueError as exc:
         raise UsageError(str(exc).splitlines()[0]) from None
     return policy, dataclasses.replace(policy_config, render_image=policy_config.render_image or not args.no_images)
@@ -133,7 +146,7 @@ def record_main(argv: Sequence[str] | None = None) -> int:
             config = scenario_config(args.scenario, vehicles=args.vehicles, steps=args.steps)
         except ValueError as exc:
             raise UsageError(str(exc)) from None
-        if driver.startswith("policy:"):
+        if _policy_prefix(driver):
             driver, config = _policy_driver(driver, args, config)
         seeds = [args.seed + i for i in range(args.episodes)]
         name = driver if isinstance(driver, str) else driver.name

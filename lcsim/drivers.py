@@ -217,6 +217,8 @@ _FACTORIES: dict[str, Callable[[int], Driver]] = {
 }
 DRIVER_NAMES = tuple(_FACTORIES)
 """Names :func:`make_driver` accepts."""
+POLICY_LOOKAHEADS = ("lookahead:", "lookahead-blind:")
+"""Prefixes of a policy checkpoint path that ask for the lookahead following that policy (built in lcmodels)."""
 
 
 def make_driver(name: str, seed: int = 0) -> Driver:

@@ -499,6 +499,15 @@ def test_a_lookahead_follows_a_policy_without_image_and_refuses_one_with(tmp_pat
     with pytest.raises(ValueError, match="reads the image"):
         driver_for(f"lookahead-blind:{tmp_path / 'image' / 'policy.zip'}")
     assert eval_main([f"lookahead-blind:{tmp_path / 'missing.zip'}", "--no-record"]) == 2
+    from lcdata.cli import record_main
+    from lcdata.reader import read_episode
+
+    out = tmp_path / "rec"
+    assert record_main(["--driver", f"lookahead-blind:{tmp_path / 'pure' / 'policy.zip'}", "--seed", "3",
+                        "--no-images", "--out", str(out)]) == 0  # fmt: skip
+    (path,) = out.glob("*.mcap")
+    assert "lookahead-blind-ppo-pure" in path.name and len(read_episode(path).steps) > 0
+    assert record_main(["--driver", f"lookahead:{tmp_path / 'image' / 'policy.zip'}", "--out", str(out)]) == 2
 
 
 def test_frozen_image_branch_trains_faster_form_and_saves_a_plain_policy(tmp_path: Path, predictor_path: Path) -> None:

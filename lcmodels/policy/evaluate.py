@@ -27,7 +27,7 @@ from lcmodels.policy.checkpoint import LoadedPolicy
 from lcmodels.policy.obs import EpisodeStats, build_observation, mode_keys, scenario_for_mode
 from lcsim.config import ScenarioConfig
 from lcsim.core import OUTCOMES, RUNNING, LaneChangeCore
-from lcsim.drivers import Driver
+from lcsim.drivers import POLICY_LOOKAHEADS, Driver
 
 EVAL_SEED_BASE = 1_000_000_000
 EVAL_SEED_STRIDE = 100_000
@@ -200,7 +200,7 @@ def evaluate(
     return summary, results
 
 
-LOOKAHEAD_PREFIXES = ("lookahead:", "lookahead-blind:")
+LOOKAHEAD_PREFIXES = POLICY_LOOKAHEADS
 """``lookahead:POLICY`` / ``lookahead-blind:POLICY``: the lookahead planner with a policy as its rollout driver."""
 
 
