@@ -315,10 +315,16 @@ def heldout_driver(args: argparse.Namespace) -> tuple[Any, ScenarioConfig]:
     from lcsim.config import paper_scenario
 
     try:
-        driver, config = driver_for(args.policy, predictor=args.predictor)
+        driver, config = driver_for(args.policy, predictor=args.predictor, lookahead=lookahead_options(args))
     except (ValueError, OSError) as exc:
         raise ValueError(str(exc).splitlines()[0]) from exc
     return driver, config or paper_scenario(render_image=False)
+
+
+def lookahead_options(args: argparse.Namespace) -> dict[str, int]:
+    """The ``--lookahead-*`` options given (for :func:`lcmodels.policy.evaluate.driver_for`)."""
+    given = {"horizon_decisions": args.lookahead_horizon, "samples": args.lookahead_samples}
+    return {k: v for k, v in given.items() if v is not None}
 
 
 def add_heldout_arguments(p: argparse.ArgumentParser, episodes: int = 200) -> None:
@@ -332,6 +338,10 @@ def add_heldout_arguments(p: argparse.ArgumentParser, episodes: int = 200) -> No
     p.add_argument("--predictor", type=Path, default=None,
                    help="predictor checkpoint (default: the one the policy was trained with)")
     p.add_argument("--batch", type=_positive_int, default=20, help="episodes simulated together (default 20)")
+    p.add_argument("--lookahead-horizon", type=_positive_int, default=None,
+                   help="lookahead drivers: decisions imagined after each candidate one (default 16, i.e. 8 s)")
+    p.add_argument("--lookahead-samples", type=_positive_int, default=None,
+                   help="lookahead-blind drivers: redrawn futures imagined per candidate decision (default 1)")
 
 
 def eval_parser() -> argparse.ArgumentParser:
@@ -376,7 +386,8 @@ def eval_main(argv: list[str] | None = None) -> int:
         return fail(f"{args.json_out} already exists; pass --overwrite or choose another --json-out")
     torch.set_num_threads(args.threads)
     try:
-        driver, config = driver_for(args.policy, predictor=str(args.predictor) if args.predictor else None)
+        driver, config = driver_for(args.policy, predictor=str(args.predictor) if args.predictor else None,
+                                    lookahead=lookahead_options(args))
     except ValueError as exc:
         return fail(str(exc).splitlines()[0])
     if config is None:

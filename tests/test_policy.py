@@ -499,6 +499,15 @@ def test_a_lookahead_follows_a_policy_without_image_and_refuses_one_with(tmp_pat
     with pytest.raises(ValueError, match="reads the image"):
         driver_for(f"lookahead-blind:{tmp_path / 'image' / 'policy.zip'}")
     assert eval_main([f"lookahead-blind:{tmp_path / 'missing.zip'}", "--no-record"]) == 2
+    longer, _ = driver_for(f"lookahead-blind:{tmp_path / 'pure' / 'policy.zip'}",
+                           lookahead={"horizon_decisions": 3, "samples": 2})  # fmt: skip
+    assert (longer.config.horizon_decisions, longer.config.samples, longer.config.blind) == (3, 2, True)
+    with pytest.raises(ValueError, match="lookahead drivers only"):
+        driver_for("rule", lookahead={"samples": 2})
+    assert eval_main(["lookahead", "--lookahead-samples", "2", "--no-record"]) == 2  # samples need blindness
+    assert eval_main(["lookahead-blind", "--lookahead-horizon", "2", "--lookahead-samples", "2", "--episodes", "2",
+                      "--scenario", "tiny", "--no-record", "--json-out", str(tmp_path / "la.json")]) == 0
+    assert json.loads((tmp_path / "la.json").read_text())["episodes"] == 2
     from lcdata.cli import record_main
     from lcdata.reader import read_episode
 

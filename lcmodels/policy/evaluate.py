@@ -210,20 +210,27 @@ def policy_path_of(spec: str) -> Path:
     return Path(spec.removeprefix(prefix))
 
 
-def driver_for(spec: str, *, predictor: str | None = None, device: str = "cpu") -> tuple[Any, ScenarioConfig | None]:
+def driver_for(spec: str, *, predictor: str | None = None, device: str = "cpu",
+               lookahead: dict[str, int] | None = None) -> tuple[Any, ScenarioConfig | None]:
     """A driver from a built-in name (:data:`lcsim.drivers.DRIVER_NAMES`), a policy checkpoint path (``policy:``
     prefix optional), or ``lookahead:PATH`` / ``lookahead-blind:PATH``: :class:`lcsim.drivers.LookaheadDriver`
     following that policy in its imagined futures (blind: with the traffic's random draws redrawn). The
-    policy must not read the image (the imagined futures are not rendered).
+    policy must not read the image (the imagined futures are not rendered). ``lookahead``: fields of
+    :class:`lcsim.drivers.LookaheadConfig` (``horizon_decisions``, ``samples``) for a lookahead driver;
+    ``ValueError`` when given for another driver.
 
     Returns the driver and, for a policy, the scenario it was trained on (``None`` for lcsim drivers).
     """
     from lcmodels.policy.checkpoint import load_policy
     from lcsim.drivers import DRIVER_NAMES, LookaheadConfig, LookaheadDriver, make_driver
 
+    prefix = next((p for p in LOOKAHEAD_PREFIXES if spec.startswith(p)), None)
+    if lookahead and not (prefix or spec in ("lookahead", "lookahead-blind")):
+        raise ValueError(f"{', '.join(lookahead)} apply to the lookahead drivers only, not to {spec}")
+    if spec in ("lookahead", "lookahead-blind"):
+        return LookaheadDriver(LookaheadConfig(blind=spec == "lookahead-blind", **(lookahead or {}))), None
     if spec in DRIVER_NAMES:
         return make_driver(spec), None
-    prefix = next((p for p in LOOKAHEAD_PREFIXES if spec.startswith(p)), None)
     path = policy_path_of(spec)
     policy = load_policy(path, predictor=predictor, device=device)
     drv = PolicyDriver(policy)
@@ -232,7 +239,7 @@ def driver_for(spec: str, *, predictor: str | None = None, device: str = "cpu") 
     if "image" in mode_keys(policy.obs_mode):
         raise ValueError(f"{path}: a lookahead cannot follow a policy that reads the image (mode "
                          f"{policy.obs_mode}): its imagined futures are not rendered")
-    planner = LookaheadDriver(LookaheadConfig(blind=prefix == "lookahead-blind:"), rule=drv)
+    planner = LookaheadDriver(LookaheadConfig(blind=prefix == "lookahead-blind:", **(lookahead or {})), rule=drv)
     planner.name = f"{planner.name}-{drv.name}"
     return planner, drv.config
 
