@@ -18,7 +18,7 @@ from lcdata.record import DRIVERS, episode_filename, iter_record_episodes
 from lcdata.writer_process import WRITER_MODES
 from lcsim.cli import int_at_least
 from lcsim.config import ScenarioConfig, corpus_scenario, paper_scenario
-from lcsim.drivers import POLICY_LOOKAHEADS
+from lcsim.drivers import split_policy_spec
 
 SCENARIOS = ("lane-change", "corpus")
 DEFAULT_DRIVER = {"lane-change": "rule", "corpus": "autopilot"}
@@ -47,15 +47,8 @@ _positive_int = int_at_least(1)
 _non_negative_int = int_at_least(0)
 
 
-_POLICY_PREFIXES = ("policy:", *POLICY_LOOKAHEADS)
-
-
-def _policy_prefix(text: str) -> str | None:
-    return next((p for p in _POLICY_PREFIXES if text.startswith(p) and len(text) > len(p)), None)
-
-
 def _driver_spec(text: str) -> str:
-    if text in DRIVERS or _policy_prefix(text):
+    if text in DRIVERS or split_policy_spec(text):
         return text
     raise argparse.ArgumentTypeError(f"invalid choice: {text!r} (choose from {', '.join(DRIVERS)}, policy:CKPT, "
                                      "lookahead:CKPT or lookahead-blind:CKPT)")
@@ -123,8 +116,8 @@ def _policy_driver(spec: str, args: argparse.Namespace, config: ScenarioConfig):
         raise UsageError("--driver policy:CKPT needs --scenario lane-change")
     if args.vehicles is not None or args.steps is not None:
         raise UsageError("a policy drives in the scenario it was trained on; drop --vehicles / --steps")
-    prefix = _policy_prefix(spec) or "policy:"
-    path = pathlib.Path(spec.removeprefix(prefix))
+    prefix, name = split_policy_spec(spec) or ("policy:", spec)
+    path = pathlib.Path(name)
     if not path.is_file():
         raise UsageError(f"policy checkpoint {path} does not exist")
     from lcmodels.policy.evaluate import driver_for  # lcmodels builds on lcdata: import only when asked
@@ -146,7 +139,7 @@ def record_main(argv: Sequence[str] | None = None) -> int:
             config = scenario_config(args.scenario, vehicles=args.vehicles, steps=args.steps)
         except ValueError as exc:
             raise UsageError(str(exc)) from None
-        if _policy_prefix(driver):
+        if split_policy_spec(driver):
             driver, config = _policy_driver(driver, args, config)
         seeds = [args.seed + i for i in range(args.episodes)]
         name = driver if isinstance(driver, str) else driver.name

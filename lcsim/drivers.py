@@ -143,8 +143,9 @@ class LookaheadDriver:
         self.config = config or LookaheadConfig()
         self.rule = rule or RuleBasedDriver()
         self._observe = bool(getattr(self.rule, "needs_observation", False))
-        if self.config.blind:
-            self.name = "lookahead-blind"
+        self.name = "lookahead-blind" if self.config.blind else "lookahead"
+        if not isinstance(self.rule, RuleBasedDriver):
+            self.name += f"-{getattr(self.rule, 'name', type(self.rule).__name__)}"
 
     def survives(self, core: LaneChangeCore, actions: np.ndarray, salt: int = 1) -> np.ndarray:
         """``(E,)`` bool: no collision or off-road within the horizon after ``actions``, then the driver
@@ -217,8 +218,15 @@ _FACTORIES: dict[str, Callable[[int], Driver]] = {
 }
 DRIVER_NAMES = tuple(_FACTORIES)
 """Names :func:`make_driver` accepts."""
-POLICY_LOOKAHEADS = ("lookahead:", "lookahead-blind:")
-"""Prefixes of a policy checkpoint path that ask for the lookahead following that policy (built in lcmodels)."""
+POLICY_PREFIXES = ("policy:", "lookahead:", "lookahead-blind:")
+"""Prefixes of a driver spec that name a policy checkpoint: the policy itself, or the lookahead (blind or not)
+following it (built in lcmodels, which loads policies)."""
+
+
+def split_policy_spec(spec: str) -> tuple[str, str] | None:
+    """``(prefix, checkpoint path)`` of a spec with one of :data:`POLICY_PREFIXES` and a non-empty path, else None."""
+    prefix = next((p for p in POLICY_PREFIXES if spec.startswith(p) and len(spec) > len(p)), None)
+    return None if prefix is None else (prefix, spec.removeprefix(prefix))
 
 
 def make_driver(name: str, seed: int = 0) -> Driver:

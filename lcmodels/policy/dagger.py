@@ -60,11 +60,11 @@ class Collected:
     agreed: int
     searches: int
     outcomes: list[str]
+    actions: np.ndarray
+    """The policy's own decision in each state (a label that differs from it is a correction)."""
     harmless: int = 0
     """Decisions off the oracle's plan after which the episode could still be won (those states carry the
     policy's own decision as their label when ``labels="winning"``)."""
-    actions: np.ndarray | None = None
-    """The policy's own decision in each state (a label that differs from it is a correction)."""
 
 
 def collect(policy_path: str | os.PathLike[str], user_seeds: Sequence[int], *,
@@ -121,8 +121,8 @@ def collect(policy_path: str | os.PathLike[str], user_seeds: Sequence[int], *,
                 labels_[deviated[0]] = deviated[1]
         outcomes.append(str(core.outcome[0]))
     obs = {k: np.stack(v) if v else np.zeros((0,)) for k, v in rows.items()}
-    return Collected(obs, np.asarray(labels_, dtype=np.int64), agreed, searches, outcomes, harmless,
-                     np.asarray(own, dtype=np.int64))
+    return Collected(obs, np.asarray(labels_, dtype=np.int64), agreed, searches, outcomes,
+                     np.asarray(own, dtype=np.int64), harmless)
 
 
 def collect_from_driver(policy_path: str | os.PathLike[str], user_seeds: Sequence[int], expert: str, *,
@@ -168,7 +168,7 @@ def collect_from_driver(policy_path: str | os.PathLike[str], user_seeds: Sequenc
     obs_ = {k: np.concatenate(v) if v else np.zeros((0,)) for k, v in rows.items()}
     labels = np.concatenate(labels_) if labels_ else np.zeros(0, dtype=np.int64)
     actions_ = np.concatenate(own) if own else np.zeros(0, dtype=np.int64)
-    return Collected(obs_, labels, agreed, 0, outcomes, actions=actions_)
+    return Collected(obs_, labels, agreed, 0, outcomes, actions_)
 
 
 _STATES = "states.npz"
@@ -314,7 +314,7 @@ def dagger(
         if kept:
             round_obs = {k: np.concatenate([g.obs[k] for g in kept]) for k in data}
             round_labels = np.concatenate([g.labels for g in kept])
-            round_own = np.concatenate([g.actions for g in kept if g.actions is not None])
+            round_own = np.concatenate([g.actions for g in kept])
             for k in data:
                 data[k].append(round_obs[k])
             targets.append(round_labels)

@@ -13,6 +13,7 @@ that use them, the predictions the policy saw (``/prediction``, world frame).
 
 from __future__ import annotations
 
+import dataclasses
 import math
 import os
 from collections.abc import Callable, Sequence
@@ -27,7 +28,7 @@ from lcmodels.policy.checkpoint import LoadedPolicy
 from lcmodels.policy.obs import EpisodeStats, build_observation, mode_keys, scenario_for_mode
 from lcsim.config import ScenarioConfig
 from lcsim.core import OUTCOMES, RUNNING, LaneChangeCore
-from lcsim.drivers import POLICY_LOOKAHEADS, Driver
+from lcsim.drivers import Driver, split_policy_spec
 
 EVAL_SEED_BASE = 1_000_000_000
 EVAL_SEED_STRIDE = 100_000
@@ -200,14 +201,9 @@ def evaluate(
     return summary, results
 
 
-LOOKAHEAD_PREFIXES = POLICY_LOOKAHEADS
-"""``lookahead:POLICY`` / ``lookahead-blind:POLICY``: the lookahead planner with a policy as its rollout driver."""
-
-
 def policy_path_of(spec: str) -> Path:
     """The checkpoint a :func:`driver_for` spec that is not a built-in driver names."""
-    prefix = next((p for p in LOOKAHEAD_PREFIXES if spec.startswith(p)), "policy:")
-    return Path(spec.removeprefix(prefix))
+    return Path((split_policy_spec(spec) or ("policy:", spec))[1])
 
 
 def driver_for(spec: str, *, predictor: str | None = None, device: str = "cpu",
@@ -224,29 +220,28 @@ def driver_for(spec: str, *, predictor: str | None = None, device: str = "cpu",
     from lcmodels.policy.checkpoint import load_policy
     from lcsim.drivers import DRIVER_NAMES, LookaheadConfig, LookaheadDriver, make_driver
 
-    prefix = next((p for p in LOOKAHEAD_PREFIXES if spec.startswith(p)), None)
-    if lookahead and not (prefix or spec in ("lookahead", "lookahead-blind")):
-        raise ValueError(f"{', '.join(lookahead)} apply to the lookahead drivers only, not to {spec}")
-    if spec in ("lookahead", "lookahead-blind"):
-        return LookaheadDriver(LookaheadConfig(blind=spec == "lookahead-blind", **(lookahead or {}))), None
+    prefix = (split_policy_spec(spec) or ("policy:", spec))[0]
     if spec in DRIVER_NAMES:
-        return make_driver(spec), None
-    path = policy_path_of(spec)
-    policy = load_policy(path, predictor=predictor, device=device)
-    drv = PolicyDriver(policy)
-    if prefix is None:
-        return drv, drv.config
-    if "image" in mode_keys(policy.obs_mode):
-        raise ValueError(f"{path}: a lookahead cannot follow a policy that reads the image (mode "
-                         f"{policy.obs_mode}): its imagined futures are not rendered")
-    planner = LookaheadDriver(LookaheadConfig(blind=prefix == "lookahead-blind:", **(lookahead or {})), rule=drv)
-    planner.name = f"{planner.name}-{drv.name}"
-    return planner, drv.config
+        driver, config = make_driver(spec), None
+    else:
+        path = policy_path_of(spec)
+        policy = load_policy(path, predictor=predictor, device=device)
+        driver = PolicyDriver(policy)
+        config = driver.config
+        if prefix != "policy:":
+            if "image" in mode_keys(policy.obs_mode):
+                raise ValueError(f"{path}: a lookahead cannot follow a policy that reads the image (mode "
+                                 f"{policy.obs_mode}): its imagined futures are not rendered")
+            driver = LookaheadDriver(LookaheadConfig(blind=prefix == "lookahead-blind:"), rule=driver)
+    if lookahead:
+        if not isinstance(driver, LookaheadDriver):
+            raise ValueError(f"{', '.join(lookahead)} apply to the lookahead drivers only, not to {spec}")
+        driver.config = dataclasses.replace(driver.config, **lookahead)
+    return driver, config
 
 
 __all__ = [
     "EVAL_SEED_BASE",
-    "LOOKAHEAD_PREFIXES",
     "PolicyDriver",
     "driver_for",
     "eval_user_seeds",
