@@ -300,6 +300,7 @@ def _fmt_eval(ev: dict) -> str:
 EVAL_EPILOG = """examples:
   lc-eval runs/hybrid-ppo/policy.zip --episodes 200 --seed 0 --json-out runs/hybrid-ppo/eval200.json
   lc-eval rule --episodes 200 --out runs/rule-eval
+  lc-eval lookahead-blind:runs/hybrid-ppo/policy.zip --lookahead-follow rule --lookahead-horizon 32 --no-record
 
 Evaluation episode i uses the user seed 1000000000 + 100000 * SEED + i, disjoint from training seeds.
 Prints outcome rates (fractions) and means with 95% intervals; --json-out writes them as JSON; every
@@ -315,7 +316,8 @@ def heldout_driver(args: argparse.Namespace) -> tuple[Any, ScenarioConfig]:
     from lcsim.config import paper_scenario
 
     try:
-        driver, config = driver_for(args.policy, predictor=args.predictor, lookahead=lookahead_options(args))
+        driver, config = driver_for(args.policy, predictor=args.predictor, lookahead=lookahead_options(args),
+                                    follow=args.lookahead_follow)
     except (ValueError, OSError) as exc:
         raise ValueError(str(exc).splitlines()[0]) from exc
     return driver, config or paper_scenario(render_image=False)
@@ -332,7 +334,8 @@ def add_heldout_arguments(p: argparse.ArgumentParser, episodes: int = 200) -> No
     (lc-eval's arguments, shared by the tools that run the same episodes)."""
     p.add_argument("policy", help="policy checkpoint (policy.zip), or a built-in driver: rule / lookahead / "
                    "lookahead-blind / oracle (planners, upper references) / keep / random, or lookahead:POLICY / "
-                   "lookahead-blind:POLICY (the lookahead following a policy without image in its imagined futures)")
+                   "lookahead-blind:POLICY (the lookahead following a policy without image in its imagined futures; "
+                   "see --lookahead-follow)")
     p.add_argument("--episodes", type=_positive_int, default=episodes, help="episodes (default %(default)s)")
     p.add_argument("--seed", type=int_at_least(0), default=0, help="evaluation seed (default %(default)s)")
     p.add_argument("--predictor", type=Path, default=None,
@@ -342,6 +345,10 @@ def add_heldout_arguments(p: argparse.ArgumentParser, episodes: int = 200) -> No
                    help="lookahead drivers: decisions imagined after each candidate one (default 16, i.e. 8 s)")
     p.add_argument("--lookahead-samples", type=_positive_int, default=None,
                    help="lookahead-blind drivers: redrawn futures imagined per candidate decision (default 1)")
+    p.add_argument("--lookahead-follow", metavar="DRIVER", default=None,
+                   help="with lookahead:POLICY / lookahead-blind:POLICY: the policy proposes each decision and the "
+                   "imagined futures follow DRIVER (a built-in driver or a policy.zip without image), which "
+                   "lets the lookahead guard a policy that reads the image (default: the policy itself)")
 
 
 def eval_parser() -> argparse.ArgumentParser:
@@ -387,7 +394,7 @@ def eval_main(argv: list[str] | None = None) -> int:
     torch.set_num_threads(args.threads)
     try:
         driver, config = driver_for(args.policy, predictor=str(args.predictor) if args.predictor else None,
-                                    lookahead=lookahead_options(args))
+                                    lookahead=lookahead_options(args), follow=args.lookahead_follow)
     except ValueError as exc:
         return fail(str(exc).splitlines()[0])
     if config is None:

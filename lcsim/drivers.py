@@ -122,6 +122,10 @@ class LookaheadConfig:
             raise ValueError("samples > 1 needs blind=True (unredrawn copies all see the same future)")
 
 
+def _driver_name(driver: Driver) -> str:
+    return str(getattr(driver, "name", type(driver).__name__))
+
+
 class LookaheadDriver:
     """A privileged planner: a driver (the rule-based one by default), checked against the simulator's future.
 
@@ -135,17 +139,30 @@ class LookaheadDriver:
 
     A rollout driver that reads the observation sets ``needs_observation = True``; it gets the imagined
     copy's observation, which has no image (the copies do not render).
+
+    ``proposer``, when given, makes the decision the planner checks instead of ``rule``: a safety layer in
+    front of a driver that reads what the imagined futures cannot show (a policy that reads the image),
+    with ``rule`` as the model of how the ego drives on after the decision.
     """
 
     name = "lookahead"
 
-    def __init__(self, config: LookaheadConfig | None = None, rule: Driver | None = None) -> None:
+    def __init__(self, config: LookaheadConfig | None = None, rule: Driver | None = None,
+                 proposer: Driver | None = None) -> None:
         self.config = config or LookaheadConfig()
         self.rule = rule or RuleBasedDriver()
+        self.proposer = proposer
         self._observe = bool(getattr(self.rule, "needs_observation", False))
         self.name = "lookahead-blind" if self.config.blind else "lookahead"
-        if not isinstance(self.rule, RuleBasedDriver):
-            self.name += f"-{getattr(self.rule, 'name', type(self.rule).__name__)}"
+        if not isinstance(self.rule, RuleBasedDriver) or proposer is not None:
+            self.name += f"-{_driver_name(self.rule)}"
+        if proposer is not None:
+            self.name = f"{_driver_name(proposer)}+{self.name}"
+
+    @property
+    def last_prediction(self) -> np.ndarray | None:
+        """The predictions the driver that made the decision saw (recorded by lc-eval), if it has any."""
+        return getattr(self.proposer or self.rule, "last_prediction", None)
 
     def survives(self, core: LaneChangeCore, actions: np.ndarray, salt: int = 1) -> np.ndarray:
         """``(E,)`` bool: no collision or off-road within the horizon after ``actions``, then the driver
@@ -163,7 +180,7 @@ class LookaheadDriver:
 
     def __call__(self, obs: dict[str, np.ndarray], action_mask: np.ndarray, core: LaneChangeCore) -> np.ndarray:
         mask = np.asarray(action_mask, dtype=bool).reshape(-1, 3)
-        planned = self.rule(obs, mask, core)
+        planned = np.asarray((self.proposer or self.rule)(obs, mask, core), dtype=np.int64).reshape(len(mask))
         choice = mask.sum(axis=1) > 1  # during a lane change only keep is allowed: nothing to look at
         if not choice.any():
             return planned

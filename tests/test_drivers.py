@@ -2,6 +2,7 @@
 lookahead planner only ever overrides the rule with a decision that survives its horizon."""
 
 import collections
+import copy
 
 import numpy as np
 import pytest
@@ -131,6 +132,33 @@ def test_blind_lookahead_with_several_futures_keeps_a_decision_that_survives_the
         overridden += int((choice & (actions != driver.rule({}, mask, core))).sum())
         core.step(actions)
     assert overridden > 0  # the traffic is dense enough for the planner to overrule the rule
+
+
+def test_lookahead_with_a_proposer_keeps_its_decision_unless_that_future_crashes():
+    cfg = small_config(render_image=False, traffic=TrafficConfig(num_vehicles=24, spawn_behind_m=40.0,
+                                                                 spawn_ahead_m=140.0))
+    core = LaneChangeCore(cfg, 4)
+    core.reset(range(4), [11, 12, 13, 14])
+    proposer = make_driver("random", 5)
+    proposer.last_prediction = np.zeros((4, 1, 1, 2))  # what a policy that predicts would expose
+    driver = LookaheadDriver(LookaheadConfig(horizon_decisions=6, blind=True), proposer=proposer)
+    assert driver.name == "random+lookahead-blind-rule" and driver.last_prediction is proposer.last_prediction
+    kept = vetoed = 0
+    for _ in range(30):
+        if (core.outcome != "").any():
+            break
+        mask = core.action_mask()
+        proposed = make_driver("random", 5)  # the same draws as the proposer's next one
+        proposed.rng = copy.deepcopy(proposer.rng)
+        wanted = proposed({}, mask, core)
+        actions = driver({}, mask, core)
+        ok = np.stack([driver.survives(core, np.where(mask[:, a], a, KEEP)) & mask[:, a] for a in range(3)], 1)
+        rows = np.arange(4)
+        stands = ok[rows, wanted] | ~ok.any(axis=1)  # the proposal survives, or nothing does
+        assert np.array_equal(actions[stands], wanted[stands]) and ok[rows, actions][~stands].all()
+        kept, vetoed = kept + int(stands.sum()), vetoed + int((~stands).sum())
+        core.step(actions)
+    assert kept > 0 and vetoed > 0  # random lane changes in dense traffic: some are doomed
 
 
 def test_lookahead_config_refuses_samples_without_blindness():

@@ -498,6 +498,20 @@ def test_a_lookahead_follows_a_policy_without_image_and_refuses_one_with(tmp_pat
     train_policy(_tiny(obs="image", timesteps=32, n_steps=16, eval_episodes=0), tmp_path / "image")
     with pytest.raises(ValueError, match="reads the image"):
         driver_for(f"lookahead-blind:{tmp_path / 'image' / 'policy.zip'}")
+    image, pure = tmp_path / "image" / "policy.zip", tmp_path / "pure" / "policy.zip"
+    guarded, image_config = driver_for(f"lookahead-blind:{image}", follow=str(pure))  # it proposes, pure follows
+    assert guarded.name == "ppo-image+lookahead-blind-ppo-pure" and image_config.render_image is True
+    assert isinstance(guarded.proposer, PolicyDriver) and guarded.proposer.policy.obs_mode == "image"
+    summary, _ = evaluate(guarded, image_config, episodes=2, batch=2)
+    assert summary["episodes"] == 2
+    with pytest.raises(ValueError, match=r"driver to follow: .* reads the image"):
+        driver_for(f"lookahead-blind:{image}", follow=str(image))
+    with pytest.raises(ValueError, match="applies to lookahead:POLICY"):
+        driver_for(str(pure), follow="rule")
+    assert eval_main([f"lookahead:{image}", "--lookahead-follow", str(tmp_path / "missing.zip"), "--no-record"]) == 2
+    assert eval_main([f"lookahead-blind:{image}", "--lookahead-follow", "rule", "--lookahead-horizon", "2",
+                      "--episodes", "2", "--no-record", "--json-out", str(tmp_path / "guarded.json")]) == 0
+    assert json.loads((tmp_path / "guarded.json").read_text())["driver"] == "ppo-image+lookahead-blind-rule"
     assert eval_main([f"lookahead-blind:{tmp_path / 'missing.zip'}", "--no-record"]) == 2
     longer, _ = driver_for(f"lookahead-blind:{tmp_path / 'pure' / 'policy.zip'}",
                            lookahead={"horizon_decisions": 3, "samples": 2})  # fmt: skip

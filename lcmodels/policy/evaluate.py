@@ -207,13 +207,16 @@ def policy_path_of(spec: str) -> Path:
 
 
 def driver_for(spec: str, *, predictor: str | None = None, device: str = "cpu",
-               lookahead: dict[str, int] | None = None) -> tuple[Any, ScenarioConfig | None]:
+               lookahead: dict[str, int] | None = None,
+               follow: str | None = None) -> tuple[Any, ScenarioConfig | None]:
     """A driver from a built-in name (:data:`lcsim.drivers.DRIVER_NAMES`), a policy checkpoint path (``policy:``
     prefix optional), or ``lookahead:PATH`` / ``lookahead-blind:PATH``: :class:`lcsim.drivers.LookaheadDriver`
     following that policy in its imagined futures (blind: with the traffic's random draws redrawn). The
-    policy must not read the image (the imagined futures are not rendered). ``lookahead``: fields of
-    :class:`lcsim.drivers.LookaheadConfig` (``horizon_decisions``, ``samples``) for a lookahead driver;
-    ``ValueError`` when given for another driver.
+    policy must not read the image (the imagined futures are not rendered), unless ``follow`` names the
+    driver the imagined futures follow instead (a built-in driver or a checkpoint of the same scenario that
+    does not read the image): then the policy proposes and the lookahead vetoes. ``lookahead``: fields of
+    :class:`lcsim.drivers.LookaheadConfig` (``horizon_decisions``, ``samples``) for a lookahead driver.
+    ``ValueError`` when ``lookahead`` or ``follow`` is given for a driver they do not apply to.
 
     Returns the driver and, for a policy, the scenario it was trained on (``None`` for lcsim drivers).
     """
@@ -229,15 +232,41 @@ def driver_for(spec: str, *, predictor: str | None = None, device: str = "cpu",
         driver = PolicyDriver(policy)
         config = driver.config
         if prefix != "policy:":
-            if "image" in mode_keys(policy.obs_mode):
+            blind = LookaheadConfig(blind=prefix == "lookahead-blind:")
+            if follow is not None:
+                driver = LookaheadDriver(blind, rule=_follower(follow, config, predictor, device), proposer=driver)
+            elif "image" in mode_keys(policy.obs_mode):
                 raise ValueError(f"{path}: a lookahead cannot follow a policy that reads the image (mode "
-                                 f"{policy.obs_mode}): its imagined futures are not rendered")
-            driver = LookaheadDriver(LookaheadConfig(blind=prefix == "lookahead-blind:"), rule=driver)
+                                 f"{policy.obs_mode}): its imagined futures are not rendered; name a driver "
+                                 "for them to follow (--lookahead-follow)")
+            else:
+                driver = LookaheadDriver(blind, rule=driver)
+    if follow is not None and prefix == "policy:":
+        raise ValueError(f"a driver to follow applies to lookahead:POLICY / lookahead-blind:POLICY only, not to {spec}")
     if lookahead:
         if not isinstance(driver, LookaheadDriver):
             raise ValueError(f"{', '.join(lookahead)} apply to the lookahead drivers only, not to {spec}")
         driver.config = dataclasses.replace(driver.config, **lookahead)
     return driver, config
+
+
+def _follower(spec: str, scenario: ScenarioConfig, predictor: str | None, device: str) -> Any:
+    """The driver a lookahead's imagined futures follow: a built-in driver, or a policy of ``scenario``
+    that does not read the image."""
+    from lcmodels.policy.checkpoint import load_policy
+    from lcsim.drivers import DRIVER_NAMES, make_driver
+
+    if spec in DRIVER_NAMES:
+        return make_driver(spec)
+    path = policy_path_of(spec)
+    try:
+        policy = load_policy(path, predictor=predictor, scenario=scenario, device=device)
+    except ValueError as exc:
+        raise ValueError(f"driver to follow: {exc}") from exc
+    if "image" in mode_keys(policy.obs_mode):
+        raise ValueError(f"driver to follow: {path} reads the image (mode {policy.obs_mode}), which the "
+                         "imagined futures do not render")
+    return PolicyDriver(policy)
 
 
 __all__ = [
