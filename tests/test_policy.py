@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import dataclasses
 import json
+import warnings
 from pathlib import Path
 
 import numpy as np
@@ -205,22 +206,36 @@ def test_checkpoint_refuses_another_predictor(tmp_path: Path, predictor_path: Pa
     bad.write_bytes((tmp_path / "run" / "policy.zip").read_bytes()[:500])
     with pytest.raises(ValueError, match="corrupt or truncated"):
         read_meta(bad)
-    # weights whose names do not fit the network (an older version's): refused, not loaded half-random
+    # weights whose names do not fit the network: refused, not loaded half-random; those of a policy saved
+    # before the contact branch's layers were renumbered (4c56e3c: 0 and 2, now 1 and 3) load as saved
     import io
     import zipfile
 
-    renamed = tmp_path / "renamed.zip"
-    with zipfile.ZipFile(tmp_path / "run" / "policy.zip") as zin, zipfile.ZipFile(renamed, "w") as zout:
-        for item in zin.infolist():
-            data = zin.read(item.filename)
-            if item.filename == "policy.pth":
-                state = torch.load(io.BytesIO(data), weights_only=True)
-                buf = io.BytesIO()
-                torch.save({k.replace("current.net.1.", "current.net.0."): v for k, v in state.items()}, buf)
-                data = buf.getvalue()
-            zout.writestr(item, data)
+    def renamed(name: str, rename: dict[str, str]) -> Path:
+        out = tmp_path / name
+        with zipfile.ZipFile(tmp_path / "run" / "policy.zip") as zin, zipfile.ZipFile(out, "w") as zout:
+            for item in zin.infolist():
+                data = zin.read(item.filename)
+                if item.filename == "policy.pth":
+                    state = torch.load(io.BytesIO(data), weights_only=True)
+                    for old, new in rename.items():
+                        state = {k.replace(old, new): v for k, v in state.items()}
+                    buf = io.BytesIO()
+                    torch.save(state, buf)
+                    data = buf.getvalue()
+                zout.writestr(item, data)
+        return out
+
     with pytest.raises(ValueError, match="do not fit"):
-        load_policy(renamed)
+        load_policy(renamed("unknown.zip", {"current.net.1.": "current.net.7."}))
+    saved = load_policy(tmp_path / "run" / "policy.zip").model.policy.state_dict()
+    old_file = renamed("old.zip", {"current.net.1.": "current.net.0.", "current.net.3.": "current.net.2."})
+    with zipfile.ZipFile(old_file) as z:
+        assert any(".current.net.2." in k for k in torch.load(io.BytesIO(z.read("policy.pth")), weights_only=True))
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")  # no "loaded without exact match" warning either
+        migrated = load_policy(old_file).model.policy.state_dict()
+    assert migrated.keys() == saved.keys() and all(torch.equal(migrated[k], saved[k]) for k in saved)
 
 
 def test_warm_start_lowers_the_behaviour_cloning_loss(tmp_path: Path) -> None:

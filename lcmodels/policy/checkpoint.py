@@ -12,6 +12,7 @@ from __future__ import annotations
 import contextlib
 import json
 import os
+import re
 import warnings
 import zipfile
 from dataclasses import dataclass
@@ -99,6 +100,28 @@ def compatibility_problems(meta: dict[str, Any], *, obs_mode: str | None = None,
     return problems
 
 
+# Before commit 4c56e3c the sensor branch with contact features had no Flatten in front of its two
+# linear layers, so they were numbered 0 and 2 instead of 1 and 3.
+_OLD_CONTACT_LAYER = re.compile(r"(branches\.current\.net\.)([02])\.")
+
+
+def _load_renamed(model: BaseAlgorithm, path: str | os.PathLike[str], device: str) -> bool:
+    """Load the policy parameters of a checkpoint saved before a layer renumbering into ``model`` under
+    today's names; False when renaming does not make every parameter fit exactly (the file is refused)."""
+    from stable_baselines3.common.save_util import load_from_zip_file
+
+    _, params, _ = load_from_zip_file(path, device=device, load_data=False)
+    state = (params or {}).get("policy") or {}
+    renamed = {_OLD_CONTACT_LAYER.sub(lambda m: f"{m[1]}{int(m[2]) + 1}.", k): v for k, v in state.items()}
+    if renamed.keys() == state.keys() or renamed.keys() != model.policy.state_dict().keys():
+        return False
+    try:
+        model.policy.load_state_dict(renamed, strict=True)
+    except RuntimeError:  # a shape does not fit: not that network
+        return False
+    return True
+
+
 @dataclass
 class LoadedPolicy:
     model: BaseAlgorithm
@@ -163,6 +186,8 @@ def load_policy(path: str | os.PathLike[str], *, obs_mode: str | None = None,
         # SB3 loads weights whose names do not fit the network "without exact match", leaving those
         # layers at their random start: a policy that silently is not the one saved.
         if "exact_match" in str(w.message):
+            if _load_renamed(model, path, device):
+                continue
             detail = next((line.strip() for line in str(w.message).splitlines() if "Missing key" in line), "")
             raise ValueError(f"{path}: its weights do not fit this version's network (saved before a change to "
                              f"it?): {detail[:200]}")
