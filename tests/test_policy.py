@@ -502,6 +502,20 @@ def test_dagger_with_a_driver_as_the_expert_labels_every_state_with_its_decision
     with pytest.raises(ValueError, match="there, oracle asked"):
         dagger(tmp_path / "run", tmp_path / "dg", rounds=2, episodes=3, epochs=1, seed=7, workers=1,
                eval_episodes=0, resume=True)  # fmt: skip
+    with pytest.raises(ValueError, match=r"expert's lookahead: \{\} there"):
+        dagger(tmp_path / "run", tmp_path / "dg", rounds=2, episodes=3, epochs=1, seed=7, workers=1,
+               eval_episodes=0, expert=expert, expert_lookahead={"horizon_decisions": 2}, resume=True)  # fmt: skip
+    for bad, what in (({"expert": "oracle", "expert_lookahead": {"horizon_decisions": 2}}, "lookahead expert only"),
+                      ({"expert": f"lookahead:{policy}", "expert_lookahead": {"samples": 2}}, "samples")):
+        with pytest.raises(ValueError, match=what):
+            dagger(tmp_path / "run", tmp_path / "bad", rounds=1, episodes=3, epochs=1, seed=7, workers=1,
+                   eval_episodes=0, **bad)  # fmt: skip
+    short = collect_from_driver(policy, [7, 8, 9], expert, batch=3, lookahead={"horizon_decisions": 2})
+    records = dagger(tmp_path / "run", tmp_path / "dg-short", rounds=1, episodes=3, epochs=1, seed=7, workers=1,
+                     eval_episodes=0, expert=expert, expert_lookahead={"horizon_decisions": 2})  # fmt: skip
+    assert records[0]["expert_lookahead"] == {"horizon_decisions": 2}
+    with np.load(tmp_path / "dg-short" / "round1" / "states.npz") as kept:
+        assert np.array_equal(kept["labels"], short.labels)
 
 
 def test_a_lookahead_follows_a_policy_without_image_and_refuses_one_with(tmp_path: Path) -> None:

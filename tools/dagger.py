@@ -11,6 +11,8 @@ episodes. See lcmodels.policy.dagger.
     python tools/dagger.py runs/bc --rounds 2 --episodes 100 --out runs/bc-dagger
     python tools/dagger.py runs/bc --rounds 4 --episodes 100 --out runs/bc-dagger --resume   # rounds 3 and 4
     python tools/dagger.py runs/ppo --expert lookahead-blind:runs/ppo/policy.zip --out runs/ppo-improved
+    python tools/dagger.py runs/ppo --expert lookahead-blind:runs/ppo/policy.zip --lookahead-horizon 32 \
+        --out runs/ppo-improved-16s    # the planner imagining 16 s instead of 8 s
     lc-eval runs/bc-dagger/round4/policy.zip --episodes 200
 
 Outputs in --out: round<r>/policy.zip (loadable by lc-eval and lc-record --driver policy:...),
@@ -23,6 +25,7 @@ from __future__ import annotations
 import argparse
 import sys
 
+from lcmodels.cli import lookahead_options
 from lcmodels.policy.dagger import dagger
 
 
@@ -46,6 +49,10 @@ def main(argv: list[str] | None = None) -> int:
                     help="who labels the states: oracle (sees the whole future; default), or a driver as lc-eval "
                     "names it, e.g. lookahead-blind:runs/pure/policy.zip (the lookahead following that policy, "
                     "without foreseeing the traffic's random lane changes)")
+    ap.add_argument("--lookahead-horizon", type=int, default=None,
+                    help="a lookahead expert: decisions it imagines after each candidate one (default 16, i.e. 8 s)")
+    ap.add_argument("--lookahead-samples", type=int, default=None,
+                    help="a lookahead-blind expert: redrawn futures per candidate decision (default 1)")
     ap.add_argument("--correction-weight", type=float, default=1.0,
                     help="weight in training of a state whose label differs from the policy's own decision, "
                     "against 1 for one where they agree (1)")
@@ -65,6 +72,7 @@ def main(argv: list[str] | None = None) -> int:
         dagger(args.run, args.out, rounds=args.rounds, episodes=args.episodes, epochs=args.epochs, seed=args.seed,
                workers=args.workers, eval_episodes=args.eval_episodes, eval_seed=args.eval_seed, labels=args.labels,
                expert=args.expert, correction_weight=args.correction_weight, resume=args.resume,
+               expert_lookahead=lookahead_options(args),
                progress=lambda msg: print(msg, flush=True))  # fmt: skip
     except (ValueError, OSError) as exc:
         print(f"dagger: error: {str(exc).splitlines()[0]}", file=sys.stderr)

@@ -43,6 +43,7 @@ from lcmodels.policy.evaluate import PolicyDriver, evaluate
 from lcmodels.policy.obs import build_observation, mode_keys, scenario_for_mode
 from lcmodels.policy.warmstart import Demonstrations, every_tenth, load_demonstrations, pretrain
 from lcsim.core import KEEP, RUNNING, SUCCESS, LaneChangeCore
+from lcsim.drivers import LookaheadConfig
 from lcsim.oracle import search_from
 
 LABELS = ("plan", "winning")
@@ -127,19 +128,20 @@ def collect(policy_path: str | os.PathLike[str], user_seeds: Sequence[int], *,
 
 def collect_from_driver(policy_path: str | os.PathLike[str], user_seeds: Sequence[int], expert: str, *,
                         predictor: str | os.PathLike[str] | None = None, threads: int = 1,
-                        batch: int = 20) -> Collected:
+                        batch: int = 20, lookahead: dict[str, int] | None = None) -> Collected:
     """Drive one episode per user seed with the policy, ``batch`` at a time, and label every state with the
     decision of ``expert``, a driver spec of :func:`lcmodels.policy.evaluate.driver_for` (for example
     ``lookahead-blind:runs/pure/policy.zip``, which sees no more of the future than the policy could).
     Only states with a choice are kept: in the middle of a lane change the simulator ignores the decision,
-    and a label there ("keep") would teach the network something that matters nowhere."""
+    and a label there ("keep") would teach the network something that matters nowhere. ``lookahead``:
+    :class:`lcsim.drivers.LookaheadConfig` fields for a lookahead expert (as ``driver_for``'s)."""
     from lcmodels.policy.evaluate import driver_for
 
     torch.set_num_threads(threads)
     loaded = load_policy(policy_path, predictor=predictor)
     mode, model = loaded.obs_mode, loaded.model
     config = scenario_for_mode(loaded.scenario, mode)
-    teacher, teacher_config = driver_for(expert)
+    teacher, teacher_config = driver_for(expert, lookahead=lookahead)
     if teacher_config is not None and replace(teacher_config, render_image=False) != replace(config, render_image=False):
         raise ValueError(f"the expert {expert} was trained on another scenario than {policy_path}")
     keys = mode_keys(mode)
@@ -175,7 +177,7 @@ _STATES = "states.npz"
 
 
 def _finished_rounds(out: Path, run_dir: Path, *, episodes: int, seed: int, labels: str, expert: str,
-                    correction_weight: float) -> list[dict[str, Any]]:
+                    correction_weight: float, expert_lookahead: dict[str, int]) -> list[dict[str, Any]]:
     """The records of the rounds in ``out`` that can be resumed, checked against the arguments."""
     try:
         book = json.loads((out / "dagger.json").read_text())
@@ -190,7 +192,8 @@ def _finished_rounds(out: Path, run_dir: Path, *, episodes: int, seed: int, labe
     differs = [f"{name}: {have} there, {want} asked" for name, have, want in (
         ("episodes", first.get("episodes"), episodes), ("seed", first.get("user_seeds", [None])[0], seed),
         ("labels", first.get("labels"), labels), ("expert", first.get("expert", ORACLE), expert),
-        ("correction weight", first.get("correction_weight", 1.0), correction_weight)) if have != want]
+        ("correction weight", first.get("correction_weight", 1.0), correction_weight),
+        ("expert's lookahead", first.get("expert_lookahead", {}), expert_lookahead)) if have != want]
     if differs:
         raise ValueError(f"cannot resume {out}: " + "; ".join(differs))
     for record in records:
@@ -200,11 +203,11 @@ def _finished_rounds(out: Path, run_dir: Path, *, episodes: int, seed: int, labe
     return records
 
 
-def _collect_job(args: tuple[str, list[int], str | None, str, str]) -> Collected:
-    path, seeds, predictor, labels, expert = args
+def _collect_job(args: tuple[str, list[int], str | None, str, str, dict[str, int]]) -> Collected:
+    path, seeds, predictor, labels, expert, lookahead = args
     if expert == ORACLE:
         return collect(path, seeds, predictor=predictor, labels=labels)
-    return collect_from_driver(path, seeds, expert, predictor=predictor)
+    return collect_from_driver(path, seeds, expert, predictor=predictor, lookahead=lookahead)
 
 
 def dagger(
@@ -221,6 +224,7 @@ def dagger(
     labels: str = "plan",
     expert: str = ORACLE,
     correction_weight: float = 1.0,
+    expert_lookahead: dict[str, int] | None = None,
     resume: bool = False,
     progress: Callable[[str], None] | None = None,
 ) -> list[dict[str, Any]]:
@@ -239,6 +243,8 @@ def dagger(
         correction_weight: how much more a labelled state counts in training when its label differs from
             the decision the policy took there (a correction), than one where they agree. An expert
             that corrects one decision in a hundred needs this above 1 to be heard.
+        expert_lookahead: :class:`lcsim.drivers.LookaheadConfig` fields for a lookahead expert, for example
+            ``{"horizon_decisions": 32}`` (16 s); ``ValueError`` for an expert that is not a lookahead.
         resume: continue the rounds already in ``out`` (made with the same run, episodes, seed and labels)
             up to ``rounds`` in all: their labelled states rejoin the training set and the last round's
             policy is trained on. The result is the one an uninterrupted call gives (each round trains
@@ -252,12 +258,16 @@ def dagger(
         raise ValueError("rounds, episodes, epochs and workers must be >= 1")
     if not correction_weight > 0:
         raise ValueError(f"correction_weight must be > 0, got {correction_weight}")
+    expert_lookahead = dict(expert_lookahead or {})
+    if expert_lookahead and not expert.startswith("lookahead"):
+        raise ValueError(f"lookahead options apply to a lookahead expert only, not to {expert}")
+    LookaheadConfig(blind=expert.startswith("lookahead-blind"), **expert_lookahead)  # refuses impossible values now
     done: list[dict[str, Any]] = []
     if out.exists() and any(out.iterdir()):
         if not resume:
             raise FileExistsError(f"{out} exists and is not empty; choose a new directory, or resume its rounds")
         done = _finished_rounds(out, run_dir, episodes=episodes, seed=seed, labels=labels, expert=expert,
-                                correction_weight=correction_weight)
+                                correction_weight=correction_weight, expert_lookahead=expert_lookahead)
     elif resume:
         raise FileNotFoundError(f"{out} holds no DAgger rounds to resume")
     policy_path = run_dir / "policy.zip"
@@ -308,7 +318,7 @@ def dagger(
         seeds = [seed + (r - 1) * episodes + i for i in range(episodes)]
         parts = [seeds[i::workers] for i in range(workers) if seeds[i::workers]]
         with ProcessPoolExecutor(len(parts), mp_context=ctx) as pool:
-            got = list(pool.map(_collect_job, [(str(current), p, predictor, labels, expert) for p in parts]))
+            got = list(pool.map(_collect_job, [(str(current), p, predictor, labels, expert, expert_lookahead) for p in parts]))
         kept = [g for g in got if len(g.labels)]
         states = sum(len(g.labels) for g in kept)
         if kept:
@@ -339,7 +349,8 @@ def dagger(
         record: dict[str, Any] = {
             "round": r, "episodes": episodes, "user_seeds": [seeds[0], seeds[-1]], "states_labelled": states,
             "agreement": sum(g.agreed for g in got) / max(states, 1), "searches": sum(g.searches for g in got),
-            "labels": labels, "expert": expert, "correction_weight": correction_weight,
+            "labels": labels, "expert": expert, "expert_lookahead": expert_lookahead,
+            "correction_weight": correction_weight,
             "harmless_deviations": sum(g.harmless for g in got),
             "policy_success_in_collection": outcomes.count("success") / len(outcomes),
             "training_states": len(all_labels), "epoch_losses": losses, "collect_s": collect_s,
