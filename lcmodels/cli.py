@@ -11,6 +11,7 @@ import functools
 import json
 import logging
 import sys
+import time
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
@@ -414,13 +415,18 @@ def eval_main(argv: list[str] | None = None) -> int:
         seeds_file = ckpt.parent / "train_episode_seeds.npy"
         train_seeds = np.load(seeds_file) if seeds_file.exists() else None
     show = None if args.quiet else (lambda k, n: print(f"evaluating: {k}/{n} episodes", flush=True))
+    start = time.perf_counter()
     try:
-        summary, _ = evaluate(driver, config, episodes=args.episodes, seed=args.seed, out_dir=out,
-                              batch=args.batch, overwrite=args.overwrite, train_seeds=train_seeds,
-                              progress=show)  # fmt: skip
+        summary, results = evaluate(driver, config, episodes=args.episodes, seed=args.seed, out_dir=out,
+                                    batch=args.batch, overwrite=args.overwrite, train_seeds=train_seeds,
+                                    progress=show)  # fmt: skip
     except (ValueError, OSError) as exc:
         return fail(str(exc).splitlines()[0])
+    summary["wall_s"] = round(time.perf_counter() - start, 1)
+    summary["decisions"] = sum(r.length for r in results)
     print(_fmt_eval(summary))
+    print(f"{summary['decisions']} decisions in {summary['wall_s']} s ({args.batch} episodes at a time, "
+          f"{args.threads} torch threads)")
     if "overlap_with_training" in summary:
         print(f"evaluation episodes also seen in training: {summary['overlap_with_training']}")
     if out is not None:

@@ -379,6 +379,7 @@ def test_cli_train_and_eval_json(tmp_path: Path, capsys: pytest.CaptureFixture[s
                       "--no-record", "-q"]) == 0
     data = json.loads(js.read_text())
     assert EVAL_KEYS <= set(data) and data["episodes"] == 3 and data["overlap_with_training"] == 0
+    assert data["wall_s"] > 0 and data["decisions"] > data["episodes"]  # what the evaluation cost
     assert "success" in capsys.readouterr().out
     # bad input: one line, exit 2
     assert eval_main([str(tmp_path / "missing.zip")]) == 2
