@@ -318,7 +318,8 @@ def dagger(
         seeds = [seed + (r - 1) * episodes + i for i in range(episodes)]
         parts = [seeds[i::workers] for i in range(workers) if seeds[i::workers]]
         with ProcessPoolExecutor(len(parts), mp_context=ctx) as pool:
-            got = list(pool.map(_collect_job, [(str(current), p, predictor, labels, expert, expert_lookahead) for p in parts]))
+            jobs = [(str(current), p, predictor, labels, expert, expert_lookahead) for p in parts]
+            got = list(pool.map(_collect_job, jobs))
         kept = [g for g in got if len(g.labels)]
         states = sum(len(g.labels) for g in kept)
         if kept:

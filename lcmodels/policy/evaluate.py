@@ -232,15 +232,15 @@ def driver_for(spec: str, *, predictor: str | None = None, device: str = "cpu",
         driver = PolicyDriver(policy)
         config = driver.config
         if prefix != "policy:":
-            blind = LookaheadConfig(blind=prefix == "lookahead-blind:")
+            planner = LookaheadConfig(blind=prefix == "lookahead-blind:")
             if follow is not None:
-                driver = LookaheadDriver(blind, rule=_follower(follow, config, predictor, device), proposer=driver)
+                driver = LookaheadDriver(planner, rule=_follower(follow, config, predictor, device), proposer=driver)
             elif "image" in mode_keys(policy.obs_mode):
                 raise ValueError(f"{path}: a lookahead cannot follow a policy that reads the image (mode "
                                  f"{policy.obs_mode}): its imagined futures are not rendered; name a driver "
                                  "for them to follow (--lookahead-follow)")
             else:
-                driver = LookaheadDriver(blind, rule=driver)
+                driver = LookaheadDriver(planner, rule=driver)
     if follow is not None and prefix == "policy:":
         raise ValueError(f"a driver to follow applies to lookahead:POLICY / lookahead-blind:POLICY only, not to {spec}")
     if lookahead:
