@@ -424,9 +424,14 @@ def eval_main(argv: list[str] | None = None) -> int:
         return fail(str(exc).splitlines()[0])
     summary["wall_s"] = round(time.perf_counter() - start, 1)
     summary["decisions"] = sum(r.length for r in results)
+    if isinstance(getattr(driver, "overrides", None), int):  # a planner: how often it overrode its driver
+        summary["planner_choices"], summary["planner_overrides"] = driver.choices, driver.overrides
     print(_fmt_eval(summary))
     print(f"{summary['decisions']} decisions in {summary['wall_s']} s ({args.batch} episodes at a time, "
           f"{args.threads} torch threads)")
+    if "planner_overrides" in summary:
+        print(f"the planner overrode {summary['planner_overrides']} of {summary['planner_choices']} decisions "
+              "with a choice")
     if "overlap_with_training" in summary:
         print(f"evaluation episodes also seen in training: {summary['overlap_with_training']}")
     if out is not None:

@@ -152,6 +152,7 @@ class LookaheadDriver:
         self.config = config or LookaheadConfig()
         self.rule = rule or RuleBasedDriver()
         self.proposer = proposer
+        self.choices = self.overrides = 0  # decisions with a choice seen, and those where the planner overrode
         self._observe = bool(getattr(self.rule, "needs_observation", False))
         self.name = "lookahead-blind" if self.config.blind else "lookahead"
         if not isinstance(self.rule, RuleBasedDriver) or proposer is not None:
@@ -181,7 +182,8 @@ class LookaheadDriver:
     def __call__(self, obs: dict[str, np.ndarray], action_mask: np.ndarray, core: LaneChangeCore) -> np.ndarray:
         mask = np.asarray(action_mask, dtype=bool).reshape(-1, 3)
         planned = np.asarray((self.proposer or self.rule)(obs, mask, core), dtype=np.int64).reshape(len(mask))
-        choice = mask.sum(axis=1) > 1  # during a lane change only keep is allowed: nothing to look at
+        # during a lane change only keep is allowed, and an ended episode is frozen: nothing to look at
+        choice = (mask.sum(axis=1) > 1) & (core.outcome == RUNNING)
         if not choice.any():
             return planned
         alive = np.zeros(mask.shape)  # share of the imagined futures each decision survives
@@ -193,6 +195,8 @@ class LookaheadDriver:
         best = alive.max(axis=1)
         fallback = np.where(alive[:, KEEP] >= best, KEEP, alive.argmax(axis=1))  # keep, else the first best change
         override = choice & (alive[np.arange(len(planned)), planned] < best)
+        self.choices += int(choice.sum())
+        self.overrides += int(override.sum())
         return np.where(override, fallback, planned).astype(np.int64)
 
 

@@ -143,7 +143,7 @@ def test_lookahead_with_a_proposer_keeps_its_decision_unless_that_future_crashes
     proposer.last_prediction = np.zeros((4, 1, 1, 2))  # what a policy that predicts would expose
     driver = LookaheadDriver(LookaheadConfig(horizon_decisions=6, blind=True), proposer=proposer)
     assert driver.name == "random+lookahead-blind-rule" and driver.last_prediction is proposer.last_prediction
-    kept = vetoed = 0
+    kept = vetoed = choices = 0
     for _ in range(30):
         if (core.outcome != "").any():
             break
@@ -157,8 +157,10 @@ def test_lookahead_with_a_proposer_keeps_its_decision_unless_that_future_crashes
         stands = ok[rows, wanted] | ~ok.any(axis=1)  # the proposal survives, or nothing does
         assert np.array_equal(actions[stands], wanted[stands]) and ok[rows, actions][~stands].all()
         kept, vetoed = kept + int(stands.sum()), vetoed + int((~stands).sum())
+        choices += int((mask.sum(axis=1) > 1).sum())
         core.step(actions)
     assert kept > 0 and vetoed > 0  # random lane changes in dense traffic: some are doomed
+    assert (driver.overrides, driver.choices) == (vetoed, choices)  # what lc-eval reports of a planner
 
 
 def test_lookahead_config_refuses_samples_without_blindness():

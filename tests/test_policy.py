@@ -541,7 +541,9 @@ def test_a_lookahead_follows_a_policy_without_image_and_refuses_one_with(tmp_pat
     assert eval_main([f"lookahead:{image}", "--lookahead-follow", str(tmp_path / "missing.zip"), "--no-record"]) == 2
     assert eval_main([f"lookahead-blind:{image}", "--lookahead-follow", "rule", "--lookahead-horizon", "2",
                       "--episodes", "2", "--no-record", "--json-out", str(tmp_path / "guarded.json")]) == 0
-    assert json.loads((tmp_path / "guarded.json").read_text())["driver"] == "ppo-image+lookahead-blind-rule"
+    guarded_summary = json.loads((tmp_path / "guarded.json").read_text())
+    assert guarded_summary["driver"] == "ppo-image+lookahead-blind-rule"
+    assert 0 <= guarded_summary["planner_overrides"] <= guarded_summary["planner_choices"] <= guarded_summary["decisions"]
     assert eval_main([f"lookahead-blind:{tmp_path / 'missing.zip'}", "--no-record"]) == 2
     longer, _ = driver_for(f"lookahead-blind:{tmp_path / 'pure' / 'policy.zip'}",
                            lookahead={"horizon_decisions": 3, "samples": 2})  # fmt: skip
