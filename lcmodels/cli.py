@@ -301,7 +301,8 @@ def _fmt_eval(ev: dict) -> str:
 EVAL_EPILOG = """examples:
   lc-eval runs/hybrid-ppo/policy.zip --episodes 200 --seed 0 --json-out runs/hybrid-ppo/eval200.json
   lc-eval rule --episodes 200 --out runs/rule-eval
-  lc-eval lookahead-blind:runs/hybrid-ppo/policy.zip --lookahead-follow rule --lookahead-horizon 32 --no-record
+  lc-eval lookahead-blind:runs/hybrid-ppo/policy.zip --lookahead-follow runs/ppo-pure/policy.zip \\
+      --lookahead-horizon 32 --no-record     # Hybrid-PPO behind the planner, imagining 16 s with the pure policy
 
 Evaluation episode i uses the user seed 1000000000 + 100000 * SEED + i, disjoint from training seeds.
 Prints outcome rates (fractions) and means with 95% intervals; --json-out writes them as JSON; every
