@@ -384,7 +384,7 @@ def eval_main(argv: list[str] | None = None) -> int:
 
     from lcmodels.policy.evaluate import driver_for, evaluate, policy_path_of
     from lcmodels.policy.train import POLICY_SCENARIOS
-    from lcsim.drivers import DRIVER_NAMES
+    from lcsim.drivers import DRIVER_NAMES, LookaheadDriver
 
     is_driver = args.policy in DRIVER_NAMES
     ckpt = policy_path_of(args.policy)
@@ -425,7 +425,7 @@ def eval_main(argv: list[str] | None = None) -> int:
         return fail(str(exc).splitlines()[0])
     summary["wall_s"] = round(time.perf_counter() - start, 1)
     summary["decisions"] = sum(r.length for r in results)
-    if isinstance(getattr(driver, "overrides", None), int):  # a planner: how often it overrode its driver
+    if isinstance(driver, LookaheadDriver):  # a planner: how often it overrode the driver it checks
         summary["planner_choices"], summary["planner_overrides"] = driver.choices, driver.overrides
     print(_fmt_eval(summary))
     print(f"{summary['decisions']} decisions in {summary['wall_s']} s ({args.batch} episodes at a time, "

@@ -223,11 +223,11 @@ def driver_for(spec: str, *, predictor: str | None = None, device: str = "cpu",
     from lcmodels.policy.checkpoint import load_policy
     from lcsim.drivers import DRIVER_NAMES, LookaheadConfig, LookaheadDriver, make_driver
 
-    prefix = (split_policy_spec(spec) or ("policy:", spec))[0]
+    prefix, name = split_policy_spec(spec) or ("policy:", spec)
     if spec in DRIVER_NAMES:
         driver, config = make_driver(spec), None
     else:
-        path = policy_path_of(spec)
+        path = Path(name)
         policy = load_policy(path, predictor=predictor, device=device)
         driver = PolicyDriver(policy)
         config = driver.config
