@@ -153,6 +153,9 @@ class LookaheadDriver:
         self.rule = rule or RuleBasedDriver()
         self.proposer = proposer
         self.choices = self.overrides = 0  # decisions with a choice seen, and those where the planner overrode
+        self.last_alive: np.ndarray | None = None
+        """``(E, 3)`` after each call: the share of imagined futures each decision survived, NaN where it was
+        not imagined (not allowed, or no choice to make): the labels a learned safety critic is fitted to."""
         self._observe = bool(getattr(self.rule, "needs_observation", False))
         self.name = "lookahead-blind" if self.config.blind else "lookahead"
         if not isinstance(self.rule, RuleBasedDriver) or proposer is not None:
@@ -184,6 +187,7 @@ class LookaheadDriver:
         planned = np.asarray((self.proposer or self.rule)(obs, mask, core), dtype=np.int64).reshape(len(mask))
         # during a lane change only keep is allowed, and an ended episode is frozen: nothing to look at
         choice = (mask.sum(axis=1) > 1) & (core.outcome == RUNNING)
+        self.last_alive = np.full(mask.shape, np.nan)
         if not choice.any():
             return planned
         alive = np.zeros(mask.shape)  # share of the imagined futures each decision survives
@@ -192,6 +196,8 @@ class LookaheadDriver:
                 actions = np.where(mask[:, action], action, KEEP)
                 for salt in range(1, self.config.samples + 1):
                     alive[:, action] += self.survives(core, actions, salt) & mask[:, action]
+        alive /= self.config.samples
+        self.last_alive = np.where(mask & choice[:, None], alive, np.nan)
         best = alive.max(axis=1)
         fallback = np.where(alive[:, KEEP] >= best, KEEP, alive.argmax(axis=1))  # keep, else the first best change
         override = choice & (alive[np.arange(len(planned)), planned] < best)

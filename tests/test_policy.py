@@ -484,9 +484,13 @@ def test_dagger_with_a_driver_as_the_expert_labels_every_state_with_its_decision
         with_choice += int(((core.outcome == RUNNING) & (mask.sum(axis=1) > 1)).sum())
         core.step(drv(core.observe(), mask, core))
     assert len(keep.labels) == with_choice < decisions  # mid-change states (no choice) are not kept
-    assert (keep.labels == KEEP).all() and keep.agreed <= len(keep.labels)
+    assert (keep.labels == KEEP).all() and keep.agreed <= len(keep.labels) and keep.alive is None
     expert = f"lookahead-blind:{policy}"
     got = collect_from_driver(policy, [7, 8, 9], expert, batch=2)
+    assert got.alive.shape == (len(got.labels), 3) and not np.isnan(got.alive[:, KEEP]).any()
+    rows = np.arange(len(got.labels))  # the planner's decision survives as many imagined futures as the best one
+    # (a decision the simulator does not allow, as an untrained policy proposes, stands only when nothing survives)
+    assert np.array_equal(np.nan_to_num(got.alive)[rows, got.labels], np.nanmax(got.alive, axis=1))
     assert np.array_equal(got.obs["current"], keep.obs["current"])  # the policy drives: the same states
     again = collect_from_driver(policy, [7, 8, 9], expert, batch=3)  # batching does not change a label
     assert np.array_equal(np.sort(again.labels), np.sort(got.labels)) and again.agreed == got.agreed

@@ -43,7 +43,7 @@ from lcmodels.policy.evaluate import PolicyDriver, evaluate
 from lcmodels.policy.obs import build_observation, mode_keys, scenario_for_mode
 from lcmodels.policy.warmstart import Demonstrations, every_tenth, load_demonstrations, pretrain
 from lcsim.core import KEEP, RUNNING, SUCCESS, LaneChangeCore
-from lcsim.drivers import LookaheadConfig
+from lcsim.drivers import LookaheadConfig, LookaheadDriver
 from lcsim.oracle import search_from
 
 LABELS = ("plan", "winning")
@@ -66,6 +66,9 @@ class Collected:
     harmless: int = 0
     """Decisions off the oracle's plan after which the episode could still be won (those states carry the
     policy's own decision as their label when ``labels="winning"``)."""
+    alive: np.ndarray | None = None
+    """``(N, 3)`` for a lookahead expert: the share of its imagined futures each decision survived in each
+    state (:attr:`lcsim.drivers.LookaheadDriver.last_alive`; NaN for a decision not allowed there)."""
 
 
 def collect(policy_path: str | os.PathLike[str], user_seeds: Sequence[int], *,
@@ -134,7 +137,8 @@ def collect_from_driver(policy_path: str | os.PathLike[str], user_seeds: Sequenc
     ``lookahead-blind:runs/pure/policy.zip``, which sees no more of the future than the policy could).
     Only states with a choice are kept: in the middle of a lane change the simulator ignores the decision,
     and a label there ("keep") would teach the network something that matters nowhere. ``lookahead``:
-    :class:`lcsim.drivers.LookaheadConfig` fields for a lookahead expert (as ``driver_for``'s)."""
+    :class:`lcsim.drivers.LookaheadConfig` fields for a lookahead expert (as ``driver_for``'s), whose
+    survival of each decision is kept too (``Collected.alive``)."""
     from lcmodels.policy.evaluate import driver_for
 
     torch.set_num_threads(threads)
@@ -148,6 +152,7 @@ def collect_from_driver(policy_path: str | os.PathLike[str], user_seeds: Sequenc
     rows: dict[str, list[np.ndarray]] = {k: [] for k in keys}
     labels_: list[np.ndarray] = []
     own: list[np.ndarray] = []
+    alive: list[np.ndarray] = []
     agreed = 0
     outcomes: list[str] = []
     for start in range(0, len(user_seeds), batch):
@@ -160,6 +165,8 @@ def collect_from_driver(policy_path: str | os.PathLike[str], user_seeds: Sequenc
             pobs = build_observation(obs, mode, loaded.predictor)
             actions = np.asarray(model.predict(pobs, deterministic=True)[0], dtype=np.int64).reshape(-1)
             label = np.asarray(teacher(obs, mask, core), dtype=np.int64).reshape(-1)[live]
+            if isinstance(teacher, LookaheadDriver):
+                alive.append(teacher.last_alive[live])
             for k in keys:
                 rows[k].append(pobs[k][live])
             labels_.append(label)
@@ -170,7 +177,8 @@ def collect_from_driver(policy_path: str | os.PathLike[str], user_seeds: Sequenc
     obs_ = {k: np.concatenate(v) if v else np.zeros((0,)) for k, v in rows.items()}
     labels = np.concatenate(labels_) if labels_ else np.zeros(0, dtype=np.int64)
     actions_ = np.concatenate(own) if own else np.zeros(0, dtype=np.int64)
-    return Collected(obs_, labels, agreed, 0, outcomes, actions_)
+    survived = np.concatenate(alive) if alive else (np.zeros((0, 3)) if isinstance(teacher, LookaheadDriver) else None)
+    return Collected(obs_, labels, agreed, 0, outcomes, actions_, alive=survived)
 
 
 _STATES = "states.npz"
