@@ -204,11 +204,15 @@ class CriticGuard:
         return np.where(override, fallback, actions).astype(np.int64)
 
 
-def _collect_job(job: tuple[str, list[int], str, dict[str, int]]) -> Any:
+def _collect_job(job: tuple[int, str, list[int], str, dict[str, int]]) -> Any:
     from lcmodels.policy.dagger import collect_from_driver
 
-    policy, seeds, expert, lookahead = job
-    return collect_from_driver(policy, seeds, expert, lookahead=lookahead)
+    worker, policy, seeds, expert, lookahead = job
+
+    def show(done: int, total: int) -> None:
+        print(f"collecting: worker {worker}: {done}/{total} episodes", flush=True)
+
+    return collect_from_driver(policy, seeds, expert, lookahead=lookahead, progress=show)
 
 
 def _summary(alive: np.ndarray, actions: np.ndarray) -> dict[str, Any]:
@@ -275,7 +279,7 @@ def train_main(args: argparse.Namespace, prog: str) -> int:
             with ProcessPoolExecutor(len(parts), mp_context=multiprocessing.get_context("spawn")) as pool:
                 got = []
                 for k, g in enumerate(
-                    pool.map(_collect_job, [(str(args.policy), p, args.expert, lookahead) for p in parts])
+                    pool.map(_collect_job, [(k + 1, str(args.policy), p, args.expert, lookahead) for k, p in enumerate(parts)])
                 ):
                     got.append(g)
                     print(

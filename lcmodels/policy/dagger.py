@@ -131,14 +131,16 @@ def collect(policy_path: str | os.PathLike[str], user_seeds: Sequence[int], *,
 
 def collect_from_driver(policy_path: str | os.PathLike[str], user_seeds: Sequence[int], expert: str, *,
                         predictor: str | os.PathLike[str] | None = None, threads: int = 1,
-                        batch: int = 20, lookahead: dict[str, int] | None = None) -> Collected:
+                        batch: int = 20, lookahead: dict[str, int] | None = None,
+                        progress: Callable[[int, int], None] | None = None) -> Collected:
     """Drive one episode per user seed with the policy, ``batch`` at a time, and label every state with the
     decision of ``expert``, a driver spec of :func:`lcmodels.policy.evaluate.driver_for` (for example
     ``lookahead-blind:runs/pure/policy.zip``, which sees no more of the future than the policy could).
     Only states with a choice are kept: in the middle of a lane change the simulator ignores the decision,
     and a label there ("keep") would teach the network something that matters nowhere. ``lookahead``:
     :class:`lcsim.drivers.LookaheadConfig` fields for a lookahead expert (as ``driver_for``'s), whose
-    survival of each decision is kept too (``Collected.alive``)."""
+    survival of each decision is kept too (``Collected.alive``). ``progress`` is called with (episodes done,
+    episodes) after each batch."""
     from lcmodels.policy.evaluate import driver_for
 
     torch.set_num_threads(threads)
@@ -174,6 +176,8 @@ def collect_from_driver(policy_path: str | os.PathLike[str], user_seeds: Sequenc
             agreed += int((label == actions[live]).sum())
             core.step(actions)
         outcomes += [str(o) for o in core.outcome]
+        if progress is not None:
+            progress(len(outcomes), len(user_seeds))
     obs_ = {k: np.concatenate(v) if v else np.zeros((0,)) for k, v in rows.items()}
     labels = np.concatenate(labels_) if labels_ else np.zeros(0, dtype=np.int64)
     actions_ = np.concatenate(own) if own else np.zeros(0, dtype=np.int64)
