@@ -167,6 +167,10 @@ def test_cli_trains_and_evaluates_and_refuses_bad_input(
         == 0
     )
     assert json.loads((refit / "critic.json").read_text())["labels"] == meta["labels"]
+    both = tmp_path / "both"  # two state files together: twice the states
+    assert main(["train", policy, "--from-states", str(out / "states.npz"), str(out / "states.npz"),
+                 "--epochs", "1", "--out", str(both)]) == 0  # fmt: skip
+    assert json.loads((both / "critic.json").read_text())["labels"]["states"] == 2 * meta["labels"]["states"]
     capsys.readouterr()
     assert main(["score", "--critic", str(out / "critic.pt"), "--states", str(out / "states.npz")]) == 0
     scored = json.loads(capsys.readouterr().out)

@@ -11,7 +11,8 @@ a choice, whether the imagined future after right / keep / left crashed, three l
 every state with a choice by the expert's imagined futures (:attr:`lcsim.drivers.LookaheadDriver.last_alive`),
 keeps them in ``OUT/states.npz`` and fits ``--members`` critics (``current`` with contact features, an
 MLP, three logits of the probability that each decision's future crashes) to them: ``OUT/critic.pt``,
-with what was measured in ``OUT/critic.json``. ``--from-states FILE`` refits on states kept before.
+with what was measured in ``OUT/critic.json``. ``--from-states FILE [FILE ...]`` refits on states kept before
+(of several runs together: another policy's states, other episodes).
 
 ``score`` says how well a critic separates the labels of states kept by another ``train`` (other episodes).
 
@@ -245,14 +246,15 @@ def train_main(args: argparse.Namespace, prog: str) -> int:
     }
     t0 = time.perf_counter()
     if args.from_states is not None:
-        try:
-            with np.load(args.from_states) as kept:
-                current, alive, actions = kept["current"], kept["alive"], kept["actions"]
-        except (OSError, ValueError, KeyError, EOFError) as exc:
-            return _fail(
-                prog, f"{args.from_states}: not readable states of this tool ({str(exc).splitlines()[0]})"
-            )
-        meta["states_from"] = str(args.from_states)
+        parts = []
+        for path in args.from_states:
+            try:
+                with np.load(path) as kept:
+                    parts.append((kept["current"], kept["alive"], kept["actions"]))
+            except (OSError, ValueError, KeyError, EOFError) as exc:
+                return _fail(prog, f"{path}: not readable states of this tool ({str(exc).splitlines()[0]})")
+        current, alive, actions = (np.concatenate(column) for column in zip(*parts, strict=True))
+        meta["states_from"] = [str(p) for p in args.from_states]
     else:
         from lcmodels.policy.checkpoint import read_meta
         from lcmodels.policy.evaluate import driver_for
@@ -447,7 +449,8 @@ def parser() -> argparse.ArgumentParser:
         "--seed", type=int_at_least(0), default=0, help="torch seed of the first critic (default 0)"
     )
     t.add_argument(
-        "--from-states", type=Path, default=None, help="fit to a states.npz kept before; collect nothing"
+        "--from-states", type=Path, nargs="+", default=None,
+        help="fit to the states.npz files kept before, together; collect nothing"
     )
     t.add_argument(
         "--out", type=Path, required=True, help="new directory for states.npz, critic.pt, critic.json"
