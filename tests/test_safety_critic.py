@@ -183,19 +183,14 @@ def test_cli_trains_and_evaluates_and_refuses_bad_input(
         abs(sum(got[k] for k in ("success_rate", "collision_rate", "off_road_rate", "timeout_rate")) - 1)
         < 1e-9
     )
+    CriticEnsemble([SafetyCritic(4, hidden=8)]).save(tmp_path / "slots4.pt")
     for bad in (
         ["train", policy, "--expert", "rule", "--out", str(tmp_path / "a")],  # not a lookahead
         ["train", str(tmp_path / "missing.zip"), "--out", str(tmp_path / "b")],
-        [
-            "train",
-            policy,
-            "--expert",
-            f"lookahead:{policy}",
-            "--out",
-            str(out),
-        ],  # not empty: never overwritten
+        ["train", policy, "--expert", f"lookahead:{policy}", "--out", str(out)],  # not empty: never overwritten
         ["train", policy, "--from-states", str(out / "critic.json"), "--out", str(tmp_path / "c")],
         ["eval", policy, "--critic", str(tmp_path / "missing.pt")],
+        ["eval", policy, "--critic", str(tmp_path / "slots4.pt")],  # made for another number of neighbours
         ["eval", policy, "--critic", str(out / "critic.pt"), "--threshold", "1.5"],
     ):
         assert main(bad) == 2, bad

@@ -384,6 +384,9 @@ def eval_main(args: argparse.Namespace, prog: str) -> int:
         driver, config = heldout_driver(args)
     except ValueError as exc:
         return _fail(prog, str(exc).splitlines()[0])
+    if critic.members[0].slots != config.num_neighbours:
+        return _fail(prog, f"{args.critic} reads {critic.members[0].slots} neighbour slots, the scenario of "
+                     f"{args.policy} has {config.num_neighbours}")
     guard = CriticGuard(driver, critic, threshold=args.threshold, margin=args.margin)
     t0 = time.perf_counter()
     summary, results = evaluate(guard, config, episodes=args.episodes, seed=args.seed, batch=args.batch)
