@@ -119,20 +119,12 @@ def crash_targets(alive: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     return np.where(seen, 1.0 - np.nan_to_num(alive), 0.0).astype(np.float32), seen.astype(np.float32)
 
 
-def critic_loss(critic: SafetyCritic | CriticEnsemble, current: np.ndarray, alive: np.ndarray) -> float:
-    """Mean binary cross-entropy over the imagined decisions (the ensemble's mean probability)."""
+def critic_loss(critic: CriticEnsemble, current: np.ndarray, alive: np.ndarray) -> float:
+    """Mean binary cross-entropy of the ensemble's mean probability over the imagined decisions."""
     target, weight = crash_targets(alive)
-    if isinstance(critic, CriticEnsemble):
-        p = torch.as_tensor(critic.crash_probability(current)).clamp(1e-7, 1 - 1e-7)
-        loss = nn.functional.binary_cross_entropy(
-            p, torch.as_tensor(target), weight=torch.as_tensor(weight), reduction="sum"
-        )
-    else:
-        with torch.no_grad():
-            logits = critic(torch.as_tensor(np.asarray(current, dtype=np.float32)))
-        loss = nn.functional.binary_cross_entropy_with_logits(
-            logits, torch.as_tensor(target), weight=torch.as_tensor(weight), reduction="sum"
-        )
+    p = torch.as_tensor(critic.crash_probability(current)).clamp(1e-7, 1 - 1e-7)
+    loss = nn.functional.binary_cross_entropy(p, torch.as_tensor(target), weight=torch.as_tensor(weight),
+                                              reduction="sum")
     return float(loss) / max(float(weight.sum()), 1.0)
 
 
@@ -216,12 +208,16 @@ def _collect_job(job: tuple[int, str, list[int], str, dict[str, int]]) -> Any:
     return collect_from_driver(policy, seeds, expert, lookahead=lookahead, progress=show)
 
 
+def _overridable(alive: np.ndarray, actions: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """``(doomed, overridable)``: no imagined future survives the policy's decision; and, of those, the ones
+    where another decision's does (where the planner would override)."""
+    doomed = alive[np.arange(len(actions)), actions] == 0
+    return doomed, doomed & (np.nanmax(np.where(np.isnan(alive), -1.0, alive), axis=1) > 0)
+
+
 def _summary(alive: np.ndarray, actions: np.ndarray) -> dict[str, Any]:
     """What the labels say about the policy's own decisions."""
-    rows = np.arange(len(actions))
-    own = alive[rows, actions]
-    doomed = own == 0
-    alternative = np.nanmax(np.where(np.isnan(alive), -1.0, alive), axis=1) > 0
+    doomed, overridable = _overridable(alive, actions)
     imagined = ~np.isnan(alive)
     return {
         "states": len(actions),
@@ -229,8 +225,8 @@ def _summary(alive: np.ndarray, actions: np.ndarray) -> dict[str, Any]:
             float(1 - alive[imagined[:, a], a].mean()) if imagined[:, a].any() else None for a in range(3)
         ],
         "doomed_decisions": int(doomed.sum()),
-        "doomed_with_a_surviving_alternative": int((doomed & alternative).sum()),
-        "of_which_keep": int((doomed & alternative & (actions == KEEP)).sum()),
+        "doomed_with_a_surviving_alternative": int(overridable.sum()),
+        "of_which_keep": int((overridable & (actions == KEEP)).sum()),
     }
 
 
@@ -349,7 +345,7 @@ def score_states(critic: CriticEnsemble, current: np.ndarray, alive: np.ndarray,
     crash = np.nan_to_num(alive) < 0.5
     rows = np.arange(len(actions))
     own = p[rows, actions]
-    overridable = (alive[rows, actions] == 0) & (np.nanmax(np.where(imagined, alive, -1.0), axis=1) > 0)
+    overridable = _overridable(alive, actions)[1]
     return {
         "states": len(actions),
         "loss": critic_loss(critic, current, alive),

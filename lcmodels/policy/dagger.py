@@ -154,7 +154,8 @@ def collect_from_driver(policy_path: str | os.PathLike[str], user_seeds: Sequenc
     rows: dict[str, list[np.ndarray]] = {k: [] for k in keys}
     labels_: list[np.ndarray] = []
     own: list[np.ndarray] = []
-    alive: list[np.ndarray] = []
+    # the lookahead's survival of each decision, kept alongside its labels
+    alive: list[np.ndarray] | None = [np.zeros((0, 3))] if isinstance(teacher, LookaheadDriver) else None
     agreed = 0
     outcomes: list[str] = []
     for start in range(0, len(user_seeds), batch):
@@ -167,7 +168,7 @@ def collect_from_driver(policy_path: str | os.PathLike[str], user_seeds: Sequenc
             pobs = build_observation(obs, mode, loaded.predictor)
             actions = np.asarray(model.predict(pobs, deterministic=True)[0], dtype=np.int64).reshape(-1)
             label = np.asarray(teacher(obs, mask, core), dtype=np.int64).reshape(-1)[live]
-            if isinstance(teacher, LookaheadDriver):
+            if alive is not None:
                 alive.append(teacher.last_alive[live])
             for k in keys:
                 rows[k].append(pobs[k][live])
@@ -181,8 +182,7 @@ def collect_from_driver(policy_path: str | os.PathLike[str], user_seeds: Sequenc
     obs_ = {k: np.concatenate(v) if v else np.zeros((0,)) for k, v in rows.items()}
     labels = np.concatenate(labels_) if labels_ else np.zeros(0, dtype=np.int64)
     actions_ = np.concatenate(own) if own else np.zeros(0, dtype=np.int64)
-    survived = np.concatenate(alive) if alive else (np.zeros((0, 3)) if isinstance(teacher, LookaheadDriver) else None)
-    return Collected(obs_, labels, agreed, 0, outcomes, actions_, alive=survived)
+    return Collected(obs_, labels, agreed, 0, outcomes, actions_, alive=None if alive is None else np.concatenate(alive))
 
 
 _STATES = "states.npz"
