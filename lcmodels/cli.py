@@ -183,6 +183,10 @@ def train_policy_parser() -> argparse.ArgumentParser:
                    help="the 8 vehicles the observation shows: lanes (leader and follower in the ego's lane and "
                    "the lanes beside it, then the second leaders beside it) or nearest (the 8 nearest by "
                    "distance) (default %(default)s)")
+    p.add_argument("--slots", type=_positive_int, default=d.slots,
+                   help="how many vehicles the observation shows: the paper's 8, or with --neighbours lanes up to "
+                   "16, the slots after the eighth a wider view (the leader's leaders, the second followers beside "
+                   "the ego, leader and follower two lanes over) (default %(default)s)")
     p.add_argument("--timesteps", type=int_at_least(0), default=d.timesteps,
                    help="online decisions over all envs; 0 with --warm-start: behaviour cloning only, no online "
                    "training (default %(default)s)")
@@ -255,6 +259,7 @@ def train_policy_main(argv: list[str] | None = None) -> int:
     try:
         cfg = PolicyConfig(
             algo=args.algo, obs=args.obs, scenario=args.scenario, neighbours=args.neighbours,
+            slots=args.slots,
             timesteps=args.timesteps, n_envs=args.n_envs,
             seed=args.seed, image_net=args.image_net, contact_features=args.contact_features,
             learning_rate=learning_rate,

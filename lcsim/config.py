@@ -168,6 +168,12 @@ LANE_SLOTS: tuple[tuple[int, bool, int], ...] = (
     (-1, True, 1), (-1, False, 1),    # ... in the lane to its right
     (1, True, 1), (1, False, 1),      # ... in the lane to its left
     (-1, True, 2), (1, True, 2),      # the second leaders right and left: how long the gap there is
+    # Wider views (num_neighbours up to 16): what the next 10-20 s bring, beyond the gaps beside the ego.
+    (0, True, 2),                     # the leader's leader: a queue closing up ahead
+    (-1, False, 2), (1, False, 2),    # the second followers right and left
+    (-2, True, 1), (-2, False, 1),    # leader and follower two lanes right: who may move in beside the ego
+    (2, True, 1), (2, False, 1),      # ... two lanes left
+    (0, True, 3),                     # the third leader in the ego's lane
 )
 
 # The paper's gains. Its Ki/Kd labels may be swapped relative to CARLA's BasicAgent code
@@ -298,8 +304,8 @@ class ScenarioConfig(_JsonMixin):
     neighbour_selection: str = "lanes"
     """Which K vehicles the observation shows (within ``sensing_range_m``): ``lanes`` (fixed slots: the
     leader and follower in the ego's lane and in the lanes right and left of it, then the second leaders
-    right and left; :data:`LANE_SLOTS`; K <= 8) or ``nearest`` (the K nearest by distance,
-    nearest first). PPO on ``pure`` observations won 59.0% of the held-out episodes with ``lanes`` and
+    right and left; :data:`LANE_SLOTS`; K <= 16, the slots after the eighth a wider view) or ``nearest``
+    (the K nearest by distance, nearest first). PPO on ``pure`` observations won 59.0% of the held-out episodes with ``lanes`` and
     25.5% with ``nearest`` (300k steps, docs/simulator.md). Configs stored before this field existed
     read as ``nearest``."""
     sensing_range_m: float = 80.0

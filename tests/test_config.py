@@ -27,7 +27,7 @@ def test_json_round_trip():
     (lambda: ScenarioConfig(traffic=TrafficConfig(num_vehicles=2000)), "num_vehicles"),
     (lambda: ScenarioConfig(ego=EgoConfig(start_lane=4)), "start_lane"),
     (lambda: ScenarioConfig(neighbour_selection="closest"), "neighbour_selection"),
-    (lambda: ScenarioConfig(num_neighbours=9), "num_neighbours"),  # 8 lane slots
+    (lambda: ScenarioConfig(num_neighbours=17), "num_neighbours"),  # 16 lane slots
 ])
 def test_bad_values_raise_naming_the_field(factory, field):
     with pytest.raises(ValueError, match=field):

@@ -162,6 +162,21 @@ def test_short_training_saves_loads_and_evaluates(tmp_path: Path, predictor_path
     assert rows[0].startswith("timesteps,wall_s") and len(rows) >= 2
 
 
+def test_wider_slots_train_load_and_refuse_the_paper_count(tmp_path: Path, predictor_path: Path) -> None:
+    """16 lane slots (--slots 16): the observation, the prediction of each slot and the checkpoint follow."""
+    res = train_policy(_tiny(obs="hybrid", slots=16, timesteps=64, n_steps=16, batch_size=32, eval_episodes=2),
+                       tmp_path, predictor=predictor_path)
+    assert res.metrics["eval"]["episodes"] == 2
+    loaded = load_policy(tmp_path / "policy.zip")
+    assert loaded.scenario.num_neighbours == 16
+    space = loaded.model.observation_space
+    assert space["current"].shape == (17, 9) and space["prediction"].shape[0] == 16
+    with pytest.raises(ValueError, match="num_neighbours"):
+        load_policy(tmp_path / "policy.zip", scenario=_tiny(obs="hybrid").scenario_config())
+    with pytest.raises(ValueError, match="slots"):
+        _tiny(obs="pure", slots=17)
+
+
 def test_same_seed_same_policy(tmp_path: Path) -> None:
     a = train_policy(_tiny(obs="pure", eval_episodes=0), tmp_path / "a")
     b = train_policy(_tiny(obs="pure", eval_episodes=0), tmp_path / "b")
@@ -331,6 +346,9 @@ def test_demonstrations_are_observed_the_policys_way(tmp_path: Path) -> None:
     as_recorded = np.concatenate([np.stack([o["current"] for _, o in rebuild_observations(e)]) for e in episodes])
     assert np.array_equal(demos.obs["current"], as_lanes)
     assert not np.array_equal(as_lanes, as_recorded)  # the two selections do show other vehicles here
+    wide = load_demonstrations(tmp_path / "demos", "pure", None, scenario=dataclasses.replace(lanes, num_neighbours=16))
+    assert wide.obs["current"].shape[1:] == (17, 9)  # recorded with 8 slots, observed with 16
+    assert np.array_equal(wide.obs["current"][:, :9], as_lanes)
     with pytest.raises(ValueError, match="another scenario"):  # a change to the episode itself is refused
         load_demonstrations(tmp_path / "demos", "pure", None, scenario=dataclasses.replace(lanes, time_limit_s=30.0))
 

@@ -59,6 +59,7 @@ from lcmodels.policy.obs import (
 from lcmodels.predictor.inference import Predictor
 from lcsim import light_scenario
 from lcsim.config import (
+    LANE_SLOTS,
     NEIGHBOUR_SELECTIONS,
     ScenarioConfig,
     TrafficConfig,
@@ -120,6 +121,10 @@ class PolicyConfig(_JsonMixin):
     seed: int = 0
     neighbours: str = "lanes"
     """Which vehicles the observation shows (``ScenarioConfig.neighbour_selection``): ``lanes`` or ``nearest``."""
+    slots: int = 8
+    """How many (``ScenarioConfig.num_neighbours``): the paper's 8, or with ``lanes`` up to 16, the slots
+    after the eighth a wider view (:data:`lcsim.config.LANE_SLOTS`). The predictor, which has no slot
+    embedding, predicts each shown vehicle with the others as context, however many."""
     image_net: str = "compact"
     image_features: int = 10
     contact_features: bool = True
@@ -167,6 +172,10 @@ class PolicyConfig(_JsonMixin):
                self.scenario)  # fmt: skip
         _check(self.neighbours in NEIGHBOUR_SELECTIONS, self, "neighbours",
                f"must be one of {', '.join(NEIGHBOUR_SELECTIONS)}", self.neighbours)
+        _check(isinstance(self.slots, int) and self.slots >= 1, self, "slots", "must be an integer >= 1",
+               self.slots)
+        _check(self.neighbours != "lanes" or self.slots <= len(LANE_SLOTS), self, "slots",
+               f"must be <= {len(LANE_SLOTS)} with neighbours='lanes'", self.slots)
         _check(self.image_net in IMAGE_NETS, self, "image_net", f"must be one of {', '.join(IMAGE_NETS)}",
                self.image_net)  # fmt: skip
         _positive(self, "n_envs", "image_features", "learning_rate", "n_steps", "batch_size",
@@ -189,7 +198,8 @@ class PolicyConfig(_JsonMixin):
                self.seed)  # fmt: skip
 
     def scenario_config(self) -> ScenarioConfig:
-        base = dataclasses.replace(POLICY_SCENARIOS[self.scenario](), neighbour_selection=self.neighbours)
+        base = dataclasses.replace(POLICY_SCENARIOS[self.scenario](), neighbour_selection=self.neighbours,
+                                   num_neighbours=self.slots)
         return scenario_for_mode(base, self.obs)
 
 
