@@ -200,6 +200,8 @@ def train_policy_parser() -> argparse.ArgumentParser:
     p.add_argument("--lr", type=float, default=None,
                    help="learning rate (default 3e-4, and 3e-5 for PPO after --warm-start or --init-policy, which "
                    "keeps what the clone learnt; A2C 7e-4; DQN 1e-4)")
+    p.add_argument("--gamma", type=float, default=d.gamma,
+                   help="discount factor per decision (default %(default)s: a 10 s horizon at 2 decisions a second)")
     p.add_argument("--n-steps", type=_positive_int, default=None,
                    help="PPO/A2C rollout steps per env (default 128; A2C 8)")
     p.add_argument("--warm-start", type=Path, default=None,
@@ -259,7 +261,7 @@ def train_policy_main(argv: list[str] | None = None) -> int:
     try:
         cfg = PolicyConfig(
             algo=args.algo, obs=args.obs, scenario=args.scenario, neighbours=args.neighbours,
-            slots=args.slots,
+            slots=args.slots, gamma=args.gamma,
             timesteps=args.timesteps, n_envs=args.n_envs,
             seed=args.seed, image_net=args.image_net, contact_features=args.contact_features,
             learning_rate=learning_rate,
