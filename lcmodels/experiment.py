@@ -322,7 +322,8 @@ class Experiment:
 
     def _stage(self, name: str, path: Path, config: dict[str, Any], inputs: dict[str, str],
                outputs: Callable[[], list[str]], work: Callable[[bool], float | None],
-               resumable: Callable[[dict[str, Any], dict[str, Any]], bool] | None = None) -> StageResult:
+               resumable: Callable[[dict[str, Any], dict[str, Any]], bool] | None = None,
+               upgrade: Callable[[dict[str, Any]], dict[str, Any]] | None = None) -> StageResult:
         """Skip the stage when complete, else run ``work(keep)`` (``keep``: the directory holds a prefix of it).
 
         The record's ``wall_s`` is what ``work`` returns (the compute time behind the outputs, every resumed
@@ -332,7 +333,13 @@ class Experiment:
         t0 = time.perf_counter()
         config, inputs = _canon(config), _canon(inputs)
         rec_path, pend_path = self.record_paths(name)
-        record = read_json(rec_path)
+        def stored(rec: dict[str, Any] | None) -> dict[str, Any] | None:
+            # a config stored before a field was added compares as the config it stands for today
+            if rec is None or upgrade is None or not isinstance(rec.get("config"), dict):
+                return rec
+            return rec | {"config": _canon(upgrade(rec["config"]))}
+
+        record = stored(read_json(rec_path))
         if record is not None and record.get("config") == config and record.get("inputs") == inputs:
             current = _hash_outputs(path, list(record.get("outputs", {})))
             if current is not None and current == record["outputs"]:
@@ -344,7 +351,7 @@ class Experiment:
             why = "outputs missing or changed"
         elif record is not None:
             why = "stale: " + ("config changed" if record.get("config") != config else "inputs changed")
-        elif (pending := read_json(pend_path)) is None:
+        elif (pending := stored(read_json(pend_path))) is None:
             why = "new"
         elif pending.get("config") == config and pending.get("inputs") == inputs:
             why = "resuming an interrupted run"
@@ -356,7 +363,7 @@ class Experiment:
             self.stages.append(res)
             return res
         prior = None if record is not None and why == "outputs missing or changed" else (
-            record or read_json(pend_path))
+            record or stored(read_json(pend_path)))
         keep = prior is not None and prior.get("inputs") == inputs and (
             prior.get("config") == config or (resumable is not None and resumable(prior.get("config", {}), config)))
         if not keep and path.exists():
@@ -480,7 +487,7 @@ class Experiment:
 
     def policy(self, method: Method, seed: int, predictor: StageResult | None, demos: StageResult | None) -> StageResult:
         from lcmodels.policy.obs import needs_predictor
-        from lcmodels.policy.train import train_policy
+        from lcmodels.policy.train import stored_config, train_policy
 
         path = policy_dir(self.out, method.key, seed)
         cfg = policy_config(self.preset, method, seed, demos.path if demos else None)
@@ -526,7 +533,7 @@ class Experiment:
         if method.warm_start:
             stage_cfg["warm_start"] = "demos"  # the demos' content is an input; the path may move
         return self._stage(name, path, stage_cfg, inputs, lambda: ["policy.zip", "metrics.json", "progress.csv"],
-                           work, resumable=_resumable_policy_change)  # fmt: skip
+                           work, resumable=_resumable_policy_change, upgrade=stored_config)  # fmt: skip
 
     # -- the whole run -------------------------------------------------------------------------------
     def plan(self) -> list[StageResult]:

@@ -25,8 +25,10 @@ from lcmodels.experiment import (
     RULE_LABEL,
     Experiment,
     Preset,
+    policy_config,
     policy_dir,
 )
+from lcmodels.policy.train import check_run_dir
 
 SEEDS = 2
 
@@ -180,6 +182,18 @@ def check_rerun_skips_everything_and_a_changed_preset_value_is_stale(
     assert f"0 stages computed, {n_stages} complete and skipped" in out
     assert out.count("complete, skipped") == n_stages
     assert {p: p.stat().st_mtime_ns for p in zips} == before
+
+    # Records and runs written before PolicyConfig had `slots` stand for 8 slots: still complete, resumable.
+    for path in (run_dir / "stages").glob("*seed*.json"):
+        record = json.loads(path.read_text())
+        del record["config"]["slots"]
+        path.write_text(json.dumps(record))
+    run_json = policy_dir(run_dir, "ppo-pure", 0) / "run.json"
+    stored = json.loads(run_json.read_text())
+    del stored["config"]["slots"]
+    run_json.write_text(json.dumps(stored))
+    assert {s.status for s in Experiment(PRESETS["tiny"], run_dir, seeds=SEEDS).plan()} == {"skipped"}
+    check_run_dir(policy_config(PRESETS["tiny"], METHOD_BY_KEY["ppo-pure"], 0, None), run_json.parent, None)
 
     # One more demo episode: the demos and the warm-started runs are stale, nothing else.
     changed = Experiment(dataclasses.replace(PRESETS["tiny"], demo_episodes=3), run_dir, seeds=SEEDS)

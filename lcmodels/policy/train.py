@@ -360,6 +360,16 @@ def versions() -> dict[str, str]:
             "lc_toolkit": lcsim.__version__, "platform": platform.platform()}  # fmt: skip
 
 
+def stored_config(data: dict[str, Any]) -> dict[str, Any]:
+    """A :class:`PolicyConfig` dict as stored (``run.json``, an experiment's stage record) in today's form: a
+    field added since reads as loading it would (its ``LEGACY_DEFAULTS`` value, else its default, which
+    for a field like ``slots`` is the behaviour before it existed). A dict that is no config stays as it is."""
+    try:
+        return PolicyConfig.from_dict(data).to_dict()
+    except (ValueError, TypeError):
+        return data
+
+
 def check_run_dir(cfg: PolicyConfig, out: Path, predictor_sha256: str | None) -> None:
     """``ValueError`` when ``out`` holds a run with another config or predictor (says what differs)."""
     run_json = out / "run.json"
@@ -369,8 +379,8 @@ def check_run_dir(cfg: PolicyConfig, out: Path, predictor_sha256: str | None) ->
         return
     try:
         prev = json.loads(run_json.read_text())
-        prev_cfg = prev["config"]
-    except (json.JSONDecodeError, KeyError) as exc:
+        prev_cfg = stored_config(prev["config"])
+    except (json.JSONDecodeError, KeyError, AttributeError) as exc:
         raise ValueError(f"{run_json} is corrupt: {exc}") from exc
     now = cfg.to_dict()
     diffs = [f"{k}: {prev_cfg.get(k)!r} -> {now[k]!r}" for k in now
