@@ -87,6 +87,62 @@ def test_contact_features_against_hand_values() -> None:
     torch.testing.assert_close(prox, torch.tensor([5 / 20, 5 / 10, 5 / 30, 0.0]))
 
 
+def test_window_features_against_hand_values() -> None:
+    """Leader 30 m ahead closing at 2 m/s; right: a vehicle alongside that the ego passes; left: a faster
+    follower 20 m back. Worked by hand on the 0.5 s grid, with the module's margins."""
+    from lcmodels.policy.extractor import (
+        CONTACT_BODY_M,
+        WINDOW_CHANGE_S,
+        WINDOW_HEADWAY_S,
+        WINDOW_HORIZON_S,
+        WINDOW_MARGIN_M,
+        WindowFeatures,
+    )
+    from lcsim.core import CURRENT_FEATURES
+
+    col = {name: i for i, name in enumerate(CURRENT_FEATURES)}
+    cur = torch.zeros(1, 9, len(CURRENT_FEATURES))
+    # slot 0 the leader, slot 2 the leader right, slot 5 the follower left (lcsim.config.LANE_SLOTS)
+    for slot, (x, vx) in {0: (30.0, -2.0), 2: (3.0, -1.0), 5: (-20.0, 1.0)}.items():
+        cur[0, 1 + slot, col["x_m"]], cur[0, 1 + slot, col["vx_mps"]], cur[0, 1 + slot, col["present"]] = x, vx, 1.0
+    h, body, margin = WINDOW_HORIZON_S, CONTACT_BODY_M, WINDOW_MARGIN_M
+    trap = (30.0 - body - margin) / 2.0  # 11.6 s
+    grid = [0.5 * i for i in range(33)]
+    before = [t for t in grid if t <= trap]
+    # right: clear once it is body + margin behind (it closes on nobody): 3 - t <= -6.8 from t = 9.8, so 10.0 on
+    right_open = [t for t in grid if 3.0 - t <= -(body + margin)]
+    right_can = [t for t in right_open if t in before]
+    # left: the follower closes at 1 m/s, so it is clear while -20 + t <= -(body + margin + headway * 1), to t = 12.2;
+    # a change started at t needs [t, t + 2.5] clear
+    limit = 20.0 - body - margin - WINDOW_HEADWAY_S * 1.0
+    left_open_until = min(t for t in grid if t > limit)  # 12.5, the first grid time not clear
+    left_can = [t for t in before if t + WINDOW_CHANGE_S <= limit]
+    expected = [trap / h,
+                0.0, min(right_open) / h, 0.0, 1.0, len(right_can) / len(before),
+                1.0, 0.0, left_open_until / h, 1.0, len(left_can) / len(before)]
+    torch.testing.assert_close(WindowFeatures(8)(cur)[0], torch.tensor(expected))
+    # nobody shown: no trap, both lanes open throughout
+    torch.testing.assert_close(WindowFeatures(8)(torch.zeros(1, 9, 9))[0],
+                               torch.tensor([1.0, 1.0, 0.0, 1.0, 1.0, 1.0, 1.0, 0.0, 1.0, 1.0, 1.0]))
+
+
+def test_window_features_widen_the_sensor_branch_and_need_lane_slots(tmp_path: Path) -> None:
+    space = policy_observation_space(tiny_scenario(), "pure")
+    both = HybridExtractor(space, contact_features=True, window_features=True)
+    contact = HybridExtractor(space, contact_features=True)
+    assert both.branches["current"].net[1].in_features == contact.branches["current"].net[1].in_features + 11
+    batch = {k: torch.as_tensor(np.stack([s.sample() for _ in range(2)])).float() for k, s in space.spaces.items()}
+    assert torch.isfinite(both(batch)).all()
+    res = train_policy(_tiny(obs="pure", window_features=True, timesteps=64, n_steps=16, batch_size=32,
+                             eval_episodes=0), tmp_path)
+    assert res.timesteps == 64
+    loaded = load_policy(tmp_path / "policy.zip")  # the extractor comes back with the features
+    assert loaded.model.policy.features_extractor.branches["current"].net[1].in_features == (
+        both.branches["current"].net[1].in_features)
+    with pytest.raises(ValueError, match="window_features"):
+        _tiny(obs="pure", window_features=True, neighbours="nearest")
+
+
 @pytest.mark.parametrize("mode", ["pure", "hybrid"])
 def test_contact_features_keep_the_sensor_branch_width(mode: str) -> None:
     space = policy_observation_space(tiny_scenario(), mode)

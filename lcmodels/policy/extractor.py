@@ -25,6 +25,7 @@ from gymnasium import spaces
 from stable_baselines3.common.torch_layers import BaseFeaturesExtractor
 from torch import nn
 
+from lcsim.config import LANE_SLOTS
 from lcsim.core import CURRENT_FEATURES
 
 ImageNet = Literal["compact", "vgg16"]
@@ -38,6 +39,15 @@ PREDICTION_SCALE = (50.0, 10.0)
 CONTACT_BODY_M = 4.8
 CONTACT_HORIZON_S = 10.0
 _X, _VX, _PRESENT = (CURRENT_FEATURES.index(name) for name in ("x_m", "vx_mps", "present"))
+# WindowFeatures: a look over the next WINDOW_HORIZON_S on a grid of WINDOW_STEP_S, every vehicle at its
+# present relative speed; a change needs its gap for WINDOW_CHANGE_S (about the 2 s lateral move, plus the
+# start); a gap is clear of a vehicle WINDOW_MARGIN_M beyond the bodies, plus WINDOW_HEADWAY_S times the
+# speed at which it closes; the ego is trapped when its leader is WINDOW_MARGIN_M ahead of the bodies.
+WINDOW_HORIZON_S = 16.0
+WINDOW_STEP_S = 0.5
+WINDOW_CHANGE_S = 2.5
+WINDOW_MARGIN_M = 2.0
+WINDOW_HEADWAY_S = 1.0
 
 # torchvision's VGG-16 layer plan ("D"): channels, "M" = 2x2 max pooling.
 VGG16_PLAN: tuple[int | str, ...] = (64, 64, "M", 128, 128, "M", 256, 256, 256, "M", 512, 512, 512, "M",
@@ -160,18 +170,89 @@ class ContactFeatures(nn.Module):
         ], dim=1)
 
 
+class WindowFeatures(nn.Module):
+    """When the ego could change into each side lane over the next 16 s, against when its leader traps it.
+
+    Needs the lane slots (:data:`lcsim.config.LANE_SLOTS`): every vehicle shown in the lane right (left) of
+    the ego is moved on at its present relative speed (columns ``x`` and ``vx``); the lane is *open* at a
+    time when each of them is clear of the ego, and *changeable* when it stays open for ``WINDOW_CHANGE_S``.
+    The ego is *trapped* when its leader, moved on the same way, comes within ``WINDOW_MARGIN_M``. Outputs
+    ``(B, 11)``, each in [0, 1]: the trap time over the horizon (1: not within it), then per side lane (right,
+    then left) changeable now; the first changeable time and the end of the open window that starts now,
+    over the horizon (1: never / open throughout, 0: not open now); whether it is changeable at some time
+    before the trap; the share of the times before the trap at which it is. A quantity the planner gets by
+    simulating, which an MLP would have to learn as a minimum over a grid; vehicles the slots do not show
+    count as absent, and a lane that does not exist reads open (the ``lane`` column tells).
+    """
+
+    def __init__(self, slots: int) -> None:
+        super().__init__()
+        layout = LANE_SLOTS[:slots]
+        if (0, True, 1) not in layout or not any(o == -1 for o, _, _ in layout) or not any(o == 1 for o, _, _ in layout):
+            raise ValueError(f"window features need the lane slots with the leader and both side lanes, got {slots}")
+        self.lead = layout.index((0, True, 1))
+        self.register_buffer("right", torch.tensor([j for j, (o, _, _) in enumerate(layout) if o == -1]),
+                             persistent=False)
+        self.register_buffer("left", torch.tensor([j for j, (o, _, _) in enumerate(layout) if o == 1]),
+                             persistent=False)
+        n = round(WINDOW_HORIZON_S / WINDOW_STEP_S) + 1
+        self.span = round(WINDOW_CHANGE_S / WINDOW_STEP_S)
+        self.register_buffer("t", torch.arange(n + self.span, dtype=torch.float32) * WINDOW_STEP_S, persistent=False)
+        self.n = n
+        self.out_features = 11
+
+    def forward(self, current: torch.Tensor) -> torch.Tensor:
+        nb = current[:, 1:]
+        x, vx, present = nb[..., _X], nb[..., _VX], nb[..., _PRESENT] > 0.5
+        t, n, horizon = self.t, self.n, WINDOW_HORIZON_S
+        xt = x[..., None] + vx[..., None] * t  # (B, K, G) every shown vehicle over the grid
+        ahead = CONTACT_BODY_M + WINDOW_MARGIN_M + WINDOW_HEADWAY_S * (-vx).clamp(min=0.0)  # (B, K)
+        behind = CONTACT_BODY_M + WINDOW_MARGIN_M + WINDOW_HEADWAY_S * vx.clamp(min=0.0)
+        clear = (xt >= ahead[..., None]) | (xt <= -behind[..., None]) | ~present[..., None]
+        # the trap: the leader's bumper gap down to the margin, at the present closing speed
+        gap = x[:, self.lead] - CONTACT_BODY_M - WINDOW_MARGIN_M
+        closing = -vx[:, self.lead]
+        trap = torch.where(present[:, self.lead] & (closing > 0.05), gap.clamp(min=0.0) / closing.clamp(min=0.05),
+                           torch.full_like(gap, horizon)).clamp(max=horizon)
+        before = t[None, :n] <= trap[:, None]  # (B, n)
+        grid = t[:n]
+        out = [trap / horizon]
+        for side in (self.right, self.left):
+            open_ = clear[:, side].all(dim=1)  # (B, G)
+            can = open_.unfold(1, self.span + 1, 1).all(dim=2)[:, :n]  # open for the whole change, (B, n)
+            never = torch.full_like(grid, 2 * horizon)
+            first = torch.where(can, grid, never).min(dim=1).values.clamp(max=horizon)
+            closes = torch.where(~open_[:, :n], grid, never).min(dim=1).values.clamp(max=horizon)
+            usable = can & before
+            out += [can[:, 0].float(), first / horizon, closes / horizon, usable.any(dim=1).float(),
+                    usable.float().sum(dim=1) / before.float().sum(dim=1).clamp(min=1.0)]
+        return torch.stack(out, dim=1)
+
+
+class _Concat(nn.Module):
+    """Several feature modules of the same input, side by side."""
+
+    def __init__(self, *parts: nn.Module) -> None:
+        super().__init__()
+        self.parts = nn.ModuleList(parts)
+        self.out_features = sum(int(p.out_features) for p in parts)
+
+    def forward(self, x: torch.Tensor) -> torch.Tensor:
+        return torch.cat([p(x) for p in self.parts], dim=1)
+
+
 class _ScaledMLP(nn.Module):
     """Divide the last axis by fixed scales, flatten, append ``extra(x)`` when given (the sensor branch's
     :class:`ContactFeatures`), then two linear layers with ReLU."""
 
     def __init__(self, shape: tuple[int, ...], scale: tuple[float, ...], hidden: int, out: int,
-                 extra: ContactFeatures | None = None) -> None:
+                 extra: nn.Module | None = None) -> None:
         super().__init__()
         if shape[-1] != len(scale):
             raise ValueError(f"expected a last axis of {len(scale)} columns, got shape {shape}")
         self.register_buffer("inv_scale", 1.0 / torch.tensor(scale, dtype=torch.float32))
         self.extra = extra
-        n = extra.out_features if extra is not None else 0
+        n = int(extra.out_features) if extra is not None else 0
         n += math.prod(int(s) for s in shape)
         self.net = nn.Sequential(nn.Flatten(), nn.Linear(n, hidden), nn.ReLU(), nn.Linear(hidden, out), nn.ReLU())
 
@@ -192,11 +273,12 @@ class HybridExtractor(BaseFeaturesExtractor):
         sensor_features, prediction_features: widths of the other branches.
         contact_features: the sensor branch also gets :class:`ContactFeatures` (off in checkpoints saved
             before the option existed, which load as they were).
+        window_features: ... and :class:`WindowFeatures` (lane slots only).
     """
 
     def __init__(self, observation_space: spaces.Dict, image_net: str = "compact", image_features: int = 10,
                  sensor_features: int = 64, prediction_features: int = 64, hidden: int = 128,
-                 contact_features: bool = False) -> None:
+                 contact_features: bool = False, window_features: bool = False) -> None:
         if "current" not in observation_space.spaces:
             raise ValueError(f"the observation needs a 'current' key, got {sorted(observation_space.spaces)}")
         branches: dict[str, nn.Module] = {}
@@ -207,8 +289,11 @@ class HybridExtractor(BaseFeaturesExtractor):
                 branches[key] = make_image_net(image_net, shape[0], shape[1], image_features)
                 dims += image_features
             elif key == "current":
-                contact = ContactFeatures(int(shape[0]) - 1) if contact_features else None
-                branches[key] = _ScaledMLP(shape, CURRENT_SCALE, hidden, sensor_features, extra=contact)
+                slots = int(shape[0]) - 1
+                parts = [ContactFeatures(slots)] if contact_features else []
+                parts += [WindowFeatures(slots)] if window_features else []
+                extra = parts[0] if len(parts) == 1 else _Concat(*parts) if parts else None
+                branches[key] = _ScaledMLP(shape, CURRENT_SCALE, hidden, sensor_features, extra=extra)
                 dims += sensor_features
             elif key == "prediction":
                 branches[key] = _ScaledMLP(shape, PREDICTION_SCALE, hidden, prediction_features)

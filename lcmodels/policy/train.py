@@ -131,6 +131,9 @@ class PolicyConfig(_JsonMixin):
     """The sensor branch also gets each slot's time to contact, gap and proximity
     (``lcmodels.policy.extractor.ContactFeatures``). Cloning the oracle in ``pure`` mode: 69.5% held-out
     success without, 77.0% with (docs/results/contact). Runs stored before the option existed read as off."""
+    window_features: bool = False
+    """The sensor branch also gets, per side lane, when over the next 16 s the ego could change into it,
+    against when its own leader traps it (``lcmodels.policy.extractor.WindowFeatures``; lane slots only)."""
     learning_rate: float = _LEARNING_RATES["ppo"]
     gamma: float = 0.95
     """0.95 (a 10 s horizon at 2 decisions/s): PPO pure reached 24% held-out success in 150k steps with
@@ -176,6 +179,8 @@ class PolicyConfig(_JsonMixin):
                self.slots)
         _check(self.neighbours != "lanes" or self.slots <= len(LANE_SLOTS), self, "slots",
                f"must be <= {len(LANE_SLOTS)} with neighbours='lanes'", self.slots)
+        _check(not self.window_features or self.neighbours == "lanes", self, "window_features",
+               "needs neighbours='lanes' (which vehicle is in which lane)", self.window_features)
         _check(self.image_net in IMAGE_NETS, self, "image_net", f"must be one of {', '.join(IMAGE_NETS)}",
                self.image_net)  # fmt: skip
         _positive(self, "n_envs", "image_features", "learning_rate", "n_steps", "batch_size",
@@ -209,7 +214,8 @@ def build_model(cfg: PolicyConfig, env: PolicyVecEnv, tensorboard: str | None = 
     policy_kwargs: dict[str, Any] = {
         "features_extractor_class": HybridExtractor,
         "features_extractor_kwargs": {"image_net": cfg.image_net, "image_features": cfg.image_features,
-                                      "contact_features": cfg.contact_features},
+                                      "contact_features": cfg.contact_features,
+                                      "window_features": cfg.window_features},
         "net_arch": [128, 64] if cfg.algo == "dqn" else {"pi": [64, 64], "vf": [64, 64]},
     }
     common: dict[str, Any] = {"policy_kwargs": policy_kwargs, "seed": cfg.seed, "device": device,
