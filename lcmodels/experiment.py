@@ -333,6 +333,7 @@ class Experiment:
         t0 = time.perf_counter()
         config, inputs = _canon(config), _canon(inputs)
         rec_path, pend_path = self.record_paths(name)
+
         def stored(rec: dict[str, Any] | None) -> dict[str, Any] | None:
             # a config stored before a field was added compares as the config it stands for today
             if rec is None or upgrade is None or not isinstance(rec.get("config"), dict):

@@ -8,6 +8,8 @@
   scaled per column to order one, flattened, two-layer MLP. With ``contact_features`` the MLP also gets,
   per slot, the time to contact, the bumper gap and a proximity (:class:`ContactFeatures`): quotients a
   ReLU network approximates poorly from the raw columns, and the quantities a lane change hinges on.
+  With ``window_features``, also when over the next 16 s each side lane has room for a change, against
+  when the leader traps the ego (:class:`WindowFeatures`).
 - ``prediction`` (K, F, 2): predicted neighbour positions in the ego frame, scaled, flattened, MLP.
 
 The output size is the sum of the branch sizes and is computed here (``features_dim``), so the policy
@@ -188,8 +190,10 @@ class WindowFeatures(nn.Module):
     def __init__(self, slots: int) -> None:
         super().__init__()
         layout = LANE_SLOTS[:slots]
-        if (0, True, 1) not in layout or not any(o == -1 for o, _, _ in layout) or not any(o == 1 for o, _, _ in layout):
-            raise ValueError(f"window features need the lane slots with the leader and both side lanes, got {slots}")
+        offsets = {o for o, _, _ in layout}
+        if (0, True, 1) not in layout or not {-1, 1} <= offsets:
+            raise ValueError(f"window features need the lane slots with the leader and both side lanes, "
+                             f"got {slots}")
         self.lead = layout.index((0, True, 1))
         self.register_buffer("right", torch.tensor([j for j, (o, _, _) in enumerate(layout) if o == -1]),
                              persistent=False)
@@ -243,7 +247,7 @@ class _Concat(nn.Module):
 
 class _ScaledMLP(nn.Module):
     """Divide the last axis by fixed scales, flatten, append ``extra(x)`` when given (the sensor branch's
-    :class:`ContactFeatures`), then two linear layers with ReLU."""
+    :class:`ContactFeatures` and :class:`WindowFeatures`), then two linear layers with ReLU."""
 
     def __init__(self, shape: tuple[int, ...], scale: tuple[float, ...], hidden: int, out: int,
                  extra: nn.Module | None = None) -> None:
