@@ -209,10 +209,6 @@ class WindowFeatures(nn.Module):
         nb = current[:, 1:]
         x, vx, present = nb[..., _X], nb[..., _VX], nb[..., _PRESENT] > 0.5
         t, n, horizon = self.t, self.n, WINDOW_HORIZON_S
-        xt = x[..., None] + vx[..., None] * t  # (B, K, G) every shown vehicle over the grid
-        ahead = CONTACT_BODY_M + WINDOW_MARGIN_M + WINDOW_HEADWAY_S * (-vx).clamp(min=0.0)  # (B, K)
-        behind = CONTACT_BODY_M + WINDOW_MARGIN_M + WINDOW_HEADWAY_S * vx.clamp(min=0.0)
-        clear = (xt >= ahead[..., None]) | (xt <= -behind[..., None]) | ~present[..., None]
         # the trap: the leader's bumper gap down to the margin, at the present closing speed
         gap = x[:, self.lead] - CONTACT_BODY_M - WINDOW_MARGIN_M
         closing = -vx[:, self.lead]
@@ -222,7 +218,12 @@ class WindowFeatures(nn.Module):
         grid = t[:n]
         out = [trap / horizon]
         for side in (self.right, self.left):
-            open_ = clear[:, side].all(dim=1)  # (B, G)
+            xs, vs = x[:, side], vx[:, side]  # the side lane's shown vehicles, (B, S)
+            xt = xs[..., None] + vs[..., None] * t  # (B, S, G) over the grid
+            ahead = CONTACT_BODY_M + WINDOW_MARGIN_M + WINDOW_HEADWAY_S * (-vs).clamp(min=0.0)
+            behind = CONTACT_BODY_M + WINDOW_MARGIN_M + WINDOW_HEADWAY_S * vs.clamp(min=0.0)
+            clear = (xt >= ahead[..., None]) | (xt <= -behind[..., None]) | ~present[:, side, None]
+            open_ = clear.all(dim=1)  # (B, G)
             can = open_.unfold(1, self.span + 1, 1).all(dim=2)[:, :n]  # open for the whole change, (B, n)
             never = torch.full_like(grid, 2 * horizon)
             first = torch.where(can, grid, never).min(dim=1).values.clamp(max=horizon)
@@ -296,7 +297,7 @@ class HybridExtractor(BaseFeaturesExtractor):
                 slots = int(shape[0]) - 1
                 parts = [ContactFeatures(slots)] if contact_features else []
                 parts += [WindowFeatures(slots)] if window_features else []
-                extra = parts[0] if len(parts) == 1 else _Concat(*parts) if parts else None
+                extra = _Concat(*parts) if parts else None  # (no parameters: checkpoints keep their keys)
                 branches[key] = _ScaledMLP(shape, CURRENT_SCALE, hidden, sensor_features, extra=extra)
                 dims += sensor_features
             elif key == "prediction":

@@ -59,7 +59,6 @@ from lcmodels.policy.obs import (
 from lcmodels.predictor.inference import Predictor
 from lcsim import light_scenario
 from lcsim.config import (
-    LANE_SLOTS,
     NEIGHBOUR_SELECTIONS,
     ScenarioConfig,
     TrafficConfig,
@@ -175,10 +174,6 @@ class PolicyConfig(_JsonMixin):
                self.scenario)  # fmt: skip
         _check(self.neighbours in NEIGHBOUR_SELECTIONS, self, "neighbours",
                f"must be one of {', '.join(NEIGHBOUR_SELECTIONS)}", self.neighbours)
-        _check(isinstance(self.slots, int) and self.slots >= 1, self, "slots", "must be an integer >= 1",
-               self.slots)
-        _check(self.neighbours != "lanes" or self.slots <= len(LANE_SLOTS), self, "slots",
-               f"must be <= {len(LANE_SLOTS)} with neighbours='lanes'", self.slots)
         _check(not self.window_features or self.neighbours == "lanes", self, "window_features",
                "needs neighbours='lanes' (which vehicle is in which lane)", self.window_features)
         _check(self.image_net in IMAGE_NETS, self, "image_net", f"must be one of {', '.join(IMAGE_NETS)}",
@@ -201,6 +196,10 @@ class PolicyConfig(_JsonMixin):
                self.exploration_fraction)  # fmt: skip
         _check(self.seed < 1_000_000, self, "seed", "must be < 1000000 (keeps training seeds off evaluation's)",
                self.seed)  # fmt: skip
+        try:  # slots (and neighbours) as the scenario itself validates them
+            self.scenario_config()
+        except ValueError as exc:
+            raise ValueError(f"PolicyConfig.slots {self.slots} does not fit the scenario: {exc}") from None
 
     def scenario_config(self) -> ScenarioConfig:
         base = dataclasses.replace(POLICY_SCENARIOS[self.scenario](), neighbour_selection=self.neighbours,
