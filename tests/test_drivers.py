@@ -163,6 +163,30 @@ def test_lookahead_with_a_proposer_keeps_its_decision_unless_that_future_crashes
     assert (driver.overrides, driver.choices) == (vetoed, choices)  # what lc-eval reports of a planner
 
 
+def test_lookahead_never_returns_a_decision_the_mask_refuses():
+    """A proposer that always wants the right lane, where there is none or a change is under way: its
+    proposal counts as the keep the core would make of it, so the planner still checks that keep."""
+    cfg = small_config(render_image=False, traffic=TrafficConfig(num_vehicles=24, spawn_behind_m=40.0,
+                                                                 spawn_ahead_m=140.0))
+    core = LaneChangeCore(cfg, 4)
+    core.reset(range(4), [11, 12, 13, 14])
+
+    def always_right(obs, mask, core):
+        return np.zeros(len(mask), dtype=np.int64)
+
+    driver = LookaheadDriver(LookaheadConfig(horizon_decisions=6, blind=True), proposer=always_right)
+    refused = 0
+    for _ in range(30):
+        if (core.outcome != "").any():
+            break
+        mask = core.action_mask()
+        actions = driver({}, mask, core)
+        assert mask[np.arange(4), actions].all(), (actions, mask)
+        refused += int((~mask[:, 0]).sum())
+        core.step(actions)
+    assert refused > 0  # the case arose: a lane change under way, or the ego in the rightmost lane
+
+
 def test_lookahead_config_refuses_samples_without_blindness():
     with pytest.raises(ValueError, match="samples"):
         LookaheadConfig(samples=2)
