@@ -105,6 +105,14 @@ def test_a_critic_saves_loads_and_refuses_bad_files(tmp_path: Path) -> None:
     assert np.allclose(back.crash_probability(x), critic.crash_probability(x)) and back.meta == {
         "policy": "x"
     }
+    windowed = CriticEnsemble([SafetyCritic(8, hidden=8, window=True)])
+    windowed.save(tmp_path / "window.pt")
+    again = CriticEnsemble.load(tmp_path / "window.pt")
+    assert again.members[0].window and np.allclose(again.crash_probability(x), windowed.crash_probability(x))
+    blob = torch.load(tmp_path / "critic.pt", weights_only=True)
+    del blob["window"]  # a critic saved before the option existed reads as contact features only
+    torch.save(blob, tmp_path / "old.pt")
+    assert not CriticEnsemble.load(tmp_path / "old.pt").members[0].window
     data = (tmp_path / "critic.pt").read_bytes()
     (tmp_path / "cut.pt").write_bytes(data[: len(data) // 2])
     torch.save({"format": "something else"}, tmp_path / "foreign.pt")
@@ -167,6 +175,12 @@ def test_cli_trains_and_evaluates_and_refuses_bad_input(
         == 0
     )
     assert json.loads((refit / "critic.json").read_text())["labels"] == meta["labels"]
+    window = tmp_path / "window"  # the same states, the critic reading the window features too
+    assert main(["train", policy, "--from-states", str(out / "states.npz"), "--window-features", "--epochs", "1",
+                 "--out", str(window)]) == 0  # fmt: skip
+    assert json.loads((window / "critic.json").read_text())["window_features"] is True
+    assert CriticEnsemble.load(window / "critic.pt").members[0].window
+    assert not CriticEnsemble.load(refit / "critic.pt").members[0].window
     both = tmp_path / "both"  # two state files together: twice the states
     assert main(["train", policy, "--from-states", str(out / "states.npz"), str(out / "states.npz"),
                  "--epochs", "1", "--out", str(both)]) == 0  # fmt: skip

@@ -42,7 +42,7 @@ from torch import nn
 
 from lcmodels.cli import _fail, _positive_int, add_heldout_arguments, heldout_driver, int_at_least
 from lcmodels.fileio import write_json
-from lcmodels.policy.extractor import CURRENT_SCALE, ContactFeatures, _ScaledMLP
+from lcmodels.policy.extractor import CURRENT_SCALE, ContactFeatures, WindowFeatures, _Concat, _ScaledMLP
 from lcsim.core import KEEP, LaneChangeCore
 
 FORMAT = "lc-safety-critic"
@@ -50,14 +50,16 @@ VERSION = 1
 
 
 class SafetyCritic(nn.Module):
-    """``current`` ``(B, 1+K, 9)`` -> ``(B, 3)`` logits of "the future after right / keep / left crashes"."""
+    """``current`` ``(B, 1+K, 9)`` -> ``(B, 3)`` logits of "the future after right / keep / left crashes".
 
-    def __init__(self, slots: int, hidden: int = 256) -> None:
+    The contact features always go in; ``window``: the window features too (lane slots only).
+    """
+
+    def __init__(self, slots: int, hidden: int = 256, window: bool = False) -> None:
         super().__init__()
-        self.slots, self.hidden = slots, hidden
-        self.body = _ScaledMLP(
-            (1 + slots, len(CURRENT_SCALE)), CURRENT_SCALE, hidden, hidden, extra=ContactFeatures(slots)
-        )
+        self.slots, self.hidden, self.window = slots, hidden, window
+        extra = _Concat(ContactFeatures(slots), WindowFeatures(slots)) if window else ContactFeatures(slots)
+        self.body = _ScaledMLP((1 + slots, len(CURRENT_SCALE)), CURRENT_SCALE, hidden, hidden, extra=extra)
         self.head = nn.Sequential(nn.Linear(hidden, hidden), nn.ReLU(), nn.Linear(hidden, 3))
 
     def forward(self, current: torch.Tensor) -> torch.Tensor:
@@ -85,6 +87,7 @@ class CriticEnsemble:
                 "version": VERSION,
                 "slots": self.members[0].slots,
                 "hidden": self.members[0].hidden,
+                "window": self.members[0].window,
                 "members": [m.state_dict() for m in self.members],
                 "meta": self.meta,
             },
@@ -107,7 +110,7 @@ class CriticEnsemble:
             raise ValueError(f"{path} is not a safety critic of this version")
         members = []
         for state in blob["members"]:
-            m = SafetyCritic(int(blob["slots"]), int(blob["hidden"]))
+            m = SafetyCritic(int(blob["slots"]), int(blob["hidden"]), bool(blob.get("window", False)))
             m.load_state_dict(state)
             members.append(m)
         return cls(members, blob.get("meta"))
@@ -138,9 +141,11 @@ def train_critics(
     hidden: int = 256,
     batch: int = 512,
     lr: float = 1e-3,
+    window: bool = False,
     progress: Any = None,
 ) -> CriticEnsemble:
-    """Fit ``members`` critics (member ``i`` from torch seed ``seed + i``) to the survival labels."""
+    """Fit ``members`` critics (member ``i`` from torch seed ``seed + i``; ``window``: with the window
+    features) to the survival labels."""
     x = torch.as_tensor(np.asarray(current, dtype=np.float32))
     target, weight = (torch.as_tensor(a) for a in crash_targets(alive))
     slots = x.shape[1] - 1
@@ -148,7 +153,7 @@ def train_critics(
     for i in range(members):
         torch.manual_seed(seed + i)
         gen = np.random.default_rng(seed + i)
-        net = SafetyCritic(slots, hidden)
+        net = SafetyCritic(slots, hidden, window)
         opt = torch.optim.Adam(net.parameters(), lr, weight_decay=1e-5)
         for epoch in range(epochs):
             order = gen.permutation(len(x))
@@ -238,6 +243,7 @@ def train_main(args: argparse.Namespace, prog: str) -> int:
         "policy": str(args.policy),
         "members": args.members,
         "epochs": args.epochs,
+        "window_features": args.window_features,
         "seed": args.seed,
     }
     t0 = time.perf_counter()
@@ -309,7 +315,8 @@ def train_main(args: argparse.Namespace, prog: str) -> int:
             print(f"training: member {member + 1}/{args.members}, epoch {epoch}/{args.epochs}", flush=True)
 
     critic = train_critics(
-        current, alive, members=args.members, epochs=args.epochs, seed=args.seed, progress=show
+        current, alive, members=args.members, epochs=args.epochs, seed=args.seed, window=args.window_features,
+        progress=show,
     )
     meta.update(
         train_wall_s=round(time.perf_counter() - t1, 1), train_loss=critic_loss(critic, current, alive)
@@ -446,6 +453,10 @@ def parser() -> argparse.ArgumentParser:
     t.add_argument("--epochs", type=_positive_int, default=40, help="training epochs per critic (default 40)")
     t.add_argument(
         "--seed", type=int_at_least(0), default=0, help="torch seed of the first critic (default 0)"
+    )
+    t.add_argument(
+        "--window-features", action="store_true",
+        help="the critic also reads the window features (lcmodels.policy.extractor.WindowFeatures)"
     )
     t.add_argument(
         "--from-states", type=Path, nargs="+", default=None,
