@@ -1,5 +1,6 @@
 """The planner's survival labels (LookaheadDriver.last_alive) and tools/safety_critic.py, on small real episodes."""
 
+import dataclasses
 from pathlib import Path
 
 import numpy as np
@@ -198,6 +199,8 @@ def test_cli_trains_and_evaluates_and_refuses_bad_input(
         < 1e-9
     )
     CriticEnsemble([SafetyCritic(4, hidden=8)]).save(tmp_path / "slots4.pt")
+    train_policy(dataclasses.replace(cfg, neighbours="nearest"), tmp_path / "nearest")  # no lane slots
+    nearest = str(tmp_path / "nearest" / "policy.zip")
     for bad in (
         ["train", policy, "--expert", "rule", "--out", str(tmp_path / "a")],  # not a lookahead
         ["train", str(tmp_path / "missing.zip"), "--out", str(tmp_path / "b")],
@@ -206,11 +209,13 @@ def test_cli_trains_and_evaluates_and_refuses_bad_input(
         ["eval", policy, "--critic", str(tmp_path / "missing.pt")],
         ["eval", policy, "--critic", str(tmp_path / "slots4.pt")],  # made for another number of neighbours
         ["eval", policy, "--critic", str(out / "critic.pt"), "--threshold", "1.5"],
+        ["train", nearest, "--from-states", str(out / "states.npz"), "--window-features", "--out", str(tmp_path / "d")],
+        ["eval", nearest, "--critic", str(window / "critic.pt"), "--episodes", "2"],  # window features, no lanes
     ):
         assert main(bad) == 2, bad
         err = capsys.readouterr().err.strip()
         assert err.startswith("safety_critic") and "\n" not in err, err
-    assert not (tmp_path / "a").exists() and not (tmp_path / "c").exists()
+    assert not (tmp_path / "a").exists() and not (tmp_path / "c").exists() and not (tmp_path / "d").exists()
 
 
 def test_auc_counts_ties_half() -> None:

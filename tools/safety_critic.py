@@ -246,6 +246,15 @@ def train_main(args: argparse.Namespace, prog: str) -> int:
         "window_features": args.window_features,
         "seed": args.seed,
     }
+    if args.window_features:  # the window features read lane slots (vehicles sorted by lane)
+        from lcmodels.policy.checkpoint import read_meta
+
+        try:
+            selection = read_meta(args.policy).get("scenario", {}).get("neighbour_selection", "nearest")
+        except ValueError as exc:
+            return _fail(prog, str(exc).splitlines()[0])
+        if selection != "lanes":
+            return _fail(prog, f"--window-features needs lane slots; {args.policy} sees the {selection} vehicles")
     t0 = time.perf_counter()
     if args.from_states is not None:
         parts = []
@@ -314,10 +323,13 @@ def train_main(args: argparse.Namespace, prog: str) -> int:
         if epoch % 10 == 0 or epoch == args.epochs:
             print(f"training: member {member + 1}/{args.members}, epoch {epoch}/{args.epochs}", flush=True)
 
-    critic = train_critics(
-        current, alive, members=args.members, epochs=args.epochs, seed=args.seed, window=args.window_features,
-        progress=show,
-    )
+    try:
+        critic = train_critics(
+            current, alive, members=args.members, epochs=args.epochs, seed=args.seed, window=args.window_features,
+            progress=show,
+        )
+    except ValueError as exc:  # window features over too few slots for both side lanes
+        return _fail(prog, str(exc).splitlines()[0])
     meta.update(
         train_wall_s=round(time.perf_counter() - t1, 1), train_loss=critic_loss(critic, current, alive)
     )
@@ -390,6 +402,9 @@ def eval_main(args: argparse.Namespace, prog: str) -> int:
     if critic.members[0].slots != config.num_neighbours:
         return _fail(prog, f"{args.critic} reads {critic.members[0].slots} neighbour slots, the scenario of "
                      f"{args.policy} has {config.num_neighbours}")
+    if critic.members[0].window and config.neighbour_selection != "lanes":
+        return _fail(prog, f"{args.critic} reads the window features, which need lane slots; the scenario of "
+                     f"{args.policy} sees the {config.neighbour_selection} vehicles")
     guard = CriticGuard(driver, critic, threshold=args.threshold, margin=args.margin)
     t0 = time.perf_counter()
     summary, results = evaluate(guard, config, episodes=args.episodes, seed=args.seed, batch=args.batch)
