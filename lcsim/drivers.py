@@ -185,7 +185,8 @@ class LookaheadDriver:
     def __call__(self, obs: dict[str, np.ndarray], action_mask: np.ndarray, core: LaneChangeCore) -> np.ndarray:
         mask = np.asarray(action_mask, dtype=bool).reshape(-1, 3)
         planned = np.asarray((self.proposer or self.rule)(obs, mask, core), dtype=np.int64).reshape(len(mask))
-        # a proposal the mask refuses is a keep (what the core makes of it), which the planner then checks
+        # a proposal the mask refuses becomes a keep, which the planner then checks: it never passes on a
+        # refused decision (rewarded off_road under "refuse", leaving the road under "leave_road")
         planned = np.where(mask[np.arange(len(mask)), planned], planned, KEEP)
         # during a lane change only keep is allowed, and an ended episode is frozen: nothing to look at
         choice = (mask.sum(axis=1) > 1) & (core.outcome == RUNNING)

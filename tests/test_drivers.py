@@ -113,11 +113,17 @@ def test_redraw_future_keeps_the_present_and_redraws_the_traffics_coming_choices
         blind.sim.redraw_future(0)
 
 
-def test_blind_lookahead_with_several_futures_keeps_a_decision_that_survives_the_most_of_them():
+def _dense_core() -> LaneChangeCore:
+    """Four unrendered environments in dense traffic on a short route, so that some decisions are traps."""
     cfg = small_config(render_image=False, traffic=TrafficConfig(num_vehicles=24, spawn_behind_m=40.0,
                                                                  spawn_ahead_m=140.0))
     core = LaneChangeCore(cfg, 4)
     core.reset(range(4), [11, 12, 13, 14])
+    return core
+
+
+def test_blind_lookahead_with_several_futures_keeps_a_decision_that_survives_the_most_of_them():
+    core = _dense_core()
     driver = LookaheadDriver(LookaheadConfig(horizon_decisions=6, blind=True, samples=3))
     overridden = 0
     for _ in range(30):
@@ -135,10 +141,7 @@ def test_blind_lookahead_with_several_futures_keeps_a_decision_that_survives_the
 
 
 def test_lookahead_with_a_proposer_keeps_its_decision_unless_that_future_crashes():
-    cfg = small_config(render_image=False, traffic=TrafficConfig(num_vehicles=24, spawn_behind_m=40.0,
-                                                                 spawn_ahead_m=140.0))
-    core = LaneChangeCore(cfg, 4)
-    core.reset(range(4), [11, 12, 13, 14])
+    core = _dense_core()
     proposer = make_driver("random", 5)
     proposer.last_prediction = np.zeros((4, 1, 1, 2))  # what a policy that predicts would expose
     driver = LookaheadDriver(LookaheadConfig(horizon_decisions=6, blind=True), proposer=proposer)
@@ -166,10 +169,7 @@ def test_lookahead_with_a_proposer_keeps_its_decision_unless_that_future_crashes
 def test_lookahead_never_returns_a_decision_the_mask_refuses():
     """A proposer that always wants the right lane, where there is none or a change is under way: its
     proposal counts as the keep the core would make of it, so the planner still checks that keep."""
-    cfg = small_config(render_image=False, traffic=TrafficConfig(num_vehicles=24, spawn_behind_m=40.0,
-                                                                 spawn_ahead_m=140.0))
-    core = LaneChangeCore(cfg, 4)
-    core.reset(range(4), [11, 12, 13, 14])
+    core = _dense_core()
 
     def always_right(obs, mask, core):
         return np.zeros(len(mask), dtype=np.int64)

@@ -246,14 +246,14 @@ def train_main(args: argparse.Namespace, prog: str) -> int:
         "window_features": args.window_features,
         "seed": args.seed,
     }
-    if args.window_features:  # the window features read lane slots (vehicles sorted by lane)
+    if args.window_features or args.from_states is None:  # the policy is read (it drives, or it sets the slots)
         from lcmodels.policy.checkpoint import read_meta
 
         try:
             selection = read_meta(args.policy).get("scenario", {}).get("neighbour_selection", "nearest")
         except ValueError as exc:
             return _fail(prog, str(exc).splitlines()[0])
-        if selection != "lanes":
+        if args.window_features and selection != "lanes":  # the window features read vehicles sorted by lane
             return _fail(prog, f"--window-features needs lane slots; {args.policy} sees the {selection} vehicles")
     t0 = time.perf_counter()
     if args.from_states is not None:
@@ -267,13 +267,11 @@ def train_main(args: argparse.Namespace, prog: str) -> int:
         current, alive, actions = (np.concatenate(column) for column in zip(*parts, strict=True))
         meta["states_from"] = [str(p) for p in args.from_states]
     else:
-        from lcmodels.policy.checkpoint import read_meta
         from lcmodels.policy.evaluate import driver_for
         from lcsim.drivers import LookaheadDriver
 
         lookahead = {"horizon_decisions": args.lookahead_horizon} if args.lookahead_horizon else {}
         try:
-            read_meta(args.policy)
             expert, _ = driver_for(args.expert, lookahead=lookahead)
         except ValueError as exc:
             return _fail(prog, str(exc).splitlines()[0])
