@@ -337,7 +337,8 @@ def heldout_driver(args: argparse.Namespace) -> tuple[Any, ScenarioConfig]:
 
 def lookahead_options(args: argparse.Namespace) -> dict[str, int]:
     """The ``--lookahead-*`` options given (for :func:`lcmodels.policy.evaluate.driver_for`)."""
-    given = {"horizon_decisions": args.lookahead_horizon, "samples": args.lookahead_samples}
+    given = {"horizon_decisions": args.lookahead_horizon, "samples": args.lookahead_samples,
+             "perceived": True if getattr(args, "lookahead_perceived", False) else None}
     return {k: v for k, v in given.items() if v is not None}
 
 
@@ -357,6 +358,10 @@ def add_heldout_arguments(p: argparse.ArgumentParser, episodes: int = 200) -> No
                    help="lookahead drivers: decisions imagined after each candidate one (default 16, i.e. 8 s)")
     p.add_argument("--lookahead-samples", type=_positive_int, default=None,
                    help="lookahead-blind drivers: redrawn futures imagined per candidate decision (default 1)")
+    p.add_argument("--lookahead-perceived", action="store_true",
+                   help="lookahead-blind drivers: imagine each future from what the ego's sensors show (no traffic "
+                   "beyond the scenario's sensing range, each vehicle's unseen desired speed estimated from its "
+                   "speed): the planner needs no privileged state")
     p.add_argument("--lookahead-follow", metavar="DRIVER", default=None,
                    help="with lookahead:POLICY / lookahead-blind:POLICY: the policy proposes each decision and the "
                    "imagined futures follow DRIVER (a built-in driver or a policy.zip without image), which "

@@ -112,6 +112,11 @@ class LookaheadConfig:
     """Blind only: futures imagined per candidate decision, each redrawn with its own salt. A decision's
     survival is the share of them it survives; the driver's own choice stands unless another survives
     more of them."""
+    perceived: bool = False
+    """Blind only: imagine each future from what the ego's sensors show (:meth:`HighwaySim.perceive` with
+    the scenario's ``sensing_range_m``, the range the observation has): no traffic beyond that range, and
+    each vehicle's unseen desired speed estimated. The planner then needs no privileged state, only the
+    traffic's rules and the ego's perception."""
 
     def __post_init__(self) -> None:
         if not isinstance(self.horizon_decisions, int) or self.horizon_decisions < 1:
@@ -120,6 +125,9 @@ class LookaheadConfig:
             raise ValueError(f"samples must be an int >= 1, got {self.samples!r}")
         if self.samples > 1 and not self.blind:
             raise ValueError("samples > 1 needs blind=True (unredrawn copies all see the same future)")
+        if self.perceived and not self.blind:
+            raise ValueError("perceived=True needs blind=True (a planner that sees the coming random draws is "
+                             "privileged whatever it perceives)")
 
 
 def _driver_name(driver: Driver) -> str:
@@ -145,8 +153,6 @@ class LookaheadDriver:
     with ``rule`` as the model of how the ego drives on after the decision.
     """
 
-    name = "lookahead"
-
     def __init__(self, config: LookaheadConfig | None = None, rule: Driver | None = None,
                  proposer: Driver | None = None) -> None:
         self.config = config or LookaheadConfig()
@@ -157,11 +163,15 @@ class LookaheadDriver:
         """``(E, 3)`` after each call: the share of imagined futures each decision survived, NaN where it was
         not imagined (not allowed, or no choice to make): the labels a learned safety critic is fitted to."""
         self._observe = bool(getattr(self.rule, "needs_observation", False))
-        self.name = "lookahead-blind" if self.config.blind else "lookahead"
-        if not isinstance(self.rule, RuleBasedDriver) or proposer is not None:
-            self.name += f"-{_driver_name(self.rule)}"
-        if proposer is not None:
-            self.name = f"{_driver_name(proposer)}+{self.name}"
+
+    @property
+    def name(self) -> str:  # type: ignore[override]
+        """``lookahead``, ``lookahead-blind`` or ``lookahead-perceived``, then the driver followed (unless the
+        rule) and, first, the proposer."""
+        name = "lookahead-perceived" if self.config.perceived else "lookahead-blind" if self.config.blind else "lookahead"
+        if not isinstance(self.rule, RuleBasedDriver) or self.proposer is not None:
+            name += f"-{_driver_name(self.rule)}"
+        return name if self.proposer is None else f"{_driver_name(self.proposer)}+{name}"
 
     @property
     def last_prediction(self) -> np.ndarray | None:
@@ -174,6 +184,8 @@ class LookaheadDriver:
         future = imagined_copy(core)
         if self.config.blind:
             future.sim.redraw_future(salt)
+        if self.config.perceived:
+            future.sim.perceive(future.config.sensing_range_m)
         future.step(actions)
         for _ in range(self.config.horizon_decisions):
             if (future.outcome != RUNNING).all():  # ended environments stay frozen; nothing left to see

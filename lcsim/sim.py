@@ -142,6 +142,50 @@ class HighwaySim:
         self.key = self.key ^ rng.stream_base(np.array([salt], dtype=np.uint64), _REDRAW_STREAM)[0]
         self.lane_change_base = rng.stream_base(self.key, _LANE_CHANGE_STREAM)
 
+    def perceive(self, range_m: float) -> None:
+        """Reduce every environment to what its ego's sensors tell about the traffic (for an imagined copy).
+
+        Traffic vehicles farther than ``range_m`` from the ego (centre to centre) are moved 100 km behind
+        it, spaced apart, where they take no part in anything near the ego; each vehicle left keeps its
+        position, speed and any lane change under way (all observable), but its desired speed, which no
+        sensor shows, becomes what its motion tells (:meth:`estimated_desired_speeds`, after the parking, so
+        from the leaders the ego can see). A planner that
+        imagines futures in a copy so reduced, and redrawn (:meth:`redraw_future`), knows the traffic's
+        rules but nothing a sensor of that range would not show it.
+        """
+        if not range_m > 0:
+            raise ValueError(f"range_m must be > 0, got {range_m!r}")
+        far = np.hypot(self.x - self.x[:, :1], self.y - self.y[:, :1]) > range_m
+        traffic = self.is_traffic.copy()
+        traffic[:, 0] = False  # the ego knows itself, autopilot or not
+        far &= traffic
+        if far.any():
+            parked = self.x[:, :1] - 1.0e5 - 50.0 * self.ids[None, :]
+            self.x = np.where(far, parked, self.x)
+        self.rebuild_index()
+        self.v0 = np.where(traffic, self.estimated_desired_speeds(), self.v0)
+
+    def estimated_desired_speeds(self) -> np.ndarray:
+        """``(E, N)`` each vehicle's desired speed (m/s) as its observed motion tells it under the traffic's car
+        following model: the one at which the Intelligent Driver Model gives the acceleration each vehicle had
+        in the last step, with the leader it has now in the neighbour index (so only a leader the index holds
+        counts). Where that motion does not tell (the acceleration was clipped, or no desired speed fits),
+        the top of the traffic's spread; always within the spread (2.5 sigma around the nominal speed).
+        """
+        tc = self.config.traffic
+        index = self.index if self.index is not None else self._build_index()
+        a, b = tc.idm_max_accel_mps2, tc.idm_comfort_decel_mps2
+        v = self.speed
+        s_star = np.maximum(v * tc.idm_time_headway_s + v * (v - index.lead_speed) / (2.0 * math.sqrt(a * b)), 0.0)
+        s_star += tc.idm_min_gap_m
+        free = 1.0 - (s_star / np.maximum(index.gap, 0.1)) ** 2 - self.accel / a  # = (v / v0) ** delta
+        lo = max((tc.speed_kmh - 2.5 * tc.speed_spread_kmh) / 3.6, 1.0)
+        hi = max((tc.speed_kmh + 2.5 * tc.speed_spread_kmh) / 3.6, 1.0)
+        clipped = (self.accel <= -tc.max_decel_mps2 + 1e-9) | (self.accel >= a - 1e-9)
+        with np.errstate(divide="ignore", invalid="ignore"):
+            v0 = np.where(free > 0.0, v / np.maximum(free, 1e-12) ** (1.0 / tc.idm_delta), np.inf)
+        return np.clip(np.where(clipped, hi, v0), lo, hi)
+
     def _spawn(self, e: int, gen: np.random.Generator) -> None:
         _cfg, tc, ec, road = self.config, self.config.traffic, self.config.ego, self.road
         lanes = road.num_lanes

@@ -629,6 +629,11 @@ def test_a_lookahead_follows_a_policy_without_image_and_refuses_one_with(tmp_pat
     with pytest.raises(ValueError, match="lookahead drivers only"):
         driver_for("rule", lookahead={"samples": 2})
     assert eval_main(["lookahead", "--lookahead-samples", "2", "--no-record"]) == 2  # samples need blindness
+    assert eval_main(["lookahead", "--lookahead-perceived", "--no-record"]) == 2  # so does perception
+    assert eval_main([f"lookahead-blind:{image}", "--lookahead-follow", "rule", "--lookahead-horizon", "2",
+                      "--lookahead-perceived", "--episodes", "2", "--no-record", "--json-out",
+                      str(tmp_path / "perceived.json")]) == 0  # fmt: skip
+    assert json.loads((tmp_path / "perceived.json").read_text())["driver"] == "ppo-image+lookahead-perceived-rule"
     assert eval_main(["lookahead-blind", "--lookahead-horizon", "2", "--lookahead-samples", "2", "--episodes", "2",
                       "--scenario", "tiny", "--no-record", "--json-out", str(tmp_path / "la.json")]) == 0
     assert json.loads((tmp_path / "la.json").read_text())["episodes"] == 2

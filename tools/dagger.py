@@ -53,6 +53,9 @@ def main(argv: list[str] | None = None) -> int:
                     help="a lookahead expert: decisions it imagines after each candidate one (default 16, i.e. 8 s)")
     ap.add_argument("--lookahead-samples", type=int, default=None,
                     help="a lookahead-blind expert: redrawn futures per candidate decision (default 1)")
+    ap.add_argument("--lookahead-perceived", action="store_true",
+                    help="a lookahead-blind expert: imagines its futures from what the ego's sensors show only "
+                    "(as lc-eval --lookahead-perceived)")
     ap.add_argument("--correction-weight", type=float, default=1.0,
                     help="weight in training of a state whose label differs from the policy's own decision, "
                     "against 1 for one where they agree (1)")
