@@ -360,8 +360,8 @@ def add_heldout_arguments(p: argparse.ArgumentParser, episodes: int = 200) -> No
                    help="lookahead-blind drivers: redrawn futures imagined per candidate decision (default 1)")
     p.add_argument("--lookahead-perceived", action="store_true",
                    help="lookahead-blind drivers: imagine each future from what the ego's sensors show (no traffic "
-                   "beyond the scenario's sensing range, each vehicle's unseen desired speed estimated from its "
-                   "speed): the planner needs no privileged state")
+                   "beyond the scenario's sensing range, each vehicle's unseen desired speed read from its motion): "
+                   "the planner needs no privileged state, only the traffic's rules")
     p.add_argument("--lookahead-follow", metavar="DRIVER", default=None,
                    help="with lookahead:POLICY / lookahead-blind:POLICY: the policy proposes each decision and the "
                    "imagined futures follow DRIVER (a built-in driver or a policy.zip without image), which "

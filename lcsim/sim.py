@@ -146,12 +146,12 @@ class HighwaySim:
         """Reduce every environment to what its ego's sensors tell about the traffic (for an imagined copy).
 
         Traffic vehicles farther than ``range_m`` from the ego (centre to centre) are moved 100 km behind
-        it, spaced apart, where they take no part in anything near the ego; each vehicle left keeps its
-        position, speed and any lane change under way (all observable), but its desired speed, which no
-        sensor shows, becomes what its motion tells (:meth:`estimated_desired_speeds`, after the parking, so
-        from the leaders the ego can see). A planner that
-        imagines futures in a copy so reduced, and redrawn (:meth:`redraw_future`), knows the traffic's
-        rules but nothing a sensor of that range would not show it.
+        it, spaced apart, where they take no part in anything near the ego. Each vehicle left keeps its
+        position, speed, acceleration and any lane change under way (all observable), but its desired
+        speed, which no sensor shows, becomes what its motion tells (:meth:`estimated_desired_speeds`,
+        after the parking, so from the leaders the ego can see). A planner that imagines futures in a copy
+        so reduced, and redrawn (:meth:`redraw_future`), knows the traffic's rules but nothing a sensor of
+        that range would not show it.
         """
         if not range_m > 0:
             raise ValueError(f"range_m must be > 0, got {range_m!r}")
