@@ -338,7 +338,7 @@ def heldout_driver(args: argparse.Namespace) -> tuple[Any, ScenarioConfig]:
 def lookahead_options(args: argparse.Namespace) -> dict[str, int]:
     """The ``--lookahead-*`` options given (for :func:`lcmodels.policy.evaluate.driver_for`)."""
     given = {"horizon_decisions": args.lookahead_horizon, "samples": args.lookahead_samples,
-             "perceived": True if getattr(args, "lookahead_perceived", False) else None}
+             "perceived": args.lookahead_perceived or None}
     return {k: v for k, v in given.items() if v is not None}
 
 

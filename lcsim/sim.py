@@ -159,9 +159,7 @@ class HighwaySim:
         traffic = self.is_traffic.copy()
         traffic[:, 0] = False  # the ego knows itself, autopilot or not
         far &= traffic
-        if far.any():
-            parked = self.x[:, :1] - 1.0e5 - 50.0 * self.ids[None, :]
-            self.x = np.where(far, parked, self.x)
+        self.x = np.where(far, self.x[:, :1] - 1.0e5 - 50.0 * self.ids[None, :], self.x)  # parked, spaced apart
         self.rebuild_index()
         self.v0 = np.where(traffic, self.estimated_desired_speeds(), self.v0)
 
@@ -174,16 +172,13 @@ class HighwaySim:
         """
         tc = self.config.traffic
         index = self.index if self.index is not None else self._build_index()
-        a, b = tc.idm_max_accel_mps2, tc.idm_comfort_decel_mps2
-        v = self.speed
-        s_star = np.maximum(v * tc.idm_time_headway_s + v * (v - index.lead_speed) / (2.0 * math.sqrt(a * b)), 0.0)
-        s_star += tc.idm_min_gap_m
-        free = 1.0 - (s_star / np.maximum(index.gap, 0.1)) ** 2 - self.accel / a  # = (v / v0) ** delta
+        a, v = tc.idm_max_accel_mps2, self.speed
+        # IDM is a * (1 - (v / v0) ** delta - interaction); with v0 infinite only the interaction is left
+        free = (idm_accel(v, np.inf, index.gap, v - index.lead_speed, tc) - self.accel) / a  # = (v / v0) ** delta
         lo = max((tc.speed_kmh - 2.5 * tc.speed_spread_kmh) / 3.6, 1.0)
         hi = max((tc.speed_kmh + 2.5 * tc.speed_spread_kmh) / 3.6, 1.0)
         clipped = (self.accel <= -tc.max_decel_mps2 + 1e-9) | (self.accel >= a - 1e-9)
-        with np.errstate(divide="ignore", invalid="ignore"):
-            v0 = np.where(free > 0.0, v / np.maximum(free, 1e-12) ** (1.0 / tc.idm_delta), np.inf)
+        v0 = np.where(free > 0.0, v / np.maximum(free, 1e-12) ** (1.0 / tc.idm_delta), np.inf)
         return np.clip(np.where(clipped, hi, v0), lo, hi)
 
     def _spawn(self, e: int, gen: np.random.Generator) -> None:

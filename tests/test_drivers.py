@@ -207,7 +207,7 @@ def test_perceive_keeps_what_the_sensors_show_and_parks_the_rest():
     assert near[:, 1:].any() and far.any()  # both kinds are there to check
     after = copy_.sim
     assert np.array_equal(after.x[near], before["x"][near]) and np.array_equal(after.speed, before["speed"])
-    assert (after.x[far] < before["x"][:, :1].repeat(after.x.shape[1], 1)[far] - 9.9e4).all()
+    assert ((after.x - before["x"][:, :1])[far] < -9.9e4).all()
     # the desired speeds are what the motion tells, from the leaders left in view; the ego's own is known
     assert np.array_equal(after.v0[:, 1:], after.estimated_desired_speeds()[:, 1:])
     assert after.v0[0, 0] == before["v0"][0, 0]
@@ -228,11 +228,11 @@ def test_desired_speeds_are_recovered_from_the_motion_they_cause():
     for _ in range(6):
         core.step(np.full(4, KEEP))
     sim = core.sim
-    err_kmh = np.abs(sim.estimated_desired_speeds() - sim.v0)[:, 1:] * 3.6
+    est = sim.estimated_desired_speeds()
+    err_kmh = np.abs(est - sim.v0)[:, 1:] * 3.6
     assert np.mean(err_kmh < 0.1) >= 0.9, np.sort(err_kmh.ravel())[-10:]  # 99.9% within 0.5 km/h on the paper scenario
     tc = core.config.traffic
     spread = 2.5 * tc.speed_spread_kmh / 3.6
-    est = sim.estimated_desired_speeds()
     assert (est >= tc.speed_kmh / 3.6 - spread - 1e-9).all() and (est <= tc.speed_kmh / 3.6 + spread + 1e-9).all()
 
 
@@ -242,7 +242,7 @@ def test_perceived_lookahead_is_deterministic_and_only_picks_surviving_decisions
         core = _dense_core()
         driver = LookaheadDriver(LookaheadConfig(horizon_decisions=6, blind=True, perceived=True))
         assert driver.name == "lookahead-perceived"
-        actions_seen, overridden = [], 0
+        actions_seen = []
         for _ in range(20):
             if (core.outcome != "").any():
                 break
@@ -251,11 +251,10 @@ def test_perceived_lookahead_is_deterministic_and_only_picks_surviving_decisions
             ok = np.stack([driver.survives(core, np.where(mask[:, a], a, KEEP)) & mask[:, a] for a in range(3)], 1)
             rows, choice = np.arange(4), mask.sum(axis=1) > 1
             assert (ok[rows, actions] | ~ok.any(axis=1))[choice].all(), (actions, ok)
-            overridden += int((choice & (actions != driver.rule({}, mask, core))).sum())
             actions_seen.append(actions)
             core.step(actions)
-        runs.append((np.stack(actions_seen), overridden))
-    assert np.array_equal(runs[0][0], runs[1][0])
+        runs.append(np.stack(actions_seen))
+    assert np.array_equal(runs[0], runs[1])
 
 
 def test_lookahead_config_refuses_perception_without_blindness():
