@@ -200,6 +200,9 @@ def train_policy_parser() -> argparse.ArgumentParser:
     p.add_argument("--window-features", action="store_true",
                    help="give the sensor branch, per side lane, when over the next 16 s the ego could change into "
                    "it, against when its own leader traps it (every shown vehicle at its present speed)")
+    p.add_argument("--accel-features", action="store_true",
+                   help="observe each vehicle's acceleration too (a tenth column of `current`); with "
+                   "--window-features, also the same look with the accelerations kept for 2.5 s")
     p.add_argument("--lr", type=float, default=None,
                    help="learning rate (default 3e-4, and 3e-5 for PPO after --warm-start or --init-policy, which "
                    "keeps what the clone learnt; A2C 7e-4; DQN 1e-4)")
@@ -265,6 +268,7 @@ def train_policy_main(argv: list[str] | None = None) -> int:
         cfg = PolicyConfig(
             algo=args.algo, obs=args.obs, scenario=args.scenario, neighbours=args.neighbours,
             slots=args.slots, gamma=args.gamma, window_features=args.window_features,
+            accel_features=args.accel_features,
             timesteps=args.timesteps, n_envs=args.n_envs,
             seed=args.seed, image_net=args.image_net, contact_features=args.contact_features,
             learning_rate=learning_rate,

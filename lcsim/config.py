@@ -309,6 +309,11 @@ class ScenarioConfig(_JsonMixin):
     25.5% with ``nearest`` (300k steps, docs/simulator.md). Configs stored before this field existed
     read as ``nearest``."""
     sensing_range_m: float = 80.0
+    observe_acceleration: bool = False
+    """``current`` gets a tenth column, ``accel_mps2``: each vehicle's acceleration along its heading over
+    the last step (what a radar track or CARLA's ``get_acceleration`` shows). The traffic's acceleration
+    tells its intent (an IDM follower closing on its desired speed, a leader braking), which speeds alone do
+    not; off by default, so stored observations keep their nine columns."""
     render_image: bool = True
     invalid_lane_change: str = "refuse"
     """A change towards a lane that does not exist: ``refuse`` (not carried out, rewarded ``reward.off_road``,

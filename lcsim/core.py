@@ -23,6 +23,13 @@ RIGHT, KEEP, LEFT = 0, 1, 2
 ACTION_NAMES = ("right", "keep", "left")
 # Columns of the `current` observation (ego row 0, then the neighbour slots), in the ego frame.
 CURRENT_FEATURES = ("x_m", "y_m", "vx_mps", "vy_mps", "yaw_rad", "speed_mps", "lane", "target_lane", "present")
+ACCEL_FEATURE = "accel_mps2"
+"""The column ``ScenarioConfig.observe_acceleration`` appends to :data:`CURRENT_FEATURES`."""
+
+
+def current_features(config: ScenarioConfig) -> tuple[str, ...]:
+    """The columns of the ``current`` observation in ``config``."""
+    return CURRENT_FEATURES + ((ACCEL_FEATURE,) if config.observe_acceleration else ())
 REWARD_COMPONENTS = ("collision", "off_road", "forward", "success")
 
 
@@ -281,7 +288,8 @@ class LaneChangeCore:
         """Batched observation of environments ``ids`` (all by default), B = len(ids).
 
         Returns ``current`` (B, 1+K, 9) with columns :data:`CURRENT_FEATURES` in the ego frame (row 0 is
-        the ego: its own velocity, heading to the road, lane and target lane), ``history`` (B, K, H, 3):
+        the ego: its own velocity, heading to the road, lane and target lane; a tenth column, each
+        vehicle's own acceleration, with ``observe_acceleration``), ``history`` (B, K, H, 3):
         the last H positions of the same K vehicles in the ego frame of the current step, oldest first,
         with a validity flag, and ``image`` (B, 3, S, S) uint8 when rendering is on.
         """
@@ -309,7 +317,7 @@ class LaneChangeCore:
             rel_yaw, speed,
             sim.lane.take(flat), sim.target_lane.take(flat),  # (small integers: exact in float64)
             np.ones(dx.shape),
-        ], dtype=np.float64)
+        ] + ([sim.accel.take(flat)] if self.config.observe_acceleration else []), dtype=np.float64)
         cur *= present
         pos, valid = sim.history(nb, ids)  # (B, K, H, 2), (B, K, H)
         hdx, hdy = pos[..., 0] - ex[:, :, None], pos[..., 1] - ey[:, :, None]

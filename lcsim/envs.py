@@ -19,7 +19,7 @@ from gymnasium.vector import AutoresetMode, VectorEnv
 from gymnasium.vector.utils import batch_space
 
 from lcsim.config import ScenarioConfig
-from lcsim.core import CURRENT_FEATURES, RUNNING, LaneChangeCore, StepResult
+from lcsim.core import RUNNING, LaneChangeCore, StepResult, current_features
 from lcsim.render import BevRenderer
 
 _BOUND = 1.0e4
@@ -29,7 +29,7 @@ def observation_space(config: ScenarioConfig) -> spaces.Dict:
     """The single-environment observation space (see :meth:`LaneChangeCore.observe`)."""
     k, h = config.num_neighbours, config.history_steps
     d: dict[str, spaces.Space] = {
-        "current": spaces.Box(-_BOUND, _BOUND, (1 + k, len(CURRENT_FEATURES)), np.float32),
+        "current": spaces.Box(-_BOUND, _BOUND, (1 + k, len(current_features(config))), np.float32),
         "history": spaces.Box(-_BOUND, _BOUND, (k, h, 3), np.float32),
     }
     if config.render_image:

@@ -117,3 +117,35 @@ def test_success_milestones_are_paid_once_each_in_order_as_the_ego_passes_them()
         paid += res.components["success"]
     assert list(core.outcome) == ["success", "success"] and list(paid) == [15.0, 15.0]
     assert both_at_once
+
+
+def test_observed_acceleration_is_a_tenth_column_and_changes_nothing_else():
+    """``observe_acceleration`` appends each shown vehicle's (and the ego's) last-step acceleration; the other
+    nine columns, the history and the episode are as without it; the env still passes both checkers."""
+    from lcsim.core import ACCEL_FEATURE, LaneChangeCore, current_features
+    from lcsim.envs import LaneChangeEnv
+
+    plain, accel = small_config(render_image=False), small_config(render_image=False, observe_acceleration=True)
+    assert current_features(accel)[-1] == ACCEL_FEATURE and len(current_features(accel)) == 10
+    cores = [LaneChangeCore(c, 3) for c in (plain, accel)]
+    rng = np.random.default_rng(0)
+    for core in cores:
+        core.reset(np.arange(3), [11, 12, 13])
+    moved = 0.0
+    for _ in range(12):
+        actions = rng.integers(0, 3, 3)
+        a, b = (core.observe() for core in cores)
+        assert b["current"].shape == (3, 9, 10)
+        np.testing.assert_array_equal(a["current"], b["current"][..., :9])
+        np.testing.assert_array_equal(a["history"], b["history"])
+        sim, nb = cores[1].sim, cores[1].neighbours(np.arange(3))
+        rows = np.concatenate([np.zeros((3, 1), dtype=np.int64), nb], axis=1)
+        want = np.where(rows >= 0, np.take_along_axis(sim.accel, np.maximum(rows, 0), axis=1), 0.0)
+        np.testing.assert_array_equal(b["current"][..., 9], want.astype(np.float32))
+        moved = max(moved, float(np.abs(want).max()))
+        for core in cores:
+            core.step(actions)
+    assert moved > 0.05  # the column does carry accelerations, not zeros
+    env = LaneChangeEnv(accel)
+    gym_check_env(env, skip_render_check=True)
+    sb3_check_env(LaneChangeEnv(accel), warn=True)

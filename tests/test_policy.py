@@ -143,6 +143,53 @@ def test_window_features_widen_the_sensor_branch_and_need_lane_slots(tmp_path: P
         _tiny(obs="pure", window_features=True, neighbours="nearest")
 
 
+def test_window_features_with_accelerations_see_a_follower_speeding_up() -> None:
+    """A follower in the left lane 25 m back at the ego's speed: at constant speeds the lane stays open, but
+    accelerating at 2 m/s^2 relative to the ego (after 2.5 s: 6.25 m nearer, closing at 5 m/s) it closes in a
+    few seconds. The first 11 outputs are those without the acceleration column."""
+    from lcmodels.policy.extractor import WINDOW_HORIZON_S, WindowFeatures
+    from lcsim.core import CURRENT_FEATURES
+
+    col = {name: i for i, name in enumerate(CURRENT_FEATURES)}
+    cur = torch.zeros(1, 9, len(CURRENT_FEATURES) + 1)
+    cur[0, 1 + 5, col["x_m"]], cur[0, 1 + 5, col["present"]] = -25.0, 1.0  # slot 5: the follower left
+    cur[0, 0, -1], cur[0, 1 + 5, -1] = 0.5, 2.5  # the ego accelerates at 0.5, the follower at 2.5
+    out = WindowFeatures(8, accel=True)(cur)[0]
+    assert out.shape == (22,)
+    torch.testing.assert_close(out[:11], WindowFeatures(8)(cur[..., :-1])[0])
+    left_const, left_accel = out[6:11], out[17:22]
+    assert left_const[0] == 1.0 and left_const[2] == 1.0  # changeable now, open throughout
+    assert left_accel[0] == 1.0  # still changeable now ...
+    assert 0.0 < left_accel[2] * WINDOW_HORIZON_S < 8.0  # ... but it closes within 8 s
+    assert left_accel[4] < left_const[4]
+    # a relative acceleration of zero reads as the constant-speed look (the trap aside: it is on the grid)
+    cur[0, 1 + 5, -1] = 0.5
+    same = WindowFeatures(8, accel=True)(cur)[0]
+    torch.testing.assert_close(same[12:], same[1:11])
+
+
+def test_accel_features_observe_accelerations_clone_from_plain_demos_and_train(tmp_path: Path) -> None:
+    """``accel_features`` widens ``current`` to 10 columns and the window look to 22; demonstrations recorded
+    without the column are replayed with it; the run trains, saves and loads with its scenario."""
+    config = scenario_for_mode(tiny_scenario(), "pure")
+    record_episodes(config, [1, 2], "oracle", tmp_path / "demos", scenario="tiny", images=False)
+    cfg = _tiny(obs="pure", window_features=True, accel_features=True, timesteps=64, n_steps=16, batch_size=32,
+                warm_start=str(tmp_path / "demos"), warm_start_epochs=1, eval_episodes=2)
+    assert cfg.scenario_config().observe_acceleration
+    demos = load_demonstrations(tmp_path / "demos", "pure", None, scenario=cfg.scenario_config())
+    assert demos.obs["current"].shape[1:] == (9, 10) and np.abs(demos.obs["current"][..., 9]).max() > 0.0
+    res = train_policy(cfg, tmp_path / "run")
+    assert res.timesteps == 64
+    loaded = load_policy(tmp_path / "run" / "policy.zip")
+    assert loaded.scenario.observe_acceleration
+    assert loaded.model.observation_space["current"].shape == (9, 10)
+    window = loaded.model.policy.features_extractor.branches["current"].extra.parts[-1]
+    assert window.out_features == 22
+    without = dataclasses.replace(loaded.scenario, observe_acceleration=False)
+    with pytest.raises(ValueError, match="observe_acceleration"):  # loading for another observation says why
+        load_policy(tmp_path / "run" / "policy.zip", scenario=without)
+
+
 @pytest.mark.parametrize("mode", ["pure", "hybrid"])
 def test_contact_features_keep_the_sensor_branch_width(mode: str) -> None:
     space = policy_observation_space(tiny_scenario(), mode)

@@ -4,8 +4,8 @@
   (:class:`VGG16`, 13 convolutions and 5 poolings, then two linear layers down to 10 features) or the
   compact VGG-style default (:class:`CompactVGG`, three 3x3-convolution blocks on the image average-pooled
   to 40x40; about 4000x fewer multiply-adds, so it trains on a CPU).
-- ``current`` (1+K, 9): the ego and its K neighbour slots (:data:`lcsim.core.CURRENT_FEATURES`),
-  scaled per column to order one, flattened, two-layer MLP. With ``contact_features`` the MLP also gets,
+- ``current`` (1+K, 9): the ego and its K neighbour slots (:data:`lcsim.core.CURRENT_FEATURES`; a tenth
+  column, the acceleration, with ``ScenarioConfig.observe_acceleration``), scaled per column to order one, flattened, two-layer MLP. With ``contact_features`` the MLP also gets,
   per slot, the time to contact, the bumper gap and a proximity (:class:`ContactFeatures`): quotients a
   ReLU network approximates poorly from the raw columns, and the quantities a lane change hinges on.
   With ``window_features``, also when over the next 16 s each side lane has room for a change, against
@@ -33,14 +33,17 @@ from lcsim.core import CURRENT_FEATURES
 ImageNet = Literal["compact", "vgg16"]
 IMAGE_NETS: tuple[str, ...] = ("compact", "vgg16")
 
-# Scales of the `current` columns x, y, vx, vy, yaw, speed, lane, target_lane, present.
+# Scales of the `current` columns x, y, vx, vy, yaw, speed, lane, target_lane, present (and accel_mps2,
+# with ScenarioConfig.observe_acceleration).
 CURRENT_SCALE = (50.0, 10.0, 10.0, 2.0, 1.0, 10.0, 4.0, 4.0, 1.0)
+ACCEL_SCALE = 2.0
 PREDICTION_SCALE = (50.0, 10.0)
 # ContactFeatures: bumper gap = |x| - CONTACT_BODY_M (the mean of the ego's and a traffic vehicle's length,
 # 4.18 m and 5.37 m, rounded), times to contact capped at CONTACT_HORIZON_S.
 CONTACT_BODY_M = 4.8
 CONTACT_HORIZON_S = 10.0
 _X, _VX, _PRESENT = (CURRENT_FEATURES.index(name) for name in ("x_m", "vx_mps", "present"))
+_ACCEL = len(CURRENT_FEATURES)  # the acceleration column, when there is one
 # WindowFeatures: a look over the next WINDOW_HORIZON_S on a grid of WINDOW_STEP_S, every vehicle at its
 # present relative speed; a change needs its gap for WINDOW_CHANGE_S (about the 2 s lateral move, plus the
 # start); a gap is clear of a vehicle WINDOW_MARGIN_M beyond the bodies, plus WINDOW_HEADWAY_S times the
@@ -50,6 +53,9 @@ WINDOW_STEP_S = 0.5
 WINDOW_CHANGE_S = 2.5
 WINDOW_MARGIN_M = 2.0
 WINDOW_HEADWAY_S = 1.0
+# With the acceleration column, a second look in which each vehicle keeps its acceleration relative to the
+# ego's for WINDOW_ACCEL_S (about how long an IDM follower or a braking leader keeps it), then its speed.
+WINDOW_ACCEL_S = 2.5
 
 # torchvision's VGG-16 layer plan ("D"): channels, "M" = 2x2 max pooling.
 VGG16_PLAN: tuple[int | str, ...] = (64, 64, "M", 128, 128, "M", 256, 256, 256, "M", 512, 512, 512, "M",
@@ -185,9 +191,13 @@ class WindowFeatures(nn.Module):
     before the trap; the share of the times before the trap at which it is. A quantity the planner gets by
     simulating, which an MLP would have to learn as a minimum over a grid; vehicles the slots do not show
     count as absent, and a lane that does not exist reads open (the ``lane`` column tells).
+
+    With ``accel`` (the ``accel_mps2`` column of ``ScenarioConfig.observe_acceleration``), 11 more: the same
+    look with each vehicle keeping its acceleration relative to the ego's for ``WINDOW_ACCEL_S``, so a
+    follower closing on its desired speed or a braking leader shows before its speed does.
     """
 
-    def __init__(self, slots: int) -> None:
+    def __init__(self, slots: int, accel: bool = False) -> None:
         super().__init__()
         layout = LANE_SLOTS[:slots]
         offsets = {o for o, _, _ in layout}
@@ -203,26 +213,45 @@ class WindowFeatures(nn.Module):
         self.span = round(WINDOW_CHANGE_S / WINDOW_STEP_S)
         self.register_buffer("t", torch.arange(n + self.span, dtype=torch.float32) * WINDOW_STEP_S, persistent=False)
         self.n = n
-        self.out_features = 11
+        self.accel = accel
+        self.out_features = 22 if accel else 11
 
     def forward(self, current: torch.Tensor) -> torch.Tensor:
         nb = current[:, 1:]
         x, vx, present = nb[..., _X], nb[..., _VX], nb[..., _PRESENT] > 0.5
-        t, n, horizon = self.t, self.n, WINDOW_HORIZON_S
+        t, horizon = self.t, WINDOW_HORIZON_S
         # the trap: the leader's bumper gap down to the margin, at the present closing speed
         gap = x[:, self.lead] - CONTACT_BODY_M - WINDOW_MARGIN_M
         closing = -vx[:, self.lead]
         trap = torch.where(present[:, self.lead] & (closing > 0.05), gap.clamp(min=0.0) / closing.clamp(min=0.05),
                            torch.full_like(gap, horizon)).clamp(max=horizon)
+        out = self._look(trap, x[..., None] + vx[..., None] * t, vx[..., None], present)
+        if not self.accel:
+            return out
+        # the same look with each vehicle's acceleration relative to the ego's kept for WINDOW_ACCEL_S:
+        # displacement a * ta * (t - ta / 2) and speed v + a * ta, with ta = min(t, WINDOW_ACCEL_S)
+        rel_a = nb[..., _ACCEL] - current[:, :1, _ACCEL]
+        ta = t.clamp(max=WINDOW_ACCEL_S)
+        xt = x[..., None] + vx[..., None] * t + rel_a[..., None] * (ta * (t - 0.5 * ta))  # (B, K, G)
+        vt = vx[..., None] + rel_a[..., None] * ta
+        lead_gap = xt[:, self.lead, :self.n] - CONTACT_BODY_M - WINDOW_MARGIN_M
+        hit = (lead_gap <= 0.0) & present[:, self.lead, None]
+        grid = t[:self.n]
+        trap_a = torch.where(hit, grid, torch.full_like(grid, 2 * horizon)).min(dim=1).values.clamp(max=horizon)
+        return torch.cat([out, self._look(trap_a, xt, vt, present)], dim=1)
+
+    def _look(self, trap: torch.Tensor, xt: torch.Tensor, vt: torch.Tensor, present: torch.Tensor) -> torch.Tensor:
+        """The 11 outputs from the trap time ``(B,)`` and every slot's relative position ``(B, K, G)`` and
+        speed ``(B, K, G or 1)`` over the grid."""
+        t, n, horizon = self.t, self.n, WINDOW_HORIZON_S
         before = t[None, :n] <= trap[:, None]  # (B, n)
         grid = t[:n]
         out = [trap / horizon]
         for side in (self.right, self.left):
-            xs, vs = x[:, side], vx[:, side]  # the side lane's shown vehicles, (B, S)
-            xt = xs[..., None] + vs[..., None] * t  # (B, S, G) over the grid
+            xs, vs = xt[:, side], vt[:, side]  # the side lane's shown vehicles, (B, S, G)
             ahead = CONTACT_BODY_M + WINDOW_MARGIN_M + WINDOW_HEADWAY_S * (-vs).clamp(min=0.0)
             behind = CONTACT_BODY_M + WINDOW_MARGIN_M + WINDOW_HEADWAY_S * vs.clamp(min=0.0)
-            clear = (xt >= ahead[..., None]) | (xt <= -behind[..., None]) | ~present[:, side, None]
+            clear = (xs >= ahead) | (xs <= -behind) | ~present[:, side, None]
             open_ = clear.all(dim=1)  # (B, G)
             can = open_.unfold(1, self.span + 1, 1).all(dim=2)[:, :n]  # open for the whole change, (B, n)
             never = torch.full_like(grid, 2 * horizon)
@@ -294,11 +323,12 @@ class HybridExtractor(BaseFeaturesExtractor):
                 branches[key] = make_image_net(image_net, shape[0], shape[1], image_features)
                 dims += image_features
             elif key == "current":
-                slots = int(shape[0]) - 1
+                slots, accel = int(shape[0]) - 1, int(shape[-1]) == len(CURRENT_SCALE) + 1
                 parts = [ContactFeatures(slots)] if contact_features else []
-                parts += [WindowFeatures(slots)] if window_features else []
+                parts += [WindowFeatures(slots, accel)] if window_features else []
                 extra = _Concat(*parts) if parts else None  # (no parameters: checkpoints keep their keys)
-                branches[key] = _ScaledMLP(shape, CURRENT_SCALE, hidden, sensor_features, extra=extra)
+                scale = CURRENT_SCALE + ((ACCEL_SCALE,) if accel else ())
+                branches[key] = _ScaledMLP(shape, scale, hidden, sensor_features, extra=extra)
                 dims += sensor_features
             elif key == "prediction":
                 branches[key] = _ScaledMLP(shape, PREDICTION_SCALE, hidden, prediction_features)

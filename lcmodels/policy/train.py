@@ -133,6 +133,9 @@ class PolicyConfig(_JsonMixin):
     window_features: bool = False
     """The sensor branch also gets, per side lane, when over the next 16 s the ego could change into it,
     against when its own leader traps it (``lcmodels.policy.extractor.WindowFeatures``; lane slots only)."""
+    accel_features: bool = False
+    """The observation also shows each vehicle's acceleration (``ScenarioConfig.observe_acceleration``), and
+    with ``window_features`` the sensor branch also looks at the side lanes with those accelerations kept."""
     learning_rate: float = _LEARNING_RATES["ppo"]
     gamma: float = 0.95
     """0.95 (a 10 s horizon at 2 decisions/s): PPO pure reached 24% held-out success in 150k steps with
@@ -203,7 +206,7 @@ class PolicyConfig(_JsonMixin):
 
     def scenario_config(self) -> ScenarioConfig:
         base = dataclasses.replace(POLICY_SCENARIOS[self.scenario](), neighbour_selection=self.neighbours,
-                                   num_neighbours=self.slots)
+                                   num_neighbours=self.slots, observe_acceleration=self.accel_features)
         return scenario_for_mode(base, self.obs)
 
 

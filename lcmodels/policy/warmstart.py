@@ -35,8 +35,8 @@ from lcmodels.predictor.inference import Predictor
 from lcsim.config import ScenarioConfig
 
 # Scenario fields that change only what is observed, not the episode: demonstrations recorded with other
-# values are replayed and observed the policy's way.
-_OBSERVATION_ONLY = ("render_image", "neighbour_selection", "num_neighbours")
+# values are replayed and observed the policy's way (all but the first, rendering, which a mode needs).
+_OBSERVATION_ONLY = ("render_image", "neighbour_selection", "num_neighbours", "observe_acceleration")
 
 
 @dataclass
@@ -116,8 +116,7 @@ def load_demonstrations(
             # What the observation shows does not change the episode: it is rebuilt the policy's way.
             if diffs := scenario_differences(config.to_dict(), scenario, ignore=_OBSERVATION_ONLY):
                 raise ValueError(f"{path} was recorded in another scenario than the one being trained ({diffs[0]})")
-            config = dataclasses.replace(config, neighbour_selection=scenario.neighbour_selection,
-                                         num_neighbours=scenario.num_neighbours)
+            config = dataclasses.replace(config, **{k: getattr(scenario, k) for k in _OBSERVATION_ONLY[1:]})
         if "image" in keys and not config.render_image:
             raise ValueError(f"{path} was recorded without the bird's-eye image, which mode {mode!r} needs")
         rows = [obs for _step, obs in rebuild_observations(episode, config)]
