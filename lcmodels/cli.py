@@ -200,6 +200,9 @@ def train_policy_parser() -> argparse.ArgumentParser:
     p.add_argument("--window-features", action="store_true",
                    help="give the sensor branch, per side lane, when over the next 16 s the ego could change into "
                    "it, against when its own leader traps it (every shown vehicle at its present speed)")
+    p.add_argument("--collision-weight", type=float, default=d.collision_weight,
+                   help="multiply the learner's collision reward by this (training only; returns are logged and "
+                   "evaluated with the paper's reward; default %(default)s)")
     p.add_argument("--accel-features", action="store_true",
                    help="observe each vehicle's acceleration too (a tenth column of `current`); with "
                    "--window-features, also the same look with the accelerations kept for 2.5 s")
@@ -268,7 +271,7 @@ def train_policy_main(argv: list[str] | None = None) -> int:
         cfg = PolicyConfig(
             algo=args.algo, obs=args.obs, scenario=args.scenario, neighbours=args.neighbours,
             slots=args.slots, gamma=args.gamma, window_features=args.window_features,
-            accel_features=args.accel_features,
+            accel_features=args.accel_features, collision_weight=args.collision_weight,
             timesteps=args.timesteps, n_envs=args.n_envs,
             seed=args.seed, image_net=args.image_net, contact_features=args.contact_features,
             learning_rate=learning_rate,

@@ -240,6 +240,43 @@ def test_prediction_wrapper_equals_the_predictor(predictor_path: Path) -> None:
     assert np.abs(direct).sum() > 0  # neighbours are there and predicted
 
 
+def test_collision_weight_scales_only_the_learners_collision_reward() -> None:
+    """Two wrappers on the same seeds and actions: the learner's rewards differ by (w - 1) times the
+    collision component, the logged returns not at all."""
+    config = scenario_for_mode(tiny_scenario(), "pure")
+    envs = [PolicyVecEnv(LaneChangeSB3VecEnv(4, config), "pure", reward_scale=0.01, collision_weight=w)
+            for w in (1.0, 4.0)]
+    for env in envs:
+        env.seed(3)
+        env.reset()
+    rng = np.random.default_rng(0)
+    crashes = 0
+    for _ in range(120):
+        actions = rng.choice([0, 2], 4)  # changing lanes all the time: collisions come soon
+        (_, r1, d1, i1), (_, r4, d4, _) = (env.step(actions) for env in envs)
+        assert np.array_equal(d1, d4)
+        col = np.array([info["reward_components"]["collision"] for info in i1])
+        crashes += int((col < 0).sum())
+        np.testing.assert_allclose(r4, r1 + 0.01 * 3.0 * col, rtol=1e-5, atol=1e-5)
+    assert crashes > 0
+    assert [e.ret for e in envs[0].finished] == [e.ret for e in envs[1].finished]
+    with pytest.raises(ValueError, match="collision_weight"):
+        _tiny(collision_weight=0.0)
+
+
+def test_demonstration_returns_carry_the_collision_weight(tmp_path: Path) -> None:
+    config = scenario_for_mode(tiny_scenario(), "pure")
+    done = record_episodes(config, [8, 9], "rule", tmp_path / "demos", scenario="tiny", images=False)
+    assert [r.outcome for r in done] == ["success", "collision"]  # one of each
+    one, four = (load_demonstrations(tmp_path / "demos", "pure", None, gamma=0.9, collision_weight=w)
+                 for w in (1.0, 4.0))
+    np.testing.assert_array_equal(one.actions, four.actions)
+    first = done[0].decisions
+    np.testing.assert_array_equal(four.returns[:first], one.returns[:first])  # no crash: the same returns
+    assert (four.returns[first:] < one.returns[first:]).all()  # every decision before a crash: dearer
+    assert four.returns[-1] - one.returns[-1] == pytest.approx(3.0 * -500.0)  # the last: three more crashes
+
+
 def test_pure_mode_drops_the_image_and_skips_rendering() -> None:
     env = PolicyVecEnv(LaneChangeSB3VecEnv(2, scenario_for_mode(tiny_scenario(), "pure")), "pure")
     assert set(env.reset()) == {"current"}

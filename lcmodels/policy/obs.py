@@ -130,10 +130,13 @@ class PolicyVecEnv(VecEnvWrapper):
         reward_scale: rewards handed to the learner are multiplied by this; statistics stay unscaled.
         image_encoder: a frozen image branch; when given, the policy sees its output (key
             ``image_features``) in place of the image (``image`` and ``hybrid`` modes).
+        collision_weight: the collision component of the learner's reward is multiplied by this (training
+            shaping; statistics and the environment's reward stay as they are).
     """
 
     def __init__(self, venv: VecEnv, mode: str, predictor: Predictor | None = None,
-                 reward_scale: float = 1.0, image_encoder: ImageEncoder | None = None) -> None:
+                 reward_scale: float = 1.0, image_encoder: ImageEncoder | None = None,
+                 collision_weight: float = 1.0) -> None:
         self.mode = mode
         if needs_predictor(mode) and predictor is None:
             raise ValueError(f"observation mode {mode!r} needs a trained predictor (--predictor)")
@@ -150,6 +153,7 @@ class PolicyVecEnv(VecEnvWrapper):
         features = image_encoder.out_features if image_encoder is not None else None
         super().__init__(venv, observation_space=policy_observation_space(config, mode, future, features))
         self.reward_scale = float(reward_scale)
+        self.collision_weight = float(collision_weight)
         self.forward_per_m = config.reward.forward_per_m
         n = self.num_envs
         self._ret = np.zeros(n)
@@ -200,7 +204,11 @@ class PolicyVecEnv(VecEnvWrapper):
                 self._ret[i], self._len[i], self._fwd[i] = 0.0, 0, 0.0
                 self._seed[i] = self.core.seeds[i]
                 self.episode_seeds.append(int(self.core.seeds[i]))
-        return self._convert(obs), (reward * self.reward_scale).astype(np.float32), dones, infos
+        learner = reward
+        if self.collision_weight != 1.0:
+            extra = np.array([info["reward_components"]["collision"] for info in infos])
+            learner = reward + (self.collision_weight - 1.0) * extra
+        return self._convert(obs), (learner * self.reward_scale).astype(np.float32), dones, infos
 
     def pop_finished(self) -> list[EpisodeStats]:
         out, self.finished = self.finished, []

@@ -147,6 +147,9 @@ class PolicyConfig(_JsonMixin):
     ent_coef: float = 0.0
     reward_scale: float = 0.01
     """Rewards handed to the learner are scaled by this (returns in the logs are unscaled)."""
+    collision_weight: float = 1.0
+    """The learner's collision reward is this many times the scenario's (training shaping: the logged and
+    evaluated returns keep the paper's reward)."""
     buffer_size: int = 50_000
     """DQN replay buffer (transitions)."""
     learning_starts: int = 2_000
@@ -182,7 +185,7 @@ class PolicyConfig(_JsonMixin):
         _check(self.image_net in IMAGE_NETS, self, "image_net", f"must be one of {', '.join(IMAGE_NETS)}",
                self.image_net)  # fmt: skip
         _positive(self, "n_envs", "image_features", "learning_rate", "n_steps", "batch_size",
-                  "n_epochs", "reward_scale", "buffer_size", "target_update_interval", "checkpoint_every",
+                  "n_epochs", "reward_scale", "collision_weight", "buffer_size", "target_update_interval", "checkpoint_every",
                   "eval_batch", "warm_start_epochs")
         _non_negative(self, "timesteps", "ent_coef", "learning_starts", "eval_episodes", "seed", "eval_seed")
         _check(not (self.warm_start and self.init_policy), self, "init_policy",
@@ -485,7 +488,8 @@ def _train(cfg: PolicyConfig, run: _Run, pred: Predictor | None, device: str, lo
     # The initial policy, loaded once: its weights start the model, its image branch (when frozen) the wrapper.
     initial = _load_init_policy(cfg, run, config, device) if cfg.init_policy and not resume else None
     encoder = _frozen_image_encoder(cfg, run, config, initial) if cfg.freeze_image else None
-    env = PolicyVecEnv(base, cfg.obs, pred, reward_scale=cfg.reward_scale, image_encoder=encoder)
+    env = PolicyVecEnv(base, cfg.obs, pred, reward_scale=cfg.reward_scale, image_encoder=encoder,
+                       collision_weight=cfg.collision_weight)
     run.env = env
     tb = str(out / "tb")
     warm: dict[str, Any] | None = None
@@ -600,7 +604,7 @@ def _warm_start(cfg: PolicyConfig, model: BaseAlgorithm, pred: Predictor | None,
 
     t0 = time.perf_counter()
     demos = load_demonstrations(cfg.warm_start, cfg.obs, pred, gamma=cfg.gamma, reward_scale=cfg.reward_scale,
-                                scenario=config, progress=every_tenth(log.info, "warm start: read {}/{} episodes"))  # fmt: skip
+                                collision_weight=cfg.collision_weight, scenario=config, progress=every_tenth(log.info, "warm start: read {}/{} episodes"))  # fmt: skip
     before = bc_loss(model, demos)
     epochs = cfg.warm_start_epochs
     losses = pretrain(model, demos, epochs=epochs, seed=cfg.seed,

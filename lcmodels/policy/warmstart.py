@@ -87,6 +87,7 @@ def load_demonstrations(
     *,
     gamma: float = 0.99,
     reward_scale: float = 1.0,
+    collision_weight: float = 1.0,
     scenario: ScenarioConfig | None = None,
     max_episodes: int | None = None,
     progress: Callable[[int, int], None] | None = None,
@@ -95,7 +96,8 @@ def load_demonstrations(
 
     ``scenario``, when given, must equal the recorded episodes' (apart from rendering); ``ValueError``
     otherwise, and when there are no recorded decisions. ``progress`` is called with (episodes read,
-    episodes in all) after each episode.
+    episodes in all) after each episode. Returns are of the recorded rewards with the collision component
+    times ``collision_weight``, times ``reward_scale`` (what the learner is paid online).
     """
     data = Path(data)
     paths = [data] if data.is_file() else list_episodes(data)
@@ -125,7 +127,9 @@ def load_demonstrations(
         for k in keys:
             chunks[k].append(pobs[k])
         actions.append(episode.steps["action"].to_numpy(dtype=np.int64))
-        returns.append(_discounted(episode.steps["reward"].to_numpy(dtype=np.float64) * reward_scale, gamma))
+        rewards = episode.steps["reward"].to_numpy(dtype=np.float64)
+        rewards = rewards + (collision_weight - 1.0) * episode.steps["r_collision"].to_numpy(dtype=np.float64)
+        returns.append(_discounted(rewards * reward_scale, gamma))
         used += 1
     if not actions:
         raise ValueError(f"no recorded decisions in {data}")
