@@ -16,7 +16,7 @@ from tqdm import tqdm
 
 from lcdata.record import DRIVERS, episode_filename, iter_record_episodes
 from lcdata.writer_process import WRITER_MODES
-from lcsim.cli import int_at_least
+from lcsim.cli import add_lookahead_arguments, int_at_least, lookahead_options
 from lcsim.config import ScenarioConfig, corpus_scenario, paper_scenario
 from lcsim.drivers import split_policy_spec
 
@@ -77,6 +77,7 @@ def build_parser() -> argparse.ArgumentParser:
                    help="with --driver lookahead:CKPT / lookahead-blind:CKPT: the policy CKPT proposes each "
                    "decision and the imagined futures follow DRIVER (a built-in driver or a policy.zip that "
                    "does not read the image), so the planner can guard a policy that reads the image")
+    add_lookahead_arguments(p)
     p.add_argument("--out", type=pathlib.Path, required=True, help="output directory (created if missing)")
     p.add_argument("--workers", type=_positive_int, default=1, help="parallel processes (default: 1)")
     p.add_argument("--overwrite", action="store_true", help="replace episode files that already exist")
@@ -127,7 +128,8 @@ def _policy_driver(spec: str, args: argparse.Namespace, config: ScenarioConfig):
     from lcmodels.policy.evaluate import driver_for  # lcmodels builds on lcdata: import only when asked
 
     try:
-        policy, policy_config = driver_for(f"{prefix}{path}", follow=args.lookahead_follow)
+        policy, policy_config = driver_for(f"{prefix}{path}", follow=args.lookahead_follow,
+                                           lookahead=lookahead_options(args))
     except ValueError as exc:
         raise UsageError(str(exc).splitlines()[0]) from None
     return policy, dataclasses.replace(policy_config, render_image=policy_config.render_image or not args.no_images)
@@ -145,8 +147,9 @@ def record_main(argv: Sequence[str] | None = None) -> int:
             raise UsageError(str(exc)) from None
         if split_policy_spec(driver):
             driver, config = _policy_driver(driver, args, config)
-        elif args.lookahead_follow is not None:
-            raise UsageError("--lookahead-follow needs --driver lookahead:CKPT or lookahead-blind:CKPT")
+        elif args.lookahead_follow is not None or lookahead_options(args):
+            raise UsageError("--lookahead-follow / --lookahead-horizon / --lookahead-samples / --lookahead-perceived "
+                             "need --driver lookahead:CKPT or lookahead-blind:CKPT")
         seeds = [args.seed + i for i in range(args.episodes)]
         name = driver if isinstance(driver, str) else driver.name
         paths = [args.out / episode_filename(args.scenario, name, s) for s in seeds]

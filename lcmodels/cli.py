@@ -15,7 +15,7 @@ import time
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
-from lcsim.cli import int_at_least
+from lcsim.cli import add_lookahead_arguments, int_at_least, lookahead_options
 
 if TYPE_CHECKING:
     from lcsim.config import ScenarioConfig
@@ -342,13 +342,6 @@ def heldout_driver(args: argparse.Namespace) -> tuple[Any, ScenarioConfig]:
     return driver, config or paper_scenario(render_image=False)
 
 
-def lookahead_options(args: argparse.Namespace) -> dict[str, int]:
-    """The ``--lookahead-*`` options given (for :func:`lcmodels.policy.evaluate.driver_for`)."""
-    given = {"horizon_decisions": args.lookahead_horizon, "samples": args.lookahead_samples,
-             "perceived": args.lookahead_perceived or None}
-    return {k: v for k, v in given.items() if v is not None}
-
-
 def add_heldout_arguments(p: argparse.ArgumentParser, episodes: int = 200) -> None:
     """Who drives which held-out episodes: ``policy``, ``--episodes``, ``--seed``, ``--predictor``, ``--batch``
     (lc-eval's arguments, shared by the tools that run the same episodes)."""
@@ -361,14 +354,7 @@ def add_heldout_arguments(p: argparse.ArgumentParser, episodes: int = 200) -> No
     p.add_argument("--predictor", type=Path, default=None,
                    help="predictor checkpoint (default: the one the policy was trained with)")
     p.add_argument("--batch", type=_positive_int, default=20, help="episodes simulated together (default 20)")
-    p.add_argument("--lookahead-horizon", type=_positive_int, default=None,
-                   help="lookahead drivers: decisions imagined after each candidate one (default 16, i.e. 8 s)")
-    p.add_argument("--lookahead-samples", type=_positive_int, default=None,
-                   help="lookahead-blind drivers: redrawn futures imagined per candidate decision (default 1)")
-    p.add_argument("--lookahead-perceived", action="store_true",
-                   help="lookahead-blind drivers: imagine each future from what the ego's sensors show (no traffic "
-                   "beyond the scenario's sensing range, each vehicle's unseen desired speed read from its motion): "
-                   "the planner needs no privileged state, only the traffic's rules")
+    add_lookahead_arguments(p)
     p.add_argument("--lookahead-follow", metavar="DRIVER", default=None,
                    help="with lookahead:POLICY / lookahead-blind:POLICY: the policy proposes each decision and the "
                    "imagined futures follow DRIVER (a built-in driver or a policy.zip without image), which "

@@ -34,6 +34,26 @@ def int_at_least(minimum: int):
     return parse
 
 
+def add_lookahead_arguments(p: argparse.ArgumentParser) -> None:
+    """``--lookahead-horizon``, ``--lookahead-samples`` and ``--lookahead-perceived``: how the lookahead
+    planners imagine (``lc-eval``, ``lc-record`` and the tools that run the same drivers)."""
+    p.add_argument("--lookahead-horizon", type=int_at_least(1), default=None,
+                   help="lookahead drivers: decisions imagined after each candidate one (default 16, i.e. 8 s)")
+    p.add_argument("--lookahead-samples", type=int_at_least(1), default=None,
+                   help="lookahead-blind drivers: redrawn futures imagined per candidate decision (default 1)")
+    p.add_argument("--lookahead-perceived", action="store_true",
+                   help="lookahead-blind drivers: imagine each future from what the ego's sensors show (no traffic "
+                   "beyond the scenario's sensing range, each vehicle's unseen desired speed read from its motion): "
+                   "the planner needs no privileged state, only the traffic's rules")
+
+
+def lookahead_options(args: argparse.Namespace) -> dict[str, int]:
+    """The ``--lookahead-*`` options given (``LookaheadConfig`` fields, for ``driver_for``)."""
+    given = {"horizon_decisions": args.lookahead_horizon, "samples": args.lookahead_samples,
+             "perceived": args.lookahead_perceived or None}
+    return {k: v for k, v in given.items() if v is not None}
+
+
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(prog="python -m lcsim.cli", description=__doc__,
                                      formatter_class=argparse.RawDescriptionHelpFormatter)

@@ -735,6 +735,14 @@ def test_a_lookahead_follows_a_policy_without_image_and_refuses_one_with(tmp_pat
     (guarded_path,) = out.glob("*ppo-image+lookahead-blind-rule*.mcap")
     assert len(read_episode(guarded_path).steps) > 0
     assert record_main(["--driver", "rule", "--lookahead-follow", "rule", "--out", str(out)]) == 2
+    assert record_main(["--driver", f"lookahead-blind:{tmp_path / 'image' / 'policy.zip'}", "--lookahead-follow",
+                        "rule", "--lookahead-horizon", "2", "--lookahead-perceived", "--seed", "5",
+                        "--out", str(out)]) == 0  # fmt: skip
+    (perceived_path,) = out.glob("*ppo-image+lookahead-perceived-rule*.mcap")
+    assert len(read_episode(perceived_path).steps) > 0
+    assert record_main(["--driver", "rule", "--lookahead-perceived", "--out", str(out)]) == 2
+    assert record_main(["--driver", f"lookahead:{tmp_path / 'pure' / 'policy.zip'}", "--lookahead-perceived",
+                        "--out", str(out)]) == 2  # perception needs a blind planner
 
 
 def test_frozen_image_branch_trains_faster_form_and_saves_a_plain_policy(tmp_path: Path, predictor_path: Path) -> None:

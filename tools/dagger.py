@@ -25,8 +25,8 @@ from __future__ import annotations
 import argparse
 import sys
 
-from lcmodels.cli import lookahead_options
 from lcmodels.policy.dagger import dagger
+from lcsim.cli import add_lookahead_arguments, lookahead_options
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -49,13 +49,7 @@ def main(argv: list[str] | None = None) -> int:
                     help="who labels the states: oracle (sees the whole future; default), or a driver as lc-eval "
                     "names it, e.g. lookahead-blind:runs/pure/policy.zip (the lookahead following that policy, "
                     "without foreseeing the traffic's random lane changes)")
-    ap.add_argument("--lookahead-horizon", type=int, default=None,
-                    help="a lookahead expert: decisions it imagines after each candidate one (default 16, i.e. 8 s)")
-    ap.add_argument("--lookahead-samples", type=int, default=None,
-                    help="a lookahead-blind expert: redrawn futures per candidate decision (default 1)")
-    ap.add_argument("--lookahead-perceived", action="store_true",
-                    help="a lookahead-blind expert: imagines its futures from what the ego's sensors show only "
-                    "(as lc-eval --lookahead-perceived)")
+    add_lookahead_arguments(ap)  # how a lookahead expert imagines
     ap.add_argument("--correction-weight", type=float, default=1.0,
                     help="weight in training of a state whose label differs from the policy's own decision, "
                     "against 1 for one where they agree (1)")
