@@ -25,12 +25,12 @@ ACTION_NAMES = ("right", "keep", "left")
 CURRENT_FEATURES = ("x_m", "y_m", "vx_mps", "vy_mps", "yaw_rad", "speed_mps", "lane", "target_lane", "present")
 ACCEL_FEATURE = "accel_mps2"
 """The column ``ScenarioConfig.observe_acceleration`` appends to :data:`CURRENT_FEATURES`."""
+REWARD_COMPONENTS = ("collision", "off_road", "forward", "success")
 
 
 def current_features(config: ScenarioConfig) -> tuple[str, ...]:
     """The columns of the ``current`` observation in ``config``."""
     return CURRENT_FEATURES + ((ACCEL_FEATURE,) if config.observe_acceleration else ())
-REWARD_COMPONENTS = ("collision", "off_road", "forward", "success")
 
 
 def _k_smallest(a: np.ndarray, k: int) -> np.ndarray:

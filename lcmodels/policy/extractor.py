@@ -5,11 +5,13 @@
   compact VGG-style default (:class:`CompactVGG`, three 3x3-convolution blocks on the image average-pooled
   to 40x40; about 4000x fewer multiply-adds, so it trains on a CPU).
 - ``current`` (1+K, 9): the ego and its K neighbour slots (:data:`lcsim.core.CURRENT_FEATURES`; a tenth
-  column, the acceleration, with ``ScenarioConfig.observe_acceleration``), scaled per column to order one, flattened, two-layer MLP. With ``contact_features`` the MLP also gets,
-  per slot, the time to contact, the bumper gap and a proximity (:class:`ContactFeatures`): quotients a
-  ReLU network approximates poorly from the raw columns, and the quantities a lane change hinges on.
-  With ``window_features``, also when over the next 16 s each side lane has room for a change, against
-  when the leader traps the ego (:class:`WindowFeatures`).
+  column, the acceleration, with ``ScenarioConfig.observe_acceleration``), scaled per column to order
+  one, flattened, two-layer MLP. With ``contact_features`` the MLP also gets, per slot, the time to
+  contact, the bumper gap and a proximity (:class:`ContactFeatures`): quotients a ReLU network
+  approximates poorly from the raw columns, and the quantities a lane change hinges on. With
+  ``window_features``, also when over the next 16 s each side lane has room for a change, against when
+  the leader traps the ego (:class:`WindowFeatures`; a second such look with the accelerations kept when
+  there is the acceleration column).
 - ``prediction`` (K, F, 2): predicted neighbour positions in the ego frame, scaled, flattened, MLP.
 
 The output size is the sum of the branch sizes and is computed here (``features_dim``), so the policy

@@ -185,8 +185,8 @@ class PolicyConfig(_JsonMixin):
         _check(self.image_net in IMAGE_NETS, self, "image_net", f"must be one of {', '.join(IMAGE_NETS)}",
                self.image_net)  # fmt: skip
         _positive(self, "n_envs", "image_features", "learning_rate", "n_steps", "batch_size",
-                  "n_epochs", "reward_scale", "collision_weight", "buffer_size", "target_update_interval", "checkpoint_every",
-                  "eval_batch", "warm_start_epochs")
+                  "n_epochs", "reward_scale", "collision_weight", "buffer_size", "target_update_interval",
+                  "checkpoint_every", "eval_batch", "warm_start_epochs")
         _non_negative(self, "timesteps", "ent_coef", "learning_starts", "eval_episodes", "seed", "eval_seed")
         _check(not (self.warm_start and self.init_policy), self, "init_policy",
                "cannot be combined with warm_start (clone first, then start from that run's policy.zip)",
@@ -604,7 +604,8 @@ def _warm_start(cfg: PolicyConfig, model: BaseAlgorithm, pred: Predictor | None,
 
     t0 = time.perf_counter()
     demos = load_demonstrations(cfg.warm_start, cfg.obs, pred, gamma=cfg.gamma, reward_scale=cfg.reward_scale,
-                                collision_weight=cfg.collision_weight, scenario=config, progress=every_tenth(log.info, "warm start: read {}/{} episodes"))  # fmt: skip
+                                collision_weight=cfg.collision_weight, scenario=config,
+                                progress=every_tenth(log.info, "warm start: read {}/{} episodes"))
     before = bc_loss(model, demos)
     epochs = cfg.warm_start_epochs
     losses = pretrain(model, demos, epochs=epochs, seed=cfg.seed,

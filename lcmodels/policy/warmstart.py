@@ -35,8 +35,9 @@ from lcmodels.predictor.inference import Predictor
 from lcsim.config import ScenarioConfig
 
 # Scenario fields that change only what is observed, not the episode: demonstrations recorded with other
-# values are replayed and observed the policy's way (all but the first, rendering, which a mode needs).
-_OBSERVATION_ONLY = ("render_image", "neighbour_selection", "num_neighbours", "observe_acceleration")
+# values are replayed and observed the policy's way (rendering aside: a mode with the image needs it recorded).
+_REOBSERVED = ("neighbour_selection", "num_neighbours", "observe_acceleration")
+_OBSERVATION_ONLY = ("render_image", *_REOBSERVED)
 
 
 @dataclass
@@ -118,7 +119,7 @@ def load_demonstrations(
             # What the observation shows does not change the episode: it is rebuilt the policy's way.
             if diffs := scenario_differences(config.to_dict(), scenario, ignore=_OBSERVATION_ONLY):
                 raise ValueError(f"{path} was recorded in another scenario than the one being trained ({diffs[0]})")
-            config = dataclasses.replace(config, **{k: getattr(scenario, k) for k in _OBSERVATION_ONLY[1:]})
+            config = dataclasses.replace(config, **{k: getattr(scenario, k) for k in _REOBSERVED})
         if "image" in keys and not config.render_image:
             raise ValueError(f"{path} was recorded without the bird's-eye image, which mode {mode!r} needs")
         rows = [obs for _step, obs in rebuild_observations(episode, config)]
