@@ -246,7 +246,8 @@ def test_collision_weight_scales_only_the_learners_collision_reward() -> None:
     config = scenario_for_mode(tiny_scenario(), "pure")
     envs = [PolicyVecEnv(LaneChangeSB3VecEnv(4, config), "pure", reward_scale=0.01, collision_weight=w)
             for w in (1.0, 4.0)]
-    for env in envs:
+    raw = LaneChangeSB3VecEnv(4, config)  # what the environment itself pays
+    for env in (*envs, raw):
         env.seed(3)
         env.reset()
     rng = np.random.default_rng(0)
@@ -255,6 +256,7 @@ def test_collision_weight_scales_only_the_learners_collision_reward() -> None:
         actions = rng.choice([0, 2], 4)  # changing lanes all the time: collisions come soon
         (_, r1, d1, i1), (_, r4, d4, _) = (env.step(actions) for env in envs)
         assert np.array_equal(d1, d4)
+        assert np.array_equal(r1, raw.step(actions)[1] * np.float32(0.01))  # weight 1: exactly the scaled reward
         col = np.array([info["reward_components"]["collision"] for info in i1])
         crashes += int((col < 0).sum())
         np.testing.assert_allclose(r4, r1 + 0.01 * 3.0 * col, rtol=1e-5, atol=1e-5)

@@ -185,8 +185,11 @@ class PolicyVecEnv(VecEnvWrapper):
         obs, reward, dones, infos = self.venv.step_wait()
         self._ret += reward
         self._len += 1
+        collision = np.zeros(len(infos), dtype=reward.dtype)  # (in the reward's dtype: w = 1 pays it exactly)
         for i, info in enumerate(infos):
-            self._fwd[i] += info["reward_components"]["forward"]
+            components = info["reward_components"]
+            self._fwd[i] += components["forward"]
+            collision[i] = components["collision"]
         done_ids = np.flatnonzero(dones)
         if done_ids.size:
             terminal = [infos[i]["terminal_observation"] for i in done_ids]
@@ -204,10 +207,7 @@ class PolicyVecEnv(VecEnvWrapper):
                 self._ret[i], self._len[i], self._fwd[i] = 0.0, 0, 0.0
                 self._seed[i] = self.core.seeds[i]
                 self.episode_seeds.append(int(self.core.seeds[i]))
-        learner = reward
-        if self.collision_weight != 1.0:
-            extra = np.array([info["reward_components"]["collision"] for info in infos])
-            learner = reward + (self.collision_weight - 1.0) * extra
+        learner = reward + (self.collision_weight - 1.0) * collision  # the learner's pay (reward when w is 1)
         return self._convert(obs), (learner * self.reward_scale).astype(np.float32), dones, infos
 
     def pop_finished(self) -> list[EpisodeStats]:
