@@ -7,17 +7,11 @@ import numpy as np
 import pytest
 import torch
 
-from lcmodels.policy import PolicyConfig, load_policy, train_policy
+from lcmodels.policy import load_policy, train_policy
 from lcmodels.policy.evaluate import PolicyDriver
 from lcsim.core import LaneChangeCore
+from tests.test_policy import _tiny
 from tools.eval_ensemble import EnsembleDriver, load_ensemble, main
-
-
-def _tiny(seed: int, **kw) -> PolicyConfig:
-    base = dict(scenario="tiny", obs="pure", timesteps=128, n_envs=2, n_steps=32, batch_size=64, n_epochs=2,
-                eval_episodes=0, checkpoint_every=64, seed=seed, learning_rate=3e-2)
-    base.update(kw)
-    return PolicyConfig(**base)
 
 
 @pytest.fixture(scope="module")
@@ -25,7 +19,7 @@ def members(tmp_path_factory: pytest.TempPathFactory) -> list[Path]:
     root = tmp_path_factory.mktemp("ens")
     paths = []
     for seed in (0, 1):
-        train_policy(_tiny(seed), root / f"s{seed}")
+        train_policy(_tiny(obs="pure", eval_episodes=0, seed=seed, learning_rate=3e-2), root / f"s{seed}")
         paths.append(root / f"s{seed}" / "policy.zip")
     return paths
 
@@ -61,7 +55,7 @@ def test_one_member_decides_as_the_policy_and_two_by_their_mean(members: list[Pa
 
 
 def test_members_of_another_scenario_are_refused(members: list[Path], tmp_path: Path) -> None:
-    train_policy(_tiny(0, scenario="light", timesteps=64, n_steps=32), tmp_path / "light")
+    train_policy(_tiny(obs="pure", eval_episodes=0, scenario="light", timesteps=64), tmp_path / "light")
     with pytest.raises(ValueError, match="scenario"):
         load_ensemble([members[0], tmp_path / "light" / "policy.zip"])
 

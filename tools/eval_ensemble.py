@@ -24,6 +24,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
+from lcmodels.cli import _fail
 from lcmodels.policy.checkpoint import LoadedPolicy, load_policy
 from lcmodels.policy.evaluate import evaluate
 from lcmodels.policy.obs import build_observation, scenario_for_mode
@@ -44,7 +45,7 @@ class EnsembleDriver:
             if m.algo not in ("ppo", "a2c"):
                 raise ValueError(f"ensemble members must be PPO or A2C policies (an action distribution), got {m.algo}")
             for what, a, b in (("observation mode", m.obs_mode, first.obs_mode),
-                               ("scenario", m.scenario.to_dict(), first.scenario.to_dict()),
+                               ("scenario", m.scenario, first.scenario),
                                ("predictor", m.meta.get("predictor"), first.meta.get("predictor"))):  # fmt: skip
                 if a != b:
                     raise ValueError(f"ensemble members differ in their {what}")
@@ -57,11 +58,13 @@ class EnsembleDriver:
         return scenario_for_mode(self.members[0].scenario, self.members[0].obs_mode)
 
     def probabilities(self, obs: dict[str, np.ndarray]) -> np.ndarray:
-        """``(E, A)`` the members' mean action probabilities."""
+        """``(E, A)`` the members' mean action probabilities (one observation for all: they share its mode and
+        predictor)."""
+        first = self.members[0]
+        pobs = build_observation(obs, first.obs_mode, first.predictor)
+        self.last_prediction = pobs.get("prediction")
         total = None
         for m in self.members:
-            pobs = build_observation(obs, m.obs_mode, m.predictor)
-            self.last_prediction = pobs.get("prediction")
             tensor, _ = m.model.policy.obs_to_tensor(pobs)
             with torch.no_grad():
                 probs = m.model.policy.get_distribution(tensor).distribution.probs.cpu().numpy()
@@ -92,16 +95,14 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--threads", type=int, default=1, help="torch threads (default 1)")
     args = ap.parse_args(argv)
     if args.episodes < 1 or args.batch < 1 or args.seed < 0 or args.threads < 1:
-        print("eval_ensemble: error: --episodes, --batch and --threads must be >= 1 and --seed >= 0", file=sys.stderr)
-        return 2
+        return _fail(ap.prog, "--episodes, --batch and --threads must be >= 1 and --seed >= 0")
     torch.set_num_threads(args.threads)
     try:
         driver = load_ensemble(args.policies, args.predictor)
         t0 = time.perf_counter()
         summary, _ = evaluate(driver, driver.config, episodes=args.episodes, seed=args.seed, batch=args.batch)
     except (ValueError, OSError) as exc:
-        print(f"eval_ensemble: error: {str(exc).splitlines()[0]}", file=sys.stderr)
-        return 2
+        return _fail(ap.prog, str(exc).splitlines()[0])
     summary.update(members=[str(p) for p in args.policies], seed=args.seed, wall_s=round(time.perf_counter() - t0, 1))
     text = json.dumps(summary, indent=1)
     print(text)
