@@ -30,8 +30,14 @@ examples:
 
 Episode i uses seed S+i and is written to OUT/<scenario>_<driver>_s<seed>.mcap (7-digit seed), e.g.
 runs/rule/lane-change_rule_s0000003.mcap, so the files do not depend on --workers. Files are written
-as .mcap.partial and renamed when the episode ends.
+as .mcap.partial and renamed when the episode ends. The same command gives the same bytes: each
+file's start time derives from its seed (--start-time changes that).
+
+OUT/record.json keeps the flags that decide the files' content. Rerunning the same command on an
+interrupted OUT records only the missing episodes and leaves the finished ones as they are; other
+flags there are refused, naming the difference.
 """
+RECORD_JSON = "record.json"
 
 
 class UsageError(Exception):
@@ -70,14 +76,17 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--driver", type=_driver_spec, default=None,
                    metavar="{" + ",".join(DRIVERS) + ",policy:CKPT,lookahead:CKPT,lookahead-blind:CKPT}",
                    help="who drives the ego (default: rule for lane-change, autopilot for corpus); "
-                   "policy:CKPT drives with a trained policy (a policy.zip from lc-train-policy); "
+                   "policy:CKPT drives with a trained policy (a policy.safetensors from lc-train-policy); "
                    "lookahead:CKPT / lookahead-blind:CKPT with the lookahead planner following that policy "
                    "(one that does not read the image) in its imagined futures")  # fmt: skip
     p.add_argument("--lookahead-follow", metavar="DRIVER", default=None,
                    help="with --driver lookahead:CKPT / lookahead-blind:CKPT: the policy CKPT proposes each "
-                   "decision and the imagined futures follow DRIVER (a built-in driver or a policy.zip that "
+                   "decision and the imagined futures follow DRIVER (a built-in driver or a policy.safetensors that "
                    "does not read the image), so the planner can guard a policy that reads the image")
     add_lookahead_arguments(p)
+    p.add_argument("--trust-pickle", action="store_true",
+                   help="accept a legacy stable-baselines3 .zip policy; loading one runs code stored in it, so only "
+                   "for files from a source you trust")
     p.add_argument("--out", type=pathlib.Path, required=True, help="output directory (created if missing)")
     p.add_argument("--workers", type=_positive_int, default=1, help="parallel processes (default: 1)")
     p.add_argument("--overwrite", action="store_true", help="replace episode files that already exist")
@@ -86,6 +95,10 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--steps", type=_positive_int, default=None,
                    help="override the episode time limit, in simulation steps (default: the scenario's)")  # fmt: skip
     p.add_argument("--no-images", action="store_true", help="do not record the bird's-eye image")
+    p.add_argument("--start-time", default="seed", metavar="{seed,now,ISO-8601}",
+                   help="the wall-clock time of t = 0 in each file: seed (default: 2024-01-01T00:00:00Z plus the "
+                   "episode's seed in seconds, so that the same command writes the same bytes), now, or a time "
+                   "such as 2025-06-01T12:00:00Z for every episode")
     p.add_argument("--writer", choices=WRITER_MODES, default=None,
                    help="where files are encoded and compressed: process (a helper process, on the core "
                    "the simulator leaves idle), thread, or inline; the files are the same. Default: process "
@@ -115,6 +128,77 @@ def _check_out_dir(out: pathlib.Path) -> None:
         raise UsageError(f"output directory {out} is not writable")
 
 
+def start_time_ns(text: str) -> int | None:
+    """``--start-time``: None for ``seed`` (each file's own, from its seed), the clock for ``now``, else an
+    ISO-8601 time (UTC when it names no zone). ``UsageError`` for anything else."""
+    import datetime
+
+    if text == "seed":
+        return None
+    if text == "now":
+        return time.time_ns()
+    try:
+        when = datetime.datetime.fromisoformat(text.replace("Z", "+00:00"))
+    except ValueError:
+        raise UsageError(f"--start-time {text!r} is not seed, now or an ISO-8601 time "
+                         "(e.g. 2025-06-01T12:00:00Z)") from None
+    if when.tzinfo is None:
+        when = when.replace(tzinfo=datetime.UTC)
+    ns = int(when.timestamp()) * 1_000_000_000 + when.microsecond * 1000
+    if ns < 0:
+        raise UsageError(f"--start-time {text!r} is before 1970")
+    return ns
+
+
+def record_flags(args: argparse.Namespace, driver: str) -> dict[str, object]:
+    """The flags that decide what the episode files hold (``OUT/record.json``); --seed, --episodes,
+    --workers and --writer only decide which files are written, and how fast."""
+    flags: dict[str, object] = {
+        "scenario": args.scenario, "driver": driver, "vehicles": args.vehicles, "steps": args.steps,
+        "images": not args.no_images, "start_time": args.start_time if args.start_time != "now" else None,
+        "lookahead_follow": args.lookahead_follow,
+        "lookahead": {k: v for k, v in lookahead_options(args).items()},
+    }  # fmt: skip
+    if split_policy_spec(driver):
+        from lcdata.fileio import file_sha256
+
+        for key, spec in (("driver_sha256", driver), ("lookahead_follow_sha256", args.lookahead_follow)):
+            if spec:
+                path = pathlib.Path((split_policy_spec(spec) or ("", spec))[1])
+                if path.is_file():
+                    flags[key] = file_sha256(path)
+    return flags
+
+
+def _check_resume(out: pathlib.Path, flags: dict[str, object], paths: list[pathlib.Path], overwrite: bool) -> bool:
+    """Whether this run resumes the one in ``out`` (same flags, some episodes there). ``UsageError`` when the
+    run there had other flags, or when episode files are there without a ``record.json`` (unless
+    ``overwrite``)."""
+    import json
+
+    existing = [p for p in paths if p.exists()]
+    record = out / RECORD_JSON
+    if overwrite:
+        return False
+    if record.exists():
+        try:
+            before = json.loads(record.read_text())
+            if not isinstance(before, dict):
+                raise ValueError("not an object")
+        except (OSError, ValueError) as exc:
+            raise UsageError(f"{record} is corrupt ({exc}); remove it or choose another --out") from None
+        diffs = [f"{k}: {before.get(k)!r} there, {flags.get(k)!r} now" for k in sorted(set(before) | set(flags))
+                 if before.get(k) != flags.get(k)]
+        if diffs:
+            raise UsageError(f"{out} holds a recording with other flags ({'; '.join(diffs)}); use another --out, "
+                             "or --overwrite to replace these episodes")
+        return bool(existing)
+    if existing:
+        raise UsageError(f"{len(existing)} of {len(paths)} episodes already exist in {out} "
+                         f"(e.g. {existing[0].name}); pass --overwrite to replace them")  # fmt: skip
+    return False
+
+
 def _policy_driver(spec: str, args: argparse.Namespace, config: ScenarioConfig):
     """A trained policy as the driver, and the scenario it was trained on (images as asked)."""
     if args.scenario != "lane-change":
@@ -129,7 +213,7 @@ def _policy_driver(spec: str, args: argparse.Namespace, config: ScenarioConfig):
 
     try:
         policy, policy_config = driver_for(f"{prefix}{path}", follow=args.lookahead_follow,
-                                           lookahead=lookahead_options(args))
+                                           lookahead=lookahead_options(args), trust_pickle=args.trust_pickle)
     except ValueError as exc:
         raise UsageError(str(exc).splitlines()[0]) from None
     return policy, dataclasses.replace(policy_config, render_image=policy_config.render_image or not args.no_images)
@@ -150,14 +234,14 @@ def record_main(argv: Sequence[str] | None = None) -> int:
         elif args.lookahead_follow is not None or lookahead_options(args):
             raise UsageError("--lookahead-follow / --lookahead-horizon / --lookahead-samples / --lookahead-perceived "
                              "need --driver lookahead:CKPT or lookahead-blind:CKPT")
+        start_ns = start_time_ns(args.start_time)
         seeds = [args.seed + i for i in range(args.episodes)]
         name = driver if isinstance(driver, str) else driver.name
         paths = [args.out / episode_filename(args.scenario, name, s) for s in seeds]
-        if args.out.is_dir() and not args.overwrite:
-            existing = [p for p in paths if p.exists()]
-            if existing:
-                raise UsageError(f"{len(existing)} of {len(paths)} episodes already exist in {args.out} "
-                                 f"(e.g. {existing[0].name}); pass --overwrite to replace them")  # fmt: skip
+        flags = record_flags(args, args.driver or DEFAULT_DRIVER[args.scenario])
+        if args.out.exists() and not args.out.is_dir():
+            raise UsageError(f"--out {args.out} exists and is not a directory")
+        resume = _check_resume(args.out, flags, paths, args.overwrite) if args.out.is_dir() else False
         _check_out_dir(args.out)
     except UsageError as exc:
         print(f"lc-record: error: {exc}", file=sys.stderr)
@@ -165,15 +249,22 @@ def record_main(argv: Sequence[str] | None = None) -> int:
     except SystemExit as exc:  # --help
         return int(exc.code or 0)
     logging.basicConfig(level=logging.INFO if args.verbose else logging.WARNING, format="%(message)s")
+    from lcdata.fileio import write_json
+
+    write_json(args.out / RECORD_JSON, flags)
+    todo = [s for s, p in zip(seeds, paths, strict=True) if args.overwrite or not p.exists()]
+    if resume:
+        print(f"lc-record: resuming {args.out}: {len(seeds) - len(todo)} of {len(seeds)} episodes are there "
+              f"already (kept as they are), recording the {len(todo)} missing", file=sys.stderr)
     outcomes: collections.Counter[str] = collections.Counter()
     messages = size = 0
     start = time.perf_counter()
     workers = args.workers if isinstance(driver, str) else 1  # a loaded policy stays in this process
-    results = iter_record_episodes(config, seeds, driver, args.out, scenario=args.scenario, workers=workers,
+    results = iter_record_episodes(config, todo, driver, args.out, scenario=args.scenario, workers=workers,
                                    overwrite=args.overwrite, images=not args.no_images,
-                                   writer=args.writer)  # fmt: skip
+                                   writer=args.writer, start_time_ns=start_ns)  # fmt: skip
     try:
-        with tqdm(total=len(seeds), unit="ep", desc=f"{args.scenario}/{name}", disable=None) as bar:
+        with tqdm(total=len(todo), unit="ep", desc=f"{args.scenario}/{name}", disable=None) as bar:
             for result in results:
                 outcomes[result.outcome] += 1
                 messages += result.messages
@@ -181,10 +272,14 @@ def record_main(argv: Sequence[str] | None = None) -> int:
                 bar.set_postfix_str(", ".join(f"{k} {v}" for k, v in sorted(outcomes.items())))
                 bar.update()
     except KeyboardInterrupt:
-        print("lc-record: interrupted; unfinished episodes are left as .partial files", file=sys.stderr)
+        print("lc-record: interrupted; unfinished episodes are left as .partial files; rerun the same command to "
+              "record the missing ones", file=sys.stderr)
         return 130
     seconds = time.perf_counter() - start
     done = sum(outcomes.values())
+    if done == 0:
+        print(f"all {len(seeds)} episodes are in {args.out} already; nothing to record")
+        return 0
     summary = ", ".join(f"{k} {v} ({100 * v / done:.1f}%)" for k, v in sorted(outcomes.items()))
     print(f"recorded {done} episodes to {args.out}: {summary}")
     print(f"{messages} messages, {size / 1e6:.1f} MB, {seconds:.1f} s ({done / seconds:.2f} episodes/s)")

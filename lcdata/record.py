@@ -41,6 +41,7 @@ from typing import Any
 import numpy as np
 
 from lcdata.corpus import from_frame
+from lcdata.procs import die_with_parent
 from lcdata.writer import EpisodeWriter, package_version
 from lcdata.writer_process import WRITER_MODES, ProcessEpisodeWriter, open_writer
 from lcsim.config import ScenarioConfig
@@ -53,6 +54,17 @@ log = logging.getLogger(__name__)
 
 DRIVERS = ("autopilot", *DRIVER_NAMES)
 """Driver names :func:`record_episode` accepts (``autopilot``: the ego is driven by the traffic autopilot)."""
+
+
+SEED_EPOCH_NS = 1_704_067_200 * 1_000_000_000
+"""2024-01-01T00:00:00Z: the time origin of seed-derived start times (:func:`seed_start_time_ns`)."""
+
+
+def seed_start_time_ns(seed: int) -> int:
+    """The default time of ``t = 0`` in the file of the episode with user seed ``seed``: :data:`SEED_EPOCH_NS`
+    plus ``seed`` seconds. Derived from the seed, not the clock, so that the same command writes the same
+    bytes; distinct seeds get distinct, ordered start times."""
+    return SEED_EPOCH_NS + int(seed) * 1_000_000_000
 
 
 def episode_seed(seed: int) -> int:
@@ -319,7 +331,8 @@ def record_episode(
         scenario: scenario name stored in the metadata.
         overwrite: replace an existing file instead of raising ``FileExistsError``.
         images: record the bird's-eye image at every decision (when the scenario renders one).
-        start_time_ns: time of ``t = 0`` in the file (default: now).
+        start_time_ns: time of ``t = 0`` in the file (default: :func:`seed_start_time_ns`, so that the
+            same episode gives the same bytes).
         writer: where the file is encoded and written (:data:`lcdata.writer_process.WRITER_MODES`):
             ``process`` (default: a helper process on another core, see
             :class:`~lcdata.writer_process.ProcessEpisodeWriter`), ``thread`` or ``inline``. Same bytes.
@@ -331,6 +344,8 @@ def record_episode(
     core = LaneChangeCore(config, 1, autopilot_ego=autopilot)
     metadata = episode_metadata(config, seed, driver=name, driver_description=desc, scenario=scenario,
                                 autopilot=autopilot)  # fmt: skip
+    if start_time_ns is None:
+        start_time_ns = seed_start_time_ns(seed)
     with open_writer(path, mode=writer, metadata=metadata, overwrite=overwrite, start_time_ns=start_time_ns) as out:
         recorder = EpisodeRecorder(out, core, 0, images=images)
         core.reset([0], [int(metadata["episode_seed"])])
@@ -357,11 +372,11 @@ def record_episode(
 
 
 def _record_one(config_json: str, seed: int, driver: str | Driver, path: str, scenario: str, overwrite: bool,
-                images: bool, writer: str) -> RecordResult:  # fmt: skip
+                images: bool, writer: str, start_time_ns: int | None) -> RecordResult:  # fmt: skip
     """Worker entry point (module level so that a process pool can pickle it)."""
     config = ScenarioConfig.from_json(config_json)
     return record_episode(config, seed, driver, path, scenario=scenario, overwrite=overwrite, images=images,
-                          writer=writer)  # fmt: skip
+                          writer=writer, start_time_ns=start_time_ns)  # fmt: skip
 
 
 def iter_record_episodes(
@@ -375,6 +390,8 @@ def iter_record_episodes(
     overwrite: bool = False,
     images: bool = True,
     writer: str | None = None,
+    skip_existing: bool = False,
+    start_time_ns: int | None = None,
 ) -> Iterator[RecordResult]:
     """Record one episode per seed into ``out_dir`` (file names from :func:`episode_filename`).
 
@@ -383,7 +400,10 @@ def iter_record_episodes(
     Existing files raise ``FileExistsError`` before anything runs unless ``overwrite``.
     ``writer``: as in :func:`record_episode`; by default ``process`` with one worker (the writer
     takes an idle core) and ``thread`` with several (the cores are taken; a helper process per
-    worker would cost more CPU in all).
+    worker would cost more CPU in all). ``skip_existing``: leave the finished files there as they are and
+    record only the missing episodes (a resumed run). ``start_time_ns``: every file's ``t = 0`` (default:
+    derived from each seed, :func:`seed_start_time_ns`). Worker processes die with this process
+    (:func:`lcdata.procs.die_with_parent`): a killed run leaves no orphan writing on.
     """
     if workers < 1:
         raise ValueError(f"workers must be >= 1, got {workers}")
@@ -395,18 +415,19 @@ def iter_record_episodes(
     name = driver if isinstance(driver, str) else resolve_driver(driver, 0)[2]
     paths = [out / episode_filename(scenario, name, s) for s in seeds]
     existing = [p for p in paths if p.exists()]
-    if existing and not overwrite:
+    if existing and not overwrite and not skip_existing:
         raise FileExistsError(f"{len(existing)} of {len(paths)} episode files already exist in {out} "
                               f"(e.g. {existing[0].name}); pass overwrite=True to replace them")  # fmt: skip
     out.mkdir(parents=True, exist_ok=True)
-    args = [(config.to_json(), int(s), driver, str(p), scenario, overwrite, images, writer)
-            for s, p in zip(seeds, paths, strict=True)]  # fmt: skip
+    args = [(config.to_json(), int(s), driver, str(p), scenario, overwrite, images, writer, start_time_ns)
+            for s, p in zip(seeds, paths, strict=True) if overwrite or not p.exists()]  # fmt: skip
     if workers == 1 or len(args) <= 1:
         for a in args:
             yield _record_one(*a)
         return
     ctx = multiprocessing.get_context("spawn")  # no fork of a process that may hold writer threads
-    with ProcessPoolExecutor(max_workers=min(workers, len(args)), mp_context=ctx) as pool:
+    with ProcessPoolExecutor(max_workers=min(workers, len(args)), mp_context=ctx, initializer=die_with_parent,
+                             initargs=(os.getpid(),)) as pool:  # fmt: skip
         futures = [pool.submit(_record_one, *a) for a in args]
         try:
             for future in as_completed(futures):

@@ -149,8 +149,8 @@ TRAIN_POLICY_EPILOG = """examples:
 Rerunning with the same --out resumes from the last checkpoint (the step count continues) or, when
 training is complete, only redoes a missing evaluation. A different config in --out is refused.
 
-outputs (in --out): policy.zip (the policy; lc-eval and lc-record --driver policy:PATH load it),
-checkpoints/latest.zip, progress.csv (outcome rates, return, safe forward distance over the last 100
+outputs (in --out): policy.safetensors (the policy; lc-eval and lc-record --driver policy:PATH load it),
+checkpoints/latest.json, progress.csv (outcome rates, return, safe forward distance over the last 100
 episodes at each log step), tb/ (TensorBoard), eval/metrics.json and eval/episodes/*.mcap (held-out
 evaluation), metrics.json (training summary + evaluation), run.json (config, predictor, versions).
 """
@@ -218,12 +218,12 @@ def train_policy_parser() -> argparse.ArgumentParser:
     p.add_argument("--warm-start-epochs", type=_positive_int, default=d.warm_start_epochs,
                    help="behaviour-cloning epochs (default %(default)s)")
     p.add_argument("--init-policy", type=Path, default=None,
-                   help="a policy.zip to start online training from (a cloned run's, a DAgger round's); same "
+                   help="a policy.safetensors to start online training from (a cloned run's, a DAgger round's); same "
                    "observation mode, predictor, scenario and network")
     p.add_argument("--freeze-image", action="store_true",
                    help="with --init-policy (image, hybrid): keep its image branch fixed and run it once per step "
                    "in the environment wrapper, so PPO's epochs do not re-run the network (several times the "
-                   "steps per minute); policy.zip stays a plain policy")
+                   "steps per minute); policy.safetensors stays a plain policy")
     p.add_argument("--checkpoint-every", type=_positive_int, default=d.checkpoint_every,
                    help="timesteps between checkpoints (default %(default)s)")
     p.add_argument("--eval-episodes", type=int_at_least(0), default=d.eval_episodes,
@@ -233,7 +233,12 @@ def train_policy_parser() -> argparse.ArgumentParser:
     p.add_argument("--threads", type=_positive_int, default=2, help="torch threads (default 2)")
     p.add_argument("--device", default="cpu", help="torch device (default cpu; cuda for the GPU)")
     p.add_argument("--out", type=Path, required=True, help="run directory (resumed when it holds this run)")
-    p.add_argument("--overwrite", action="store_true", help="delete a different run in --out first")
+    p.add_argument("--overwrite", action="store_true",
+                   help="replace a run of another configuration in --out: only the files a training run writes are "
+                   "removed, after every other check has passed; anything else there stays")
+    p.add_argument("--trust-pickle", action="store_true",
+                   help="let --init-policy be a legacy stable-baselines3 .zip; loading one runs code stored in it, so "
+                   "only for files from a source you trust")
     p.add_argument("-q", "--quiet", action="store_true", help="no progress lines")
     return p
 
@@ -250,15 +255,16 @@ def train_policy_main(argv: list[str] | None = None) -> int:
 
     fail = functools.partial(_fail, "lc-train-policy")
 
-    import shutil
-
     import torch
 
+    from lcmodels.fileio import POLICY_FILE
     from lcmodels.policy.obs import needs_predictor
     from lcmodels.policy.train import PolicyConfig, default_learning_rate, train_policy
 
     if needs_predictor(args.obs) and args.predictor is None:
         return fail(f"--obs {args.obs} needs --predictor (a predictor.pt from lc-train-predictor)")
+    if args.predictor is not None and not needs_predictor(args.obs):
+        return fail(f"--obs {args.obs} uses no predictor; drop --predictor {args.predictor}")
     if args.predictor is not None and not args.predictor.is_file():
         return fail(f"--predictor {args.predictor} does not exist")
     if args.warm_start is not None and not args.warm_start.exists():
@@ -282,19 +288,18 @@ def train_policy_main(argv: list[str] | None = None) -> int:
         )  # fmt: skip
     except ValueError as exc:
         return fail(str(exc))
-    if args.overwrite and args.out.exists():
-        shutil.rmtree(args.out)
     torch.set_num_threads(args.threads)
     logging.basicConfig(level=logging.WARNING if args.quiet else logging.INFO, format="%(message)s")
     show = None if args.quiet else (lambda row: print(_fmt_row(row), flush=True))
     show_eval = None if args.quiet else (lambda k, n: print(f"evaluating: {k}/{n} episodes", flush=True))
     try:
         res = train_policy(cfg, args.out, predictor=args.predictor, device=args.device, progress=show,
-                           eval_progress=show_eval)  # fmt: skip
+                           eval_progress=show_eval, overwrite=args.overwrite,
+                           trust_pickle=args.trust_pickle)  # fmt: skip
     except (ValueError, OSError) as exc:
         return fail(str(exc).splitlines()[0])
     ev = res.metrics.get("eval")
-    print(f"trained {res.timesteps} steps in {res.wall_s / 60:.1f} min -> {args.out / 'policy.zip'}")
+    print(f"trained {res.timesteps} steps in {res.wall_s / 60:.1f} min -> {args.out / POLICY_FILE}")
     if ev:
         print(_fmt_eval(ev))
     print(f"wrote {args.out / 'metrics.json'}")
@@ -316,9 +321,9 @@ def _fmt_eval(ev: dict) -> str:
 
 # --------------------------------------------------------------------------------------------- lc-eval
 EVAL_EPILOG = """examples:
-  lc-eval runs/hybrid-ppo/policy.zip --episodes 200 --seed 0 --json-out runs/hybrid-ppo/eval200.json
+  lc-eval runs/hybrid-ppo/policy.safetensors --episodes 200 --seed 0 --json-out runs/hybrid-ppo/eval200.json
   lc-eval rule --episodes 200 --out runs/rule-eval
-  lc-eval lookahead-blind:runs/hybrid-ppo/policy.zip --lookahead-follow runs/ppo-pure/policy.zip \\
+  lc-eval lookahead-blind:runs/hybrid-ppo/policy.safetensors --lookahead-follow runs/ppo-pure/policy.safetensors \\
       --lookahead-horizon 32 --no-record     # Hybrid-PPO behind the planner, imagining 16 s with the pure policy
 
 Evaluation episode i uses the user seed 1000000000 + 100000 * SEED + i, disjoint from training seeds.
@@ -336,7 +341,7 @@ def heldout_driver(args: argparse.Namespace) -> tuple[Any, ScenarioConfig]:
 
     try:
         driver, config = driver_for(args.policy, predictor=args.predictor, lookahead=lookahead_options(args),
-                                    follow=args.lookahead_follow)
+                                    follow=args.lookahead_follow, trust_pickle=args.trust_pickle)
     except (ValueError, OSError) as exc:
         raise ValueError(str(exc).splitlines()[0]) from exc
     return driver, config or paper_scenario(render_image=False)
@@ -345,7 +350,7 @@ def heldout_driver(args: argparse.Namespace) -> tuple[Any, ScenarioConfig]:
 def add_heldout_arguments(p: argparse.ArgumentParser, episodes: int = 200) -> None:
     """Who drives which held-out episodes: ``policy``, ``--episodes``, ``--seed``, ``--predictor``, ``--batch``
     (lc-eval's arguments, shared by the tools that run the same episodes)."""
-    p.add_argument("policy", help="policy checkpoint (policy.zip), or a built-in driver: rule / lookahead / "
+    p.add_argument("policy", help="policy checkpoint (policy.safetensors), or a built-in driver: rule / lookahead / "
                    "lookahead-blind / oracle (planners, upper references) / keep / random, or lookahead:POLICY / "
                    "lookahead-blind:POLICY (the lookahead following a policy without image in its imagined futures; "
                    "see --lookahead-follow)")
@@ -357,8 +362,11 @@ def add_heldout_arguments(p: argparse.ArgumentParser, episodes: int = 200) -> No
     add_lookahead_arguments(p)
     p.add_argument("--lookahead-follow", metavar="DRIVER", default=None,
                    help="with lookahead:POLICY / lookahead-blind:POLICY: the policy proposes each decision and the "
-                   "imagined futures follow DRIVER (a built-in driver or a policy.zip without image), which "
+                   "imagined futures follow DRIVER (a built-in driver or a policy.safetensors without image), which "
                    "lets the lookahead guard a policy that reads the image (default: the policy itself)")
+    p.add_argument("--trust-pickle", action="store_true",
+                   help="accept legacy stable-baselines3 .zip policies; loading one runs code stored in it, so only "
+                   "for files from a source you trust")
 
 
 def eval_parser() -> argparse.ArgumentParser:
@@ -398,13 +406,14 @@ def eval_main(argv: list[str] | None = None) -> int:
     ckpt = policy_path_of(args.policy)
     if not is_driver and not ckpt.is_file():
         what = "is a directory" if ckpt.is_dir() else "does not exist"
-        return fail(f"{args.policy} {what} (expected a policy.zip, or {' / '.join(DRIVER_NAMES)})")
+        return fail(f"{args.policy} {what} (expected a policy.safetensors, or {' / '.join(DRIVER_NAMES)})")
     if args.json_out is not None and args.json_out.exists() and not args.overwrite:
         return fail(f"{args.json_out} already exists; pass --overwrite or choose another --json-out")
     torch.set_num_threads(args.threads)
     try:
         driver, config = driver_for(args.policy, predictor=str(args.predictor) if args.predictor else None,
-                                    lookahead=lookahead_options(args), follow=args.lookahead_follow)
+                                    lookahead=lookahead_options(args), follow=args.lookahead_follow,
+                                    trust_pickle=args.trust_pickle)
     except ValueError as exc:
         return fail(str(exc).splitlines()[0])
     if config is None:

@@ -8,7 +8,7 @@ An experiment directory ``DIR`` holds one directory per stage::
     predictor/                   predictor.pt, metrics.json (Table II)                -> prediction/hybrid policies
     demos/                       demonstrations (the oracle's by default) with images -> warm start
     rule/metrics.json            rule-based reference on the held-out evaluation seeds
-    policies/<method>/seed<k>/   lcmodels.policy.train run directories (metrics.json, progress.csv, policy.zip)
+    policies/<method>/seed<k>/   lcmodels.policy.train run directories (metrics.json, progress.csv, policy.safetensors)
     REPORT.md, fig5_safe_forward.png, fig6_total_reward.png
 
 Resumability. Each stage gets a record ``stages/<stage>.json`` when it completes: the stage's config,
@@ -41,7 +41,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
-from lcmodels.fileio import file_sha256, json_default, read_json, write_json
+from lcmodels.fileio import POLICY_FILE, file_sha256, json_default, read_json, write_json
 
 log = logging.getLogger(__name__)
 
@@ -533,7 +533,7 @@ class Experiment:
         stage_cfg = cfg.to_dict()
         if method.warm_start:
             stage_cfg["warm_start"] = "demos"  # the demos' content is an input; the path may move
-        return self._stage(name, path, stage_cfg, inputs, lambda: ["policy.zip", "metrics.json", "progress.csv"],
+        return self._stage(name, path, stage_cfg, inputs, lambda: [POLICY_FILE, "metrics.json", "progress.csv"],
                            work, resumable=_resumable_policy_change, upgrade=stored_config)  # fmt: skip
 
     # -- the whole run -------------------------------------------------------------------------------

@@ -38,6 +38,6 @@ def test_side_gap_is_closed_where_no_lane_change_is_allowed():
 def test_bad_input_is_one_line(capsys):
     from tools.collision_breakdown import main
 
-    assert main(["no/such/policy.zip", "--episodes", "1"]) == 2
+    assert main(["no/such/policy.safetensors", "--episodes", "1"]) == 2
     err = capsys.readouterr().err
     assert err.startswith("collision_breakdown: error:") and len(err.strip().splitlines()) == 1

@@ -20,7 +20,7 @@ def members(tmp_path_factory: pytest.TempPathFactory) -> list[Path]:
     paths = []
     for seed in (0, 1):
         train_policy(_tiny(obs="pure", eval_episodes=0, seed=seed, learning_rate=3e-2), root / f"s{seed}")
-        paths.append(root / f"s{seed}" / "policy.zip")
+        paths.append(root / f"s{seed}" / "policy.safetensors")
     return paths
 
 
@@ -57,7 +57,7 @@ def test_one_member_decides_as_the_policy_and_two_by_their_mean(members: list[Pa
 def test_members_of_another_scenario_are_refused(members: list[Path], tmp_path: Path) -> None:
     train_policy(_tiny(obs="pure", eval_episodes=0, scenario="light", timesteps=64), tmp_path / "light")
     with pytest.raises(ValueError, match="scenario"):
-        load_ensemble([members[0], tmp_path / "light" / "policy.zip"])
+        load_ensemble([members[0], tmp_path / "light" / "policy.safetensors"])
 
 
 def test_cli_json_and_bad_input(members: list[Path], tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:

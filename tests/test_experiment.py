@@ -145,7 +145,7 @@ def check_parallel_policies_equal_sequential_ones(run_dir: Path) -> None:
     for key, seed in redo:
         path = policy_dir(run_dir, key, seed)
         before[key] = without_wall_times(json.loads((path / "metrics.json").read_text()))
-        (path / "policy.zip").unlink()  # outputs changed: the stage is redone from scratch
+        (path / "policy.safetensors").unlink()  # outputs changed: the stage is redone from scratch
     assert experiment_main(["--preset", "tiny", "--seeds", str(SEEDS), "--out", str(run_dir), "--jobs", "2", "-q"]) == 0
     for key, seed in redo:
         after = json.loads((policy_dir(run_dir, key, seed) / "metrics.json").read_text())
@@ -172,7 +172,7 @@ def test_a_second_run_in_a_directory_in_use_is_refused(tmp_path: Path, capsys: p
 def check_rerun_skips_everything_and_a_changed_preset_value_is_stale(
     run_dir: Path, capsys: pytest.CaptureFixture[str]
 ) -> None:
-    zips = sorted(run_dir.glob("policies/*/seed*/policy.zip"))
+    zips = sorted(run_dir.glob("policies/*/seed*/policy.safetensors"))
     assert len(zips) == len(METHODS) * SEEDS
     before = {p: p.stat().st_mtime_ns for p in zips}
     capsys.readouterr()
@@ -301,7 +301,7 @@ def check_publish_copies_the_report_and_every_metrics_file_it_names(
     for rel in named:
         assert (dest / rel).read_bytes() == (run_dir / rel).read_bytes()
     assert (dest / FIG5_NAME).is_file() and (dest / FIG6_NAME).is_file()
-    big = [p for p in dest.rglob("*") if p.suffix in (".zip", ".pt", ".mcap", ".npy")]
+    big = [p for p in dest.rglob("*") if p.suffix in (".zip", ".safetensors", ".pt", ".mcap", ".npy")]
     assert not big and sum(p.stat().st_size for p in dest.rglob("*") if p.is_file()) < 2_000_000
     capsys.readouterr()
     assert publish([str(run_dir), str(dest)]) == 2  # nothing is overwritten silently

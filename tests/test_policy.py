@@ -136,7 +136,7 @@ def test_window_features_widen_the_sensor_branch_and_need_lane_slots(tmp_path: P
     res = train_policy(_tiny(obs="pure", window_features=True, timesteps=64, n_steps=16, batch_size=32,
                              eval_episodes=0), tmp_path)
     assert res.timesteps == 64
-    loaded = load_policy(tmp_path / "policy.zip")  # the extractor comes back with the features
+    loaded = load_policy(tmp_path / "policy.safetensors")  # the extractor comes back with the features
     assert loaded.model.policy.features_extractor.branches["current"].net[1].in_features == (
         both.branches["current"].net[1].in_features)
     with pytest.raises(ValueError, match="window_features"):
@@ -180,14 +180,14 @@ def test_accel_features_observe_accelerations_clone_from_plain_demos_and_train(t
     assert demos.obs["current"].shape[1:] == (9, 10) and np.abs(demos.obs["current"][..., 9]).max() > 0.0
     res = train_policy(cfg, tmp_path / "run")
     assert res.timesteps == 64
-    loaded = load_policy(tmp_path / "run" / "policy.zip")
+    loaded = load_policy(tmp_path / "run" / "policy.safetensors")
     assert loaded.scenario.observe_acceleration
     assert loaded.model.observation_space["current"].shape == (9, 10)
     window = loaded.model.policy.features_extractor.branches["current"].extra.parts[-1]
     assert window.out_features == 22
     without = dataclasses.replace(loaded.scenario, observe_acceleration=False)
     with pytest.raises(ValueError, match="observe_acceleration"):  # loading for another observation says why
-        load_policy(tmp_path / "run" / "policy.zip", scenario=without)
+        load_policy(tmp_path / "run" / "policy.safetensors", scenario=without)
 
 
 @pytest.mark.parametrize("mode", ["pure", "hybrid"])
@@ -292,9 +292,9 @@ def test_short_training_saves_loads_and_evaluates(tmp_path: Path, predictor_path
     cfg = _tiny(algo=algo, obs=mode, n_steps=8 if algo == "a2c" else 32)
     res = train_policy(cfg, tmp_path, predictor=predictor_path)
     assert res.timesteps >= 128
-    meta = read_meta(tmp_path / "policy.zip")
+    meta = read_meta(tmp_path / "policy.safetensors")
     assert (meta["algo"], meta["obs_mode"]) == (algo, mode)
-    loaded = load_policy(tmp_path / "policy.zip")
+    loaded = load_policy(tmp_path / "policy.safetensors")
     assert loaded.model.num_timesteps == res.timesteps
     ev = json.loads((tmp_path / "eval" / "metrics.json").read_text())
     assert EVAL_KEYS <= set(ev) and ev["episodes"] == 2
@@ -309,12 +309,12 @@ def test_wider_slots_train_load_and_refuse_the_paper_count(tmp_path: Path, predi
     res = train_policy(_tiny(obs="hybrid", slots=16, timesteps=64, n_steps=16, batch_size=32, eval_episodes=2),
                        tmp_path, predictor=predictor_path)
     assert res.metrics["eval"]["episodes"] == 2
-    loaded = load_policy(tmp_path / "policy.zip")
+    loaded = load_policy(tmp_path / "policy.safetensors")
     assert loaded.scenario.num_neighbours == 16
     space = loaded.model.observation_space
     assert space["current"].shape == (17, 9) and space["prediction"].shape[0] == 16
     with pytest.raises(ValueError, match="num_neighbours"):
-        load_policy(tmp_path / "policy.zip", scenario=_tiny(obs="hybrid").scenario_config())
+        load_policy(tmp_path / "policy.safetensors", scenario=_tiny(obs="hybrid").scenario_config())
     with pytest.raises(ValueError, match="slots"):
         _tiny(obs="pure", slots=17)
 
@@ -323,7 +323,7 @@ def test_same_seed_same_policy(tmp_path: Path) -> None:
     a = train_policy(_tiny(obs="pure", eval_episodes=0), tmp_path / "a")
     b = train_policy(_tiny(obs="pure", eval_episodes=0), tmp_path / "b")
     assert a.timesteps == b.timesteps
-    pa, pb = load_policy(tmp_path / "a" / "policy.zip"), load_policy(tmp_path / "b" / "policy.zip")
+    pa, pb = load_policy(tmp_path / "a" / "policy.safetensors"), load_policy(tmp_path / "b" / "policy.safetensors")
     for (ka, va), (kb, vb) in zip(pa.model.policy.state_dict().items(), pb.model.policy.state_dict().items(),
                                   strict=True):
         assert ka == kb and torch.equal(va, vb), ka
@@ -339,10 +339,10 @@ def test_resume_continues_the_step_count(tmp_path: Path) -> None:
     assert steps == sorted(steps) and steps[-1] == 192
     # the evaluation follows the policy: continuing a finished run evaluates the new policy
     third = train_policy(_tiny(obs="pure", timesteps=192, eval_episodes=2), tmp_path)
-    assert third.metrics["eval"]["policy_sha256"] == file_sha256(tmp_path / "policy.zip")
+    assert third.metrics["eval"]["policy_sha256"] == file_sha256(tmp_path / "policy.safetensors")
     fourth = train_policy(_tiny(obs="pure", timesteps=256, eval_episodes=2), tmp_path)
     assert fourth.timesteps == 256
-    assert fourth.metrics["eval"]["policy_sha256"] == file_sha256(tmp_path / "policy.zip")
+    assert fourth.metrics["eval"]["policy_sha256"] == file_sha256(tmp_path / "policy.safetensors")
     assert fourth.metrics["eval"]["policy_sha256"] != third.metrics["eval"]["policy_sha256"]
     # a run with another config in the same directory is refused, saying what differs
     with pytest.raises(ValueError, match="algo"):
@@ -356,43 +356,13 @@ def test_checkpoint_refuses_another_predictor(tmp_path: Path, predictor_path: Pa
     other = tmp_path / "other.pt"
     Predictor(TrajectoryTransformer(PredictorConfig(d_model=16, ff_dim=32, num_layers=1))).save(other)
     with pytest.raises(ValueError, match="predictor"):
-        load_policy(tmp_path / "run" / "policy.zip", predictor=other)
+        load_policy(tmp_path / "run" / "policy.safetensors", predictor=other)
     with pytest.raises(ValueError, match="observation mode"):
-        load_policy(tmp_path / "run" / "policy.zip", obs_mode="pure")
-    bad = tmp_path / "bad.zip"
-    bad.write_bytes((tmp_path / "run" / "policy.zip").read_bytes()[:500])
-    with pytest.raises(ValueError, match="corrupt or truncated"):
+        load_policy(tmp_path / "run" / "policy.safetensors", obs_mode="pure")
+    bad = tmp_path / "bad.safetensors"
+    bad.write_bytes((tmp_path / "run" / "policy.safetensors").read_bytes()[:500])
+    with pytest.raises(ValueError, match="truncated"):
         read_meta(bad)
-    # weights whose names do not fit the network: refused, not loaded half-random; those of a policy saved
-    # before the contact branch's layers were renumbered (4c56e3c: 0 and 2, now 1 and 3) load as saved
-    import io
-    import zipfile
-
-    def renamed(name: str, rename: dict[str, str]) -> Path:
-        out = tmp_path / name
-        with zipfile.ZipFile(tmp_path / "run" / "policy.zip") as zin, zipfile.ZipFile(out, "w") as zout:
-            for item in zin.infolist():
-                data = zin.read(item.filename)
-                if item.filename == "policy.pth":
-                    state = torch.load(io.BytesIO(data), weights_only=True)
-                    for old, new in rename.items():
-                        state = {k.replace(old, new): v for k, v in state.items()}
-                    buf = io.BytesIO()
-                    torch.save(state, buf)
-                    data = buf.getvalue()
-                zout.writestr(item, data)
-        return out
-
-    with pytest.raises(ValueError, match="do not fit"):
-        load_policy(renamed("unknown.zip", {"current.net.1.": "current.net.7."}))
-    saved = load_policy(tmp_path / "run" / "policy.zip").model.policy.state_dict()
-    old_file = renamed("old.zip", {"current.net.1.": "current.net.0.", "current.net.3.": "current.net.2."})
-    with zipfile.ZipFile(old_file) as z:
-        assert any(".current.net.2." in k for k in torch.load(io.BytesIO(z.read("policy.pth")), weights_only=True))
-    with warnings.catch_warnings():
-        warnings.simplefilter("error")  # no "loaded without exact match" warning either
-        migrated = load_policy(old_file).model.policy.state_dict()
-    assert migrated.keys() == saved.keys() and all(torch.equal(migrated[k], saved[k]) for k in saved)
 
 
 def test_warm_start_lowers_the_behaviour_cloning_loss(tmp_path: Path) -> None:
@@ -437,7 +407,7 @@ def test_zero_timesteps_with_a_warm_start_gives_the_behaviour_cloned_policy(
     warm = res.metrics["train"]["warm_start"]
     assert res.timesteps == 0 and warm["nll_after"] < warm["nll_before"]
     demos = load_demonstrations(tmp_path / "demos", "pure", None, scenario=config)
-    loaded = load_policy(tmp_path / "run" / "policy.zip")
+    loaded = load_policy(tmp_path / "run" / "policy.safetensors")
     assert bc_loss(loaded.model, demos) == pytest.approx(warm["nll_after"], rel=1e-5)  # no online update
     with pytest.raises(ValueError, match="timesteps"):
         _tiny(timesteps=0)  # nothing to train without a warm start
@@ -448,14 +418,14 @@ def test_init_policy_starts_online_training_from_its_weights(tmp_path: Path) -> 
     record_episodes(config, [1, 2], "oracle", tmp_path / "demos", scenario="tiny", images=False)
     train_policy(_tiny(obs="pure", timesteps=0, warm_start=str(tmp_path / "demos"), warm_start_epochs=2,
                        eval_episodes=0), tmp_path / "bc")  # fmt: skip
-    start = tmp_path / "bc" / "policy.zip"
+    start = tmp_path / "bc" / "policy.safetensors"
     fresh = train_policy(_tiny(obs="pure", learning_rate=1e-12, eval_episodes=0), tmp_path / "fresh")
     res = train_policy(_tiny(obs="pure", learning_rate=1e-12, eval_episodes=0, init_policy=str(start)),
                        tmp_path / "init")  # fmt: skip
     assert res.metrics["train"]["warm_start"]["sha256"] == file_sha256(start)
     want = load_policy(start).model.policy.state_dict()
     for run, same in ((tmp_path / "init", True), (tmp_path / "fresh", False)):  # a learning rate of ~0 keeps them
-        got = load_policy(run / "policy.zip").model.policy.state_dict()
+        got = load_policy(run / "policy.safetensors").model.policy.state_dict()
         close = all(torch.allclose(got[k], want[k], atol=1e-6) for k in want)
         assert close == same, run
     assert fresh.timesteps == res.timesteps
@@ -523,7 +493,7 @@ def test_policy_driver_records_predictions(tmp_path: Path, predictor_path: Path)
 
     train_policy(_tiny(obs="prediction", timesteps=64, n_steps=16, eval_episodes=0), tmp_path / "run",
                  predictor=predictor_path)
-    drv = PolicyDriver(load_policy(tmp_path / "run" / "policy.zip"))
+    drv = PolicyDriver(load_policy(tmp_path / "run" / "policy.safetensors"))
     evaluate(drv, drv.config, episodes=2, out_dir=tmp_path / "ev", batch=2)
     ep = read_episode(sorted((tmp_path / "ev").glob("*.mcap"))[0])
     assert len(ep.predictions) > 0 and len(ep.steps) > 0
@@ -535,14 +505,14 @@ def test_cli_train_and_eval_json(tmp_path: Path, capsys: pytest.CaptureFixture[s
     assert train_policy_main(["--obs", "pure", "--scenario", "tiny", "--timesteps", "128", "--n-envs", "2",
                               "--n-steps", "32", "--eval-episodes", "2", "--out", str(out), "-q"]) == 0
     js = tmp_path / "eval.json"
-    assert eval_main([str(out / "policy.zip"), "--episodes", "3", "--seed", "1", "--json-out", str(js),
+    assert eval_main([str(out / "policy.safetensors"), "--episodes", "3", "--seed", "1", "--json-out", str(js),
                       "--no-record", "-q"]) == 0
     data = json.loads(js.read_text())
     assert EVAL_KEYS <= set(data) and data["episodes"] == 3 and data["overlap_with_training"] == 0
     assert data["wall_s"] > 0 and data["decisions"] > data["episodes"]  # what the evaluation cost
     assert "success" in capsys.readouterr().out
     # bad input: one line, exit 2
-    assert eval_main([str(tmp_path / "missing.zip")]) == 2
+    assert eval_main([str(tmp_path / "missing.safetensors")]) == 2
     assert train_policy_main(["--obs", "hybrid", "--out", str(tmp_path / "x")]) == 2
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 2 and all(line.startswith(("lc-eval: error", "lc-train-policy: error")) for line in err)
@@ -568,12 +538,12 @@ def test_lc_record_with_a_policy_driver_writes_its_predictions(tmp_path: Path, p
 
     train_policy(_tiny(obs="prediction", timesteps=64, n_steps=16, eval_episodes=0), tmp_path / "run",
                  predictor=predictor_path)
-    drv = PolicyDriver(load_policy(tmp_path / "run" / "policy.zip"))
+    drv = PolicyDriver(load_policy(tmp_path / "run" / "policy.safetensors"))
     res = record_episode(drv.config, 4, drv, tmp_path / "ep.mcap")  # what lc-record --driver policy:CKPT runs
     ep = read_episode(res.path)
     assert sorted(set(ep.predictions["step"])) == sorted(ep.steps["step"])  # one prediction set per decision
     assert set(ep.predictions["k"]) == set(range(1, 11))
-    assert record_main(["--driver", f"policy:{tmp_path / 'missing.zip'}", "--out", str(tmp_path / "o")]) == 2
+    assert record_main(["--driver", f"policy:{tmp_path / 'missing.safetensors'}", "--out", str(tmp_path / "o")]) == 2
 
 
 def test_dagger_round_labels_the_policys_states_with_the_oracle_and_saves_a_loadable_policy(tmp_path: Path) -> None:
@@ -584,22 +554,22 @@ def test_dagger_round_labels_the_policys_states_with_the_oracle_and_saves_a_load
     cfg = _tiny(obs="pure", timesteps=0, warm_start=str(tmp_path / "demos"), warm_start_epochs=2, eval_episodes=0)
     train_policy(cfg, tmp_path / "bc")
     demos = load_demonstrations(tmp_path / "demos", "pure", None, scenario=config)
-    got = collect(tmp_path / "bc" / "policy.zip", [7, 8])
+    got = collect(tmp_path / "bc" / "policy.safetensors", [7, 8])
     assert len(got.labels) == len(got.obs["current"]) > 0 and got.searches >= 1 and len(got.outcomes) == 2
     assert set(got.labels.tolist()) <= {0, 1, 2} and got.agreed <= len(got.labels)
-    again = collect(tmp_path / "bc" / "policy.zip", [7, 8])
+    again = collect(tmp_path / "bc" / "policy.safetensors", [7, 8])
     assert np.array_equal(again.labels, got.labels) and np.array_equal(again.obs["current"], got.obs["current"])
-    winning = collect(tmp_path / "bc" / "policy.zip", [7, 8], labels="winning")  # the same states, other labels
+    winning = collect(tmp_path / "bc" / "policy.safetensors", [7, 8], labels="winning")  # the same states, other labels
     assert np.array_equal(winning.obs["current"], got.obs["current"]) and winning.harmless == got.harmless
     assert (winning.labels != got.labels).sum() == got.harmless  # exactly the harmless deviations keep their own
     with pytest.raises(ValueError, match="labels"):
-        collect(tmp_path / "bc" / "policy.zip", [7], labels="best")
+        collect(tmp_path / "bc" / "policy.safetensors", [7], labels="best")
     records = dagger(tmp_path / "bc", tmp_path / "dg", rounds=1, episodes=2, epochs=1, seed=7, workers=1,
                      eval_episodes=2)  # fmt: skip
     assert records[0]["states_labelled"] == len(got.labels)  # the same seeds, the same policy: the same states
     assert records[0]["training_states"] == len(demos) + len(got.labels)
     assert set(records[0]["eval"]) >= {"success_rate", "collision_rate"}
-    loaded = load_policy(tmp_path / "dg" / "round1" / "policy.zip")
+    loaded = load_policy(tmp_path / "dg" / "round1" / "policy.safetensors")
     assert loaded.meta["dagger"]["round"] == 1
     with pytest.raises(FileExistsError):
         dagger(tmp_path / "bc", tmp_path / "dg", rounds=1, episodes=1, epochs=1)
@@ -619,8 +589,8 @@ def test_dagger_resumed_gives_the_rounds_of_an_uninterrupted_run(tmp_path: Path)
     assert [r["round"] for r in resumed] == [1, 2]
     for key in ("states_labelled", "training_states", "epoch_losses"):
         assert resumed[1][key] == straight[1][key], key
-    a = load_policy(tmp_path / "straight" / "round2" / "policy.zip").model.policy.state_dict()
-    b = load_policy(tmp_path / "parts" / "round2" / "policy.zip").model.policy.state_dict()
+    a = load_policy(tmp_path / "straight" / "round2" / "policy.safetensors").model.policy.state_dict()
+    b = load_policy(tmp_path / "parts" / "round2" / "policy.safetensors").model.policy.state_dict()
     assert all(torch.equal(a[k], b[k]) for k in a)
     with pytest.raises(ValueError, match="labels: plan there, winning asked"):
         dagger(tmp_path / "bc", tmp_path / "parts", rounds=3, resume=True, **{**args, "labels": "winning"})
@@ -632,7 +602,7 @@ def test_dagger_with_a_driver_as_the_expert_labels_every_state_with_its_decision
     from lcmodels.policy.dagger import collect_from_driver, dagger
 
     train_policy(_tiny(obs="pure", timesteps=64, n_steps=16, eval_episodes=0), tmp_path / "run")
-    policy = tmp_path / "run" / "policy.zip"
+    policy = tmp_path / "run" / "policy.safetensors"
     keep = collect_from_driver(policy, [7, 8, 9], "keep", batch=2)
     assert len(keep.labels) == len(keep.obs["current"]) > 0 and len(keep.outcomes) == 3
     drv, decisions, with_choice = PolicyDriver(load_policy(policy)), 0, 0  # the same episodes, counted
@@ -685,14 +655,14 @@ def test_dagger_with_a_driver_as_the_expert_labels_every_state_with_its_decision
 
 def test_a_lookahead_follows_a_policy_without_image_and_refuses_one_with(tmp_path: Path) -> None:
     train_policy(_tiny(obs="pure", timesteps=64, n_steps=16, eval_episodes=0), tmp_path / "pure")
-    driver, config = driver_for(f"lookahead:{tmp_path / 'pure' / 'policy.zip'}")
+    driver, config = driver_for(f"lookahead:{tmp_path / 'pure' / 'policy.safetensors'}")
     assert driver.name == "lookahead-ppo-pure" and config.render_image is False
     summary, _ = evaluate(driver, config, episodes=2, batch=2)
     assert summary["episodes"] == 2
     train_policy(_tiny(obs="image", timesteps=32, n_steps=16, eval_episodes=0), tmp_path / "image")
     with pytest.raises(ValueError, match="reads the image"):
-        driver_for(f"lookahead-blind:{tmp_path / 'image' / 'policy.zip'}")
-    image, pure = tmp_path / "image" / "policy.zip", tmp_path / "pure" / "policy.zip"
+        driver_for(f"lookahead-blind:{tmp_path / 'image' / 'policy.safetensors'}")
+    image, pure = tmp_path / "image" / "policy.safetensors", tmp_path / "pure" / "policy.safetensors"
     guarded, image_config = driver_for(f"lookahead-blind:{image}", follow=str(pure))  # it proposes, pure follows
     assert guarded.name == "ppo-image+lookahead-blind-ppo-pure" and image_config.render_image is True
     assert isinstance(guarded.proposer, PolicyDriver) and guarded.proposer.policy.obs_mode == "image"
@@ -702,14 +672,14 @@ def test_a_lookahead_follows_a_policy_without_image_and_refuses_one_with(tmp_pat
         driver_for(f"lookahead-blind:{image}", follow=str(image))
     with pytest.raises(ValueError, match="applies to lookahead:POLICY"):
         driver_for(str(pure), follow="rule")
-    assert eval_main([f"lookahead:{image}", "--lookahead-follow", str(tmp_path / "missing.zip"), "--no-record"]) == 2
+    assert eval_main([f"lookahead:{image}", "--lookahead-follow", str(tmp_path / "missing.safetensors"), "--no-record"]) == 2
     assert eval_main([f"lookahead-blind:{image}", "--lookahead-follow", "rule", "--lookahead-horizon", "2",
                       "--episodes", "2", "--no-record", "--json-out", str(tmp_path / "guarded.json")]) == 0
     guarded_summary = json.loads((tmp_path / "guarded.json").read_text())
     assert guarded_summary["driver"] == "ppo-image+lookahead-blind-rule"
     assert 0 <= guarded_summary["planner_overrides"] <= guarded_summary["planner_choices"] <= guarded_summary["decisions"]
-    assert eval_main([f"lookahead-blind:{tmp_path / 'missing.zip'}", "--no-record"]) == 2
-    longer, _ = driver_for(f"lookahead-blind:{tmp_path / 'pure' / 'policy.zip'}",
+    assert eval_main([f"lookahead-blind:{tmp_path / 'missing.safetensors'}", "--no-record"]) == 2
+    longer, _ = driver_for(f"lookahead-blind:{tmp_path / 'pure' / 'policy.safetensors'}",
                            lookahead={"horizon_decisions": 3, "samples": 2})  # fmt: skip
     assert (longer.config.horizon_decisions, longer.config.samples, longer.config.blind) == (3, 2, True)
     with pytest.raises(ValueError, match="lookahead drivers only"):
@@ -727,49 +697,51 @@ def test_a_lookahead_follows_a_policy_without_image_and_refuses_one_with(tmp_pat
     from lcdata.reader import read_episode
 
     out = tmp_path / "rec"
-    assert record_main(["--driver", f"lookahead-blind:{tmp_path / 'pure' / 'policy.zip'}", "--seed", "3",
+    assert record_main(["--driver", f"lookahead-blind:{tmp_path / 'pure' / 'policy.safetensors'}", "--seed", "3",
                         "--no-images", "--out", str(out)]) == 0  # fmt: skip
     (path,) = out.glob("*.mcap")
     assert "lookahead-blind-ppo-pure" in path.name and len(read_episode(path).steps) > 0
-    assert record_main(["--driver", f"lookahead:{tmp_path / 'image' / 'policy.zip'}", "--out", str(out)]) == 2
-    assert record_main(["--driver", f"lookahead-blind:{tmp_path / 'image' / 'policy.zip'}", "--lookahead-follow",
+    assert record_main(["--driver", f"lookahead:{tmp_path / 'image' / 'policy.safetensors'}", "--out", str(out)]) == 2
+    assert record_main(["--driver", f"lookahead-blind:{tmp_path / 'image' / 'policy.safetensors'}", "--lookahead-follow",
                         "rule", "--seed", "4", "--out", str(out)]) == 0  # fmt: skip
     (guarded_path,) = out.glob("*ppo-image+lookahead-blind-rule*.mcap")
     assert len(read_episode(guarded_path).steps) > 0
     assert record_main(["--driver", "rule", "--lookahead-follow", "rule", "--out", str(out)]) == 2
-    assert record_main(["--driver", f"lookahead-blind:{tmp_path / 'image' / 'policy.zip'}", "--lookahead-follow",
+    assert record_main(["--driver", f"lookahead-blind:{tmp_path / 'image' / 'policy.safetensors'}", "--lookahead-follow",
                         "rule", "--lookahead-horizon", "2", "--lookahead-perceived", "--seed", "5",
                         "--out", str(out)]) == 0  # fmt: skip
     (perceived_path,) = out.glob("*ppo-image+lookahead-perceived-rule*.mcap")
     assert len(read_episode(perceived_path).steps) > 0
     assert record_main(["--driver", "rule", "--lookahead-perceived", "--out", str(out)]) == 2
-    assert record_main(["--driver", f"lookahead:{tmp_path / 'pure' / 'policy.zip'}", "--lookahead-perceived",
+    assert record_main(["--driver", f"lookahead:{tmp_path / 'pure' / 'policy.safetensors'}", "--lookahead-perceived",
                         "--out", str(out)]) == 2  # perception needs a blind planner
 
 
 def test_frozen_image_branch_trains_faster_form_and_saves_a_plain_policy(tmp_path: Path, predictor_path: Path) -> None:
     """``freeze_image``: the image branch of the initial policy runs in the observation wrapper; the run's
-    policy.zip is a plain hybrid policy with that branch unchanged, acting as the training form did; the
+    policy.safetensors is a plain hybrid policy with that branch unchanged, acting as the training form did; the
     training checkpoint is refused as a policy; a resume needs only the run directory."""
-    from stable_baselines3 import PPO
-
+    from lcmodels.policy.checkpoint import load_weights, policy_model
     from lcmodels.policy.extractor import IMAGE_FEATURES, ImageEncoder, make_image_net
 
     train_policy(_tiny(obs="hybrid", timesteps=64, eval_episodes=0), tmp_path / "start", predictor=predictor_path)
-    start = tmp_path / "init.zip"
-    (tmp_path / "start" / "policy.zip").rename(start)
+    start = tmp_path / "init.safetensors"
+    (tmp_path / "start" / "policy.safetensors").rename(start)
     out = tmp_path / "frozen"
     cfg = _tiny(obs="hybrid", timesteps=128, init_policy=str(start), freeze_image=True)
     res = train_policy(cfg, out, predictor=predictor_path)
     assert EVAL_KEYS <= set(res.metrics["eval"]) and res.timesteps == 128
     before = load_policy(start).model.policy.state_dict()
-    plain = load_policy(out / "policy.zip")
+    plain = load_policy(out / "policy.safetensors")
     after = plain.model.policy.state_dict()
     image_keys = [k for k in before if ".branches.image." in k]
     assert image_keys and all(torch.equal(before[k], after[k]) for k in image_keys)  # frozen
     assert not all(torch.equal(before[k], after[k]) for k in before)  # the rest trained
     # The plain policy acts as the training form does on the same observations, each as its wrapper builds them.
-    training_form = PPO.load(out / "checkpoints" / "latest.zip")
+    state = json.loads((out / "checkpoints" / "latest.json").read_text())
+    ckpt = out / "checkpoints" / state["weights"]
+    training_form = policy_model(read_meta(ckpt), future_steps=plain.predictor.future_steps)
+    load_weights(training_form, ckpt)
     net = make_image_net("compact", 3, plain.scenario.render.image_size_px, 10)
     net.load_state_dict(torch.load(out / "image_encoder.pt", weights_only=True))
     base = LaneChangeSB3VecEnv(3, plain.scenario)
@@ -788,7 +760,7 @@ def test_frozen_image_branch_trains_faster_form_and_saves_a_plain_policy(tmp_pat
 
     torch.testing.assert_close(probs(plain.model, obs), probs(training_form, feats), rtol=1e-4, atol=1e-6)
     with pytest.raises(ValueError, match="training checkpoint"):
-        load_policy(out / "checkpoints" / "latest.zip")
+        load_policy(ckpt)
     start.unlink()  # resuming reads the branch kept in the run directory
     res = train_policy(dataclasses.replace(cfg, timesteps=192), out, predictor=predictor_path)
     assert res.metrics["train"]["resumed_from"] == 128 and res.timesteps == 192

@@ -134,7 +134,7 @@ def test_cli_trains_and_evaluates_and_refuses_bad_input(
     cfg = PolicyConfig(obs="pure", scenario="tiny", timesteps=64, n_envs=2, n_steps=16, batch_size=32, n_epochs=1,
                        eval_episodes=0, checkpoint_every=64)  # fmt: skip
     train_policy(cfg, tmp_path / "run")
-    policy = str(tmp_path / "run" / "policy.zip")
+    policy = str(tmp_path / "run" / "policy.safetensors")
     out = tmp_path / "critic"
     assert (
         main(
@@ -200,7 +200,7 @@ def test_cli_trains_and_evaluates_and_refuses_bad_input(
     )
     CriticEnsemble([SafetyCritic(4, hidden=8)]).save(tmp_path / "slots4.pt")
     train_policy(dataclasses.replace(cfg, neighbours="nearest"), tmp_path / "nearest")  # no lane slots
-    nearest = str(tmp_path / "nearest" / "policy.zip")
+    nearest = str(tmp_path / "nearest" / "policy.safetensors")
     for bad in (
         ["train", policy, "--expert", "rule", "--out", str(tmp_path / "a")],  # not a lookahead
         ["train", str(tmp_path / "missing.zip"), "--out", str(tmp_path / "b")],

@@ -12,7 +12,7 @@ every collision into one of:
 - ``short_gap``: the ego hits a vehicle of its target lane while changing lanes (the gap was too short);
 - ``hit_from_behind``: a vehicle runs into the ego while the ego keeps lane.
 
-    python tools/collision_breakdown.py runs/hybrid-ppo/policy.zip --episodes 100
+    python tools/collision_breakdown.py runs/hybrid-ppo/policy.safetensors --episodes 100
     python tools/collision_breakdown.py rule --episodes 200 --json
 """
 

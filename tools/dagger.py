@@ -10,12 +10,12 @@ episodes. See lcmodels.policy.dagger.
     lc-train-policy --obs hybrid --predictor P.pt --warm-start runs/oracle-demos --timesteps 0 --out runs/bc
     python tools/dagger.py runs/bc --rounds 2 --episodes 100 --out runs/bc-dagger
     python tools/dagger.py runs/bc --rounds 4 --episodes 100 --out runs/bc-dagger --resume   # rounds 3 and 4
-    python tools/dagger.py runs/ppo --expert lookahead-blind:runs/ppo/policy.zip --out runs/ppo-improved
-    python tools/dagger.py runs/ppo --expert lookahead-blind:runs/ppo/policy.zip --lookahead-horizon 32 \
+    python tools/dagger.py runs/ppo --expert lookahead-blind:runs/ppo/policy.safetensors --out runs/ppo-improved
+    python tools/dagger.py runs/ppo --expert lookahead-blind:runs/ppo/policy.safetensors --lookahead-horizon 32 \
         --out runs/ppo-improved-16s    # the planner imagining 16 s instead of 8 s
-    lc-eval runs/bc-dagger/round4/policy.zip --episodes 200
+    lc-eval runs/bc-dagger/round4/policy.safetensors --episodes 200
 
-Outputs in --out: round<r>/policy.zip (loadable by lc-eval and lc-record --driver policy:...),
+Outputs in --out: round<r>/policy.safetensors (loadable by lc-eval and lc-record --driver policy:...),
 round<r>/metrics.json (collection, training and held-out evaluation), round<r>/states.npz (the states
 the policy drove into and their labels, for --resume), dagger.json (all rounds).
 """
@@ -47,7 +47,7 @@ def main(argv: list[str] | None = None) -> int:
                     "where the episode can still be won after it, correct only the losing ones (plan)")
     ap.add_argument("--expert", default="oracle",
                     help="who labels the states: oracle (sees the whole future; default), or a driver as lc-eval "
-                    "names it, e.g. lookahead-blind:runs/pure/policy.zip (the lookahead following that policy, "
+                    "names it, e.g. lookahead-blind:runs/pure/policy.safetensors (the lookahead following that policy, "
                     "without foreseeing the traffic's random lane changes)")
     add_lookahead_arguments(ap)  # how a lookahead expert imagines
     ap.add_argument("--correction-weight", type=float, default=1.0,

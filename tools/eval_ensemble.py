@@ -8,8 +8,8 @@ rare decisions that end in a collision than each alone? The members must share t
 scenario and the predictor; PPO and A2C only (DQN has no action distribution). Prints one JSON object with
 lc-eval's keys, the members and the wall time.
 
-    python tools/eval_ensemble.py runs/ppo-s0/policy.zip runs/ppo-s1/policy.zip --episodes 200 --seed 0
-    python tools/eval_ensemble.py runs/ppo/policy-600000.zip runs/ppo/policy-900000.zip runs/ppo/policy.zip \\
+    python tools/eval_ensemble.py runs/ppo-s0/policy.safetensors runs/ppo-s1/policy.safetensors --episodes 200 --seed 0
+    python tools/eval_ensemble.py runs/ppo/policy-600000.safetensors runs/ppo/policy-900000.safetensors runs/ppo/policy.safetensors \\
         --json-out ensemble.json
 """
 
@@ -85,7 +85,7 @@ def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(prog="eval_ensemble", description=__doc__.split("\n\n")[0],
                                  epilog="\n\n".join(__doc__.split("\n\n")[1:]),
                                  formatter_class=argparse.RawDescriptionHelpFormatter)  # fmt: skip
-    ap.add_argument("policies", nargs="+", type=Path, help="policy checkpoints (policy.zip), one per member")
+    ap.add_argument("policies", nargs="+", type=Path, help="policy checkpoints (policy.safetensors), one per member")
     ap.add_argument("--episodes", type=int, default=200, help="held-out episodes (default 200)")
     ap.add_argument("--seed", type=int, default=0, help="evaluation seed, as lc-eval --seed (default 0)")
     ap.add_argument("--batch", type=int, default=20, help="episodes simulated together (default 20)")

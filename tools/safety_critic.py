@@ -20,9 +20,9 @@ with what was measured in ``OUT/critic.json``. ``--from-states FILE [FILE ...]``
 unless the critic gives it a crash probability above ``--threshold`` and another allowed decision one
 lower by more than ``--margin`` (keep first). It prints one JSON object.
 
-    python tools/safety_critic.py train runs/pure91/policy.zip --expert lookahead-blind:runs/pure91/policy.zip \\
+    python tools/safety_critic.py train runs/pure91/policy.safetensors --expert lookahead-blind:runs/pure91/policy.safetensors \\
         --lookahead-horizon 32 --episodes 600 --workers 2 --out runs/critic
-    python tools/safety_critic.py eval runs/pure91/policy.zip --critic runs/critic/critic.pt --seed 0
+    python tools/safety_critic.py eval runs/pure91/policy.safetensors --critic runs/critic/critic.pt --seed 0
 """
 
 from __future__ import annotations
@@ -439,7 +439,7 @@ def parser() -> argparse.ArgumentParser:
     )
     sub = p.add_subparsers(dest="command", required=True)
     t = sub.add_parser("train", help="collect survival labels along a policy's episodes and fit the critic")
-    t.add_argument("policy", type=Path, help="the policy.zip that drives (its states are the ones labelled)")
+    t.add_argument("policy", type=Path, help="the policy.safetensors that drives (its states are the ones labelled)")
     t.add_argument(
         "--expert",
         default="lookahead-blind",

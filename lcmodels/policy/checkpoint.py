@@ -1,10 +1,18 @@
-"""Policy checkpoints: a stable-baselines3 ``.zip`` that also carries what the policy was trained for.
+"""Policy files that are data: weights as tensors (safetensors) plus a JSON card, never pickles.
 
-The zip's ``data`` record holds ``lc_meta`` (plain JSON): format and version, algorithm, observation
-mode, image network, the full scenario config, the predictor's file name and SHA-256, and the training
-config. :func:`load_policy` reads it before loading any weights and refuses a checkpoint whose
-observation mode, predictor or scenario differ from what the caller asks for, saying what differs.
-SB3 loads the weights with ``torch.load(weights_only=True)``.
+A policy is one ``.safetensors`` file: the tensors of the policy network and, in the file's header, the
+card (``lc_card``, plain JSON): format and version, algorithm, observation mode, image network, the full
+scenario config, the predictor's file name and SHA-256, the training config and step count. A copy of the
+card is written beside it (``<stem>.card.json``) for people; loading reads only the file itself.
+
+:func:`load_policy` reads the card before any weights, refuses a policy whose observation mode,
+predictor or scenario differ from what the caller asks for (saying what differs), then rebuilds the
+network from the card and fills it with the tensors: nothing in the file can run code.
+
+stable-baselines3's own ``.zip`` (what this project wrote before) unpickles objects when loaded, so
+any code its author put there runs. It is refused unless the caller passes ``trust_pickle=True``
+(``--trust-pickle`` on the command lines); ``tools/convert_policy.py`` turns a trusted one into a
+``.safetensors`` policy once.
 """
 
 from __future__ import annotations
@@ -19,45 +27,90 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
-from stable_baselines3 import A2C, DQN, PPO
+from safetensors import SafetensorError, safe_open
+from safetensors.torch import load_model, save_model
 from stable_baselines3.common.base_class import BaseAlgorithm
 
-from lcmodels.fileio import file_sha256
+from lcmodels.fileio import file_sha256, write_json
+from lcmodels.policy.network import ALGOS
 from lcmodels.predictor.inference import Predictor
 from lcsim.config import ScenarioConfig
 
 META_FORMAT = "lc-toolkit/policy"
-META_VERSION = 1
-ALGOS: dict[str, type[BaseAlgorithm]] = {"ppo": PPO, "a2c": A2C, "dqn": DQN}
+META_VERSION = 2
+"""2: safetensors with the card in the header; 1: stable-baselines3 ``.zip`` (pickles, legacy)."""
+LEGACY_VERSION = 1
+CARD_KEY = "lc_card"
+TRUST_PICKLE_HINT = ("it is a stable-baselines3 .zip, and loading one runs whatever code its author put "
+                     "in it (pickle): pass --trust-pickle only if you trust where it came from, or convert it "
+                     "once with tools/convert_policy.py")
+
+
+def card_path(path: str | os.PathLike[str]) -> Path:
+    """Where the human-readable copy of a policy file's card lives (``policy.card.json``)."""
+    path = Path(path)
+    return path.with_name(path.stem + ".card.json")
 
 
 def save_policy(model: BaseAlgorithm, path: str | os.PathLike[str], meta: dict[str, Any]) -> Path:
-    """Save ``model`` with ``meta`` to ``path`` (a ``.zip``), atomically (``.partial`` then rename)."""
+    """Save ``model``'s policy network with the card ``meta`` to ``path`` (a ``.safetensors``), atomically
+    (``.partial`` then rename), and the card's copy beside it. Returns ``path``."""
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
-    model.lc_meta = {"format": META_FORMAT, "version": META_VERSION, **meta}  # type: ignore[attr-defined]
-    tmp = path.with_name(path.stem + ".partial.zip")
-    model.save(tmp, include=["lc_meta"])
+    card = {**{k: v for k, v in meta.items() if k not in ("format", "version", "legacy_pickle")},
+            "format": META_FORMAT, "version": META_VERSION}
+    tmp = path.with_name(path.name + ".partial")
+    save_model(model.policy, str(tmp), metadata={CARD_KEY: json.dumps(card, sort_keys=True)})
     tmp.replace(path)
+    write_json(card_path(path), card)
     return path
 
 
 def read_meta(path: str | os.PathLike[str]) -> dict[str, Any]:
-    """The ``lc_meta`` of a policy checkpoint; ``ValueError`` for a missing, corrupt or foreign file."""
+    """The card of a policy file, read without loading any weights (and without unpickling anything).
+
+    A legacy stable-baselines3 ``.zip`` gives its ``lc_meta`` (a JSON record of the zip) with
+    ``legacy_pickle`` set. ``ValueError`` for a missing, truncated, corrupt or foreign file.
+    """
     path = Path(path)
     if not path.is_file():
-        raise ValueError(f"policy checkpoint {path} does not exist")
+        what = "is a directory" if path.is_dir() else "does not exist"
+        raise ValueError(f"policy file {path} {what}")
+    if zipfile.is_zipfile(path):
+        return _read_legacy_meta(path)
+    try:
+        with safe_open(str(path), framework="pt") as f:
+            header = f.metadata() or {}
+    except (SafetensorError, OSError, ValueError) as exc:
+        size = path.stat().st_size
+        raise ValueError(f"{path} is not a readable policy file ({size} bytes; truncated, corrupt or not a "
+                         f".safetensors policy): {str(exc).splitlines()[0] if str(exc) else type(exc).__name__}"
+                         ) from None
+    if CARD_KEY not in header:
+        raise ValueError(f"{path} is a safetensors file but not an lc-toolkit policy (no {CARD_KEY} card)")
+    try:
+        meta = json.loads(header[CARD_KEY])
+    except json.JSONDecodeError as exc:
+        raise ValueError(f"{path}: its policy card is not valid JSON ({exc})") from None
+    if not isinstance(meta, dict) or meta.get("format") != META_FORMAT:
+        raise ValueError(f"{path}: its card is not an lc-toolkit policy card")
+    if meta.get("version") != META_VERSION:
+        raise ValueError(f"{path}: unsupported policy file version {meta.get('version')!r}")
+    return meta
+
+
+def _read_legacy_meta(path: Path) -> dict[str, Any]:
     try:
         with zipfile.ZipFile(path) as zf:
             data = json.loads(zf.read("data"))
-    except (zipfile.BadZipFile, KeyError, json.JSONDecodeError, OSError, EOFError) as exc:
-        raise ValueError(f"{path} is not a readable policy checkpoint (corrupt or truncated?): {exc}") from exc
-    meta = data.get("lc_meta")
+    except (zipfile.BadZipFile, KeyError, json.JSONDecodeError, OSError, EOFError, UnicodeDecodeError) as exc:
+        raise ValueError(f"{path} is not a readable policy checkpoint (corrupt or truncated?): {exc}") from None
+    meta = data.get("lc_meta") if isinstance(data, dict) else None
     if not isinstance(meta, dict) or meta.get("format") != META_FORMAT:
         raise ValueError(f"{path} is a stable-baselines3 file but not an lc-toolkit policy checkpoint")
-    if meta.get("version") != META_VERSION:
+    if meta.get("version") != LEGACY_VERSION:
         raise ValueError(f"{path}: unsupported policy checkpoint version {meta.get('version')!r}")
-    return meta
+    return {**meta, "legacy_pickle": True}
 
 
 def _diff(a: Any, b: Any, prefix: str = "") -> list[str]:
@@ -101,13 +154,13 @@ def compatibility_problems(meta: dict[str, Any], *, obs_mode: str | None = None,
 
 
 # Before commit 4c56e3c the sensor branch with contact features had no Flatten in front of its two
-# linear layers, so they were numbered 0 and 2 instead of 1 and 3.
+# linear layers, so they were numbered 0 and 2 instead of 1 and 3 (legacy .zip files only).
 _OLD_CONTACT_LAYER = re.compile(r"(branches\.current\.net\.)([02])\.")
 
 
 def _load_renamed(model: BaseAlgorithm, path: str | os.PathLike[str], device: str) -> bool:
-    """Load the policy parameters of a checkpoint saved before a layer renumbering into ``model`` under
-    today's names; False when renaming does not make every parameter fit exactly (the file is refused)."""
+    """Load the policy parameters of a legacy checkpoint saved before a layer renumbering into ``model``
+    under today's names; False when renaming does not make every parameter fit exactly (refused)."""
     from stable_baselines3.common.save_util import load_from_zip_file
 
     _, params, _ = load_from_zip_file(path, device=device, load_data=False)
@@ -138,26 +191,57 @@ class LoadedPolicy:
         return str(self.meta["algo"])
 
 
+def load_weights(model: BaseAlgorithm, path: str | os.PathLike[str], device: str = "cpu") -> None:
+    """Fill ``model``'s policy network with the tensors of the policy file ``path`` (no code runs);
+    ``ValueError`` when they do not fit the network exactly."""
+    try:
+        load_model(model.policy, str(path), strict=True, device=device)
+    except (RuntimeError, SafetensorError, OSError) as exc:
+        detail = " ".join(str(exc).split())[:200]
+        raise ValueError(f"{path}: its tensors do not fit the network its card describes: {detail}") from None
+
+
+def policy_model(meta: dict[str, Any], *, future_steps: int = 10, device: str = "cpu") -> BaseAlgorithm:
+    """A fresh network of the architecture a policy card describes (its training config, scenario and
+    observation mode), ready for :func:`load_weights`. ``future_steps``: the predictor's horizon."""
+    from lcmodels.policy.config import PolicyConfig
+    from lcmodels.policy.network import build_model
+    from lcmodels.policy.obs import policy_observation_space
+
+    try:
+        cfg = PolicyConfig.from_dict(meta["train_config"])
+        scenario = ScenarioConfig.from_dict(meta["scenario"])
+    except (KeyError, TypeError, ValueError) as exc:
+        raise ValueError(f"the policy card's training config or scenario is unusable: {exc}") from None
+    space = policy_observation_space(scenario, str(meta["obs_mode"]), future_steps,
+                                     cfg.image_features if meta.get("training_form") else None)
+    return build_model(cfg, None, None, device, observation_space=space)
+
+
 def load_policy(path: str | os.PathLike[str], *, obs_mode: str | None = None,
                 predictor: str | os.PathLike[str] | None = None, scenario: ScenarioConfig | None = None,
-                device: str = "cpu") -> LoadedPolicy:
-    """Load a policy checkpoint and the predictor it was trained with, checking compatibility.
+                device: str = "cpu", trust_pickle: bool = False) -> LoadedPolicy:
+    """Load a policy file and the predictor it was trained with, checking compatibility.
 
     Args:
-        path: the ``.zip``.
-        obs_mode, scenario: when given, must match the checkpoint's.
-        predictor: the predictor checkpoint to use; by default the one recorded in the checkpoint
-            (its path, checked by SHA-256). Must be the same file content the policy was trained with.
+        path: the ``.safetensors`` policy (or, with ``trust_pickle``, a legacy stable-baselines3 ``.zip``).
+        obs_mode, scenario: when given, must match the policy's.
+        predictor: the predictor checkpoint to use; by default the one recorded in the card (its path,
+            checked by SHA-256). Must be the same file content the policy was trained with.
+        trust_pickle: allow a legacy ``.zip``, whose loading runs code stored in it.
 
     Raises:
-        ValueError: unreadable file or an incompatibility (the message lists every difference).
+        ValueError: unreadable file, a legacy file without ``trust_pickle``, or an incompatibility (the
+            message lists every difference).
     """
     from lcmodels.policy.obs import needs_predictor
 
     meta = read_meta(path)
+    if meta.get("legacy_pickle") and not trust_pickle:
+        raise ValueError(f"{path} refused: {TRUST_PICKLE_HINT}")
     if meta.get("training_form"):
         raise ValueError(f"{path} is a training checkpoint of a frozen-image run (it sees the image branch's "
-                         "features, not the image), for resuming only: use the run's policy.zip")
+                         "features, not the image), for resuming only: use the run's policy file")
     algo = meta.get("algo")
     if algo not in ALGOS:
         raise ValueError(f"{path}: unknown algorithm {algo!r} in the checkpoint")
@@ -176,6 +260,18 @@ def load_policy(path: str | os.PathLike[str], *, obs_mode: str | None = None,
     if problems:
         raise ValueError(f"{path} does not match: " + "; ".join(problems))
     loaded_predictor = Predictor.load(pred_path) if pred_path is not None else None
+    if meta.get("legacy_pickle"):
+        model = _load_legacy(path, algo, device)
+    else:
+        future = loaded_predictor.future_steps if loaded_predictor is not None else 10
+        model = policy_model(meta, future_steps=future, device=device)
+        load_weights(model, path, device)
+        model.num_timesteps = int(meta.get("timesteps", 0))
+    return LoadedPolicy(model, meta, loaded_predictor, ScenarioConfig.from_dict(meta["scenario"]))
+
+
+def _load_legacy(path: str | os.PathLike[str], algo: str, device: str) -> BaseAlgorithm:
+    """stable-baselines3's own load of a legacy ``.zip`` (it unpickles: trusted files only)."""
     with warnings.catch_warnings(record=True) as caught:
         warnings.simplefilter("always")
         try:
@@ -192,4 +288,4 @@ def load_policy(path: str | os.PathLike[str], *, obs_mode: str | None = None,
             raise ValueError(f"{path}: its weights do not fit this version's network (saved before a change to "
                              f"it?): {detail[:200]}")
         warnings.warn_explicit(w.message, w.category, w.filename, w.lineno)
-    return LoadedPolicy(model, meta, loaded_predictor, ScenarioConfig.from_dict(meta["scenario"]))
+    return model

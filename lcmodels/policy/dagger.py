@@ -13,7 +13,7 @@ not be in) and errs more. DAgger (Ross et al., 2011) closes that loop. Each roun
 3. the labelled states join the demonstrations and the policy is trained on all of them (behaviour
    cloning, :func:`lcmodels.policy.warmstart.pretrain`, without the value term: the labels carry no
    return);
-4. the policy is saved as ``round<r>/policy.zip`` (with the round's labelled states in
+4. the policy is saved as ``round<r>/policy.safetensors`` (with the round's labelled states in
    ``round<r>/states.npz``, so that a later call can continue the rounds) and evaluated on the
    held-out episodes.
 
@@ -37,7 +37,7 @@ import numpy as np
 import torch
 
 from lcdata.record import episode_seed
-from lcmodels.fileio import write_json
+from lcmodels.fileio import POLICY_FILE, write_json
 from lcmodels.policy.checkpoint import load_policy, save_policy
 from lcmodels.policy.evaluate import PolicyDriver, evaluate
 from lcmodels.policy.obs import build_observation, mode_keys, scenario_for_mode
@@ -135,7 +135,7 @@ def collect_from_driver(policy_path: str | os.PathLike[str], user_seeds: Sequenc
                         progress: Callable[[int, int], None] | None = None) -> Collected:
     """Drive one episode per user seed with the policy, ``batch`` at a time, and label every state with the
     decision of ``expert``, a driver spec of :func:`lcmodels.policy.evaluate.driver_for` (for example
-    ``lookahead-blind:runs/pure/policy.zip``, which sees no more of the future than the policy could).
+    ``lookahead-blind:runs/pure/policy.safetensors``, which sees no more of the future than the policy could).
     Only states with a choice are kept: in the middle of a lane change the simulator ignores the decision,
     and a label there ("keep") would teach the network something that matters nowhere. ``lookahead``:
     :class:`lcsim.drivers.LookaheadConfig` fields for a lookahead expert (as ``driver_for``'s), whose
@@ -243,15 +243,15 @@ def dagger(
     """Run DAgger rounds from a warm-started ``lc-train-policy`` run; returns every round's record.
 
     Args:
-        run_dir: a run directory with ``policy.zip`` and ``run.json`` whose config names the demonstrations
+        run_dir: a run directory with ``policy.safetensors`` and ``run.json`` whose config names the demonstrations
             it was warm-started on (``--warm-start``); they stay in the training set.
-        out: new directory for ``round<r>/policy.zip``, ``round<r>/metrics.json`` and ``dagger.json``.
+        out: new directory for ``round<r>/policy.safetensors``, ``round<r>/metrics.json`` and ``dagger.json``.
         episodes: training episodes the policy drives per round (user seeds ``seed + r * episodes + i``:
             keep them apart from the demonstrations' and from evaluation's, which start at 10^9).
         epochs: behaviour-cloning epochs over all labelled states per round.
         labels: ``"plan"`` or ``"winning"``, as in :func:`collect` (the oracle's labels only).
         expert: ``"oracle"`` (:func:`collect`) or a driver spec that labels the states instead
-            (:func:`collect_from_driver`), for example ``lookahead-blind:runs/pure/policy.zip``.
+            (:func:`collect_from_driver`), for example ``lookahead-blind:runs/pure/policy.safetensors``.
         correction_weight: how much more a labelled state counts in training when its label differs from
             the decision the policy took there (a correction), than one where they agree. An expert
             that corrects one decision in a hundred needs this above 1 to be heard.
@@ -282,9 +282,9 @@ def dagger(
                                 correction_weight=correction_weight, expert_lookahead=expert_lookahead)
     elif resume:
         raise FileNotFoundError(f"{out} holds no DAgger rounds to resume")
-    policy_path = run_dir / "policy.zip"
+    policy_path = run_dir / POLICY_FILE
     if not policy_path.is_file() or not (run_dir / "run.json").is_file():
-        raise FileNotFoundError(f"{run_dir} is not a finished lc-train-policy run (policy.zip, run.json)")
+        raise FileNotFoundError(f"{run_dir} is not a finished lc-train-policy run (policy.safetensors, run.json)")
     run = json.loads((run_dir / "run.json").read_text())
     demos_dir = run["config"].get("warm_start") or ""
     predictor = (run.get("predictor") or {}).get("path")
@@ -318,7 +318,7 @@ def dagger(
                     data[k].append(states[k])
                 targets.append(states["labels"])
                 weights.append(weigh(states["labels"], states["actions"] if "actions" in states else None))
-        current = out / f"round{record['round']}" / "policy.zip"
+        current = out / f"round{record['round']}" / POLICY_FILE
     if len(done) >= rounds:
         say(f"{out} already holds {len(done)} rounds; nothing to do for --rounds {rounds}")
     elif done:
@@ -354,7 +354,7 @@ def dagger(
         t1 = time.perf_counter()
         losses = pretrain(model, train, epochs=epochs, value_coef=0.0, seed=r)
         train_s = time.perf_counter() - t1
-        current = out / f"round{r}" / "policy.zip"
+        current = out / f"round{r}" / POLICY_FILE
         meta = {k: v for k, v in loaded.meta.items() if k not in ("format", "version")}
         meta["dagger"] = {"from": str(policy_path), "round": r, "states": len(all_labels)}
         save_policy(model, current, meta)

@@ -22,7 +22,13 @@ from typing import Any
 
 import numpy as np
 
-from lcdata.record import EpisodeRecorder, episode_filename, episode_metadata, episode_seed
+from lcdata.record import (
+    EpisodeRecorder,
+    episode_filename,
+    episode_metadata,
+    episode_seed,
+    seed_start_time_ns,
+)
 from lcdata.writer import EpisodeWriter
 from lcmodels.policy.checkpoint import LoadedPolicy
 from lcmodels.policy.obs import EpisodeStats, build_observation, mode_keys, scenario_for_mode
@@ -158,7 +164,8 @@ def evaluate(
             for i, u in enumerate(chunk):
                 meta = episode_metadata(config, u, driver=name, scenario=scenario,
                                         driver_description=f"{name}: evaluation episode {start + i}")  # fmt: skip
-                w = EpisodeWriter(out_path / episode_filename(scenario, name, u), metadata=meta, overwrite=overwrite)
+                w = EpisodeWriter(out_path / episode_filename(scenario, name, u), metadata=meta, overwrite=overwrite,
+                                  start_time_ns=seed_start_time_ns(u))
                 writers.append(w)
                 rec = EpisodeRecorder(w, core, i, images=images)
                 rec.attach()
@@ -207,8 +214,8 @@ def policy_path_of(spec: str) -> Path:
 
 
 def driver_for(spec: str, *, predictor: str | None = None, device: str = "cpu",
-               lookahead: dict[str, int] | None = None,
-               follow: str | None = None) -> tuple[Any, ScenarioConfig | None]:
+               lookahead: dict[str, int] | None = None, follow: str | None = None,
+               trust_pickle: bool = False) -> tuple[Any, ScenarioConfig | None]:
     """A driver from a built-in name (:data:`lcsim.drivers.DRIVER_NAMES`), a policy checkpoint path (``policy:``
     prefix optional), or ``lookahead:PATH`` / ``lookahead-blind:PATH``: :class:`lcsim.drivers.LookaheadDriver`
     following that policy in its imagined futures (blind: with the traffic's random draws redrawn). The
@@ -217,6 +224,7 @@ def driver_for(spec: str, *, predictor: str | None = None, device: str = "cpu",
     does not read the image): then the policy proposes and the lookahead vetoes. ``lookahead``: fields of
     :class:`lcsim.drivers.LookaheadConfig` (``horizon_decisions``, ``samples``) for a lookahead driver.
     ``ValueError`` when ``lookahead`` or ``follow`` is given for a driver they do not apply to.
+    ``trust_pickle``: accept legacy stable-baselines3 ``.zip`` policies (loading one runs code stored in it).
 
     Returns the driver and, for a policy, the scenario it was trained on (``None`` for lcsim drivers).
     """
@@ -228,13 +236,14 @@ def driver_for(spec: str, *, predictor: str | None = None, device: str = "cpu",
         driver, config = make_driver(spec), None
     else:
         path = Path(name)
-        policy = load_policy(path, predictor=predictor, device=device)
+        policy = load_policy(path, predictor=predictor, device=device, trust_pickle=trust_pickle)
         driver = PolicyDriver(policy)
         config = driver.config
         if prefix != "policy:":
             planner = LookaheadConfig(blind=prefix == "lookahead-blind:")
             if follow is not None:
-                driver = LookaheadDriver(planner, rule=_follower(follow, config, predictor, device), proposer=driver)
+                driver = LookaheadDriver(planner, rule=_follower(follow, config, predictor, device, trust_pickle),
+                                         proposer=driver)
             elif "image" in mode_keys(policy.obs_mode):
                 raise ValueError(f"{path}: a lookahead cannot follow a policy that reads the image (mode "
                                  f"{policy.obs_mode}): its imagined futures are not rendered; name a driver "
@@ -250,7 +259,8 @@ def driver_for(spec: str, *, predictor: str | None = None, device: str = "cpu",
     return driver, config
 
 
-def _follower(spec: str, scenario: ScenarioConfig, predictor: str | None, device: str) -> Any:
+def _follower(spec: str, scenario: ScenarioConfig, predictor: str | None, device: str,
+              trust_pickle: bool = False) -> Any:
     """The driver a lookahead's imagined futures follow: a built-in driver, or a policy of ``scenario``
     that does not read the image."""
     from lcmodels.policy.checkpoint import load_policy
@@ -260,7 +270,7 @@ def _follower(spec: str, scenario: ScenarioConfig, predictor: str | None, device
         return make_driver(spec)
     path = policy_path_of(spec)
     try:
-        policy = load_policy(path, predictor=predictor, scenario=scenario, device=device)
+        policy = load_policy(path, predictor=predictor, scenario=scenario, device=device, trust_pickle=trust_pickle)
     except ValueError as exc:
         raise ValueError(f"driver to follow: {exc}") from exc
     if "image" in mode_keys(policy.obs_mode):

@@ -3,24 +3,31 @@
 A run directory holds::
 
     run.json                  the PolicyConfig, predictor identity, versions (a rerun must match it)
-    checkpoints/latest.zip    the last periodic checkpoint (policy checkpoint format) + latest.json
+    checkpoints/latest.json   the last periodic checkpoint: step count, wall time, and the names of its
+                              files beside it, step-<t>.safetensors (policy file format, see
+                              lcmodels.policy.checkpoint) and step-<t>.optim.pt (the optimiser's tensors,
+                              loaded with weights_only=True); written last, so a kill never leaves a
+                              half checkpoint behind it
     progress.csv              one row per log interval: timesteps, wall_s and the outcome rates,
                               mean return and safe forward distance over the last 100 episodes
     tb/                       TensorBoard (SB3's scalars plus lc/*)
     train_episode_seeds.npy   simulator seeds of every training episode (for the held-out check)
     warm_start.json           behaviour-cloning losses when warm-started, or the --init-policy started from
-    policy.zip                the final policy
+    policy.safetensors        the final policy (and policy.card.json, its card for people)
     eval/metrics.json         held-out evaluation (see lcmodels.policy.evaluate); eval/episodes/*.mcap
     metrics.json              training summary + evaluation, what lc-experiment reads
 
-Rerunning with the same ``--out`` resumes from ``checkpoints/latest.zip`` (the step count continues),
-skips training when ``policy.zip`` is complete, and only evaluates what is missing.
+Rerunning with the same ``--out`` resumes from ``checkpoints/latest.json`` (the step count continues),
+skips training when the policy is complete, and only evaluates what is missing. Nothing in a run
+directory is unpickled. ``overwrite`` replaces a run with another configuration by removing only the
+files of this layout (:data:`RUN_OUTPUTS`), after every other check has passed; anything else in the
+directory stays.
 """
 
 from __future__ import annotations
 
+import contextlib
 import csv
-import dataclasses
 import json
 import logging
 import os
@@ -30,7 +37,7 @@ from collections import deque
 from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any, ClassVar
+from typing import Any
 
 import numpy as np
 import torch
@@ -38,204 +45,37 @@ from stable_baselines3.common.base_class import BaseAlgorithm
 from stable_baselines3.common.callbacks import BaseCallback
 from stable_baselines3.common.logger import configure
 
-from lcmodels.fileio import file_sha256, write_json
-from lcmodels.policy.checkpoint import ALGOS, LoadedPolicy, save_policy
+from lcmodels.fileio import POLICY_FILE, file_sha256, write_json
+from lcmodels.policy.checkpoint import (
+    LoadedPolicy,
+    card_path,
+    load_policy,
+    load_weights,
+    save_policy,
+)
+from lcmodels.policy.config import (  # re-exported: the names training's callers know
+    FINE_TUNE_LEARNING_RATES,
+    POLICY_SCENARIOS,
+    PolicyConfig,
+    default_learning_rate,
+    tiny_scenario,
+)
 from lcmodels.policy.evaluate import EVAL_SEED_BASE, PolicyDriver, evaluate
-from lcmodels.policy.extractor import (
-    IMAGE_FEATURES,
-    IMAGE_NETS,
-    HybridExtractor,
-    ImageEncoder,
-    make_image_net,
-)
-from lcmodels.policy.obs import (
-    OBS_MODES,
-    EpisodeStats,
-    PolicyVecEnv,
-    mode_keys,
-    needs_predictor,
-    scenario_for_mode,
-)
+from lcmodels.policy.extractor import IMAGE_FEATURES, HybridExtractor, ImageEncoder, make_image_net
+from lcmodels.policy.network import build_model
+from lcmodels.policy.obs import EpisodeStats, PolicyVecEnv, needs_predictor
 from lcmodels.predictor.inference import Predictor
-from lcsim import light_scenario
-from lcsim.config import (
-    NEIGHBOUR_SELECTIONS,
-    ScenarioConfig,
-    TrafficConfig,
-    _check,
-    _JsonMixin,
-    _non_negative,
-    _positive,
-    paper_scenario,
-)
+from lcsim.config import ScenarioConfig
 from lcsim.sb3 import LaneChangeSB3VecEnv
 
 log = logging.getLogger(__name__)
 
 
 
-def tiny_scenario() -> ScenarioConfig:
-    """8 vehicles on a 150 m route (25 s): for tests and smoke runs, not for results."""
-    return ScenarioConfig(traffic=TrafficConfig(num_vehicles=8, spawn_behind_m=40.0, spawn_ahead_m=100.0),
-                          route_length_m=150.0, time_limit_s=25.0)
-
-
-POLICY_SCENARIOS: dict[str, Callable[[], ScenarioConfig]] = {"paper": paper_scenario, "light": light_scenario,
-                                                             "tiny": tiny_scenario}
 PROGRESS_COLUMNS = ("timesteps", "wall_s", "episodes_total", "window", "success_rate", "collision_rate",
                     "off_road_rate", "timeout_rate", "mean_return", "mean_safe_forward_m", "mean_forward_m")  # fmt: skip
 # Fields that may change between a run and its continuation.
 _RESUMABLE_FIELDS = ("timesteps", "checkpoint_every", "eval_episodes", "eval_seed", "eval_batch", "record_eval")
-
-
-_LEARNING_RATES = {"ppo": 3e-4, "a2c": 7e-4, "dqn": 1e-4}
-FINE_TUNE_LEARNING_RATES = {"ppo": 3e-5}
-"""PPO from a warm start or an initial policy learns at a tenth of its default rate: from the same clone
-(69.5% held-out success), 300k steps at 3e-4 fell to 61.0% and at 3e-5 rose to 75.5%
-(docs/results/lanes/NOTE.md); PPO from DAgger at 3e-5 gave the project's best policy (docs/results/contact).
-A2C and DQN were not measured that way and keep their rates."""
-
-
-def default_learning_rate(algo: str, fine_tune: bool = False) -> float:
-    """The learning rate a run gets when none is given: per algorithm, or :data:`FINE_TUNE_LEARNING_RATES`
-    when it continues from a warm start or an initial policy (``fine_tune``)."""
-    if algo not in _LEARNING_RATES:
-        raise ValueError(f"unknown algorithm {algo!r}; choose one of {', '.join(_LEARNING_RATES)}")
-    return FINE_TUNE_LEARNING_RATES.get(algo, _LEARNING_RATES[algo]) if fine_tune else _LEARNING_RATES[algo]
-
-
-@dataclass(frozen=True, slots=True, kw_only=True)
-class PolicyConfig(_JsonMixin):
-    """Everything that defines a policy training run (stored in ``run.json``)."""
-
-    LEGACY_DEFAULTS: ClassVar[dict[str, Any]] = {"contact_features": False, "freeze_image": False}
-
-    algo: str = "ppo"
-    obs: str = "hybrid"
-    scenario: str = "paper"
-    timesteps: int = 100_000
-    """Online decisions (environment steps summed over environments); 0 with a warm start gives the
-    behaviour-cloned policy itself."""
-    n_envs: int = 16
-    seed: int = 0
-    neighbours: str = "lanes"
-    """Which vehicles the observation shows (``ScenarioConfig.neighbour_selection``): ``lanes`` or ``nearest``."""
-    slots: int = 8
-    """How many (``ScenarioConfig.num_neighbours``): the paper's 8, or with ``lanes`` up to 16, the slots
-    after the eighth a wider view (:data:`lcsim.config.LANE_SLOTS`). The predictor, which has no slot
-    embedding, predicts each shown vehicle with the others as context, however many."""
-    image_net: str = "compact"
-    image_features: int = 10
-    contact_features: bool = True
-    """The sensor branch also gets each slot's time to contact, gap and proximity
-    (``lcmodels.policy.extractor.ContactFeatures``). Cloning the oracle in ``pure`` mode: 69.5% held-out
-    success without, 77.0% with (docs/results/contact). Runs stored before the option existed read as off."""
-    window_features: bool = False
-    """The sensor branch also gets, per side lane, when over the next 16 s the ego could change into it,
-    against when its own leader traps it (``lcmodels.policy.extractor.WindowFeatures``; lane slots only)."""
-    accel_features: bool = False
-    """The observation also shows each vehicle's acceleration (``ScenarioConfig.observe_acceleration``), and
-    with ``window_features`` the sensor branch also looks at the side lanes with those accelerations kept."""
-    learning_rate: float = _LEARNING_RATES["ppo"]
-    gamma: float = 0.95
-    """0.95 (a 10 s horizon at 2 decisions/s): PPO pure reached 24% held-out success in 150k steps with
-    0.95 and no entropy bonus, 7% with 0.99 and 0.01 in 100k (measured, 200 episodes)."""
-    n_steps: int = 128
-    """PPO / A2C rollout length per environment (A2C default 8)."""
-    batch_size: int = 256
-    n_epochs: int = 10
-    ent_coef: float = 0.0
-    reward_scale: float = 0.01
-    """Rewards handed to the learner are scaled by this (returns in the logs are unscaled)."""
-    collision_weight: float = 1.0
-    """The learner's collision reward is this many times the scenario's (training shaping: the logged and
-    evaluated returns keep the paper's reward)."""
-    buffer_size: int = 50_000
-    """DQN replay buffer (transitions)."""
-    learning_starts: int = 2_000
-    exploration_fraction: float = 0.3
-    target_update_interval: int = 2_000
-    checkpoint_every: int = 20_000
-    eval_episodes: int = 200
-    eval_seed: int = 0
-    eval_batch: int = 20
-    record_eval: bool = True
-    warm_start: str = ""
-    """Directory of recorded MCAP episodes to pretrain on ('' = none)."""
-    warm_start_epochs: int = 10
-    init_policy: str = ""
-    """A ``policy.zip`` (a behaviour-cloned run's, a DAgger round's) whose weights start the online
-    training ('' = none): same algorithm, observation mode, predictor, scenario and network as this run."""
-    freeze_image: bool = False
-    """With ``init_policy`` in the ``image`` and ``hybrid`` modes: the image branch keeps the initial
-    policy's weights and runs once per step in the observation wrapper, so the rollout buffer holds its
-    features instead of the image and the update epochs never run the network (several times the online
-    steps per minute in ``hybrid`` mode). ``policy.zip`` is a plain policy of the mode, image branch
-    included; ``checkpoints/latest.zip`` is in the training form, for resuming only."""
-
-    def __post_init__(self) -> None:
-        _check(self.algo in ALGOS, self, "algo", f"must be one of {', '.join(ALGOS)}", self.algo)
-        _check(self.obs in OBS_MODES, self, "obs", f"must be one of {', '.join(OBS_MODES)}", self.obs)
-        _check(self.scenario in POLICY_SCENARIOS, self, "scenario", f"must be one of {', '.join(POLICY_SCENARIOS)}",
-               self.scenario)  # fmt: skip
-        _check(self.neighbours in NEIGHBOUR_SELECTIONS, self, "neighbours",
-               f"must be one of {', '.join(NEIGHBOUR_SELECTIONS)}", self.neighbours)
-        _check(not self.window_features or self.neighbours == "lanes", self, "window_features",
-               "needs neighbours='lanes' (which vehicle is in which lane)", self.window_features)
-        _check(self.image_net in IMAGE_NETS, self, "image_net", f"must be one of {', '.join(IMAGE_NETS)}",
-               self.image_net)  # fmt: skip
-        _positive(self, "n_envs", "image_features", "learning_rate", "n_steps", "batch_size",
-                  "n_epochs", "reward_scale", "collision_weight", "buffer_size", "target_update_interval",
-                  "checkpoint_every", "eval_batch", "warm_start_epochs")
-        _non_negative(self, "timesteps", "ent_coef", "learning_starts", "eval_episodes", "seed", "eval_seed")
-        _check(not (self.warm_start and self.init_policy), self, "init_policy",
-               "cannot be combined with warm_start (clone first, then start from that run's policy.zip)",
-               self.init_policy)  # fmt: skip
-        _check(not self.freeze_image or bool(self.init_policy), self, "freeze_image",
-               "needs init_policy (a policy whose image branch is trained already)", self.freeze_image)
-        _check(not self.freeze_image or "image" in mode_keys(self.obs), self, "freeze_image",
-               f"needs an observation mode with the image (image, hybrid), not {self.obs!r}", self.freeze_image)
-        _check(self.timesteps > 0 or bool(self.warm_start), self, "timesteps",
-               "must be > 0 without a warm start (0 with one: behaviour cloning only)", self.timesteps)  # fmt: skip
-        _check(0 < self.gamma <= 1, self, "gamma", "must be in (0, 1]", self.gamma)
-        _check(0 < self.exploration_fraction <= 1, self, "exploration_fraction", "must be in (0, 1]",
-               self.exploration_fraction)  # fmt: skip
-        _check(self.seed < 1_000_000, self, "seed", "must be < 1000000 (keeps training seeds off evaluation's)",
-               self.seed)  # fmt: skip
-        try:  # slots (and neighbours) as the scenario itself validates them
-            self.scenario_config()
-        except ValueError as exc:
-            raise ValueError(f"PolicyConfig.slots {self.slots} does not fit the scenario: {exc}") from None
-
-    def scenario_config(self) -> ScenarioConfig:
-        base = dataclasses.replace(POLICY_SCENARIOS[self.scenario](), neighbour_selection=self.neighbours,
-                                   num_neighbours=self.slots, observe_acceleration=self.accel_features)
-        return scenario_for_mode(base, self.obs)
-
-
-def build_model(cfg: PolicyConfig, env: PolicyVecEnv, tensorboard: str | None = None,
-                device: str = "cpu") -> BaseAlgorithm:
-    """A fresh SB3 model of ``cfg.algo`` with the hybrid extractor."""
-    policy_kwargs: dict[str, Any] = {
-        "features_extractor_class": HybridExtractor,
-        "features_extractor_kwargs": {"image_net": cfg.image_net, "image_features": cfg.image_features,
-                                      "contact_features": cfg.contact_features,
-                                      "window_features": cfg.window_features},
-        "net_arch": [128, 64] if cfg.algo == "dqn" else {"pi": [64, 64], "vf": [64, 64]},
-    }
-    common: dict[str, Any] = {"policy_kwargs": policy_kwargs, "seed": cfg.seed, "device": device,
-                              "gamma": cfg.gamma, "tensorboard_log": tensorboard, "verbose": 0}  # fmt: skip
-    if cfg.algo == "ppo":
-        return ALGOS["ppo"]("MultiInputPolicy", env, learning_rate=cfg.learning_rate, n_steps=cfg.n_steps,
-                            batch_size=cfg.batch_size, n_epochs=cfg.n_epochs, ent_coef=cfg.ent_coef, **common)
-    if cfg.algo == "a2c":
-        return ALGOS["a2c"]("MultiInputPolicy", env, learning_rate=cfg.learning_rate, n_steps=cfg.n_steps,
-                            ent_coef=cfg.ent_coef, **common)
-    return ALGOS["dqn"]("MultiInputPolicy", env, learning_rate=cfg.learning_rate, buffer_size=cfg.buffer_size,
-                        learning_starts=cfg.learning_starts, batch_size=cfg.batch_size,
-                        train_freq=1, gradient_steps=1,  # one minibatch per vector step (n_envs transitions)
-                        target_update_interval=cfg.target_update_interval,
-                        exploration_fraction=cfg.exploration_fraction, exploration_final_eps=0.02, **common)
 
 
 def train_seed_base(seed: int, start_timesteps: int) -> int:
@@ -306,7 +146,6 @@ class _Run:
         if predictor_path is not None:
             self.predictor = {"path": str(predictor_path.resolve()), "file": predictor_path.name,
                               "sha256": str(predictor_sha256)}  # fmt: skip
-        self.ckpt = out / "checkpoints" / "latest.zip"
         self.ckpt_state = out / "checkpoints" / "latest.json"
         self.start_timesteps = 0
         self.episodes_total = 0
@@ -334,9 +173,26 @@ class _Run:
         return np.concatenate([self.prior_seeds, new])
 
     def checkpoint(self, model: BaseAlgorithm, t: int, episodes_total: int) -> None:
-        save_policy(model, self.ckpt, self.meta(t, training_form=self.cfg.freeze_image))
-        np.save(self.seeds_path, self.all_seeds())
-        write_json(self.ckpt_state, {"timesteps": t, "wall_s": self.wall_s(), "episodes_total": episodes_total})
+        """Weights, optimiser and counters at step ``t``; ``latest.json`` names them once they are complete,
+        then the previous checkpoint's files go."""
+        folder = self.ckpt_state.parent
+        previous = read_checkpoint_state(self.ckpt_state) if self.ckpt_state.exists() else None
+        weights, optim = f"step-{t}.safetensors", f"step-{t}.optim.pt"
+        save_policy(model, folder / weights, self.meta(t, training_form=self.cfg.freeze_image))
+        tmp = folder / (optim + ".partial")
+        torch.save(model.policy.optimizer.state_dict(), tmp)
+        tmp.replace(folder / optim)
+        seeds_tmp = self.seeds_path.with_name(self.seeds_path.name + ".partial.npy")
+        np.save(seeds_tmp, self.all_seeds())
+        seeds_tmp.replace(self.seeds_path)
+        write_json(self.ckpt_state, {"timesteps": t, "wall_s": self.wall_s(), "episodes_total": episodes_total,
+                                     "weights": weights, "optimizer": optim,
+                                     "n_updates": int(getattr(model, "_n_updates", 0)),
+                                     "n_calls": int(getattr(model, "_n_calls", 0))})  # fmt: skip
+        if previous is not None and previous["weights"] != weights:
+            for name in (previous["weights"], previous["optimizer"]):
+                for f in (folder / name, card_path(folder / name)):
+                    f.unlink(missing_ok=True)
 
     def append_progress(self, row: dict[str, Any]) -> None:
         path = self.out / "progress.csv"
@@ -381,26 +237,84 @@ def stored_config(data: dict[str, Any]) -> dict[str, Any]:
         return data
 
 
-def check_run_dir(cfg: PolicyConfig, out: Path, predictor_sha256: str | None) -> None:
-    """``ValueError`` when ``out`` holds a run with another config or predictor (says what differs)."""
+RUN_OUTPUTS: tuple[str, ...] = (
+    "run.json", "progress.csv", "metrics.json", "warm_start.json", "train_episode_seeds.npy", "image_encoder.pt",
+    POLICY_FILE, card_path(POLICY_FILE).name, "checkpoints/latest.json", "checkpoints/step-*.safetensors",
+    "checkpoints/step-*.card.json", "checkpoints/step-*.optim.pt", "checkpoints/*.partial*", "*.partial*",
+    "eval/metrics.json", "eval/metrics.json.partial", "eval/episodes/*.mcap", "eval/episodes/*.mcap.partial",
+    "tb/*/events.out.tfevents.*",
+)  # fmt: skip
+"""The files a training run writes in its directory (glob patterns relative to it): all that ``overwrite``
+removes."""
+
+
+def remove_run_outputs(out: Path) -> tuple[int, list[Path]]:
+    """Remove the files of :data:`RUN_OUTPUTS` in ``out`` and the folders they leave empty; returns how many
+    files went and the files that stayed (not the tool's)."""
+    removed = 0
+    for pattern in RUN_OUTPUTS:
+        for f in out.glob(pattern):
+            if f.is_file() or f.is_symlink():
+                f.unlink()
+                removed += 1
+    for d in sorted((d for d in out.rglob("*") if d.is_dir()), key=lambda d: len(d.parts), reverse=True):
+        with contextlib.suppress(OSError):
+            d.rmdir()  # only when empty
+    kept = sorted(f for f in out.rglob("*") if f.is_file()) if out.exists() else []
+    return removed, kept
+
+
+def read_checkpoint_state(path: Path) -> dict[str, Any]:
+    """``checkpoints/latest.json``: the step count, wall time, episodes and file names of the last checkpoint
+    (``ValueError`` naming the file when it is corrupt or incomplete)."""
+    try:
+        state = json.loads(path.read_text())
+        missing = [k for k in ("timesteps", "wall_s", "episodes_total", "weights", "optimizer") if k not in state]
+        if missing:
+            raise KeyError(", ".join(missing))
+        return state
+    except (OSError, json.JSONDecodeError, KeyError, TypeError) as exc:
+        raise ValueError(f"{path} is corrupt ({type(exc).__name__}: {exc}); remove the checkpoints folder to "
+                         "restart training from step 0") from None
+
+
+def check_run_dir(cfg: PolicyConfig, out: Path, predictor_sha256: str | None, *, overwrite: bool = False) -> bool:
+    """Whether ``out`` can hold this run. ``ValueError`` when it holds a run with another config or predictor
+    (says what differs) unless ``overwrite``, or files that are no run of this tool's. Returns True when the
+    run there is to be replaced (``overwrite`` and a different run), False to start or resume."""
     run_json = out / "run.json"
+    if out.exists() and not out.is_dir():
+        raise ValueError(f"--out {out} is a file, not a directory")
     if not run_json.exists():
         if out.exists() and any(out.iterdir()):
-            raise ValueError(f"{out} exists and is not a policy run directory; choose another --out")
-        return
+            raise ValueError(f"{out} exists and is not a policy run directory (no run.json); choose another --out "
+                             "(--overwrite only replaces a run this tool wrote)")
+        return False
     try:
         prev = json.loads(run_json.read_text())
         prev_cfg = stored_config(prev["config"])
-    except (json.JSONDecodeError, KeyError, AttributeError) as exc:
-        raise ValueError(f"{run_json} is corrupt: {exc}") from exc
+    except (json.JSONDecodeError, KeyError, AttributeError, TypeError) as exc:
+        if overwrite:
+            return True
+        raise ValueError(f"{run_json} is corrupt ({type(exc).__name__}: {exc}); pass --overwrite to replace "
+                         "the run") from None
     now = cfg.to_dict()
     diffs = [f"{k}: {prev_cfg.get(k)!r} -> {now[k]!r}" for k in now
              if k not in _RESUMABLE_FIELDS and prev_cfg.get(k) != now[k]]  # fmt: skip
     if (prev.get("predictor") or {}).get("sha256") != predictor_sha256:
         diffs.append("predictor file content differs")
-    if diffs:
+    if diffs and not overwrite:
         raise ValueError(f"{out} holds a run with another configuration ({'; '.join(diffs)}); "
                          "use another --out or --overwrite")  # fmt: skip
+    legacy = [f for f in (out / "policy.zip", out / "checkpoints" / "latest.zip") if f.exists()]
+    if legacy and not overwrite:
+        raise ValueError(f"{out} is a run of an older version ({legacy[0].relative_to(out)} is a pickle, which this "
+                         "version never loads to resume); use another --out, or --overwrite to restart it")
+    if legacy:
+        return True
+    if not diffs and (out / "checkpoints" / "latest.json").exists():
+        read_checkpoint_state(out / "checkpoints" / "latest.json")
+    return bool(diffs)
 
 
 def train_policy(
@@ -412,6 +326,8 @@ def train_policy(
     progress: Callable[[dict[str, Any]], None] | None = None,
     eval_progress: Callable[[int, int], None] | None = None,
     log_every: int | None = None,
+    overwrite: bool = False,
+    trust_pickle: bool = False,
 ) -> TrainResult:
     """Train (or resume, or just finish evaluating) the run in ``out``; see the module docstring.
 
@@ -420,9 +336,13 @@ def train_policy(
         predictor: predictor checkpoint, required by the ``prediction`` and ``hybrid`` modes.
         progress: called with each progress row (a dict of :data:`PROGRESS_COLUMNS`).
         log_every: timesteps between progress rows (default: one PPO/A2C rollout, 2048 for DQN).
+        overwrite: replace a run of another configuration in ``out`` (only its own files go, and only
+            after every other check has passed).
+        trust_pickle: let ``cfg.init_policy`` be a legacy stable-baselines3 ``.zip`` (loading one runs code).
 
     Raises:
-        ValueError: bad input (missing predictor, a different run in ``out``).
+        ValueError: bad input (missing predictor, a different run in ``out``, an unusable initial policy or
+            warm-start directory); nothing has been written then.
     """
     out = Path(out)
     pred_path = Path(predictor) if predictor is not None and needs_predictor(cfg.obs) else None
@@ -430,19 +350,29 @@ def train_policy(
         raise ValueError(f"observation mode {cfg.obs!r} needs a trained predictor (--predictor)")
     pred = Predictor.load(pred_path) if pred_path is not None else None
     pred_sha = file_sha256(pred_path) if pred_path is not None else None
-    check_run_dir(cfg, out, pred_sha)
-    out.mkdir(parents=True, exist_ok=True)
+    replace = check_run_dir(cfg, out, pred_sha, overwrite=overwrite)
     run = _Run(cfg, out, pred_path, pred_sha, progress)
+    if cfg.warm_start:
+        _check_demonstrations(Path(cfg.warm_start))
+    initial = None
+    if cfg.init_policy and (replace or not run.ckpt_state.exists()):
+        initial = _load_init_policy(cfg, run, cfg.scenario_config(), device, trust_pickle)
+    # Every check has passed: from here on the directory is written.
+    if replace:
+        removed, kept = remove_run_outputs(out)
+        log.info("--overwrite: removed the %d files of the previous run in %s%s", removed, out,
+                 f"; kept {len(kept)} files it did not write" if kept else "")
+    out.mkdir(parents=True, exist_ok=True)
     write_json(out / "run.json", {"config": cfg.to_dict(), "predictor": run.predictor,
                                    "scenario": cfg.scenario_config().to_dict(), "versions": versions()})  # fmt: skip
-    final = out / "policy.zip"
+    final = out / POLICY_FILE
     train_info: dict[str, Any] = {}
     if (out / "metrics.json").exists():
         train_info = json.loads((out / "metrics.json").read_text()).get("train", {})
     done_steps = int(train_info.get("timesteps", 0)) if final.exists() else 0
     torch.manual_seed(cfg.seed)
     if not final.exists() or done_steps < cfg.timesteps:
-        train_info = _train(cfg, run, pred, device, log_every, final)
+        train_info = _train(cfg, run, pred, device, log_every, final, initial)
     config = cfg.scenario_config()
     metrics: dict[str, Any] = {"config": cfg.to_dict(), "train": train_info}
     eval_json = out / "eval" / "metrics.json"
@@ -468,12 +398,21 @@ def train_policy(
     return TrainResult(out, int(train_info.get("timesteps", 0)), float(train_info.get("wall_s", 0.0)), metrics)
 
 
+def _check_demonstrations(path: Path) -> None:
+    """``ValueError`` unless ``path`` is a directory holding recorded episodes (a warm start's input)."""
+    if not path.is_dir():
+        raise ValueError(f"warm_start {path} is not a directory of recorded episodes")
+    if not any(path.glob("*.mcap")):
+        raise ValueError(f"warm_start {path} holds no .mcap episodes (record some with lc-record)")
+
+
 def _train(cfg: PolicyConfig, run: _Run, pred: Predictor | None, device: str, log_every: int | None,
-           final: Path) -> dict[str, Any]:
+           final: Path, initial: LoadedPolicy | None) -> dict[str, Any]:
     out = run.out
-    resume = run.ckpt.exists() and run.ckpt_state.exists()
+    resume = run.ckpt_state.exists()
+    state: dict[str, Any] = {}
     if resume:
-        state = json.loads(run.ckpt_state.read_text())
+        state = read_checkpoint_state(run.ckpt_state)
         run.start_timesteps = int(state["timesteps"])
         run.wall_before = float(state["wall_s"])
         run.episodes_total = int(state["episodes_total"])
@@ -485,8 +424,8 @@ def _train(cfg: PolicyConfig, run: _Run, pred: Predictor | None, device: str, lo
         (out / "progress.csv").unlink()  # a previous attempt died before its first checkpoint
     config = cfg.scenario_config()
     base = LaneChangeSB3VecEnv(cfg.n_envs, config)
-    # The initial policy, loaded once: its weights start the model, its image branch (when frozen) the wrapper.
-    initial = _load_init_policy(cfg, run, config, device) if cfg.init_policy and not resume else None
+    # The initial policy (loaded once, before anything was written): its weights start the model, its image
+    # branch (when frozen) the wrapper.
     encoder = _frozen_image_encoder(cfg, run, config, initial) if cfg.freeze_image else None
     env = PolicyVecEnv(base, cfg.obs, pred, reward_scale=cfg.reward_scale, image_encoder=encoder,
                        collision_weight=cfg.collision_weight)
@@ -494,7 +433,7 @@ def _train(cfg: PolicyConfig, run: _Run, pred: Predictor | None, device: str, lo
     tb = str(out / "tb")
     warm: dict[str, Any] | None = None
     if resume:
-        model = ALGOS[cfg.algo].load(run.ckpt, env=env, device=device, tensorboard_log=tb)
+        model = _resume_model(cfg, env, tb, device, run.ckpt_state.parent, state)
     else:
         model = build_model(cfg, env, tb, device)
         if cfg.warm_start:
@@ -525,14 +464,35 @@ def _train(cfg: PolicyConfig, run: _Run, pred: Predictor | None, device: str, lo
     return info
 
 
-def _load_init_policy(cfg: PolicyConfig, run: _Run, config: ScenarioConfig, device: str) -> LoadedPolicy:
-    """``cfg.init_policy``, after checking that it fits this run (mode, predictor, scenario, algorithm)."""
-    from lcmodels.policy.checkpoint import load_policy
+def _resume_model(cfg: PolicyConfig, env: PolicyVecEnv, tb: str, device: str, folder: Path,
+                  state: dict[str, Any]) -> BaseAlgorithm:
+    """The model of a checkpoint (``latest.json``'s ``state``): a fresh network of this run's config filled
+    with the checkpoint's tensors, optimiser state and counters; nothing unpickled."""
+    model = build_model(cfg, env, tb, device)
+    weights, optim = folder / state["weights"], folder / state["optimizer"]
+    for f in (weights, optim):
+        if not f.is_file():
+            raise ValueError(f"checkpoint file {f} named by {folder / 'latest.json'} is missing")
+    load_weights(model, weights, device)
+    try:
+        model.policy.optimizer.load_state_dict(torch.load(optim, map_location=device, weights_only=True))
+    except Exception as exc:  # torch raises several types for a damaged file
+        raise ValueError(f"{optim} is not a readable optimiser state (corrupt?): "
+                         f"{str(exc).splitlines()[0] if str(exc) else type(exc).__name__}") from None
+    model.num_timesteps = int(state["timesteps"])
+    model._n_updates = int(state.get("n_updates", 0))
+    if cfg.algo == "dqn":
+        model._n_calls = int(state.get("n_calls", 0))
+    return model
 
+
+def _load_init_policy(cfg: PolicyConfig, run: _Run, config: ScenarioConfig, device: str,
+                      trust_pickle: bool = False) -> LoadedPolicy:
+    """``cfg.init_policy``, after checking that it fits this run (mode, predictor, scenario, algorithm)."""
     path = Path(cfg.init_policy)
     if not path.is_file():
         raise ValueError(f"init_policy {path} does not exist")
-    loaded = load_policy(path, obs_mode=cfg.obs, scenario=config, device=device,
+    loaded = load_policy(path, obs_mode=cfg.obs, scenario=config, device=device, trust_pickle=trust_pickle,
                          predictor=run.predictor["path"] if run.predictor else None)  # fmt: skip
     if loaded.meta.get("algo") != cfg.algo:
         raise ValueError(f"init_policy {path} is a {loaded.meta.get('algo')} policy, this run trains {cfg.algo}")
@@ -614,3 +574,20 @@ def _warm_start(cfg: PolicyConfig, model: BaseAlgorithm, pred: Predictor | None,
     log.info("warm start on %d decisions of %d episodes: NLL %.3f -> %.3f", len(demos), demos.episodes, before, after)
     return {"data": cfg.warm_start, "episodes": demos.episodes, "decisions": len(demos), "nll_before": before,
             "nll_after": after, "epoch_losses": losses, "wall_s": time.perf_counter() - t0}  # fmt: skip
+
+
+__all__ = [
+    "FINE_TUNE_LEARNING_RATES",
+    "POLICY_SCENARIOS",
+    "RUN_OUTPUTS",
+    "PolicyConfig",
+    "TrainResult",
+    "build_model",
+    "check_run_dir",
+    "default_learning_rate",
+    "remove_run_outputs",
+    "stored_config",
+    "tiny_scenario",
+    "train_policy",
+    "versions",
+]

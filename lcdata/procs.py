@@ -1,0 +1,44 @@
+"""Worker processes that die with the process that started them.
+
+A pool worker whose parent is killed (even with SIGKILL, which runs no clean-up) would otherwise go on
+with the tasks it holds, writing files nobody asked for any more, and keep the parent's inherited pipes
+open, so that ``lc-record ... | cat`` never returns. :func:`die_with_parent`, a pool initializer, asks
+the kernel to kill the worker when its parent goes (Linux ``prctl(PR_SET_PDEATHSIG)``) and, on every
+system, watches the parent's pid from a daemon thread as well.
+"""
+
+from __future__ import annotations
+
+import ctypes
+import ctypes.util
+import os
+import signal
+import sys
+import threading
+import time
+
+_PR_SET_PDEATHSIG = 1
+WATCH_INTERVAL_S = 0.2
+"""How often the watchdog thread looks at the parent's pid."""
+
+
+def die_with_parent(parent_pid: int | None = None) -> None:
+    """Kill this process when its parent exits. ``parent_pid``: the pid the parent had when it started
+    this process (default: the current parent); if it is gone already, exit at once."""
+    expected = os.getppid() if parent_pid is None else parent_pid
+    if sys.platform.startswith("linux"):
+        try:
+            libc = ctypes.CDLL(ctypes.util.find_library("c") or "libc.so.6", use_errno=True)
+            libc.prctl(_PR_SET_PDEATHSIG, signal.SIGKILL, 0, 0, 0)
+        except (OSError, AttributeError):  # no prctl: the watchdog below still works
+            pass
+    if os.getppid() != expected:  # the parent died before the signal was armed
+        os._exit(1)
+
+    def watch() -> None:
+        while True:
+            time.sleep(WATCH_INTERVAL_S)
+            if os.getppid() != expected:
+                os._exit(1)
+
+    threading.Thread(target=watch, name="die-with-parent", daemon=True).start()

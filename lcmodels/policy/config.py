@@ -1,0 +1,163 @@
+"""The configuration of a policy training run (:class:`PolicyConfig`) and the scenarios a policy trains in.
+
+Kept apart from the training loop so that the policy file loader can rebuild a network from a stored
+config without importing training.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from collections.abc import Callable
+from dataclasses import dataclass
+from typing import Any, ClassVar
+
+from lcmodels.policy.extractor import IMAGE_NETS
+from lcmodels.policy.network import ALGOS
+from lcmodels.policy.obs import OBS_MODES, mode_keys, scenario_for_mode
+from lcsim import light_scenario
+from lcsim.config import (
+    NEIGHBOUR_SELECTIONS,
+    ScenarioConfig,
+    TrafficConfig,
+    _check,
+    _JsonMixin,
+    _non_negative,
+    _positive,
+    paper_scenario,
+)
+
+
+def tiny_scenario() -> ScenarioConfig:
+    """8 vehicles on a 150 m route (25 s): for tests and smoke runs, not for results."""
+    return ScenarioConfig(traffic=TrafficConfig(num_vehicles=8, spawn_behind_m=40.0, spawn_ahead_m=100.0),
+                          route_length_m=150.0, time_limit_s=25.0)
+
+
+POLICY_SCENARIOS: dict[str, Callable[[], ScenarioConfig]] = {"paper": paper_scenario, "light": light_scenario,
+                                                             "tiny": tiny_scenario}
+
+_LEARNING_RATES = {"ppo": 3e-4, "a2c": 7e-4, "dqn": 1e-4}
+FINE_TUNE_LEARNING_RATES = {"ppo": 3e-5}
+"""PPO from a warm start or an initial policy learns at a tenth of its default rate: from the same clone
+(69.5% held-out success), 300k steps at 3e-4 fell to 61.0% and at 3e-5 rose to 75.5%
+(docs/results/lanes/NOTE.md); PPO from DAgger at 3e-5 gave the project's best policy (docs/results/contact).
+A2C and DQN were not measured that way and keep their rates."""
+
+
+def default_learning_rate(algo: str, fine_tune: bool = False) -> float:
+    """The learning rate a run gets when none is given: per algorithm, or :data:`FINE_TUNE_LEARNING_RATES`
+    when it continues from a warm start or an initial policy (``fine_tune``)."""
+    if algo not in _LEARNING_RATES:
+        raise ValueError(f"unknown algorithm {algo!r}; choose one of {', '.join(_LEARNING_RATES)}")
+    return FINE_TUNE_LEARNING_RATES.get(algo, _LEARNING_RATES[algo]) if fine_tune else _LEARNING_RATES[algo]
+
+
+@dataclass(frozen=True, slots=True, kw_only=True)
+class PolicyConfig(_JsonMixin):
+    """Everything that defines a policy training run (stored in ``run.json``)."""
+
+    LEGACY_DEFAULTS: ClassVar[dict[str, Any]] = {"contact_features": False, "freeze_image": False}
+
+    algo: str = "ppo"
+    obs: str = "hybrid"
+    scenario: str = "paper"
+    timesteps: int = 100_000
+    """Online decisions (environment steps summed over environments); 0 with a warm start gives the
+    behaviour-cloned policy itself."""
+    n_envs: int = 16
+    seed: int = 0
+    neighbours: str = "lanes"
+    """Which vehicles the observation shows (``ScenarioConfig.neighbour_selection``): ``lanes`` or ``nearest``."""
+    slots: int = 8
+    """How many (``ScenarioConfig.num_neighbours``): the paper's 8, or with ``lanes`` up to 16, the slots
+    after the eighth a wider view (:data:`lcsim.config.LANE_SLOTS`). The predictor, which has no slot
+    embedding, predicts each shown vehicle with the others as context, however many."""
+    image_net: str = "compact"
+    image_features: int = 10
+    contact_features: bool = True
+    """The sensor branch also gets each slot's time to contact, gap and proximity
+    (``lcmodels.policy.extractor.ContactFeatures``). Cloning the oracle in ``pure`` mode: 69.5% held-out
+    success without, 77.0% with (docs/results/contact). Runs stored before the option existed read as off."""
+    window_features: bool = False
+    """The sensor branch also gets, per side lane, when over the next 16 s the ego could change into it,
+    against when its own leader traps it (``lcmodels.policy.extractor.WindowFeatures``; lane slots only)."""
+    accel_features: bool = False
+    """The observation also shows each vehicle's acceleration (``ScenarioConfig.observe_acceleration``), and
+    with ``window_features`` the sensor branch also looks at the side lanes with those accelerations kept."""
+    learning_rate: float = _LEARNING_RATES["ppo"]
+    gamma: float = 0.95
+    """0.95 (a 10 s horizon at 2 decisions/s): PPO pure reached 24% held-out success in 150k steps with
+    0.95 and no entropy bonus, 7% with 0.99 and 0.01 in 100k (measured, 200 episodes)."""
+    n_steps: int = 128
+    """PPO / A2C rollout length per environment (A2C default 8)."""
+    batch_size: int = 256
+    n_epochs: int = 10
+    ent_coef: float = 0.0
+    reward_scale: float = 0.01
+    """Rewards handed to the learner are scaled by this (returns in the logs are unscaled)."""
+    collision_weight: float = 1.0
+    """The learner's collision reward is this many times the scenario's (training shaping: the logged and
+    evaluated returns keep the paper's reward)."""
+    buffer_size: int = 50_000
+    """DQN replay buffer (transitions)."""
+    learning_starts: int = 2_000
+    exploration_fraction: float = 0.3
+    target_update_interval: int = 2_000
+    checkpoint_every: int = 20_000
+    eval_episodes: int = 200
+    eval_seed: int = 0
+    eval_batch: int = 20
+    record_eval: bool = True
+    warm_start: str = ""
+    """Directory of recorded MCAP episodes to pretrain on ('' = none)."""
+    warm_start_epochs: int = 10
+    init_policy: str = ""
+    """A ``policy.safetensors`` (a behaviour-cloned run's, a DAgger round's) whose weights start the online
+    training ('' = none): same algorithm, observation mode, predictor, scenario and network as this run."""
+    freeze_image: bool = False
+    """With ``init_policy`` in the ``image`` and ``hybrid`` modes: the image branch keeps the initial
+    policy's weights and runs once per step in the observation wrapper, so the rollout buffer holds its
+    features instead of the image and the update epochs never run the network (several times the online
+    steps per minute in ``hybrid`` mode). ``policy.safetensors`` is a plain policy of the mode, image branch
+    included; ``checkpoints/latest.json`` is in the training form, for resuming only."""
+
+    def __post_init__(self) -> None:
+        _check(self.algo in ALGOS, self, "algo", f"must be one of {', '.join(ALGOS)}", self.algo)
+        _check(self.obs in OBS_MODES, self, "obs", f"must be one of {', '.join(OBS_MODES)}", self.obs)
+        _check(self.scenario in POLICY_SCENARIOS, self, "scenario", f"must be one of {', '.join(POLICY_SCENARIOS)}",
+               self.scenario)  # fmt: skip
+        _check(self.neighbours in NEIGHBOUR_SELECTIONS, self, "neighbours",
+               f"must be one of {', '.join(NEIGHBOUR_SELECTIONS)}", self.neighbours)
+        _check(not self.window_features or self.neighbours == "lanes", self, "window_features",
+               "needs neighbours='lanes' (which vehicle is in which lane)", self.window_features)
+        _check(self.image_net in IMAGE_NETS, self, "image_net", f"must be one of {', '.join(IMAGE_NETS)}",
+               self.image_net)  # fmt: skip
+        _positive(self, "n_envs", "image_features", "learning_rate", "n_steps", "batch_size",
+                  "n_epochs", "reward_scale", "collision_weight", "buffer_size", "target_update_interval",
+                  "checkpoint_every", "eval_batch", "warm_start_epochs")
+        _non_negative(self, "timesteps", "ent_coef", "learning_starts", "eval_episodes", "seed", "eval_seed")
+        _check(not (self.warm_start and self.init_policy), self, "init_policy",
+               "cannot be combined with warm_start (clone first, then start from that run's policy.safetensors)",
+               self.init_policy)  # fmt: skip
+        _check(not self.freeze_image or bool(self.init_policy), self, "freeze_image",
+               "needs init_policy (a policy whose image branch is trained already)", self.freeze_image)
+        _check(not self.freeze_image or "image" in mode_keys(self.obs), self, "freeze_image",
+               f"needs an observation mode with the image (image, hybrid), not {self.obs!r}", self.freeze_image)
+        _check(self.timesteps > 0 or bool(self.warm_start), self, "timesteps",
+               "must be > 0 without a warm start (0 with one: behaviour cloning only)", self.timesteps)  # fmt: skip
+        _check(0 < self.gamma <= 1, self, "gamma", "must be in (0, 1]", self.gamma)
+        _check(0 < self.exploration_fraction <= 1, self, "exploration_fraction", "must be in (0, 1]",
+               self.exploration_fraction)  # fmt: skip
+        _check(self.seed < 1_000_000, self, "seed", "must be < 1000000 (keeps training seeds off evaluation's)",
+               self.seed)  # fmt: skip
+        try:  # slots (and neighbours) as the scenario itself validates them
+            self.scenario_config()
+        except ValueError as exc:
+            raise ValueError(f"PolicyConfig.slots {self.slots} does not fit the scenario: {exc}") from None
+
+    def scenario_config(self) -> ScenarioConfig:
+        base = dataclasses.replace(POLICY_SCENARIOS[self.scenario](), neighbour_selection=self.neighbours,
+                                   num_neighbours=self.slots, observe_acceleration=self.accel_features)
+        return scenario_for_mode(base, self.obs)
+
+

@@ -1,0 +1,65 @@
+"""The policy network: stable-baselines3 algorithms with the hybrid features extractor, built from a
+:class:`~lcmodels.policy.config.PolicyConfig` for training or, from spaces alone, for loading a policy file."""
+
+from __future__ import annotations
+
+import dataclasses
+from typing import TYPE_CHECKING, Any
+
+from gymnasium import spaces
+from stable_baselines3 import A2C, DQN, PPO
+from stable_baselines3.common.base_class import BaseAlgorithm
+from stable_baselines3.common.vec_env import VecEnv
+
+from lcmodels.policy.extractor import HybridExtractor
+
+if TYPE_CHECKING:
+    from lcmodels.policy.config import PolicyConfig
+
+ALGOS: dict[str, type[BaseAlgorithm]] = {"ppo": PPO, "a2c": A2C, "dqn": DQN}
+ACTION_SPACE = spaces.Discrete(3)
+
+
+def build_model(cfg: PolicyConfig, env: VecEnv | None, tensorboard: str | None = None,
+                device: str = "cpu", observation_space: spaces.Dict | None = None) -> BaseAlgorithm:
+    """A fresh SB3 model of ``cfg.algo`` with the hybrid extractor.
+
+    Args:
+        env: the training environment; ``None`` builds a model for inference from ``observation_space``
+            alone (how a policy file is loaded: the network rebuilt from its card, then filled with its
+            tensors; a DQN gets a one-transition replay buffer).
+    """
+    if env is None:
+        if observation_space is None:
+            raise ValueError("build_model needs an environment or an observation space")
+        if cfg.algo == "dqn":
+            cfg = dataclasses.replace(cfg, buffer_size=1)
+    policy_kwargs: dict[str, Any] = {
+        "features_extractor_class": HybridExtractor,
+        "features_extractor_kwargs": {"image_net": cfg.image_net, "image_features": cfg.image_features,
+                                      "contact_features": cfg.contact_features,
+                                      "window_features": cfg.window_features},
+        "net_arch": [128, 64] if cfg.algo == "dqn" else {"pi": [64, 64], "vf": [64, 64]},
+    }
+    common: dict[str, Any] = {"policy_kwargs": policy_kwargs, "seed": cfg.seed, "device": device,
+                              "gamma": cfg.gamma, "tensorboard_log": tensorboard, "verbose": 0}  # fmt: skip
+    if env is None:
+        common["_init_setup_model"] = False
+    if cfg.algo == "ppo":
+        model = ALGOS["ppo"]("MultiInputPolicy", env, learning_rate=cfg.learning_rate, n_steps=cfg.n_steps,
+                             batch_size=cfg.batch_size, n_epochs=cfg.n_epochs, ent_coef=cfg.ent_coef, **common)
+    elif cfg.algo == "a2c":
+        model = ALGOS["a2c"]("MultiInputPolicy", env, learning_rate=cfg.learning_rate, n_steps=cfg.n_steps,
+                             ent_coef=cfg.ent_coef, **common)
+    else:
+        model = ALGOS["dqn"]("MultiInputPolicy", env, learning_rate=cfg.learning_rate, buffer_size=cfg.buffer_size,
+                             learning_starts=cfg.learning_starts, batch_size=cfg.batch_size,
+                             train_freq=1, gradient_steps=1,  # one minibatch per vector step (n_envs transitions)
+                             target_update_interval=cfg.target_update_interval,
+                             exploration_fraction=cfg.exploration_fraction, exploration_final_eps=0.02, **common)
+    if env is None:  # what stable-baselines3's own load does, from the spaces instead of a pickle
+        model.observation_space, model.action_space, model.n_envs = observation_space, ACTION_SPACE, 1
+        model._setup_model()
+    return model
+
+
