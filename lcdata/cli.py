@@ -33,9 +33,9 @@ runs/rule/lane-change_rule_s0000003.mcap, so the files do not depend on --worker
 as .mcap.partial and renamed when the episode ends. The same command gives the same bytes: each
 file's start time derives from its seed (--start-time changes that).
 
-OUT/record.json keeps the flags that decide the files' content. Rerunning the same command on an
-interrupted OUT records only the missing episodes and leaves the finished ones as they are; other
-flags there are refused, naming the difference.
+OUT/record.json keeps, per scenario and driver, the flags that decide the files' content. Rerunning
+the same command on an interrupted OUT records only the missing episodes and leaves the finished ones
+as they are; other flags for the same scenario and driver there are refused, naming the difference.
 """
 RECORD_JSON = "record.json"
 
@@ -170,23 +170,32 @@ def record_flags(args: argparse.Namespace, driver: str) -> dict[str, object]:
     return flags
 
 
-def _check_resume(out: pathlib.Path, flags: dict[str, object], paths: list[pathlib.Path], overwrite: bool) -> bool:
-    """Whether this run resumes the one in ``out`` (same flags, some episodes there). ``UsageError`` when the
-    run there had other flags, or when episode files are there without a ``record.json`` (unless
-    ``overwrite``)."""
+def _read_record_json(out: pathlib.Path) -> dict[str, dict[str, object]]:
+    """``OUT/record.json``: the flags of each set of episodes there, by file-name prefix (scenario_driver)."""
     import json
 
-    existing = [p for p in paths if p.exists()]
     record = out / RECORD_JSON
+    if not record.exists():
+        return {}
+    try:
+        runs = json.loads(record.read_text()).get("runs")
+        if not isinstance(runs, dict) or not all(isinstance(v, dict) for v in runs.values()):
+            raise ValueError("no 'runs' object of flags")
+    except (OSError, ValueError, AttributeError) as exc:
+        raise UsageError(f"{record} is corrupt ({exc}); remove it or choose another --out") from None
+    return runs
+
+
+def _check_resume(out: pathlib.Path, key: str, flags: dict[str, object], paths: list[pathlib.Path],
+                  overwrite: bool) -> bool:
+    """Whether this run resumes the one in ``out`` (same flags, some of its episodes there). ``UsageError``
+    when the episodes of this scenario and driver there were recorded with other flags, or when episode
+    files are there without their flags in ``record.json`` (unless ``overwrite``)."""
+    existing = [p for p in paths if p.exists()]
     if overwrite:
         return False
-    if record.exists():
-        try:
-            before = json.loads(record.read_text())
-            if not isinstance(before, dict):
-                raise ValueError("not an object")
-        except (OSError, ValueError) as exc:
-            raise UsageError(f"{record} is corrupt ({exc}); remove it or choose another --out") from None
+    before = _read_record_json(out).get(key)
+    if before is not None:
         diffs = [f"{k}: {before.get(k)!r} there, {flags.get(k)!r} now" for k in sorted(set(before) | set(flags))
                  if before.get(k) != flags.get(k)]
         if diffs:
@@ -241,7 +250,8 @@ def record_main(argv: Sequence[str] | None = None) -> int:
         flags = record_flags(args, args.driver or DEFAULT_DRIVER[args.scenario])
         if args.out.exists() and not args.out.is_dir():
             raise UsageError(f"--out {args.out} exists and is not a directory")
-        resume = _check_resume(args.out, flags, paths, args.overwrite) if args.out.is_dir() else False
+        key = paths[0].name.rsplit("_s", 1)[0]  # the scenario_driver prefix of the file names
+        resume = _check_resume(args.out, key, flags, paths, args.overwrite) if args.out.is_dir() else False
         _check_out_dir(args.out)
     except UsageError as exc:
         print(f"lc-record: error: {exc}", file=sys.stderr)
@@ -251,7 +261,7 @@ def record_main(argv: Sequence[str] | None = None) -> int:
     logging.basicConfig(level=logging.INFO if args.verbose else logging.WARNING, format="%(message)s")
     from lcdata.fileio import write_json
 
-    write_json(args.out / RECORD_JSON, flags)
+    write_json(args.out / RECORD_JSON, {"runs": {**_read_record_json(args.out), key: flags}})
     todo = [s for s, p in zip(seeds, paths, strict=True) if args.overwrite or not p.exists()]
     if resume:
         print(f"lc-record: resuming {args.out}: {len(seeds) - len(todo)} of {len(seeds)} episodes are there "

@@ -75,6 +75,10 @@ def _string_map(buf: memoryview, pos: int) -> tuple[dict[str, str], int]:
     return out, end
 
 
+MAX_CHUNK_BYTES = 1 << 30
+"""A chunk claiming more uncompressed bytes than this is taken as corrupt (the writer makes ~1 MiB chunks)."""
+
+
 class _Scanner:
     def __init__(self) -> None:
         self.schemas: dict[int, tuple[str, str, bytes]] = {}
@@ -93,45 +97,57 @@ class _Scanner:
             body = pos + header
             if body + length > end:
                 return pos, f"incomplete record (opcode 0x{opcode:02x}, {length} bytes)"
-            if opcode == OP_MESSAGE:
-                channel_id, _seq, log_time, _pub = _MESSAGE.unpack_from(buf, body)
-                channel = self.by_id.get(channel_id)
-                if channel is None:
-                    return pos, f"message on unknown channel {channel_id}"
-                channel.log_times.append(log_time)
-                channel.payloads.append(buf[body + 22 : body + length])
-                self.messages += 1
-            elif opcode == OP_CHUNK and not in_chunk:
-                reason = self.chunk(buf, body, body + length)
-                if reason:
-                    return pos, reason
-            elif opcode == OP_SCHEMA:
-                (schema_id,) = _U16.unpack_from(buf, body)
-                name, p = _string(buf, body + 2)
-                encoding, p = _string(buf, p)
-                (size,) = _U32.unpack_from(buf, p)
-                self.schemas[schema_id] = (name, encoding, bytes(buf[p + 4 : p + 4 + size]))
-            elif opcode == OP_CHANNEL:
-                channel_id, schema_id = struct.unpack_from("<HH", buf, body)
-                topic, p = _string(buf, body + 4)
-                message_encoding, p = _string(buf, p)
-                name, encoding, data = self.schemas.get(schema_id, ("", "", b""))
-                channel = ChannelData(topic, name, encoding, data, message_encoding)
-                self.by_id[channel_id] = channel
-                self.channels.setdefault(topic, channel)
-            elif opcode == OP_METADATA and not in_chunk:
-                name, p = _string(buf, body)
-                self.metadata[name], _ = _string_map(buf, p)
-            elif opcode in (OP_DATA_END, OP_FOOTER) and not in_chunk:
+            try:
+                reason = self._record(buf, opcode, body, length, in_chunk)
+            except (struct.error, UnicodeDecodeError, ValueError, IndexError, MemoryError) as exc:
+                return pos, f"corrupt record (opcode 0x{opcode:02x} at byte {pos}: {type(exc).__name__})"
+            if reason == "end":
                 return body + length, "end"
+            if reason:
+                return pos, reason
             pos = body + length
         return pos, ""
+
+    def _record(self, buf: memoryview, opcode: int, body: int, length: int, in_chunk: bool) -> str:
+        """Handle one record; return why to stop ("" = go on, "end" = the data end)."""
+        if opcode == OP_MESSAGE:
+            channel_id, _seq, log_time, _pub = _MESSAGE.unpack_from(buf, body)
+            channel = self.by_id.get(channel_id)
+            if channel is None:
+                return f"message on unknown channel {channel_id}"
+            channel.log_times.append(log_time)
+            channel.payloads.append(buf[body + 22 : body + length])
+            self.messages += 1
+        elif opcode == OP_CHUNK and not in_chunk:
+            return self.chunk(buf, body, body + length)
+        elif opcode == OP_SCHEMA:
+            (schema_id,) = _U16.unpack_from(buf, body)
+            name, p = _string(buf, body + 2)
+            encoding, p = _string(buf, p)
+            (size,) = _U32.unpack_from(buf, p)
+            self.schemas[schema_id] = (name, encoding, bytes(buf[p + 4 : p + 4 + size]))
+        elif opcode == OP_CHANNEL:
+            channel_id, schema_id = struct.unpack_from("<HH", buf, body)
+            topic, p = _string(buf, body + 4)
+            message_encoding, p = _string(buf, p)
+            name, encoding, data = self.schemas.get(schema_id, ("", "", b""))
+            channel = ChannelData(topic, name, encoding, data, message_encoding)
+            self.by_id[channel_id] = channel
+            self.channels.setdefault(topic, channel)
+        elif opcode == OP_METADATA and not in_chunk:
+            name, p = _string(buf, body)
+            self.metadata[name], _ = _string_map(buf, p)
+        elif opcode in (OP_DATA_END, OP_FOOTER) and not in_chunk:
+            return "end"
+        return ""
 
     def chunk(self, buf: memoryview, pos: int, end: int) -> str:
         _start, _end, size, crc = _CHUNK_HEAD.unpack_from(buf, pos)
         compression, p = _string(buf, pos + _CHUNK_HEAD.size)
         (records_size,) = struct.unpack_from("<Q", buf, p)
         data = buf[p + 8 : p + 8 + records_size]
+        if size > MAX_CHUNK_BYTES:
+            return f"corrupt chunk (claims {size} bytes uncompressed)"
         try:
             if compression == "zstd":
                 records = zstandard.ZstdDecompressor().decompress(data, max_output_size=size)
@@ -155,6 +171,8 @@ def scan_mcap(path: str | pathlib.Path) -> ScanResult:
     """
     path = pathlib.Path(path)
     data = path.read_bytes()
+    if len(data) < len(MAGIC) and MAGIC.startswith(data):
+        raise ValueError(f"{path}: truncated MCAP file ({len(data)} bytes, shorter than the MCAP magic)")
     if not data.startswith(MAGIC):
         raise ValueError(f"{path}: not an MCAP file (missing MCAP magic bytes)")
     scanner = _Scanner()

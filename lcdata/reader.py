@@ -14,8 +14,8 @@ import json
 import os
 import pathlib
 import warnings
-from collections.abc import Iterator
-from typing import Any
+from collections.abc import Callable, Iterator
+from typing import Any, TypeVar
 
 import numpy as np
 import pandas as pd
@@ -54,11 +54,31 @@ _TRACK_FIELDS: dict[int, tuple[str, str]] = {
     8: ("accel", "<f8"), 9: ("lane", "<i4"), 10: ("target_lane", "<i4"), 11: ("length", "<f8"), 12: ("width", "<f8"),
 }  # fmt: skip
 _LEVEL_NAMES = {v: k.lower() for k, v in Log.Level.items()}
+T = TypeVar("T")
 
 
 class TruncatedFileWarning(UserWarning):
     """A file ended early (killed writer, ``.partial`` file); complete chunks were recovered."""
 
+
+
+def _decoding(method: Callable[..., T]) -> Callable[..., T]:
+    """Turn any error of decoding a damaged file (a flipped byte the chunk CRCs cannot see, a foreign writer's
+    message) into one ``ValueError`` that names the file: recordings come from elsewhere."""
+
+    @functools.wraps(method)
+    def wrapper(self: Episode, *args: Any, **kwargs: Any) -> T:
+        try:
+            return method(self, *args, **kwargs)
+        except ValueError as exc:
+            if str(self.path) in str(exc):
+                raise
+            raise ValueError(f"{self.path}: corrupt data ({' '.join(str(exc).split())[:200]})") from None
+        except Exception as exc:
+            raise ValueError(f"{self.path}: corrupt data ({type(exc).__name__}: "
+                             f"{' '.join(str(exc).split())[:200]})") from None
+
+    return wrapper
 
 class Episode:
     """One recorded episode. Tables are pandas DataFrames built on first access.
@@ -96,6 +116,7 @@ class Episode:
         return (np.asarray(log_times, dtype=np.int64) - self.metadata["start_time_ns"]) / 1e9
 
     @functools.cached_property
+    @_decoding
     def tracks(self) -> pd.DataFrame:
         """Long form, one row per vehicle per simulation step: ``TRACK_COLUMNS``."""
         channel = self._payloads(topics.VEHICLES)
@@ -106,6 +127,7 @@ class Episode:
         return pd.DataFrame({name: cols[name] for name in TRACK_COLUMNS})
 
     @functools.cached_property
+    @_decoding
     def ego(self) -> pd.DataFrame:
         """One row per simulation step: ``EGO_COLUMNS``."""
         channel = self._payloads(topics.EGO_STATE)
@@ -116,6 +138,7 @@ class Episode:
         )
 
     @functools.cached_property
+    @_decoding
     def steps(self) -> pd.DataFrame:
         """One row per RL decision: ``STEP_COLUMNS``."""
         channel = self._payloads(topics.RL_STEP)
@@ -131,6 +154,7 @@ class Episode:
         return _frame(data, STEP_COLUMNS, ints=("step", "decision", "action"),
                       bools=("mask_right", "mask_keep", "mask_left", "terminated", "truncated"))  # fmt: skip
 
+    @_decoding
     def observations(self) -> dict[int, np.ndarray]:
         """The ``current`` observation matrices of the RL steps that carry one: step -> float32 array."""
         channel = self._payloads(topics.RL_STEP)
@@ -142,6 +166,7 @@ class Episode:
         return out
 
     @functools.cached_property
+    @_decoding
     def events(self) -> pd.DataFrame:
         """``/log`` events: ``EVENT_COLUMNS`` (``kind`` is the Log name)."""
         channel = self._payloads(topics.LOG)
@@ -157,6 +182,7 @@ class Episode:
         return _frame(data, EVENT_COLUMNS, ints=("step",))
 
     @functools.cached_property
+    @_decoding
     def collisions(self) -> pd.DataFrame:
         """``/ego/collision`` messages: ``COLLISION_COLUMNS``."""
         channel = self._payloads(topics.EGO_COLLISION)
@@ -165,6 +191,7 @@ class Episode:
         return _frame(data, COLLISION_COLUMNS, ints=("step", "other_id"))
 
     @functools.cached_property
+    @_decoding
     def predictions(self) -> pd.DataFrame:
         """``/prediction`` in long form: ``PREDICTION_COLUMNS`` (k = 1..F steps ahead); empty if absent."""
         channel = self._payloads(topics.PREDICTION)
@@ -195,6 +222,7 @@ class Episode:
 
     # -- images -----------------------------------------------------------------------------------
     @functools.cached_property
+    @_decoding
     def _image_index(self) -> dict[int, memoryview]:
         channel = self._payloads(topics.CAMERA_BEV)
         if channel is None:
@@ -223,6 +251,7 @@ class Episode:
             yield int(step), self.image(int(step))
 
     @functools.cached_property
+    @_decoding
     def _time_to_step(self) -> tuple[np.ndarray, np.ndarray]:
         for topic in (topics.EGO_STATE, topics.VEHICLES):
             channel = self._payloads(topic)
@@ -349,6 +378,9 @@ def read_episode(path: str | os.PathLike[str]) -> Episode:
     ours = topics.METADATA_NAME in scan.metadata or any(
         c.schema_name in topics.SCHEMA_TYPES for c in scan.channels.values()
     )
+    if not ours and not scan.complete and scan.messages == 0:
+        raise ValueError(f"{path}: truncated MCAP file ({path.stat().st_size} bytes, {scan.stop_reason}) with no "
+                         "complete lc-toolkit record to recover")
     if not ours:
         raise ValueError(
             f"{path}: MCAP file holds no lc-toolkit data (no 'lc' metadata, no lc.*/foxglove.* channels)"
@@ -365,12 +397,23 @@ def read_episode(path: str | os.PathLike[str]) -> Episode:
             TruncatedFileWarning,
             stacklevel=2,
         )
-    return Episode(path, scan)
+    try:
+        return Episode(path, scan)
+    except ValueError as exc:
+        if str(path) in str(exc):
+            raise
+        raise ValueError(f"{path}: corrupt data ({' '.join(str(exc).split())[:200]})") from None
+    except Exception as exc:  # a damaged metadata record: decoding it fails in many ways
+        raise ValueError(f"{path}: corrupt metadata ({type(exc).__name__})") from None
 
 
 def list_episodes(directory: str | os.PathLike[str], *, include_partial: bool = False) -> list[pathlib.Path]:
-    """Episode files under ``directory`` (recursive), sorted by path."""
+    """Episode files under ``directory`` (recursive), sorted by path. ``FileNotFoundError`` when
+    ``directory`` is missing or not a directory (an empty result would hide a mistyped path)."""
     root = pathlib.Path(directory)
+    if not root.is_dir():
+        what = "is a file, not a directory" if root.exists() else "does not exist"
+        raise FileNotFoundError(f"episode directory {root} {what}")
     files = list(root.rglob("*.mcap"))
     if include_partial:
         files += root.rglob("*.mcap.partial")

@@ -51,6 +51,10 @@ class _JsonMixin:
 
     @classmethod
     def from_dict(cls, data: dict[str, Any]) -> Self:
+        """The config a dict describes; ``ValueError`` naming the problem for an unknown field, a value of
+        the wrong type or out of range, or anything that is not such a dict (stored files are untrusted)."""
+        if not isinstance(data, dict):
+            raise ValueError(f"{cls.__name__}: expected a JSON object, got {type(data).__name__}")
         fields = {f.name: f for f in dataclasses.fields(cls)}  # type: ignore[arg-type]
         unknown = set(data) - set(fields)
         if unknown:
@@ -58,15 +62,21 @@ class _JsonMixin:
         kwargs: dict[str, Any] = {name: value for name, value in cls.LEGACY_DEFAULTS.items() if name not in data}
         for name, value in data.items():
             sub = _NESTED.get((cls.__name__, name))
-            if sub is not None and isinstance(value, dict):
+            if sub is not None:
+                if not isinstance(value, dict):
+                    raise ValueError(f"{cls.__name__}.{name} must be a JSON object, got {value!r}")
                 value = sub.from_dict(value)
             elif isinstance(value, list):
                 value = tuple(value)
             kwargs[name] = value
-        return cls(**kwargs)
+        try:
+            return cls(**kwargs)
+        except (TypeError, AttributeError, OverflowError) as exc:  # a value of the wrong type met a check
+            raise ValueError(f"{cls.__name__}: a value of the wrong type ({exc})") from None
 
     @classmethod
     def from_json(cls, text: str) -> Self:
+        """:meth:`from_dict` of a JSON text (``ValueError`` for text that is not JSON, too)."""
         return cls.from_dict(json.loads(text))
 
 

@@ -326,9 +326,8 @@ def check_skip_train_reports_complete_policies_with_their_time_and_keeps_the_com
     for m in METHODS:
         for s in range(SEEDS):
             row = stages[f"{m.key}/seed{s}"]
-            if m.warm_start:  # stale: the demos were redone with another episode count above
-                assert (row["this run"], row["recorded wall s"]) == ("not run", "0.0")
-                continue
+            # The demos, redone with the first episode count again, are the same bytes as at first (start times
+            # derive from the seeds), so the warm-started runs are complete again too.
             record = json.loads((run_dir / "stages" / f"{m.key}__seed{s}.json").read_text())
             assert row["this run"] == "skipped" and float(row["recorded wall s"]) == pytest.approx(record["wall_s"], abs=0.051)
     for heading in ("## Reproduce", "## Table III", "## Table IV"):

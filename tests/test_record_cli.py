@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import hashlib
 import pathlib
 
 import numpy as np
@@ -15,7 +16,8 @@ TINY = ["--vehicles", "6", "--steps", "30"]
 
 
 def names(directory: pathlib.Path) -> list[str]:
-    return sorted(p.name for p in directory.iterdir())
+    """The episode files in ``directory`` (lc-record also keeps its flags there, in record.json)."""
+    return sorted(p.name for p in directory.glob("*.mcap"))
 
 
 def test_lane_change_and_overwrite(tmp_path: pathlib.Path, capsys: pytest.CaptureFixture[str]) -> None:
@@ -31,11 +33,21 @@ def test_lane_change_and_overwrite(tmp_path: pathlib.Path, capsys: pytest.Captur
     assert ep.tracks["step"].max() == 30 and len(ep.image_steps) == 3
     assert replay(ep.path).matches
     mtime = (tmp_path / "lane-change_rule_s0000003.mcap").stat().st_mtime_ns
-    assert record_main(argv) == 2  # refuses to overwrite
-    err = capsys.readouterr().err
-    assert err.count("\n") == 1 and "--overwrite" in err and "2 of 2" in err
+    sha = hashlib.sha256((tmp_path / "lane-change_rule_s0000003.mcap").read_bytes()).hexdigest()
+    assert record_main(argv) == 0  # the same command: every episode is there, nothing is rewritten
+    assert "nothing to record" in capsys.readouterr().out
     assert (tmp_path / "lane-change_rule_s0000003.mcap").stat().st_mtime_ns == mtime
+    assert record_main([*argv[:-1], "31"]) == 2  # other flags: refused, naming the difference
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1 and "--overwrite" in err and "steps: 30 there, 31 now" in err
+    assert (tmp_path / "lane-change_rule_s0000003.mcap").stat().st_mtime_ns == mtime
+    (tmp_path / "record.json").unlink()  # files there without their flags (an older version's): refused
+    assert record_main(argv) == 2
+    assert "2 of 2" in capsys.readouterr().err
     assert record_main([*argv, "--overwrite"]) == 0
+    # the same command gives the same bytes: the start time derives from the seed
+    assert hashlib.sha256((tmp_path / "lane-change_rule_s0000003.mcap").read_bytes()).hexdigest() == sha
+    assert (tmp_path / "lane-change_rule_s0000003.mcap").stat().st_mtime_ns != mtime
 
 
 def test_corpus_defaults_to_autopilot(tmp_path: pathlib.Path, capsys: pytest.CaptureFixture[str]) -> None:

@@ -10,6 +10,7 @@ from __future__ import annotations
 import argparse
 import dataclasses
 import logging
+import os
 import pathlib
 import sys
 import time
@@ -51,6 +52,23 @@ class Recording:
     save_path: pathlib.Path | None = None
 
 
+def _port(text: str) -> int:
+    try:
+        port = int(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"invalid port {text!r}: not a whole number") from None
+    if not 1 <= port <= 65535:
+        raise argparse.ArgumentTypeError(f"invalid port {port}: must be in 1..65535")
+    return port
+
+
+def have_display() -> bool:
+    """Whether a native viewer window could open here (on Linux: an X11 or Wayland display is set)."""
+    if not sys.platform.startswith("linux"):
+        return True
+    return bool(os.environ.get("DISPLAY") or os.environ.get("WAYLAND_DISPLAY"))
+
+
 def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(
         prog="lc-view",
@@ -69,10 +87,11 @@ def build_parser() -> argparse.ArgumentParser:
                         help="never open a viewer (with --web: serve without opening a browser)")  # fmt: skip
     parser.add_argument("--side-by-side", action="store_true",
                         help="put several episodes side by side in one recording (default: one recording each)")  # fmt: skip
-    parser.add_argument("--web-port", type=int, default=9090, help="web viewer port (default: %(default)s)")
+    parser.add_argument("--web-port", type=_port, default=9090, help="web viewer port (default: %(default)s)")
     parser.add_argument(
-        "--grpc-port", type=int, default=9876, help="data server port for --web (default: %(default)s)"
+        "--grpc-port", type=_port, default=9876, help="data server port for --web (default: %(default)s)"
     )
+    parser.add_argument("--overwrite", action="store_true", help="replace .rrd files that --save would write")
     parser.add_argument("-v", "--verbose", action="store_true", help="log progress")
     return parser
 
@@ -209,6 +228,10 @@ def main(argv: Sequence[str] | None = None) -> int:
     if args.save is not None and args.save.suffix != ".rrd":
         print(f"lc-view: error: --save {args.save}: the file name must end in .rrd", file=sys.stderr)
         return EXIT_BAD_INPUT
+    if not args.web and not args.headless and args.save is None and not have_display():
+        print("lc-view: error: no display to open the native viewer on (DISPLAY is not set); write a file with "
+              "--save OUT.rrd, or serve one with --web --headless", file=sys.stderr)
+        return EXIT_BAD_INPUT
     try:
         episodes = open_episodes(args.paths)
     except ViewError as exc:
@@ -219,10 +242,20 @@ def main(argv: Sequence[str] | None = None) -> int:
         print(f"{e.path}: {s['episode_id']} driver={s['driver']} seed={s['seed']} outcome={s['outcome']} "
               f"return={s['return']:.1f}")  # fmt: skip
     recordings = make_recordings(episodes, side_by_side=args.side_by_side, save=args.save)
+    existing = [r.save_path for r in recordings if r.save_path is not None and r.save_path.exists()]
+    if existing and not args.overwrite:
+        print(f"lc-view: error: {existing[0]} already exists; pass --overwrite or choose another --save",
+              file=sys.stderr)
+        return EXIT_BAD_INPUT
     if args.web:
-        url = serve(
-            recordings, grpc_port=args.grpc_port, web_port=args.web_port, open_browser=not args.headless
-        )
+        try:
+            url = serve(
+                recordings, grpc_port=args.grpc_port, web_port=args.web_port, open_browser=not args.headless
+            )
+        except (OSError, RuntimeError, ValueError) as exc:  # a port in use, a server that would not start
+            print(f"lc-view: error: could not serve the web viewer: {str(exc).splitlines()[0] if str(exc) else exc!r}",
+                  file=sys.stderr)
+            return EXIT_BAD_INPUT
         print(f"lc-view: web viewer at {url} (Ctrl-C to stop)", flush=True)
         try:
             while True:

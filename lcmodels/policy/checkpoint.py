@@ -289,3 +289,25 @@ def _load_legacy(path: str | os.PathLike[str], algo: str, device: str) -> BaseAl
                              f"it?): {detail[:200]}")
         warnings.warn_explicit(w.message, w.category, w.filename, w.lineno)
     return model
+
+
+def convert_legacy_policy(src: str | os.PathLike[str], dest: str | os.PathLike[str], *,
+                          predictor: str | os.PathLike[str] | None = None, trust_pickle: bool = False,
+                          overwrite: bool = False) -> Path:
+    """Convert a legacy stable-baselines3 ``.zip`` policy into a ``.safetensors`` policy with the same tensors.
+
+    Loading ``src`` runs code stored in it: ``trust_pickle`` must say that its source is trusted.
+    ``ValueError`` for a refused or unreadable ``src``, or an existing ``dest`` without ``overwrite``.
+    """
+    dest = Path(dest)
+    if dest.suffix != ".safetensors":
+        raise ValueError(f"{dest}: the file name must end in .safetensors")
+    if dest.exists() and not overwrite:
+        raise ValueError(f"{dest} already exists; pass --overwrite or choose another name")
+    loaded = load_policy(src, predictor=predictor, trust_pickle=trust_pickle)
+    meta = {k: v for k, v in loaded.meta.items() if k not in ("format", "version", "legacy_pickle")}
+    if "train_config" not in meta:
+        raise ValueError(f"{src} predates stored training configs: no card can describe its network")
+    meta.setdefault("timesteps", int(loaded.model.num_timesteps))
+    meta["converted_from"] = Path(src).name
+    return save_policy(loaded.model, dest, meta)

@@ -422,6 +422,11 @@ def _train(cfg: PolicyConfig, run: _Run, pred: Predictor | None, device: str, lo
         log.info("resuming %s from step %d", out, run.start_timesteps)
     elif (out / "progress.csv").exists():
         (out / "progress.csv").unlink()  # a previous attempt died before its first checkpoint
+    # Checkpoint files a killed attempt left that latest.json does not name (it is written last) are its own.
+    named = {state.get("weights"), state.get("optimizer")}
+    for f in run.ckpt_state.parent.glob("step-*"):
+        if f.name not in named and card_path(run.ckpt_state.parent / str(state.get("weights"))).name != f.name:
+            f.unlink()
     config = cfg.scenario_config()
     base = LaneChangeSB3VecEnv(cfg.n_envs, config)
     # The initial policy (loaded once, before anything was written): its weights start the model, its image
@@ -477,8 +482,8 @@ def _resume_model(cfg: PolicyConfig, env: PolicyVecEnv, tb: str, device: str, fo
     try:
         model.policy.optimizer.load_state_dict(torch.load(optim, map_location=device, weights_only=True))
     except Exception as exc:  # torch raises several types for a damaged file
-        raise ValueError(f"{optim} is not a readable optimiser state (corrupt?): "
-                         f"{str(exc).splitlines()[0] if str(exc) else type(exc).__name__}") from None
+        raise ValueError(f"{optim} is not a readable optimiser state (truncated, corrupt or foreign: "
+                         f"{type(exc).__name__})") from None
     model.num_timesteps = int(state["timesteps"])
     model._n_updates = int(state.get("n_updates", 0))
     if cfg.algo == "dqn":
@@ -525,7 +530,8 @@ def _frozen_image_encoder(cfg: PolicyConfig, run: _Run, config: ScenarioConfig,
         try:
             state = torch.load(path, map_location="cpu", weights_only=True)
         except Exception as exc:  # torch raises several types for a damaged file
-            raise ValueError(f"{path} is not readable (corrupt or truncated?): {str(exc).splitlines()[0]}") from exc
+            raise ValueError(f"{path} is not readable (truncated, corrupt or not a state dict: "
+                             f"{type(exc).__name__})") from None
     else:
         assert initial is not None, "a first start has the initial policy"
         extractor = initial.model.policy.features_extractor

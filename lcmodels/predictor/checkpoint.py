@@ -64,9 +64,11 @@ def load_model(
     try:
         payload = torch.load(path, map_location="cpu", weights_only=True)
     except Exception as exc:  # torch raises many types for truncated / foreign files
+        # torch's own message advises weights_only=False, which would run code from the file: not shown
         raise ValueError(
-            f"{path} is not a readable predictor checkpoint (corrupt or truncated?): {exc}"
-        ) from exc
+            f"{path} is not a readable predictor checkpoint ({path.stat().st_size} bytes; truncated, corrupt or "
+            f"not a predictor.pt: {type(exc).__name__})"
+        ) from None
     if not isinstance(payload, dict) or payload.get("format") != CHECKPOINT_FORMAT:
         raise ValueError(f"{path} is not an lc-toolkit predictor checkpoint")
     if payload.get("version") != CHECKPOINT_VERSION:
