@@ -15,8 +15,8 @@ from pathlib import Path
 import pytest
 
 from lcdata import read_episode
-from lcdata.record import record_episode
 from lcdata.cli import scenario_config
+from lcdata.record import record_episode
 
 pytestmark = pytest.mark.slow
 
