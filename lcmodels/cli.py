@@ -347,6 +347,28 @@ def heldout_driver(args: argparse.Namespace) -> tuple[Any, ScenarioConfig]:
     return driver, config or paper_scenario(render_image=False)
 
 
+def predictor_unused(policy: str, follow: str | None, predictor: Path) -> str:
+    """Why ``--predictor`` makes no sense for the policies named (none reads a prediction), or "" when one
+    does or a policy file cannot be read (loading it reports that)."""
+    from lcmodels.policy.checkpoint import read_meta
+    from lcmodels.policy.evaluate import policy_path_of
+    from lcmodels.policy.obs import OBS_MODES, needs_predictor
+    from lcsim.drivers import DRIVER_NAMES
+
+    modes = []
+    for spec in (policy, follow):
+        if spec is None or spec in DRIVER_NAMES:
+            continue
+        try:
+            modes.append(str(read_meta(policy_path_of(spec)).get("obs_mode")))
+        except ValueError:
+            return ""
+    if any(needs_predictor(m) for m in modes if m in OBS_MODES):
+        return ""
+    what = f"observation mode {', '.join(modes)}" if modes else "a built-in driver"
+    return f"--predictor {predictor}: {policy} reads no prediction ({what}); drop --predictor"
+
+
 def add_heldout_arguments(p: argparse.ArgumentParser, episodes: int = 200) -> None:
     """Who drives which held-out episodes: ``policy``, ``--episodes``, ``--seed``, ``--predictor``, ``--batch``
     (lc-eval's arguments, shared by the tools that run the same episodes)."""
@@ -409,6 +431,10 @@ def eval_main(argv: list[str] | None = None) -> int:
         return fail(f"{args.policy} {what} (expected a policy.safetensors, or {' / '.join(DRIVER_NAMES)})")
     if args.json_out is not None and args.json_out.exists() and not args.overwrite:
         return fail(f"{args.json_out} already exists; pass --overwrite or choose another --json-out")
+    if args.predictor is not None:
+        problem = predictor_unused(args.policy, args.lookahead_follow, args.predictor)
+        if problem:
+            return fail(problem)
     torch.set_num_threads(args.threads)
     try:
         driver, config = driver_for(args.policy, predictor=str(args.predictor) if args.predictor else None,
