@@ -94,7 +94,7 @@ def run_case(case: Case, cwd: Path) -> Outcome:
     return Outcome(case, verdict, proc.returncode, last, seconds)
 
 
-def build_cases(root: Path) -> list[Case]:  # noqa: PLR0915 - one list, read top to bottom
+def build_cases(root: Path) -> list[Case]:
     """The cases, with the small files they need made under ``root`` (a trained tiny policy, a crafted zip)."""
     import torch
 
