@@ -20,6 +20,7 @@ import hashlib
 import json
 import os
 import pickle
+import re
 import shutil
 import subprocess
 import sys
@@ -303,11 +304,9 @@ def main(argv: list[str] | None = None) -> int:
     if args.markdown is not None:
         lines = ["| case | command | exit | result | verdict |", "|---|---|---|---|---|"]
         for o in outcomes:
-            shown = " ".join(a if not a.startswith(tempfile.gettempdir()) else "…/" + Path(a).name
-                             for a in o.case.argv)
-            msg = o.message.replace("|", "\\|")
-            for tmpdir in (tempfile.gettempdir(),):
-                msg = msg.replace(tmpdir, "…")
+            scratch = re.compile(re.escape(tempfile.gettempdir()) + r"/lc-audit-[^/ :]+")
+            shown = scratch.sub("…", " ".join(o.case.argv))
+            msg = scratch.sub("…", o.message).replace("|", "\\|")
             lines.append(f"| {o.case.what} | `{shown}` | {o.rc} | {msg[:160]} | {o.verdict} |")
         lines.append("")
         lines.append(f"{len(outcomes)} cases: " + ", ".join(f"{v} {n}" for v, n in counts.items()) + ".")

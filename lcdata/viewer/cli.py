@@ -268,7 +268,12 @@ def main(argv: Sequence[str] | None = None) -> int:
             r.save_path.parent.mkdir(parents=True, exist_ok=True)
             r.stream.save(r.save_path, default_blueprint=layout(r))
         elif not args.headless:
-            r.stream.spawn(default_blueprint=layout(r))
+            try:
+                r.stream.spawn(default_blueprint=layout(r))
+            except Exception as exc:  # no viewer binary, a display that refuses the window
+                print(f"lc-view: error: could not open the native viewer ({type(exc).__name__}: "
+                      f"{' '.join(str(exc).split())[:200]}); use --save OUT.rrd or --web --headless", file=sys.stderr)
+                return EXIT_BAD_INPUT
         log_recording(r)
         r.stream.flush()
         if r.save_path is not None:
