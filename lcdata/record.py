@@ -33,7 +33,7 @@ import logging
 import multiprocessing
 import os
 import pathlib
-from collections.abc import Iterator, Mapping, Sequence
+from collections.abc import Callable, Iterator, Mapping, Sequence
 from concurrent.futures import ProcessPoolExecutor, as_completed
 from dataclasses import dataclass
 from typing import Any
@@ -46,8 +46,10 @@ from lcdata.writer import EpisodeWriter, package_version
 from lcdata.writer_process import WRITER_MODES, ProcessEpisodeWriter, open_writer
 from lcsim.config import ScenarioConfig
 from lcsim.core import KEEP, RUNNING, SUCCESS, LaneChangeCore, StepResult
-from lcsim.drivers import DRIVER_NAMES, Driver, make_driver
+from lcsim.drivers import Driver
 from lcsim.envs import episode_seed as lcsim_episode_seed
+from lcsim.episodes import EpisodeHook, run_episodes
+from lcsim.registry import DRIVER_NAMES, make_driver
 from lcsim.sim import HighwaySim
 
 log = logging.getLogger(__name__)
@@ -341,34 +343,86 @@ def record_episode(
         A :class:`RecordResult` with the final path and the outcome.
     """
     policy, autopilot, name, desc = resolve_driver(driver, seed)
-    core = LaneChangeCore(config, 1, autopilot_ego=autopilot)
-    metadata = episode_metadata(config, seed, driver=name, driver_description=desc, scenario=scenario,
-                                autopilot=autopilot)  # fmt: skip
-    if start_time_ns is None:
-        start_time_ns = seed_start_time_ns(seed)
-    with open_writer(path, mode=writer, metadata=metadata, overwrite=overwrite, start_time_ns=start_time_ns) as out:
-        recorder = EpisodeRecorder(out, core, 0, images=images)
-        core.reset([0], [int(metadata["episode_seed"])])
-        recorder.attach()
-        obs = core.observe()
-        while not recorder.done:
-            mask = core.action_mask()
-            actions = np.asarray(policy(obs, mask, core), dtype=np.int64).reshape(1)
-            recorder.before_step(obs, mask, actions)
-            predictions = getattr(policy, "last_prediction", None)  # what a policy driver saw, if any
-            if predictions is not None:
-                recorder.write_predictions(predictions[0])
-            recorder.after_step(core.step(actions))
-            if not recorder.done:
-                obs = core.observe()
-        recorder.detach()
-    final, messages = out.path, out.message_count
-    log.info("%s: %s after %d decisions", final, recorder.outcome, recorder.decisions)
-    return RecordResult(
-        path=final, outcome=recorder.outcome, seed=int(seed), episode_seed=int(metadata["episode_seed"]),
-        steps=int(core.sim.step[0]), decisions=recorder.decisions, total_reward=recorder.total_reward,
-        messages=messages, bytes=final.stat().st_size,
+    fixed = start_time_ns
+    hook = RecordingHook(
+        lambda u: pathlib.Path(path),
+        lambda u: episode_metadata(config, u, driver=name, driver_description=desc, scenario=scenario,
+                                   autopilot=autopilot),
+        overwrite=overwrite, images=images, writer=writer,
+        start_time_of=lambda u: seed_start_time_ns(u) if fixed is None else fixed,
     )  # fmt: skip
+    run_episodes(policy, config, [seed], batch=1, hooks=[hook], autopilot_ego=autopilot)
+    result = hook.finished[0]
+    log.info("%s: %s after %d decisions", result.path, result.outcome, result.decisions)
+    return result
+
+
+class RecordingHook(EpisodeHook):
+    """Records every episode of :func:`lcsim.episodes.run_episodes` to its own MCAP file (an
+    :class:`EpisodeRecorder` per environment), with the predictions a policy driver saw.
+
+    Args:
+        path_of: the file of the episode with a user seed.
+        metadata_of: its metadata record (:func:`episode_metadata`).
+        writer: :data:`lcdata.writer_process.WRITER_MODES` (the files are the same).
+        start_time_of: its ``t = 0`` (default :func:`seed_start_time_ns`).
+
+    :attr:`finished` gets a :class:`RecordResult` per episode written; a batch that fails leaves its
+    files as ``.partial``.
+    """
+
+    def __init__(self, path_of: Callable[[int], pathlib.Path], metadata_of: Callable[[int], dict[str, Any]], *,
+                 overwrite: bool = False, images: bool = True, writer: str = "thread",
+                 start_time_of: Callable[[int], int] = seed_start_time_ns) -> None:
+        self.path_of, self.metadata_of, self.start_time_of = path_of, metadata_of, start_time_of
+        self.overwrite, self.images, self.writer = overwrite, images, writer
+        self.finished: list[RecordResult] = []
+        self._writers: list[Any] = []
+        self._recorders: list[EpisodeRecorder] = []
+        self._seeds: list[int] = []
+        self._driver: Any = None
+
+    def start(self, core: LaneChangeCore, user_seeds: Sequence[int], driver: Any) -> None:
+        self._driver, self._seeds, self._writers, self._recorders = driver, list(user_seeds), [], []
+        try:
+            for i, u in enumerate(self._seeds):
+                w = open_writer(self.path_of(u), mode=self.writer, metadata=self.metadata_of(u),
+                                overwrite=self.overwrite, start_time_ns=self.start_time_of(u))
+                self._writers.append(w)
+                rec = EpisodeRecorder(w, core, i, images=self.images)
+                rec.attach()
+                self._recorders.append(rec)
+        except BaseException:
+            self.end(core, failed=True)
+            raise
+
+    def before_step(self, core: LaneChangeCore, obs: dict[str, np.ndarray], mask: np.ndarray, actions: np.ndarray,
+                    running: np.ndarray) -> None:
+        predictions = getattr(self._driver, "last_prediction", None)  # what a policy driver saw, if any
+        for i in np.flatnonzero(running):
+            self._recorders[i].before_step(obs, mask, actions)
+            if predictions is not None:
+                self._recorders[i].write_predictions(predictions[i])
+
+    def after_step(self, core: LaneChangeCore, result: StepResult, running: np.ndarray) -> None:
+        for i in np.flatnonzero(running):
+            self._recorders[i].after_step(result)
+
+    def end(self, core: LaneChangeCore, failed: bool) -> None:
+        for rec in self._recorders:
+            rec.detach()
+        for i, w in enumerate(self._writers):
+            if failed or i >= len(self._recorders):
+                w.abort()
+                continue
+            w.close()
+            rec, u = self._recorders[i], self._seeds[i]
+            self.finished.append(RecordResult(
+                path=w.path, outcome=rec.outcome, seed=u, episode_seed=int(core.seeds[i]),
+                steps=int(core.sim.step[i]), decisions=rec.decisions, total_reward=rec.total_reward,
+                messages=w.message_count, bytes=w.path.stat().st_size,
+            ))  # fmt: skip
+        self._writers, self._recorders = [], []
 
 
 def _record_one(config_json: str, seed: int, driver: str | Driver, path: str, scenario: str, overwrite: bool,

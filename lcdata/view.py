@@ -1,5 +1,5 @@
-"""``lc-view``: recorded episodes in Rerun. The command line lives in :mod:`lcdata.viewer.cli`."""
+"""Recorded episodes in Rerun: the library behind ``lc-view`` (:mod:`lcdata.viewer.app`)."""
 
-from lcdata.viewer.cli import ViewError, build_parser, convert, main, make_recordings, open_episodes, serve
+from lcdata.viewer.app import ViewError, convert, make_recordings, open_episodes, serve
 
-__all__ = ["ViewError", "build_parser", "convert", "main", "make_recordings", "open_episodes", "serve"]
+__all__ = ["ViewError", "convert", "make_recordings", "open_episodes", "serve"]

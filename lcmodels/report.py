@@ -13,11 +13,12 @@ import math
 import shlex
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import TYPE_CHECKING, Any
+from typing import Any
 
 import numpy as np
 
-from lcmodels.experiment import (
+from lcmodels.fileio import read_json
+from lcmodels.presets import (
     FIG5_NAME,
     FIG6_NAME,
     INVOCATIONS,
@@ -31,13 +32,11 @@ from lcmodels.experiment import (
     RULE_LABEL,
     TABLE3_ROWS,
     TABLE4_ROWS,
+    Preset,
+    StageResult,
     method_timesteps,
     policy_dir,
 )
-from lcmodels.fileio import read_json
-
-if TYPE_CHECKING:
-    from lcmodels.experiment import Experiment
 
 RATES = ("success", "collision", "timeout", "off_road")
 MIN_WINDOW = 20
@@ -225,7 +224,19 @@ def plot_curves(runs: dict[str, MethodRuns], key: str, ylabel: str, title: str, 
 
 
 # ------------------------------------------------------------------------------------------------ report
-def write_report(exp: Experiment, *, wall_s: float) -> Path:
+@dataclass(frozen=True)
+class ReportInput:
+    """What the report says of the invocations besides the stage outputs it reads."""
+
+    out: Path
+    preset: Preset
+    seeds: int
+    stages: list[StageResult]
+    invocations: list[dict[str, Any]]
+    command: str
+
+
+def write_report(exp: ReportInput, *, wall_s: float) -> Path:
     """Write ``REPORT.md`` and the two figures into ``exp.out``; returns the report's path."""
     from lcmodels.policy.train import versions
 

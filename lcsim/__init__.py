@@ -12,7 +12,7 @@ batched vector environment.
 
 from __future__ import annotations
 
-from gymnasium.envs.registration import register, registry
+from gymnasium.envs import registration as gym_registration
 
 from lcsim.config import (
     EgoConfig,
@@ -23,8 +23,11 @@ from lcsim.config import (
     ScenarioConfig,
     TrafficConfig,
     corpus_scenario,
+    light_scenario,
     paper_scenario,
+    tiny_scenario,
 )
+from lcsim.registry import SCENARIOS
 
 __version__ = "0.1.0"
 __all__ = [
@@ -39,25 +42,21 @@ __all__ = [
     "corpus_scenario",
     "light_scenario",
     "paper_scenario",
+    "tiny_scenario",
 ]
 
 
-def light_scenario() -> ScenarioConfig:
-    """A smaller version of the paper's task (30 vehicles, 300 m route) for quick experiments."""
-    return ScenarioConfig(traffic=TrafficConfig(num_vehicles=30, spawn_behind_m=80.0, spawn_ahead_m=200.0),
-                          route_length_m=300.0, time_limit_s=40.0)
-
-
-ENV_IDS = ("lcsim/LaneChange-v0", "lcsim/LaneChangeLight-v0")
+ENV_IDS = {"lcsim/LaneChange-v0": "paper", "lcsim/LaneChangeLight-v0": "light"}
+"""The registered gym ids and the scenario (:data:`lcsim.registry.SCENARIOS`) each runs."""
 
 
 def _register() -> None:
-    for env_id in ENV_IDS:
-        if env_id in registry:
+    for env_id, name in ENV_IDS.items():
+        if env_id in gym_registration.registry:
             continue
-        kwargs = {"config": light_scenario()} if env_id.endswith("Light-v0") else {}
-        register(id=env_id, entry_point="lcsim.envs:LaneChangeEnv",
-                 vector_entry_point="lcsim.envs:LaneChangeVectorEnv", kwargs=kwargs)
+        kwargs = {} if name == "paper" else {"config": SCENARIOS[name]()}
+        gym_registration.register(id=env_id, entry_point="lcsim.envs:LaneChangeEnv",
+                                  vector_entry_point="lcsim.envs:LaneChangeVectorEnv", kwargs=kwargs)
 
 
 _register()

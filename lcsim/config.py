@@ -18,24 +18,27 @@ from dataclasses import dataclass, field
 from typing import Any, ClassVar, Self
 
 
-def _check(cond: bool, cls: object, name: str, msg: str, value: object) -> None:
+def check_field(cond: bool, cls: object, name: str, msg: str, value: object) -> None:
+    """``ValueError`` naming ``Class.name``, the rule ``msg`` and the ``value``, unless ``cond``."""
     if not cond:
         raise ValueError(f"{type(cls).__name__}.{name} {msg}, got {value!r}")
 
 
-def _positive(obj: object, *names: str) -> None:
+def require_positive(obj: object, *names: str) -> None:
+    """``ValueError`` unless each field ``names`` of ``obj`` is a finite number > 0."""
     for n in names:
         v = getattr(obj, n)
-        _check(isinstance(v, int | float) and math.isfinite(v) and v > 0, obj, n, "must be > 0", v)
+        check_field(isinstance(v, int | float) and math.isfinite(v) and v > 0, obj, n, "must be > 0", v)
 
 
-def _non_negative(obj: object, *names: str) -> None:
+def require_non_negative(obj: object, *names: str) -> None:
+    """``ValueError`` unless each field ``names`` of ``obj`` is a finite number >= 0."""
     for n in names:
         v = getattr(obj, n)
-        _check(isinstance(v, int | float) and math.isfinite(v) and v >= 0, obj, n, "must be >= 0", v)
+        check_field(isinstance(v, int | float) and math.isfinite(v) and v >= 0, obj, n, "must be >= 0", v)
 
 
-class _JsonMixin:
+class JsonConfig:
     """Nested dataclass <-> dict/JSON with unknown keys rejected (a misspelt key is an error)."""
 
     LEGACY_DEFAULTS: ClassVar[dict[str, Any]] = {}
@@ -81,7 +84,7 @@ class _JsonMixin:
 
 
 @dataclass(frozen=True, slots=True, kw_only=True)
-class RoadConfig(_JsonMixin):
+class RoadConfig(JsonConfig):
     """A straight, Town06-like carriageway along +x. Lane 0 is the rightmost lane."""
 
     num_lanes: int = 4
@@ -92,11 +95,11 @@ class RoadConfig(_JsonMixin):
     dash_gap_m: float = 6.0
 
     def __post_init__(self) -> None:
-        _check(isinstance(self.num_lanes, int) and 2 <= self.num_lanes <= 6, self, "num_lanes",
+        check_field(isinstance(self.num_lanes, int) and 2 <= self.num_lanes <= 6, self, "num_lanes",
                "must be an integer in [2, 6]", self.num_lanes)
-        _positive(self, "lane_width_m", "marking_width_m", "dash_length_m", "dash_gap_m")
-        _non_negative(self, "shoulder_width_m")
-        _check(self.lane_width_m >= 2.5, self, "lane_width_m", "must be >= 2.5 m", self.lane_width_m)
+        require_positive(self, "lane_width_m", "marking_width_m", "dash_length_m", "dash_gap_m")
+        require_non_negative(self, "shoulder_width_m")
+        check_field(self.lane_width_m >= 2.5, self, "lane_width_m", "must be >= 2.5 m", self.lane_width_m)
 
     @property
     def width_m(self) -> float:
@@ -105,7 +108,7 @@ class RoadConfig(_JsonMixin):
 
 
 @dataclass(frozen=True, slots=True, kw_only=True)
-class TrafficConfig(_JsonMixin):
+class TrafficConfig(JsonConfig):
     """Autopilot traffic: IDM car following with a Traffic-Manager-like gap and lane changes."""
 
     num_vehicles: int = 100
@@ -143,21 +146,21 @@ class TrafficConfig(_JsonMixin):
     """Rate of spontaneous lane changes (when the side lane is free), for variety in the corpus."""
 
     def __post_init__(self) -> None:
-        _check(isinstance(self.num_vehicles, int) and self.num_vehicles >= 0, self, "num_vehicles",
+        check_field(isinstance(self.num_vehicles, int) and self.num_vehicles >= 0, self, "num_vehicles",
                "must be an integer >= 0", self.num_vehicles)
-        _positive(self, "speed_kmh", "length_m", "width_m", "idm_time_headway_s", "idm_max_accel_mps2",
+        require_positive(self, "speed_kmh", "length_m", "width_m", "idm_time_headway_s", "idm_max_accel_mps2",
                   "idm_comfort_decel_mps2", "idm_delta", "max_decel_mps2", "lane_change_duration_s",
                   "lane_change_check_period_s")
-        _non_negative(self, "speed_spread_kmh", "spawn_behind_m", "spawn_ahead_m", "min_spawn_gap_m",
+        require_non_negative(self, "speed_spread_kmh", "spawn_behind_m", "spawn_ahead_m", "min_spawn_gap_m",
                       "ego_clearance_m", "idm_min_gap_m", "blocked_gap_min_m", "blocked_gap_max_m",
                       "blocked_speed_margin_kmh", "lane_change_front_gap_m", "lane_change_rear_gap_m",
                       "lane_change_rear_headway_s", "random_lane_change_rate_per_min")
-        _check(self.blocked_gap_max_m >= self.blocked_gap_min_m, self, "blocked_gap_max_m",
+        check_field(self.blocked_gap_max_m >= self.blocked_gap_min_m, self, "blocked_gap_max_m",
                "must be >= blocked_gap_min_m", self.blocked_gap_max_m)
 
 
 @dataclass(frozen=True, slots=True, kw_only=True)
-class PIDGains(_JsonMixin):
+class PIDGains(JsonConfig):
     """Gains of one CARLA ``PID*Controller``; ``dt_s`` is the controller's own dt parameter."""
 
     kp: float
@@ -166,8 +169,8 @@ class PIDGains(_JsonMixin):
     dt_s: float = 0.1
 
     def __post_init__(self) -> None:
-        _non_negative(self, "kp", "ki", "kd")
-        _positive(self, "dt_s")
+        require_non_negative(self, "kp", "ki", "kd")
+        require_positive(self, "dt_s")
 
 
 NEIGHBOUR_SELECTIONS = ("lanes", "nearest")
@@ -195,7 +198,7 @@ SWAPPED_LONGITUDINAL = PIDGains(kp=1.0, ki=0.75, kd=0.0)
 
 
 @dataclass(frozen=True, slots=True, kw_only=True)
-class EgoConfig(_JsonMixin):
+class EgoConfig(JsonConfig):
     """The ego (Audi TT): kinematic bicycle model tracked by CARLA's ``VehiclePIDController``."""
 
     length_m: float = 4.18
@@ -237,27 +240,27 @@ class EgoConfig(_JsonMixin):
     acc_min_gap_m: float = 4.0
 
     def __post_init__(self) -> None:
-        _positive(self, "length_m", "width_m", "wheelbase_m", "target_speed_kmh", "max_steer_angle_deg",
+        require_positive(self, "length_m", "width_m", "wheelbase_m", "target_speed_kmh", "max_steer_angle_deg",
                   "max_accel_mps2", "max_brake_decel_mps2", "max_throttle", "max_brake", "max_steer",
                   "max_steer_change", "lane_change_time_s", "waypoint_spacing_m",
                   "lane_change_tolerance_m", "acc_time_headway_s")
-        _non_negative(self, "initial_speed_kmh", "powertrain_lag_s", "rolling_resistance_mps2", "drag_per_speed2",
+        require_non_negative(self, "initial_speed_kmh", "powertrain_lag_s", "rolling_resistance_mps2", "drag_per_speed2",
                       "same_lane_time_s", "base_min_distance_m", "distance_ratio", "acc_min_gap_m")
-        _check(self.wheelbase_m < self.length_m, self, "wheelbase_m", "must be shorter than length_m",
+        check_field(self.wheelbase_m < self.length_m, self, "wheelbase_m", "must be shorter than length_m",
                self.wheelbase_m)
         for name in ("max_throttle", "max_brake", "max_steer"):
-            _check(getattr(self, name) <= 1.0, self, name, "must be <= 1", getattr(self, name))
-        _check(self.max_steer_angle_deg < 90, self, "max_steer_angle_deg", "must be < 90", self.max_steer_angle_deg)
-        _check(isinstance(self.pid_window, int) and self.pid_window >= 2, self, "pid_window",
+            check_field(getattr(self, name) <= 1.0, self, name, "must be <= 1", getattr(self, name))
+        check_field(self.max_steer_angle_deg < 90, self, "max_steer_angle_deg", "must be < 90", self.max_steer_angle_deg)
+        check_field(isinstance(self.pid_window, int) and self.pid_window >= 2, self, "pid_window",
                "must be an integer >= 2", self.pid_window)
-        _check(isinstance(self.start_lane, int) and self.start_lane >= -1, self, "start_lane",
+        check_field(isinstance(self.start_lane, int) and self.start_lane >= -1, self, "start_lane",
                "must be -1 (random) or a lane index", self.start_lane)
         for name in ("lateral_pid", "longitudinal_pid"):
-            _check(isinstance(getattr(self, name), PIDGains), self, name, "must be a PIDGains", getattr(self, name))
+            check_field(isinstance(getattr(self, name), PIDGains), self, name, "must be a PIDGains", getattr(self, name))
 
 
 @dataclass(frozen=True, slots=True, kw_only=True)
-class RewardConfig(_JsonMixin):
+class RewardConfig(JsonConfig):
     """The paper's reward: collision, out of road, go-forward (metres) and success milestones."""
 
     collision: float = -500.0
@@ -268,15 +271,15 @@ class RewardConfig(_JsonMixin):
     milestone_rewards: tuple[float, ...] = (100.0, 150.0, 200.0, 1000.0)
 
     def __post_init__(self) -> None:
-        _check(len(self.milestones) == len(self.milestone_rewards) and len(self.milestones) > 0, self,
+        check_field(len(self.milestones) == len(self.milestone_rewards) and len(self.milestones) > 0, self,
                "milestone_rewards", "must have one reward per milestone", self.milestone_rewards)
         ms = list(self.milestones)
-        _check(all(0 < m <= 1 for m in ms) and ms == sorted(ms) and ms[-1] == 1.0, self, "milestones",
+        check_field(all(0 < m <= 1 for m in ms) and ms == sorted(ms) and ms[-1] == 1.0, self, "milestones",
                "must be increasing fractions in (0, 1] ending with 1.0", self.milestones)
 
 
 @dataclass(frozen=True, slots=True, kw_only=True)
-class RenderConfig(_JsonMixin):
+class RenderConfig(JsonConfig):
     """Ego-centred, heading-up bird's-eye semantic image."""
 
     image_size_px: int = 120
@@ -284,15 +287,15 @@ class RenderConfig(_JsonMixin):
     max_vehicles_drawn: int = 32
 
     def __post_init__(self) -> None:
-        _check(isinstance(self.image_size_px, int) and 16 <= self.image_size_px <= 1024, self,
+        check_field(isinstance(self.image_size_px, int) and 16 <= self.image_size_px <= 1024, self,
                "image_size_px", "must be an integer in [16, 1024]", self.image_size_px)
-        _positive(self, "resolution_m_per_px")
-        _check(isinstance(self.max_vehicles_drawn, int) and self.max_vehicles_drawn >= 1, self,
+        require_positive(self, "resolution_m_per_px")
+        check_field(isinstance(self.max_vehicles_drawn, int) and self.max_vehicles_drawn >= 1, self,
                "max_vehicles_drawn", "must be an integer >= 1", self.max_vehicles_drawn)
 
 
 @dataclass(frozen=True, slots=True, kw_only=True)
-class ScenarioConfig(_JsonMixin):
+class ScenarioConfig(JsonConfig):
     """Everything that defines an episode, given its seed."""
 
     LEGACY_DEFAULTS: ClassVar[dict[str, Any]] = {"neighbour_selection": "nearest"}
@@ -332,22 +335,22 @@ class ScenarioConfig(_JsonMixin):
     or ``leave_road`` (carried out; the ego leaves the road and the episode ends ``off_road``)."""
 
     def __post_init__(self) -> None:
-        _positive(self, "dt_s", "decision_period_s", "route_length_m", "time_limit_s", "sensing_range_m")
+        require_positive(self, "dt_s", "decision_period_s", "route_length_m", "time_limit_s", "sensing_range_m")
         ratio = self.decision_period_s / self.dt_s
-        _check(abs(ratio - round(ratio)) < 1e-9, self, "decision_period_s", "must be a multiple of dt_s",
+        check_field(abs(ratio - round(ratio)) < 1e-9, self, "decision_period_s", "must be a multiple of dt_s",
                self.decision_period_s)
-        _check(self.invalid_lane_change in ("refuse", "leave_road"), self, "invalid_lane_change",
+        check_field(self.invalid_lane_change in ("refuse", "leave_road"), self, "invalid_lane_change",
                "must be 'refuse' or 'leave_road'", self.invalid_lane_change)
-        _check(isinstance(self.history_steps, int) and self.history_steps >= 1, self, "history_steps",
+        check_field(isinstance(self.history_steps, int) and self.history_steps >= 1, self, "history_steps",
                "must be an integer >= 1", self.history_steps)
-        _check(isinstance(self.num_neighbours, int) and self.num_neighbours >= 1, self, "num_neighbours",
+        check_field(isinstance(self.num_neighbours, int) and self.num_neighbours >= 1, self, "num_neighbours",
                "must be an integer >= 1", self.num_neighbours)
-        _check(self.neighbour_selection in NEIGHBOUR_SELECTIONS, self, "neighbour_selection",
+        check_field(self.neighbour_selection in NEIGHBOUR_SELECTIONS, self, "neighbour_selection",
                f"must be one of {', '.join(NEIGHBOUR_SELECTIONS)}", self.neighbour_selection)
-        _check(self.neighbour_selection != "lanes" or self.num_neighbours <= len(LANE_SLOTS), self,
+        check_field(self.neighbour_selection != "lanes" or self.num_neighbours <= len(LANE_SLOTS), self,
                "num_neighbours", f"must be <= {len(LANE_SLOTS)} with neighbour_selection='lanes'",
                self.num_neighbours)
-        _check(self.time_limit_s >= self.decision_period_s, self, "time_limit_s",
+        check_field(self.time_limit_s >= self.decision_period_s, self, "time_limit_s",
                "must be >= decision_period_s", self.time_limit_s)
         if self.ego.start_lane >= self.road.num_lanes:
             raise ValueError(f"EgoConfig.start_lane must be < road.num_lanes ({self.road.num_lanes}), "
@@ -373,7 +376,7 @@ class ScenarioConfig(_JsonMixin):
         return round(self.time_limit_s / self.dt_s)
 
 
-_NESTED: dict[tuple[str, str], type[_JsonMixin]] = {
+_NESTED: dict[tuple[str, str], type[JsonConfig]] = {
     ("ScenarioConfig", "road"): RoadConfig,
     ("ScenarioConfig", "traffic"): TrafficConfig,
     ("ScenarioConfig", "ego"): EgoConfig,
@@ -397,5 +400,21 @@ def corpus_scenario(**overrides: Any) -> ScenarioConfig:
     traffic = TrafficConfig(num_vehicles=20, spawn_behind_m=80.0, spawn_ahead_m=220.0)
     kwargs: dict[str, Any] = dict(traffic=traffic, route_length_m=5000.0, time_limit_s=100.0,
                                   render_image=False)
+    kwargs.update(overrides)
+    return ScenarioConfig(**kwargs)
+
+
+def light_scenario(**overrides: Any) -> ScenarioConfig:
+    """A smaller version of the paper's task (30 vehicles, 300 m route) for quick experiments."""
+    kwargs: dict[str, Any] = dict(traffic=TrafficConfig(num_vehicles=30, spawn_behind_m=80.0, spawn_ahead_m=200.0),
+                                  route_length_m=300.0, time_limit_s=40.0)
+    kwargs.update(overrides)
+    return ScenarioConfig(**kwargs)
+
+
+def tiny_scenario(**overrides: Any) -> ScenarioConfig:
+    """8 vehicles on a 150 m route (25 s): for tests and smoke runs, not for results."""
+    kwargs: dict[str, Any] = dict(traffic=TrafficConfig(num_vehicles=8, spawn_behind_m=40.0, spawn_ahead_m=100.0),
+                                  route_length_m=150.0, time_limit_s=25.0)
     kwargs.update(overrides)
     return ScenarioConfig(**kwargs)

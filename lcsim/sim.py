@@ -41,7 +41,7 @@ _SCALAR_LANE_CHANGES = 6
 _INCREMENTAL_INDEX_MAX_ENVS = 8
 _NONE = np.zeros(0, dtype=np.int64)  # no environment, no vehicle
 _LANE_CHANGE_STREAM = 1  # the random-number stream of the traffic's spontaneous lane changes
-_REDRAW_STREAM = 2  # mixes the salt of redraw_future into the keys
+_REDRAW_STREAM = 2  # mixes the salt of rekey into the keys
 _ALL_ONE_ENV = np.ones(1, dtype=bool)
 
 SubstepHook = Callable[["HighwaySim"], None]
@@ -129,57 +129,11 @@ class HighwaySim:
         self.hist_count[env_ids] = 1
         self.lane_change_base = rng.stream_base(self.key, _LANE_CHANGE_STREAM)
 
-    def redraw_future(self, salt: int) -> None:
-        """Give every environment's traffic other random draws from now on (``salt`` >= 1 picks which).
-
-        The traffic's spontaneous lane changes are drawn from a counter-based stream keyed by the episode
-        seed, so a copy of the simulator foresees them exactly. A planner that imagines futures in a copy
-        it has redrawn knows the traffic's rules and present state but not its coming random choices: what
-        an onboard predictor could know.
-        """
-        if salt < 1:
-            raise ValueError(f"salt must be >= 1 (0 would keep the episode's own draws), got {salt}")
+    def rekey(self, salt: int) -> None:
+        """Mix ``salt`` into every environment's key of the counter-based random streams: from now on the
+        traffic draws other random numbers (:func:`lcsim.planning.redraw_future` is the planner's use)."""
         self.key = self.key ^ rng.stream_base(np.array([salt], dtype=np.uint64), _REDRAW_STREAM)[0]
         self.lane_change_base = rng.stream_base(self.key, _LANE_CHANGE_STREAM)
-
-    def perceive(self, range_m: float) -> None:
-        """Reduce every environment to what its ego's sensors tell about the traffic (for an imagined copy).
-
-        Traffic vehicles farther than ``range_m`` from the ego (centre to centre) are moved 100 km behind
-        it, spaced apart, where they take no part in anything near the ego. Each vehicle left keeps its
-        position, speed, acceleration and any lane change under way (all observable), but its desired
-        speed, which no sensor shows, becomes what its motion tells (:meth:`estimated_desired_speeds`,
-        after the parking, so from the leaders the ego can see). A planner that imagines futures in a copy
-        so reduced, and redrawn (:meth:`redraw_future`), knows the traffic's rules but nothing a sensor of
-        that range would not show it.
-        """
-        if not range_m > 0:
-            raise ValueError(f"range_m must be > 0, got {range_m!r}")
-        far = np.hypot(self.x - self.x[:, :1], self.y - self.y[:, :1]) > range_m
-        traffic = self.is_traffic.copy()
-        traffic[:, 0] = False  # the ego knows itself, autopilot or not
-        far &= traffic
-        self.x = np.where(far, self.x[:, :1] - 1.0e5 - 50.0 * self.ids[None, :], self.x)  # parked, spaced apart
-        self.rebuild_index()
-        self.v0 = np.where(traffic, self.estimated_desired_speeds(), self.v0)
-
-    def estimated_desired_speeds(self) -> np.ndarray:
-        """``(E, N)`` each vehicle's desired speed (m/s) as its observed motion tells it under the traffic's car
-        following model: the one at which the Intelligent Driver Model gives the acceleration each vehicle had
-        in the last step, with the leader it has now in the neighbour index (so only a leader the index holds
-        counts). Where that motion does not tell (the acceleration was clipped, or no desired speed fits),
-        the top of the traffic's spread; always within the spread (2.5 sigma around the nominal speed).
-        """
-        tc = self.config.traffic
-        index = self.index if self.index is not None else self._build_index()
-        a, v = tc.idm_max_accel_mps2, self.speed
-        # IDM is a * (1 - (v / v0) ** delta - interaction); with v0 infinite only the interaction is left
-        free = (idm_accel(v, np.inf, index.gap, v - index.lead_speed, tc) - self.accel) / a  # = (v / v0) ** delta
-        lo = max((tc.speed_kmh - 2.5 * tc.speed_spread_kmh) / 3.6, 1.0)
-        hi = max((tc.speed_kmh + 2.5 * tc.speed_spread_kmh) / 3.6, 1.0)
-        clipped = (self.accel <= -tc.max_decel_mps2 + 1e-9) | (self.accel >= a - 1e-9)
-        v0 = np.where(free > 0.0, v / np.maximum(free, 1e-12) ** (1.0 / tc.idm_delta), np.inf)
-        return np.clip(np.where(clipped, hi, v0), lo, hi)
 
     def _spawn(self, e: int, gen: np.random.Generator) -> None:
         _cfg, tc, ec, road = self.config, self.config.traffic, self.config.ego, self.road

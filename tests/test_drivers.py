@@ -10,8 +10,16 @@ import pytest
 from lcsim import rng
 from lcsim.config import EgoConfig, ScenarioConfig, TrafficConfig
 from lcsim.core import KEEP, LaneChangeCore
-from lcsim.drivers import LookaheadConfig, LookaheadDriver, imagined_copy, make_driver
 from lcsim.envs import LaneChangeVectorEnv
+from lcsim.planning import (
+    LookaheadConfig,
+    LookaheadDriver,
+    estimated_desired_speeds,
+    imagined_copy,
+    perceive,
+    redraw_future,
+)
+from lcsim.registry import make_driver
 from tests.conftest import small_config
 
 
@@ -94,8 +102,8 @@ def test_redraw_future_keeps_the_present_and_redraws_the_traffics_coming_choices
     for _ in range(3):
         core.step(np.full(3, KEEP))
     seen, blind, blind_again = imagined_copy(core), imagined_copy(core), imagined_copy(core)
-    blind.sim.redraw_future(1)
-    blind_again.sim.redraw_future(1)
+    redraw_future(blind.sim, 1)
+    redraw_future(blind_again.sim, 1)
     for name in ("x", "y", "speed", "lane", "step"):
         assert np.array_equal(getattr(blind.sim, name), getattr(core.sim, name)), name  # the present is kept
 
@@ -110,7 +118,7 @@ def test_redraw_future_keeps_the_present_and_redraws_the_traffics_coming_choices
             future.step(np.full(3, KEEP))
     assert np.array_equal(blind.sim.x, blind_again.sim.x) and np.array_equal(blind.sim.lane, blind_again.sim.lane)
     with pytest.raises(ValueError, match="salt"):
-        blind.sim.redraw_future(0)
+        redraw_future(blind.sim, 0)
 
 
 def _dense_core() -> LaneChangeCore:
@@ -201,7 +209,7 @@ def test_perceive_keeps_what_the_sensors_show_and_parks_the_rest():
     sim = core.sim
     copy_ = imagined_copy(core)
     before = {k: getattr(sim, k).copy() for k in ("x", "y", "speed", "v0")}
-    copy_.sim.perceive(30.0)
+    perceive(copy_.sim, 30.0)
     dist = np.hypot(before["x"] - before["x"][:, :1], before["y"] - before["y"][:, :1])
     near, far = dist <= 30.0, dist > 30.0
     assert near[:, 1:].any() and far.any()  # both kinds are there to check
@@ -209,7 +217,7 @@ def test_perceive_keeps_what_the_sensors_show_and_parks_the_rest():
     assert np.array_equal(after.x[near], before["x"][near]) and np.array_equal(after.speed, before["speed"])
     assert ((after.x - before["x"][:, :1])[far] < -9.9e4).all()
     # the desired speeds are what the motion tells, from the leaders left in view; the ego's own is known
-    assert np.array_equal(after.v0[:, 1:], after.estimated_desired_speeds()[:, 1:])
+    assert np.array_equal(after.v0[:, 1:], estimated_desired_speeds(after)[:, 1:])
     assert after.v0[0, 0] == before["v0"][0, 0]
     # the observation's slots show the same vehicles, less those beyond the range; the original is untouched
     ids = np.arange(4)
@@ -220,7 +228,7 @@ def test_perceive_keeps_what_the_sensors_show_and_parks_the_rest():
     for k, v in before.items():
         assert np.array_equal(getattr(sim, k), v), k
     with pytest.raises(ValueError, match="range_m"):
-        copy_.sim.perceive(0.0)
+        perceive(copy_.sim, 0.0)
 
 
 def test_desired_speeds_are_recovered_from_the_motion_they_cause():
@@ -228,7 +236,7 @@ def test_desired_speeds_are_recovered_from_the_motion_they_cause():
     for _ in range(6):
         core.step(np.full(4, KEEP))
     sim = core.sim
-    est = sim.estimated_desired_speeds()
+    est = estimated_desired_speeds(sim)
     err_kmh = np.abs(est - sim.v0)[:, 1:] * 3.6
     assert np.mean(err_kmh < 0.1) >= 0.9, np.sort(err_kmh.ravel())[-10:]  # 99.9% within 0.5 km/h on the paper scenario
     tc = core.config.traffic

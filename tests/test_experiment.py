@@ -10,7 +10,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from lcmodels.cli import experiment_main
+from lccli.experiment import experiment_main
 from lcmodels.experiment import (
     FIG5_NAME,
     FIG6_NAME,

@@ -14,8 +14,8 @@ from pathlib import Path
 
 import pytest
 
+from lccli.record import scenario_config
 from lcdata import read_episode
-from lcdata.cli import scenario_config
 from lcdata.record import record_episode
 
 pytestmark = pytest.mark.slow
@@ -69,7 +69,7 @@ def _sha(path: Path) -> str:
 def test_kill_9_of_lc_record_with_workers_leaves_no_process_and_resumes(tmp_path: Path) -> None:
     out = tmp_path / "rec"
     argv = ["--out", str(out), *RECORD]
-    proc = subprocess.Popen(_command("lcdata.cli:record_main", argv), cwd=ROOT, stdout=subprocess.PIPE,
+    proc = subprocess.Popen(_command("lccli.record:record_main", argv), cwd=ROOT, stdout=subprocess.PIPE,
                             stderr=subprocess.PIPE)
     _wait_for(lambda: len(list(out.glob("*.mcap"))) >= 2, 120, "two finished episodes")
     workers = _children(proc.pid)
@@ -84,7 +84,7 @@ def test_kill_9_of_lc_record_with_workers_leaves_no_process_and_resumes(tmp_path
     for p in finished:
         assert len(read_episode(p).tracks) > 0  # the finished episodes are intact
     # The same command records the missing episodes and leaves the finished ones as they are.
-    done = subprocess.run(_command("lcdata.cli:record_main", argv), cwd=ROOT, capture_output=True, text=True,
+    done = subprocess.run(_command("lccli.record:record_main", argv), cwd=ROOT, capture_output=True, text=True,
                           timeout=300)
     assert done.returncode == 0, done.stderr
     assert "resuming" in done.stderr and f"{len(finished)} of 10 episodes are there already" in done.stderr
@@ -92,8 +92,8 @@ def test_kill_9_of_lc_record_with_workers_leaves_no_process_and_resumes(tmp_path
     assert len(files) == 10 and not list(out.glob("*.partial"))
     assert all(_sha(p) == sha for p, sha in finished.items())
     # ... and each is the file one uninterrupted recording of its seed gives, byte for byte.
-    config = scenario_config("lane-change", vehicles=20, steps=300)
-    ref = record_episode(config, 9, "rule", tmp_path / "ref" / files[-1].name, scenario="lane-change",
+    config = scenario_config("paper", vehicles=20, steps=300)
+    ref = record_episode(config, 9, "rule", tmp_path / "ref" / files[-1].name, scenario="paper",
                          writer="inline")
     assert _sha(ref.path) == _sha(files[-1])
 
@@ -102,7 +102,7 @@ def test_kill_9_of_lc_train_policy_resumes_the_step_count(tmp_path: Path) -> Non
     out = tmp_path / "run"
     base = ["--obs", "pure", "--scenario", "tiny", "--n-envs", "2", "--checkpoint-every", "128",
             "--eval-episodes", "0", "--threads", "1", "--out", str(out), "-q"]
-    proc = subprocess.Popen(_command("lcmodels.cli:train_policy_main", [*base, "--timesteps", "1000000"]), cwd=ROOT,
+    proc = subprocess.Popen(_command("lccli.policy:train_policy_main", [*base, "--timesteps", "1000000"]), cwd=ROOT,
                             stdout=subprocess.DEVNULL, stderr=subprocess.PIPE)
     state_file = out / "checkpoints" / "latest.json"
 
@@ -119,7 +119,7 @@ def test_kill_9_of_lc_train_policy_resumes_the_step_count(tmp_path: Path) -> Non
     at = int(state["timesteps"])
     assert (out / "checkpoints" / state["weights"]).is_file() and (out / "checkpoints" / state["optimizer"]).is_file()
     target = at + 256
-    done = subprocess.run(_command("lcmodels.cli:train_policy_main", [*base, "--timesteps", str(target)]), cwd=ROOT,
+    done = subprocess.run(_command("lccli.policy:train_policy_main", [*base, "--timesteps", str(target)]), cwd=ROOT,
                           capture_output=True, text=True, timeout=300)
     assert done.returncode == 0, done.stderr
     metrics = json.loads((out / "metrics.json").read_text())

@@ -6,8 +6,9 @@ import pytest
 
 from lcsim.config import RoadConfig, TrafficConfig
 from lcsim.core import RUNNING, LaneChangeCore
-from lcsim.drivers import RuleBasedDriver, make_driver
-from lcsim.oracle import OracleDriver, replay, search_episode, search_from
+from lcsim.drivers import RuleBasedDriver
+from lcsim.planning import OracleDriver, replay, search_episode, search_from
+from lcsim.registry import make_driver
 from tests.conftest import small_config
 
 # 12 vehicles on the 150 m route: the rule-based driver crashes in episode 1 and wins episode 0.

@@ -12,8 +12,9 @@ import torch
 from gymnasium import spaces
 from stable_baselines3.common.env_checker import check_env
 
+from lccli.evaluate import eval_main
+from lccli.policy import train_policy_main
 from lcdata.record import episode_seed, record_episodes
-from lcmodels.cli import eval_main, train_policy_main
 from lcmodels.fileio import file_sha256
 from lcmodels.policy import (
     VGG16,
@@ -30,9 +31,10 @@ from lcmodels.policy import (
 )
 from lcmodels.policy.evaluate import PolicyDriver, driver_for, evaluate, wilson_interval
 from lcmodels.policy.obs import OBS_MODES, policy_observation_space, scenario_for_mode
-from lcmodels.policy.train import build_model, default_learning_rate, tiny_scenario
+from lcmodels.policy.train import build_model, default_learning_rate
 from lcmodels.policy.warmstart import Demonstrations
 from lcmodels.predictor import Predictor, PredictorConfig, TrajectoryTransformer
+from lcsim.config import tiny_scenario
 from lcsim.core import KEEP, RUNNING, LaneChangeCore
 from lcsim.sb3 import LaneChangeSB3VecEnv
 
@@ -531,7 +533,7 @@ def test_policy_obs_env_passes_sb3_check_on_single_view(predictor_path: Path) ->
 
 
 def test_lc_record_with_a_policy_driver_writes_its_predictions(tmp_path: Path, predictor_path: Path) -> None:
-    from lcdata.cli import record_main
+    from lccli.record import record_main
     from lcdata.reader import read_episode
     from lcdata.record import record_episode
 
@@ -692,7 +694,7 @@ def test_a_lookahead_follows_a_policy_without_image_and_refuses_one_with(tmp_pat
     assert eval_main(["lookahead-blind", "--lookahead-horizon", "2", "--lookahead-samples", "2", "--episodes", "2",
                       "--scenario", "tiny", "--no-record", "--json-out", str(tmp_path / "la.json")]) == 0
     assert json.loads((tmp_path / "la.json").read_text())["episodes"] == 2
-    from lcdata.cli import record_main
+    from lccli.record import record_main
     from lcdata.reader import read_episode
 
     out = tmp_path / "rec"

@@ -13,8 +13,9 @@ import numpy as np
 import pytest
 import torch
 
-from lcdata.cli import record_main
-from lcmodels.cli import eval_main, train_policy_main
+from lccli.evaluate import eval_main
+from lccli.policy import train_policy_main
+from lccli.record import record_main
 from lcmodels.policy import PolicyConfig, load_policy, read_meta, train_policy
 from lcmodels.policy.checkpoint import LEGACY_VERSION, META_FORMAT, card_path, convert_legacy_policy
 from lcmodels.policy.train import RUN_OUTPUTS

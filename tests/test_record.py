@@ -28,8 +28,8 @@ from lcdata.offline import STATE_COLUMNS, track_arrays
 from lcdata.record import episode_metadata
 from lcsim.config import ScenarioConfig, TrafficConfig
 from lcsim.core import LaneChangeCore
-from lcsim.drivers import make_driver
 from lcsim.envs import LaneChangeEnv
+from lcsim.registry import make_driver
 from tests.conftest import small_config, wait_gone
 
 ROOT = pathlib.Path(__file__).resolve().parents[1]
@@ -191,7 +191,7 @@ from lcdata import EpisodeRecorder, episode_seed
 from lcdata.record import episode_metadata
 from lcdata.writer_process import open_writer
 from lcsim.core import LaneChangeCore
-from lcsim.drivers import make_driver
+from lcsim.registry import make_driver
 from tests.conftest import small_config
 
 cfg = small_config(time_limit_s=200.0, route_length_m=1000.0)

@@ -8,8 +8,8 @@ import pathlib
 import numpy as np
 import pytest
 
+from lccli.record import record_main, scenario_config
 from lcdata import read_episode, replay
-from lcdata.cli import record_main, scenario_config
 from lcsim import corpus_scenario, paper_scenario
 
 TINY = ["--vehicles", "6", "--steps", "30"]
@@ -25,29 +25,29 @@ def test_lane_change_and_overwrite(tmp_path: pathlib.Path, capsys: pytest.Captur
     assert record_main(argv) == 0
     out = capsys.readouterr().out
     assert "recorded 2 episodes" in out and "timeout 2" in out and "MB" in out
-    assert names(tmp_path) == ["lane-change_rule_s0000003.mcap", "lane-change_rule_s0000004.mcap"]
-    ep = read_episode(tmp_path / "lane-change_rule_s0000004.mcap")
+    assert names(tmp_path) == ["paper_rule_s0000003.mcap", "paper_rule_s0000004.mcap"]
+    ep = read_episode(tmp_path / "paper_rule_s0000004.mcap")
     md = ep.metadata
-    assert (md["seed"], md["driver"], md["scenario"], md["autopilot"]) == (4, "rule", "lane-change", False)
+    assert (md["seed"], md["driver"], md["scenario"], md["autopilot"]) == (4, "rule", "paper", False)
     assert md["config"]["traffic"]["num_vehicles"] == 6 and ep.tracks["vehicle_id"].max() == 6
     assert ep.tracks["step"].max() == 30 and len(ep.image_steps) == 3
     assert replay(ep.path).matches
-    mtime = (tmp_path / "lane-change_rule_s0000003.mcap").stat().st_mtime_ns
-    sha = hashlib.sha256((tmp_path / "lane-change_rule_s0000003.mcap").read_bytes()).hexdigest()
+    mtime = (tmp_path / "paper_rule_s0000003.mcap").stat().st_mtime_ns
+    sha = hashlib.sha256((tmp_path / "paper_rule_s0000003.mcap").read_bytes()).hexdigest()
     assert record_main(argv) == 0  # the same command: every episode is there, nothing is rewritten
     assert "nothing to record" in capsys.readouterr().out
-    assert (tmp_path / "lane-change_rule_s0000003.mcap").stat().st_mtime_ns == mtime
+    assert (tmp_path / "paper_rule_s0000003.mcap").stat().st_mtime_ns == mtime
     assert record_main([*argv[:-1], "31"]) == 2  # other flags: refused, naming the difference
     err = capsys.readouterr().err
     assert err.count("\n") == 1 and "--overwrite" in err and "steps: 30 there, 31 now" in err
-    assert (tmp_path / "lane-change_rule_s0000003.mcap").stat().st_mtime_ns == mtime
+    assert (tmp_path / "paper_rule_s0000003.mcap").stat().st_mtime_ns == mtime
     (tmp_path / "record.json").unlink()  # files there without their flags (an older version's): refused
     assert record_main(argv) == 2
     assert "2 of 2" in capsys.readouterr().err
     assert record_main([*argv, "--overwrite"]) == 0
     # the same command gives the same bytes: the start time derives from the seed
-    assert hashlib.sha256((tmp_path / "lane-change_rule_s0000003.mcap").read_bytes()).hexdigest() == sha
-    assert (tmp_path / "lane-change_rule_s0000003.mcap").stat().st_mtime_ns != mtime
+    assert hashlib.sha256((tmp_path / "paper_rule_s0000003.mcap").read_bytes()).hexdigest() == sha
+    assert (tmp_path / "paper_rule_s0000003.mcap").stat().st_mtime_ns != mtime
 
 
 def test_corpus_defaults_to_autopilot(tmp_path: pathlib.Path, capsys: pytest.CaptureFixture[str]) -> None:
@@ -74,7 +74,7 @@ def test_workers_do_not_change_results(tmp_path: pathlib.Path) -> None:
 
 
 def test_defaults_are_the_papers() -> None:
-    assert scenario_config("lane-change") == paper_scenario()
+    assert scenario_config("paper") == paper_scenario()
     assert scenario_config("corpus") == corpus_scenario()
     assert scenario_config("corpus").max_steps == 2000
 
@@ -89,7 +89,7 @@ def test_defaults_are_the_papers() -> None:
         (["--steps", "0"], "--steps: must be >= 1"),
         (["--driver", "fast"], "invalid choice"),
         (["--writer", "fast"], "invalid choice"),
-        (["--scenario", "town06"], "invalid choice"),
+        (["--scenario", "town06"], "unknown scenario"),
         (["--vehicles", "100000"], "does not fit"),
         (["--bogus"], "unrecognized arguments"),
     ],
@@ -115,4 +115,4 @@ def test_bad_output_directory(tmp_path: pathlib.Path, capsys: pytest.CaptureFixt
 def test_help_has_an_example(capsys: pytest.CaptureFixture[str]) -> None:
     assert record_main(["--help"]) == 0
     out = capsys.readouterr().out
-    assert "lc-record --scenario lane-change --episodes" in out and "--workers" in out
+    assert "lc-record --scenario paper --episodes" in out and "--workers" in out

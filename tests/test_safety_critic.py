@@ -9,7 +9,7 @@ import torch
 
 from lcmodels.policy.train import PolicyConfig, train_policy
 from lcsim.core import KEEP, LEFT, RUNNING, LaneChangeCore
-from lcsim.drivers import LookaheadConfig, LookaheadDriver
+from lcsim.planning import LookaheadConfig, LookaheadDriver
 from tests.conftest import small_config
 from tools.safety_critic import CriticEnsemble, CriticGuard, SafetyCritic, critic_loss, main, train_critics
 

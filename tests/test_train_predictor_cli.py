@@ -5,8 +5,8 @@ import json
 import pytest
 import torch
 
-from lcdata.cli import record_main
-from lcmodels.cli import train_predictor_main
+from lccli.predictor import train_predictor_main
+from lccli.record import record_main
 
 
 @pytest.fixture(scope="module")

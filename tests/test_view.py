@@ -12,8 +12,8 @@ import pytest
 from mcap.writer import Writer as McapWriter
 from rerun.chunk import RrdReader
 
+from lccli.view import main
 from lcdata import EpisodeWriter, read_episode
-from lcdata.view import main
 from lcdata.viewer.geometry import box_corners
 from lcdata.viewer.streams import UNKNOWN_CLASS, class_ids
 from lcsim.config import paper_scenario

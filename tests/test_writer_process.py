@@ -14,7 +14,7 @@ from lcdata.record import EpisodeRecorder, episode_metadata, episode_seed
 from lcdata.writer_process import ProcessEpisodeWriter, WriterProcessError, open_writer, writer_process_pid
 from lcsim.config import ScenarioConfig
 from lcsim.core import LaneChangeCore
-from lcsim.drivers import make_driver
+from lcsim.registry import make_driver
 from tests.conftest import wait_gone
 
 ROOT = pathlib.Path(__file__).resolve().parents[1]

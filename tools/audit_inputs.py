@@ -31,12 +31,12 @@ from collections.abc import Callable
 from pathlib import Path
 
 ENTRY = {
-    "lc-record": "lcdata.cli:record_main",
-    "lc-train-policy": "lcmodels.cli:train_policy_main",
-    "lc-train-predictor": "lcmodels.cli:train_predictor_main",
-    "lc-eval": "lcmodels.cli:eval_main",
-    "lc-experiment": "lcmodels.cli:experiment_main",
-    "lc-view": "lcdata.view:main",
+    "lc-record": "lccli.record:record_main",
+    "lc-train-policy": "lccli.policy:train_policy_main",
+    "lc-train-predictor": "lccli.predictor:train_predictor_main",
+    "lc-eval": "lccli.evaluate:eval_main",
+    "lc-experiment": "lccli.experiment:experiment_main",
+    "lc-view": "lccli.view:main",
 }
 
 
@@ -143,7 +143,7 @@ def build_cases(root: Path) -> list[Case]:
     (root / "short.safetensors").write_bytes(pure.read_bytes()[:10])
     config = dataclasses.replace(paper_scenario(), traffic=dataclasses.replace(paper_scenario().traffic, num_vehicles=8),
                                  time_limit_s=3.0)
-    episode = record_episode(config, 0, "rule", root / "ep" / "lane-change_rule_s0000000.mcap", writer="inline").path
+    episode = record_episode(config, 0, "rule", root / "ep" / "paper_rule_s0000000.mcap", writer="inline").path
     (root / "ten_bytes.mcap").write_bytes(episode.read_bytes()[:10])
     (root / "empty").mkdir()
     (root / "a_file").write_text("not a directory")
@@ -215,7 +215,7 @@ def build_cases(root: Path) -> list[Case]:
                                            capture_output=True, check=True)),
         Case("lc-record: other flags into a recorded --out", [*rec, "--steps", "41", "--episodes", "2",
                                                               "--out", f"{r}/same1"],
-             **unchanged(root / "same1" / "lane-change_rule_s0000000.mcap")),
+             **unchanged(root / "same1" / "paper_rule_s0000000.mcap")),
         # lc-train-policy
         Case("lc-train-policy: hybrid without predictor", [*tiny_train, "--obs", "hybrid", "--out", f"{r}/t1"],
              check=not_written(root / "t1")),

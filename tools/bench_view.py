@@ -42,7 +42,7 @@ def main(argv: list[str] | None = None) -> int:
     with tempfile.TemporaryDirectory() as tmp:
         mcap = pathlib.Path(tmp) / "bench.mcap"
         t0 = time.perf_counter()
-        result = record_episode(config, args.seed, "rule", mcap, scenario="lane-change")
+        result = record_episode(config, args.seed, "rule", mcap, scenario="paper")
         record_s = time.perf_counter() - t0
         times = []
         for i in range(args.repeat):

@@ -25,7 +25,8 @@ import sys
 
 import numpy as np
 
-from lcmodels.cli import _fail, add_heldout_arguments, heldout_driver
+from lccli.common import fail
+from lccli.evaluate import add_heldout_arguments, heldout_driver
 from lcmodels.policy.evaluate import eval_user_seeds
 from lcsim.core import KEEP, RUNNING, LaneChangeCore
 from lcsim.envs import episode_seed
@@ -94,7 +95,7 @@ def main(argv: list[str] | None = None) -> int:
     try:
         driver, config = heldout_driver(args)
     except ValueError as exc:
-        return _fail(parser.prog, str(exc))
+        return fail(parser.prog, str(exc))
     window = max(1, round(args.window_s / config.decision_period_s)) + 1  # + the decision of the contact
     counts = breakdown(driver, config, episodes=args.episodes, seed=args.seed, batch=args.batch,
                        window_decisions=window, front_gap_m=args.front_gap_m, rear_gap_m=args.rear_gap_m)

@@ -25,8 +25,8 @@ from __future__ import annotations
 import argparse
 import sys
 
+from lccli.common import add_lookahead_arguments, lookahead_options
 from lcmodels.policy.dagger import dagger
-from lcsim.cli import add_lookahead_arguments, lookahead_options
 
 
 def main(argv: list[str] | None = None) -> int:

@@ -24,7 +24,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from lcmodels.cli import _fail
+from lccli.common import fail
 from lcmodels.policy.checkpoint import LoadedPolicy, load_policy
 from lcmodels.policy.evaluate import evaluate
 from lcmodels.policy.obs import build_observation, scenario_for_mode
@@ -95,14 +95,14 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--threads", type=int, default=1, help="torch threads (default 1)")
     args = ap.parse_args(argv)
     if args.episodes < 1 or args.batch < 1 or args.seed < 0 or args.threads < 1:
-        return _fail(ap.prog, "--episodes, --batch and --threads must be >= 1 and --seed >= 0")
+        return fail(ap.prog, "--episodes, --batch and --threads must be >= 1 and --seed >= 0")
     torch.set_num_threads(args.threads)
     try:
         driver = load_ensemble(args.policies, args.predictor)
         t0 = time.perf_counter()
         summary, _ = evaluate(driver, driver.config, episodes=args.episodes, seed=args.seed, batch=args.batch)
     except (ValueError, OSError) as exc:
-        return _fail(ap.prog, str(exc).splitlines()[0])
+        return fail(ap.prog, str(exc).splitlines()[0])
     summary.update(members=[str(p) for p in args.policies], seed=args.seed, wall_s=round(time.perf_counter() - t0, 1))
     text = json.dumps(summary, indent=1)
     print(text)

@@ -20,7 +20,8 @@ import time
 
 import numpy as np
 
-from lcmodels.cli import _fail, add_heldout_arguments, heldout_driver
+from lccli.common import fail
+from lccli.evaluate import add_heldout_arguments, heldout_driver
 from lcmodels.policy.evaluate import evaluate
 from lcsim.core import KEEP, LaneChangeCore
 
@@ -66,7 +67,7 @@ def main(argv: list[str] | None = None) -> int:
     try:
         driver, config = heldout_driver(args)
     except ValueError as exc:
-        return _fail(parser.prog, str(exc))
+        return fail(parser.prog, str(exc))
     shield = None
     if args.front_gap_m >= 0:
         shield = driver = GapShield(driver, front_gap_m=args.front_gap_m, rear_gap_m=args.rear_gap_m,

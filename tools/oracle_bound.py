@@ -25,13 +25,13 @@ from concurrent.futures import ProcessPoolExecutor
 
 from lcdata.record import episode_seed
 from lcmodels.policy.evaluate import eval_user_seeds, wilson_interval
-from lcmodels.policy.train import POLICY_SCENARIOS
-from lcsim.oracle import replay, search_episode
+from lcsim.planning import replay, search_episode
+from lcsim.registry import TASK_SCENARIOS, scenario
 
 
 def _one(job: tuple[str, int, int, int, int]) -> dict:
-    scenario, index, user_seed, memory, max_nodes = job
-    config = POLICY_SCENARIOS[scenario]()
+    scenario_name, index, user_seed, memory, max_nodes = job
+    config = scenario(scenario_name)
     seed = episode_seed(user_seed)
     t0 = time.process_time()
     r = search_episode(config, seed, memory_decisions=memory, max_nodes=max_nodes)
@@ -48,7 +48,7 @@ def main(argv: list[str] | None = None) -> int:
                                  epilog="\n\n".join(__doc__.split("\n\n")[1:]))  # fmt: skip
     ap.add_argument("--episodes", type=int, default=200, help="held-out episodes, as lc-eval --episodes (200)")
     ap.add_argument("--seed", type=int, default=0, help="evaluation seed, as lc-eval --seed (0)")
-    ap.add_argument("--scenario", default="paper", choices=sorted(POLICY_SCENARIOS), help="scenario (paper)")
+    ap.add_argument("--scenario", default="paper", choices=TASK_SCENARIOS, help="scenario (paper)")
     ap.add_argument("--memory", type=int, default=8,
                     help="decisions after which the ego's last lane change is forgotten when merging states (8)")
     ap.add_argument("--max-nodes", type=int, default=200_000, help="give up on an episode after this many decisions")

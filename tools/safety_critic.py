@@ -40,9 +40,10 @@ import numpy as np
 import torch
 from torch import nn
 
-from lcmodels.cli import _fail, _positive_int, add_heldout_arguments, heldout_driver, int_at_least
+from lccli.common import fail, int_at_least, positive_int
+from lccli.evaluate import add_heldout_arguments, heldout_driver
 from lcmodels.fileio import write_json
-from lcmodels.policy.extractor import CURRENT_SCALE, ContactFeatures, WindowFeatures, _Concat, _ScaledMLP
+from lcmodels.policy.extractor import CURRENT_SCALE, ContactFeatures, WindowFeatures, ConcatFeatures, ScaledMLP
 from lcsim.core import KEEP, LaneChangeCore
 
 FORMAT = "lc-safety-critic"
@@ -58,8 +59,8 @@ class SafetyCritic(nn.Module):
     def __init__(self, slots: int, hidden: int = 256, window: bool = False) -> None:
         super().__init__()
         self.slots, self.hidden, self.window = slots, hidden, window
-        extra = _Concat(ContactFeatures(slots), WindowFeatures(slots)) if window else ContactFeatures(slots)
-        self.body = _ScaledMLP((1 + slots, len(CURRENT_SCALE)), CURRENT_SCALE, hidden, hidden, extra=extra)
+        extra = ConcatFeatures(ContactFeatures(slots), WindowFeatures(slots)) if window else ContactFeatures(slots)
+        self.body = ScaledMLP((1 + slots, len(CURRENT_SCALE)), CURRENT_SCALE, hidden, hidden, extra=extra)
         self.head = nn.Sequential(nn.Linear(hidden, hidden), nn.ReLU(), nn.Linear(hidden, 3))
 
     def forward(self, current: torch.Tensor) -> torch.Tensor:
@@ -238,7 +239,7 @@ def _summary(alive: np.ndarray, actions: np.ndarray) -> dict[str, Any]:
 def train_main(args: argparse.Namespace, prog: str) -> int:
     out = args.out
     if out.exists() and any(out.iterdir()):
-        return _fail(prog, f"{out} exists and is not empty; choose a new --out")
+        return fail(prog, f"{out} exists and is not empty; choose a new --out")
     meta: dict[str, Any] = {
         "policy": str(args.policy),
         "members": args.members,
@@ -252,9 +253,9 @@ def train_main(args: argparse.Namespace, prog: str) -> int:
         try:
             selection = read_meta(args.policy).get("scenario", {}).get("neighbour_selection", "nearest")
         except ValueError as exc:
-            return _fail(prog, str(exc).splitlines()[0])
+            return fail(prog, str(exc).splitlines()[0])
         if args.window_features and selection != "lanes":  # the window features read vehicles sorted by lane
-            return _fail(prog, f"--window-features needs lane slots; {args.policy} sees the {selection} vehicles")
+            return fail(prog, f"--window-features needs lane slots; {args.policy} sees the {selection} vehicles")
     t0 = time.perf_counter()
     if args.from_states is not None:
         parts = []
@@ -263,20 +264,20 @@ def train_main(args: argparse.Namespace, prog: str) -> int:
                 with np.load(path) as kept:
                     parts.append((kept["current"], kept["alive"], kept["actions"]))
             except (OSError, ValueError, KeyError, EOFError) as exc:
-                return _fail(prog, f"{path}: not readable states of this tool ({str(exc).splitlines()[0]})")
+                return fail(prog, f"{path}: not readable states of this tool ({str(exc).splitlines()[0]})")
         current, alive, actions = (np.concatenate(column) for column in zip(*parts, strict=True))
         meta["states_from"] = [str(p) for p in args.from_states]
     else:
         from lcmodels.policy.evaluate import driver_for
-        from lcsim.drivers import LookaheadDriver
+        from lcsim.planning import LookaheadDriver
 
         lookahead = {"horizon_decisions": args.lookahead_horizon} if args.lookahead_horizon else {}
         try:
             expert, _ = driver_for(args.expert, lookahead=lookahead)
         except ValueError as exc:
-            return _fail(prog, str(exc).splitlines()[0])
+            return fail(prog, str(exc).splitlines()[0])
         if not isinstance(expert, LookaheadDriver):
-            return _fail(
+            return fail(
                 prog, f"the expert must be a lookahead driver (lookahead[-blind][:POLICY]), not {args.expert}"
             )
         seeds = [args.first_seed + i for i in range(args.episodes)]
@@ -297,7 +298,7 @@ def train_main(args: argparse.Namespace, prog: str) -> int:
                         f"collecting: worker {k + 1}/{len(parts)} done ({len(g.labels)} states)", flush=True
                     )
         except (ValueError, OSError) as exc:
-            return _fail(prog, str(exc).splitlines()[0])
+            return fail(prog, str(exc).splitlines()[0])
         current = np.concatenate([g.obs["current"] for g in got])
         alive = np.concatenate([g.alive for g in got])
         actions = np.concatenate([g.actions for g in got])
@@ -313,7 +314,7 @@ def train_main(args: argparse.Namespace, prog: str) -> int:
             collect_wall_s=round(time.perf_counter() - t0, 1),
         )
     if len(current) == 0:
-        return _fail(prog, "no state with a choice was collected; nothing to fit")
+        return fail(prog, "no state with a choice was collected; nothing to fit")
     meta["labels"] = _summary(alive, actions)
     t1 = time.perf_counter()
 
@@ -327,7 +328,7 @@ def train_main(args: argparse.Namespace, prog: str) -> int:
             progress=show,
         )
     except ValueError as exc:  # window features over too few slots for both side lanes
-        return _fail(prog, str(exc).splitlines()[0])
+        return fail(prog, str(exc).splitlines()[0])
     meta.update(
         train_wall_s=round(time.perf_counter() - t1, 1), train_loss=critic_loss(critic, current, alive)
     )
@@ -381,7 +382,7 @@ def score_main(args: argparse.Namespace, prog: str) -> int:
         with np.load(args.states) as kept:
             current, alive, actions = kept["current"], kept["alive"], kept["actions"]
     except (OSError, ValueError, KeyError, EOFError) as exc:
-        return _fail(prog, str(exc).splitlines()[0])
+        return fail(prog, str(exc).splitlines()[0])
     print(json.dumps({"critic": str(args.critic), "states_file": str(args.states),
                       **score_states(critic, current, alive, actions)}))
     return 0
@@ -391,17 +392,17 @@ def eval_main(args: argparse.Namespace, prog: str) -> int:
     from lcmodels.policy.evaluate import evaluate
 
     if not 0.0 <= args.threshold <= 1.0 or args.margin < 0:
-        return _fail(prog, "--threshold must lie in [0, 1] and --margin be >= 0")
+        return fail(prog, "--threshold must lie in [0, 1] and --margin be >= 0")
     try:
         critic = CriticEnsemble.load(args.critic)
         driver, config = heldout_driver(args)
     except ValueError as exc:
-        return _fail(prog, str(exc).splitlines()[0])
+        return fail(prog, str(exc).splitlines()[0])
     if critic.members[0].slots != config.num_neighbours:
-        return _fail(prog, f"{args.critic} reads {critic.members[0].slots} neighbour slots, the scenario of "
+        return fail(prog, f"{args.critic} reads {critic.members[0].slots} neighbour slots, the scenario of "
                      f"{args.policy} has {config.num_neighbours}")
     if critic.members[0].window and config.neighbour_selection != "lanes":
-        return _fail(prog, f"{args.critic} reads the window features, which need lane slots; the scenario of "
+        return fail(prog, f"{args.critic} reads the window features, which need lane slots; the scenario of "
                      f"{args.policy} sees the {config.neighbour_selection} vehicles")
     guard = CriticGuard(driver, critic, threshold=args.threshold, margin=args.margin)
     t0 = time.perf_counter()
@@ -448,12 +449,12 @@ def parser() -> argparse.ArgumentParser:
     )
     t.add_argument(
         "--lookahead-horizon",
-        type=_positive_int,
+        type=positive_int,
         default=None,
         help="decisions the expert imagines after each candidate one (default 16, i.e. 8 s)",
     )
     t.add_argument(
-        "--episodes", type=_positive_int, default=600, help="training episodes driven (default 600)"
+        "--episodes", type=positive_int, default=600, help="training episodes driven (default 600)"
     )
     t.add_argument(
         "--first-seed",
@@ -461,9 +462,9 @@ def parser() -> argparse.ArgumentParser:
         default=7_000_000,
         help="user seed of the first episode (default 7000000; evaluation's start at 10^9)",
     )
-    t.add_argument("--workers", type=_positive_int, default=2, help="collecting processes (default 2)")
-    t.add_argument("--members", type=_positive_int, default=3, help="critics in the ensemble (default 3)")
-    t.add_argument("--epochs", type=_positive_int, default=40, help="training epochs per critic (default 40)")
+    t.add_argument("--workers", type=positive_int, default=2, help="collecting processes (default 2)")
+    t.add_argument("--members", type=positive_int, default=3, help="critics in the ensemble (default 3)")
+    t.add_argument("--epochs", type=positive_int, default=40, help="training epochs per critic (default 40)")
     t.add_argument(
         "--seed", type=int_at_least(0), default=0, help="torch seed of the first critic (default 0)"
     )

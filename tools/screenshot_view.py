@@ -36,7 +36,7 @@ from lcsim.config import paper_scenario  # noqa: E402
 def record_demo(path: pathlib.Path, seed: int) -> pathlib.Path:
     """A short lane-change episode: the paper scenario over a 250 m route, rule-based driver."""
     config = dataclasses.replace(paper_scenario(), route_length_m=250.0, time_limit_s=40.0)
-    return record_episode(config, seed, "rule", path, scenario="lane-change", overwrite=True).path
+    return record_episode(config, seed, "rule", path, scenario="paper", overwrite=True).path
 
 
 class Chromium:
@@ -126,7 +126,7 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--browser", default=shutil.which("chromium") or "chromium")
     args = parser.parse_args(argv)
     with tempfile.TemporaryDirectory() as tmp:
-        episode = args.episode or record_demo(pathlib.Path(tmp) / "lane-change_rule.mcap", args.seed)
+        episode = args.episode or record_demo(pathlib.Path(tmp) / "paper_rule.mcap", args.seed)
         recordings = make_recordings(open_episodes([episode]), side_by_side=False)
         url = serve(recordings, grpc_port=args.grpc_port, web_port=args.web_port)
         args.out.parent.mkdir(parents=True, exist_ok=True)

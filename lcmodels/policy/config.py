@@ -7,34 +7,25 @@ config without importing training.
 from __future__ import annotations
 
 import dataclasses
-from collections.abc import Callable
 from dataclasses import dataclass
+from pathlib import Path
 from typing import Any, ClassVar
 
 from lcmodels.policy.extractor import IMAGE_NETS
-from lcmodels.policy.network import ALGOS
 from lcmodels.policy.obs import OBS_MODES, mode_keys, scenario_for_mode
-from lcsim import light_scenario
 from lcsim.config import (
     NEIGHBOUR_SELECTIONS,
+    JsonConfig,
     ScenarioConfig,
-    TrafficConfig,
-    _check,
-    _JsonMixin,
-    _non_negative,
-    _positive,
-    paper_scenario,
+    check_field,
+    require_non_negative,
+    require_positive,
 )
+from lcsim.registry import SCENARIO_FILE_SUFFIXES, TASK_SCENARIOS, scenario
 
+ALGORITHMS: tuple[str, ...] = ("ppo", "a2c", "dqn")
+"""The learning algorithms a policy can be trained with (stable-baselines3's PPO, A2C and DQN)."""
 
-def tiny_scenario() -> ScenarioConfig:
-    """8 vehicles on a 150 m route (25 s): for tests and smoke runs, not for results."""
-    return ScenarioConfig(traffic=TrafficConfig(num_vehicles=8, spawn_behind_m=40.0, spawn_ahead_m=100.0),
-                          route_length_m=150.0, time_limit_s=25.0)
-
-
-POLICY_SCENARIOS: dict[str, Callable[[], ScenarioConfig]] = {"paper": paper_scenario, "light": light_scenario,
-                                                             "tiny": tiny_scenario}
 
 _LEARNING_RATES = {"ppo": 3e-4, "a2c": 7e-4, "dqn": 1e-4}
 FINE_TUNE_LEARNING_RATES = {"ppo": 3e-5}
@@ -53,7 +44,7 @@ def default_learning_rate(algo: str, fine_tune: bool = False) -> float:
 
 
 @dataclass(frozen=True, slots=True, kw_only=True)
-class PolicyConfig(_JsonMixin):
+class PolicyConfig(JsonConfig):
     """Everything that defines a policy training run (stored in ``run.json``)."""
 
     LEGACY_DEFAULTS: ClassVar[dict[str, Any]] = {"contact_features": False, "freeze_image": False}
@@ -122,33 +113,33 @@ class PolicyConfig(_JsonMixin):
     included; ``checkpoints/latest.json`` is in the training form, for resuming only."""
 
     def __post_init__(self) -> None:
-        _check(self.algo in ALGOS, self, "algo", f"must be one of {', '.join(ALGOS)}", self.algo)
-        _check(self.obs in OBS_MODES, self, "obs", f"must be one of {', '.join(OBS_MODES)}", self.obs)
-        _check(self.scenario in POLICY_SCENARIOS, self, "scenario", f"must be one of {', '.join(POLICY_SCENARIOS)}",
-               self.scenario)  # fmt: skip
-        _check(self.neighbours in NEIGHBOUR_SELECTIONS, self, "neighbours",
+        check_field(self.algo in ALGORITHMS, self, "algo", f"must be one of {', '.join(ALGORITHMS)}", self.algo)
+        check_field(self.obs in OBS_MODES, self, "obs", f"must be one of {', '.join(OBS_MODES)}", self.obs)
+        check_field(self.scenario in TASK_SCENARIOS or Path(self.scenario).suffix in SCENARIO_FILE_SUFFIXES, self,
+               "scenario", f"must be one of {', '.join(TASK_SCENARIOS)} or a scenario file", self.scenario)
+        check_field(self.neighbours in NEIGHBOUR_SELECTIONS, self, "neighbours",
                f"must be one of {', '.join(NEIGHBOUR_SELECTIONS)}", self.neighbours)
-        _check(not self.window_features or self.neighbours == "lanes", self, "window_features",
+        check_field(not self.window_features or self.neighbours == "lanes", self, "window_features",
                "needs neighbours='lanes' (which vehicle is in which lane)", self.window_features)
-        _check(self.image_net in IMAGE_NETS, self, "image_net", f"must be one of {', '.join(IMAGE_NETS)}",
+        check_field(self.image_net in IMAGE_NETS, self, "image_net", f"must be one of {', '.join(IMAGE_NETS)}",
                self.image_net)  # fmt: skip
-        _positive(self, "n_envs", "image_features", "learning_rate", "n_steps", "batch_size",
+        require_positive(self, "n_envs", "image_features", "learning_rate", "n_steps", "batch_size",
                   "n_epochs", "reward_scale", "collision_weight", "buffer_size", "target_update_interval",
                   "checkpoint_every", "eval_batch", "warm_start_epochs")
-        _non_negative(self, "timesteps", "ent_coef", "learning_starts", "eval_episodes", "seed", "eval_seed")
-        _check(not (self.warm_start and self.init_policy), self, "init_policy",
+        require_non_negative(self, "timesteps", "ent_coef", "learning_starts", "eval_episodes", "seed", "eval_seed")
+        check_field(not (self.warm_start and self.init_policy), self, "init_policy",
                "cannot be combined with warm_start (clone first, then start from that run's policy.safetensors)",
                self.init_policy)  # fmt: skip
-        _check(not self.freeze_image or bool(self.init_policy), self, "freeze_image",
+        check_field(not self.freeze_image or bool(self.init_policy), self, "freeze_image",
                "needs init_policy (a policy whose image branch is trained already)", self.freeze_image)
-        _check(not self.freeze_image or "image" in mode_keys(self.obs), self, "freeze_image",
+        check_field(not self.freeze_image or "image" in mode_keys(self.obs), self, "freeze_image",
                f"needs an observation mode with the image (image, hybrid), not {self.obs!r}", self.freeze_image)
-        _check(self.timesteps > 0 or bool(self.warm_start), self, "timesteps",
+        check_field(self.timesteps > 0 or bool(self.warm_start), self, "timesteps",
                "must be > 0 without a warm start (0 with one: behaviour cloning only)", self.timesteps)  # fmt: skip
-        _check(0 < self.gamma <= 1, self, "gamma", "must be in (0, 1]", self.gamma)
-        _check(0 < self.exploration_fraction <= 1, self, "exploration_fraction", "must be in (0, 1]",
+        check_field(0 < self.gamma <= 1, self, "gamma", "must be in (0, 1]", self.gamma)
+        check_field(0 < self.exploration_fraction <= 1, self, "exploration_fraction", "must be in (0, 1]",
                self.exploration_fraction)  # fmt: skip
-        _check(self.seed < 1_000_000, self, "seed", "must be < 1000000 (keeps training seeds off evaluation's)",
+        check_field(self.seed < 1_000_000, self, "seed", "must be < 1000000 (keeps training seeds off evaluation's)",
                self.seed)  # fmt: skip
         try:  # slots (and neighbours) as the scenario itself validates them
             self.scenario_config()
@@ -156,7 +147,7 @@ class PolicyConfig(_JsonMixin):
             raise ValueError(f"PolicyConfig.slots {self.slots} does not fit the scenario: {exc}") from None
 
     def scenario_config(self) -> ScenarioConfig:
-        base = dataclasses.replace(POLICY_SCENARIOS[self.scenario](), neighbour_selection=self.neighbours,
+        base = dataclasses.replace(scenario(self.scenario), neighbour_selection=self.neighbours,
                                    num_neighbours=self.slots, observe_acceleration=self.accel_features)
         return scenario_for_mode(base, self.obs)
 

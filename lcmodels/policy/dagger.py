@@ -43,8 +43,7 @@ from lcmodels.policy.evaluate import PolicyDriver, evaluate
 from lcmodels.policy.obs import build_observation, mode_keys, scenario_for_mode
 from lcmodels.policy.warmstart import Demonstrations, every_tenth, load_demonstrations, pretrain
 from lcsim.core import KEEP, RUNNING, SUCCESS, LaneChangeCore
-from lcsim.drivers import LookaheadConfig, LookaheadDriver
-from lcsim.oracle import search_from
+from lcsim.planning import LookaheadConfig, LookaheadDriver, search_from
 
 LABELS = ("plan", "winning")
 """How :func:`collect` labels a state (see there)."""

@@ -22,19 +22,14 @@ from typing import Any
 
 import numpy as np
 
-from lcdata.record import (
-    EpisodeRecorder,
-    episode_filename,
-    episode_metadata,
-    episode_seed,
-    seed_start_time_ns,
-)
-from lcdata.writer import EpisodeWriter
+from lcdata.record import RecordingHook, episode_filename, episode_metadata
 from lcmodels.policy.checkpoint import LoadedPolicy
 from lcmodels.policy.obs import EpisodeStats, build_observation, mode_keys, scenario_for_mode
 from lcsim.config import ScenarioConfig
-from lcsim.core import OUTCOMES, RUNNING, LaneChangeCore
-from lcsim.drivers import Driver, split_policy_spec
+from lcsim.core import OUTCOMES, LaneChangeCore
+from lcsim.drivers import Driver
+from lcsim.episodes import run_episodes
+from lcsim.registry import split_policy_spec
 
 EVAL_SEED_BASE = 1_000_000_000
 EVAL_SEED_STRIDE = 100_000
@@ -119,7 +114,7 @@ def evaluate(
     episodes: int = 200,
     seed: int = 0,
     out_dir: str | os.PathLike[str] | None = None,
-    scenario: str = "lane-change",
+    scenario: str = "paper",
     batch: int = 16,
     overwrite: bool = False,
     images: bool = True,
@@ -151,54 +146,17 @@ def evaluate(
             if existing:
                 raise FileExistsError(f"{existing[0]} exists ({len(existing)} evaluation files); use --overwrite "
                                       "or another output directory")  # fmt: skip
-    results: list[EpisodeStats] = []
-    for start in range(0, episodes, batch):
-        chunk = user_seeds[start : start + batch]
-        e = len(chunk)
-        core = LaneChangeCore(config, e)
-        ep_seeds = [episode_seed(u) for u in chunk]
-        core.reset(np.arange(e), ep_seeds)
-        writers: list[EpisodeWriter] = []
-        recorders: list[EpisodeRecorder] = []
-        if out_path is not None:
-            for i, u in enumerate(chunk):
-                meta = episode_metadata(config, u, driver=name, scenario=scenario,
-                                        driver_description=f"{name}: evaluation episode {start + i}")  # fmt: skip
-                w = EpisodeWriter(out_path / episode_filename(scenario, name, u), metadata=meta, overwrite=overwrite,
-                                  start_time_ns=seed_start_time_ns(u))
-                writers.append(w)
-                rec = EpisodeRecorder(w, core, i, images=images)
-                rec.attach()
-                recorders.append(rec)
-        ret, fwd, length = np.zeros(e), np.zeros(e), np.zeros(e, dtype=np.int64)
-        try:
-            while (core.outcome == RUNNING).any():
-                running = core.outcome == RUNNING
-                obs = core.observe()
-                mask = core.action_mask()
-                actions = np.asarray(driver(obs, mask, core), dtype=np.int64).reshape(e)
-                pred = getattr(driver, "last_prediction", None)
-                for i in np.flatnonzero(running) if recorders else ():
-                    recorders[i].before_step(obs, mask, actions)
-                    if pred is not None:
-                        recorders[i].write_predictions(pred[i])
-                res = core.step(actions)
-                ret += np.where(running, res.reward, 0.0)
-                fwd += np.where(running, res.components["forward"], 0.0)
-                length += running
-                for i in np.flatnonzero(running) if recorders else ():
-                    recorders[i].after_step(res)
-        finally:
-            for rec in recorders:
-                rec.detach()
-            for w in writers:
-                w.close()
-        for i in range(e):
-            outcome = str(core.outcome[i])
-            results.append(EpisodeStats.of(outcome, float(ret[i]), int(length[i]), float(fwd[i]),
-                                           config.reward.forward_per_m, int(ep_seeds[i])))
-        if progress is not None:
-            progress(len(results), episodes)
+    hooks = []
+    if out_path is not None:
+        hooks.append(RecordingHook(
+            lambda u: out_path / episode_filename(scenario, name, u),
+            lambda u: episode_metadata(config, u, driver=name, scenario=scenario,
+                                       driver_description=f"{name}: evaluation episode {u - user_seeds[0]}"),
+            overwrite=overwrite, images=images, writer="thread",
+        ))  # fmt: skip
+    done = run_episodes(driver, config, user_seeds, batch=batch, hooks=hooks, progress=progress)
+    results = [EpisodeStats.of(r.outcome, r.total_reward, r.decisions, r.forward_reward, config.reward.forward_per_m,
+                               r.episode_seed) for r in done]  # fmt: skip
     summary = summarize_with_intervals(results)
     summary["driver"] = name
     summary["eval_seed"] = seed
@@ -229,7 +187,8 @@ def driver_for(spec: str, *, predictor: str | None = None, device: str = "cpu",
     Returns the driver and, for a policy, the scenario it was trained on (``None`` for lcsim drivers).
     """
     from lcmodels.policy.checkpoint import load_policy
-    from lcsim.drivers import DRIVER_NAMES, LookaheadConfig, LookaheadDriver, make_driver
+    from lcsim.planning import LookaheadConfig, LookaheadDriver
+    from lcsim.registry import DRIVER_NAMES, make_driver
 
     prefix, name = split_policy_spec(spec) or ("policy:", spec)
     if spec in DRIVER_NAMES:
@@ -264,7 +223,7 @@ def _follower(spec: str, scenario: ScenarioConfig, predictor: str | None, device
     """The driver a lookahead's imagined futures follow: a built-in driver, or a policy of ``scenario``
     that does not read the image."""
     from lcmodels.policy.checkpoint import load_policy
-    from lcsim.drivers import DRIVER_NAMES, make_driver
+    from lcsim.registry import DRIVER_NAMES, make_driver
 
     if spec in DRIVER_NAMES:
         return make_driver(spec)

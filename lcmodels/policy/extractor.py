@@ -265,7 +265,7 @@ class WindowFeatures(nn.Module):
         return torch.stack(out, dim=1)
 
 
-class _Concat(nn.Module):
+class ConcatFeatures(nn.Module):
     """Several feature modules of the same input, side by side."""
 
     def __init__(self, *parts: nn.Module) -> None:
@@ -277,7 +277,7 @@ class _Concat(nn.Module):
         return torch.cat([p(x) for p in self.parts], dim=1)
 
 
-class _ScaledMLP(nn.Module):
+class ScaledMLP(nn.Module):
     """Divide the last axis by fixed scales, flatten, append ``extra(x)`` when given (the sensor branch's
     :class:`ContactFeatures` and :class:`WindowFeatures`), then two linear layers with ReLU."""
 
@@ -328,12 +328,12 @@ class HybridExtractor(BaseFeaturesExtractor):
                 slots, accel = int(shape[0]) - 1, int(shape[-1]) == len(CURRENT_SCALE) + 1
                 parts = [ContactFeatures(slots)] if contact_features else []
                 parts += [WindowFeatures(slots, accel)] if window_features else []
-                extra = _Concat(*parts) if parts else None  # (no parameters: checkpoints keep their keys)
+                extra = ConcatFeatures(*parts) if parts else None  # (no parameters: checkpoints keep their keys)
                 scale = CURRENT_SCALE + ((ACCEL_SCALE,) if accel else ())
-                branches[key] = _ScaledMLP(shape, scale, hidden, sensor_features, extra=extra)
+                branches[key] = ScaledMLP(shape, scale, hidden, sensor_features, extra=extra)
                 dims += sensor_features
             elif key == "prediction":
-                branches[key] = _ScaledMLP(shape, PREDICTION_SCALE, hidden, prediction_features)
+                branches[key] = ScaledMLP(shape, PREDICTION_SCALE, hidden, prediction_features)
                 dims += prediction_features
             elif key == IMAGE_FEATURES:  # the image branch's output, computed outside (ImageEncoder)
                 branches[key] = nn.Identity()

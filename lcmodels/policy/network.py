@@ -4,19 +4,17 @@
 from __future__ import annotations
 
 import dataclasses
-from typing import TYPE_CHECKING, Any
+from typing import Any
 
 from gymnasium import spaces
 from stable_baselines3 import A2C, DQN, PPO
 from stable_baselines3.common.base_class import BaseAlgorithm
 from stable_baselines3.common.vec_env import VecEnv
 
+from lcmodels.policy.config import ALGORITHMS, PolicyConfig
 from lcmodels.policy.extractor import HybridExtractor
 
-if TYPE_CHECKING:
-    from lcmodels.policy.config import PolicyConfig
-
-ALGOS: dict[str, type[BaseAlgorithm]] = {"ppo": PPO, "a2c": A2C, "dqn": DQN}
+ALGOS: dict[str, type[BaseAlgorithm]] = dict(zip(ALGORITHMS, (PPO, A2C, DQN), strict=True))
 ACTION_SPACE = spaces.Discrete(3)
 
 

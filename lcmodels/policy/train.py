@@ -55,10 +55,8 @@ from lcmodels.policy.checkpoint import (
 )
 from lcmodels.policy.config import (  # re-exported: the names training's callers know
     FINE_TUNE_LEARNING_RATES,
-    POLICY_SCENARIOS,
     PolicyConfig,
     default_learning_rate,
-    tiny_scenario,
 )
 from lcmodels.policy.evaluate import EVAL_SEED_BASE, PolicyDriver, evaluate
 from lcmodels.policy.extractor import IMAGE_FEATURES, HybridExtractor, ImageEncoder, make_image_net
@@ -584,7 +582,6 @@ def _warm_start(cfg: PolicyConfig, model: BaseAlgorithm, pred: Predictor | None,
 
 __all__ = [
     "FINE_TUNE_LEARNING_RATES",
-    "POLICY_SCENARIOS",
     "RUN_OUTPUTS",
     "PolicyConfig",
     "TrainResult",
@@ -593,7 +590,6 @@ __all__ = [
     "default_learning_rate",
     "remove_run_outputs",
     "stored_config",
-    "tiny_scenario",
     "train_policy",
     "versions",
 ]

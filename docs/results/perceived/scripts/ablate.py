@@ -14,7 +14,7 @@ import sys
 
 import numpy as np
 
-from lcmodels.cli import eval_main
+from lccli.evaluate import eval_main
 from lcsim.sim import HighwaySim
 
 part, args = sys.argv[1], sys.argv[2:]

@@ -10,7 +10,8 @@ import numpy as np
 
 from lcsim.config import paper_scenario
 from lcsim.core import LaneChangeCore
-from lcsim.drivers import imagined_copy, make_driver
+from lcsim.planning import estimated_desired_speeds, imagined_copy, perceive
+from lcsim.registry import make_driver
 
 cfg = paper_scenario(render_image=False)
 core = LaneChangeCore(cfg, 20)
@@ -20,11 +21,11 @@ for _ in range(40):
     core.step(rule({}, core.action_mask(), core))
 sim = core.sim
 true = sim.v0[:, 1:]
-est = sim.estimated_desired_speeds()[:, 1:]
+est = estimated_desired_speeds(sim)[:, 1:]
 err = np.abs(est - true) * 3.6
 print("all vehicles, full index: median err km/h", np.median(err), "share within 0.5 km/h", (err < 0.5).mean(), "max", err.max())
 c = imagined_copy(core)
-c.sim.perceive(80.0)
+perceive(c.sim, 80.0)
 d = np.hypot(sim.x - sim.x[:, :1], sim.y - sim.y[:, :1])[:, 1:] <= 80
 err2 = np.abs(c.sim.v0[:, 1:] - true)[d] * 3.6
 print("within 80 m, after perceive: median", np.median(err2), "within 0.5", (err2 < 0.5).mean(), "n", d.sum())

@@ -13,7 +13,7 @@ takes the traffic for more aggressive than it is; above 1, for more cautious. Th
 import dataclasses
 import sys
 
-from lcmodels.cli import eval_main
+from lccli.evaluate import eval_main
 from lcsim.sim import HighwaySim
 
 factor, args = float(sys.argv[1]), sys.argv[2:]

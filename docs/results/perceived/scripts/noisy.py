@@ -13,7 +13,7 @@ import sys
 
 import numpy as np
 
-from lcmodels.cli import eval_main
+from lccli.evaluate import eval_main
 from lcsim.sim import HighwaySim
 
 sx, sv, sa, args = float(sys.argv[1]), float(sys.argv[2]), float(sys.argv[3]), sys.argv[4:]

@@ -6,11 +6,16 @@ A one-off experiment of session 18 (see ../NOTE.md), kept to reproduce its figur
 
     python docs/results/window-critic/scripts/collect16.py POLICY FIRST_USER_SEED EPISODES OUT.npz
 """
-import dataclasses, sys, time
-import numpy as np, torch
+import dataclasses
+import sys
+import time
+
+import numpy as np
+import torch
+
 from lcmodels.policy.evaluate import driver_for
 from lcsim.core import RUNNING, LaneChangeCore
-from lcsim.drivers import LookaheadConfig, LookaheadDriver
+from lcsim.planning import LookaheadConfig, LookaheadDriver
 from lcsim.envs import episode_seed
 
 

@@ -4,11 +4,17 @@ A one-off experiment of session 18 (see ../NOTE.md), kept to reproduce its figur
 
     python docs/results/window-critic/scripts/ensemble.py SEED POLICY [POLICY ...]
 """
-import json, sys, time
-import numpy as np, torch
+import json
+import sys
+import time
+
+import numpy as np
+import torch
+
 from lcmodels.policy.checkpoint import load_policy
 from lcmodels.policy.evaluate import evaluate
 from lcmodels.policy.obs import build_observation, scenario_for_mode
+
 
 class Ensemble:
     name = "ensemble"

@@ -4,10 +4,16 @@ A one-off experiment of session 18 (see ../NOTE.md), kept to reproduce its figur
 
     python docs/results/window-critic/scripts/guard.py POLICY SEED RESCUE_S|none veto PREDICTOR
 """
-import json, sys, time
-import numpy as np, torch
+import json
+import sys
+import time
+
+import numpy as np
+import torch
+
 from lcmodels.policy.evaluate import driver_for, evaluate
 from lcmodels.policy.extractor import WindowFeatures
+
 
 class Guard:
     def __init__(self, driver, slots, rescue_s=None, veto=True):

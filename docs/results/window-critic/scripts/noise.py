@@ -5,11 +5,16 @@ A one-off experiment of session 18 (see ../NOTE.md), kept to reproduce its figur
 
     python docs/results/window-critic/scripts/noise.py POLICY FIRST_USER_SEED EPISODES FUTURES
 """
-import json, sys, time
-import numpy as np, torch
+import json
+import sys
+import time
+
+import numpy as np
+import torch
+
 from lcmodels.policy.evaluate import driver_for
 from lcsim.core import KEEP, RUNNING, LaneChangeCore
-from lcsim.drivers import LookaheadConfig, LookaheadDriver
+from lcsim.planning import LookaheadConfig, LookaheadDriver
 from lcsim.envs import episode_seed
 
 torch.set_num_threads(1)

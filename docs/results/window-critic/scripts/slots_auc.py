@@ -5,8 +5,12 @@ A one-off experiment of session 18 (see ../NOTE.md), kept to reproduce its figur
 
     python docs/results/window-critic/scripts/slots_auc.py FIT.npz SCORE.npz EPOCHS
 """
-import json, sys
-import numpy as np, torch
+import json
+import sys
+
+import numpy as np
+import torch
+
 from tools.safety_critic import score_states, train_critics
 
 torch.set_num_threads(1)

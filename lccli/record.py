@@ -14,22 +14,25 @@ from collections.abc import Sequence
 
 from tqdm import tqdm
 
+from lccli.common import add_lookahead_arguments, int_at_least, lookahead_options
 from lcdata.record import DRIVERS, episode_filename, iter_record_episodes
 from lcdata.writer_process import WRITER_MODES
-from lcsim.cli import add_lookahead_arguments, int_at_least, lookahead_options
-from lcsim.config import ScenarioConfig, corpus_scenario, paper_scenario
-from lcsim.drivers import split_policy_spec
+from lcsim.config import ScenarioConfig
+from lcsim.registry import SCENARIOS, scenario, scenario_label, split_policy_spec
 
-SCENARIOS = ("lane-change", "corpus")
-DEFAULT_DRIVER = {"lane-change": "rule", "corpus": "autopilot"}
+
+def default_driver(scenario_name: str) -> str:
+    """Who drives when ``--driver`` is not given: the traffic's autopilot in the corpus, else the rule."""
+    return "autopilot" if scenario_name == "corpus" else "rule"
+
 
 EXAMPLES = """\
 examples:
-  lc-record --scenario lane-change --episodes 100 --seed 0 --driver rule --out runs/rule --workers 2
+  lc-record --scenario paper --episodes 100 --seed 0 --driver rule --out runs/rule --workers 2
   lc-record --scenario corpus --episodes 50 --out data/corpus      # 20 autopilot vehicles, 2000 steps
 
 Episode i uses seed S+i and is written to OUT/<scenario>_<driver>_s<seed>.mcap (7-digit seed), e.g.
-runs/rule/lane-change_rule_s0000003.mcap, so the files do not depend on --workers. Files are written
+runs/rule/paper_rule_s0000003.mcap, so the files do not depend on --workers. Files are written
 as .mcap.partial and renamed when the episode ends. The same command gives the same bytes: each
 file's start time derives from its seed (--start-time changes that).
 
@@ -49,7 +52,7 @@ class _Parser(argparse.ArgumentParser):
         raise UsageError(message)
 
 
-_positive_int = int_at_least(1)
+positive_int = int_at_least(1)
 _non_negative_int = int_at_least(0)
 
 
@@ -68,14 +71,15 @@ def build_parser() -> argparse.ArgumentParser:
         epilog=EXAMPLES,
         formatter_class=argparse.RawDescriptionHelpFormatter,
     )
-    p.add_argument("--scenario", choices=SCENARIOS, default="lane-change",
-                   help="lane-change: the paper's task (100 vehicles, 600 m route); corpus: the trajectory "
-                   "corpus (20 autopilot vehicles, 2000 steps, no image). Default: %(default)s")  # fmt: skip
-    p.add_argument("--episodes", type=_positive_int, default=1, help="number of episodes (default: 1)")
+    p.add_argument("--scenario", default=None, metavar="{" + ",".join(SCENARIOS) + ",FILE}",
+                   help="paper: the paper's task (100 vehicles, 600 m route); light, tiny: smaller versions of it; "
+                   "corpus: the trajectory corpus (20 autopilot vehicles, 2000 steps, no image); or a scenario "
+                   "file (.toml/.json of ScenarioConfig fields). Default: paper; a policy drives in its own")  # fmt: skip
+    p.add_argument("--episodes", type=positive_int, default=1, help="number of episodes (default: 1)")
     p.add_argument("--seed", type=_non_negative_int, default=0, help="seed of the first episode (default: 0)")
     p.add_argument("--driver", type=_driver_spec, default=None,
                    metavar="{" + ",".join(DRIVERS) + ",policy:CKPT,lookahead:CKPT,lookahead-blind:CKPT}",
-                   help="who drives the ego (default: rule for lane-change, autopilot for corpus); "
+                   help="who drives the ego (default: autopilot for corpus, else rule); "
                    "policy:CKPT drives with a trained policy (a policy.safetensors from lc-train-policy); "
                    "lookahead:CKPT / lookahead-blind:CKPT with the lookahead planner following that policy "
                    "(one that does not read the image) in its imagined futures")  # fmt: skip
@@ -88,11 +92,11 @@ def build_parser() -> argparse.ArgumentParser:
                    help="accept a legacy stable-baselines3 .zip policy; loading one runs code stored in it, so only "
                    "for files from a source you trust")
     p.add_argument("--out", type=pathlib.Path, required=True, help="output directory (created if missing)")
-    p.add_argument("--workers", type=_positive_int, default=1, help="parallel processes (default: 1)")
+    p.add_argument("--workers", type=positive_int, default=1, help="parallel processes (default: 1)")
     p.add_argument("--overwrite", action="store_true", help="replace episode files that already exist")
     p.add_argument("--vehicles", type=_non_negative_int, default=None,
                    help="override the number of traffic vehicles (default: the scenario's)")  # fmt: skip
-    p.add_argument("--steps", type=_positive_int, default=None,
+    p.add_argument("--steps", type=positive_int, default=None,
                    help="override the episode time limit, in simulation steps (default: the scenario's)")  # fmt: skip
     p.add_argument("--no-images", action="store_true", help="do not record the bird's-eye image")
     p.add_argument("--start-time", default="seed", metavar="{seed,now,ISO-8601}",
@@ -108,8 +112,9 @@ def build_parser() -> argparse.ArgumentParser:
 
 
 def scenario_config(name: str, *, vehicles: int | None = None, steps: int | None = None) -> ScenarioConfig:
-    """The named scenario with optional overrides (ValueError names an impossible value)."""
-    config = paper_scenario() if name == "lane-change" else corpus_scenario()
+    """The scenario of a name or file (:func:`lcsim.registry.scenario`) with optional overrides (ValueError
+    names an unknown scenario or an impossible value)."""
+    config = scenario(name)
     if vehicles is not None:
         config = dataclasses.replace(config, traffic=dataclasses.replace(config.traffic, num_vehicles=vehicles))
     if steps is not None:
@@ -150,11 +155,11 @@ def start_time_ns(text: str) -> int | None:
     return ns
 
 
-def record_flags(args: argparse.Namespace, driver: str) -> dict[str, object]:
+def record_flags(args: argparse.Namespace, driver: str, scenario_name: str) -> dict[str, object]:
     """The flags that decide what the episode files hold (``OUT/record.json``); --seed, --episodes,
     --workers and --writer only decide which files are written, and how fast."""
     flags: dict[str, object] = {
-        "scenario": args.scenario, "driver": driver, "vehicles": args.vehicles, "steps": args.steps,
+        "scenario": scenario_name, "driver": driver, "vehicles": args.vehicles, "steps": args.steps,
         "images": not args.no_images, "start_time": args.start_time if args.start_time != "now" else None,
         "lookahead_follow": args.lookahead_follow,
         "lookahead": {k: v for k, v in lookahead_options(args).items()},
@@ -210,10 +215,8 @@ def _check_resume(out: pathlib.Path, key: str, flags: dict[str, object], paths: 
 
 def _policy_driver(spec: str, args: argparse.Namespace, config: ScenarioConfig):
     """A trained policy as the driver, and the scenario it was trained on (images as asked)."""
-    if args.scenario != "lane-change":
-        raise UsageError("--driver policy:CKPT needs --scenario lane-change")
-    if args.vehicles is not None or args.steps is not None:
-        raise UsageError("a policy drives in the scenario it was trained on; drop --vehicles / --steps")
+    if args.scenario is not None or args.vehicles is not None or args.steps is not None:
+        raise UsageError("a policy drives in the scenario it was trained on; drop --scenario / --vehicles / --steps")
     prefix, name = split_policy_spec(spec) or ("policy:", spec)
     path = pathlib.Path(name)
     if not path.is_file():
@@ -228,26 +231,36 @@ def _policy_driver(spec: str, args: argparse.Namespace, config: ScenarioConfig):
     return policy, dataclasses.replace(policy_config, render_image=policy_config.render_image or not args.no_images)
 
 
+def _policy_scenario_label(spec: str) -> str:
+    """The scenario name a policy was trained in, from its card (the label of its recordings)."""
+    from lcmodels.policy.checkpoint import read_meta
+
+    return str(read_meta((split_policy_spec(spec) or ("", spec))[1]).get("scenario_name") or "paper")
+
+
 def record_main(argv: Sequence[str] | None = None) -> int:
     """Entry point of ``lc-record``; returns the exit code (2 for bad input)."""
     parser = build_parser()
     try:
         args = parser.parse_args(argv)
-        driver = args.driver or DEFAULT_DRIVER[args.scenario]
+        scenario_name = args.scenario or "paper"
+        driver = args.driver or default_driver(scenario_name)
         try:
-            config = scenario_config(args.scenario, vehicles=args.vehicles, steps=args.steps)
+            config = scenario_config(scenario_name, vehicles=args.vehicles, steps=args.steps)
         except ValueError as exc:
             raise UsageError(str(exc)) from None
         if split_policy_spec(driver):
             driver, config = _policy_driver(driver, args, config)
+            scenario_name = _policy_scenario_label(args.driver)
         elif args.lookahead_follow is not None or lookahead_options(args):
             raise UsageError("--lookahead-follow / --lookahead-horizon / --lookahead-samples / --lookahead-perceived "
                              "need --driver lookahead:CKPT or lookahead-blind:CKPT")
+        label = scenario_label(scenario_name)
         start_ns = start_time_ns(args.start_time)
         seeds = [args.seed + i for i in range(args.episodes)]
         name = driver if isinstance(driver, str) else driver.name
-        paths = [args.out / episode_filename(args.scenario, name, s) for s in seeds]
-        flags = record_flags(args, args.driver or DEFAULT_DRIVER[args.scenario])
+        paths = [args.out / episode_filename(label, name, s) for s in seeds]
+        flags = record_flags(args, args.driver or default_driver(scenario_name), scenario_name)
         if args.out.exists() and not args.out.is_dir():
             raise UsageError(f"--out {args.out} exists and is not a directory")
         key = paths[0].name.rsplit("_s", 1)[0]  # the scenario_driver prefix of the file names
@@ -270,11 +283,11 @@ def record_main(argv: Sequence[str] | None = None) -> int:
     messages = size = 0
     start = time.perf_counter()
     workers = args.workers if isinstance(driver, str) else 1  # a loaded policy stays in this process
-    results = iter_record_episodes(config, todo, driver, args.out, scenario=args.scenario, workers=workers,
+    results = iter_record_episodes(config, todo, driver, args.out, scenario=label, workers=workers,
                                    overwrite=args.overwrite, images=not args.no_images,
                                    writer=args.writer, start_time_ns=start_ns)  # fmt: skip
     try:
-        with tqdm(total=len(todo), unit="ep", desc=f"{args.scenario}/{name}", disable=None) as bar:
+        with tqdm(total=len(todo), unit="ep", desc=f"{label}/{name}", disable=None) as bar:
             for result in results:
                 outcomes[result.outcome] += 1
                 messages += result.messages

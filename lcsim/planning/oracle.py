@@ -30,7 +30,8 @@ import numpy as np
 
 from lcsim.config import ScenarioConfig
 from lcsim.core import KEEP, LEFT, RIGHT, RUNNING, SUCCESS, LaneChangeCore
-from lcsim.drivers import RuleBasedDriver, imagined_copy
+from lcsim.drivers import RuleBasedDriver
+from lcsim.planning.perception import imagined_copy
 
 _ORDER = (KEEP, LEFT, RIGHT)
 

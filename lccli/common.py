@@ -1,0 +1,60 @@
+"""What the commands share: the one-line error, argument types, the lookahead planner's options."""
+
+from __future__ import annotations
+
+import argparse
+import sys
+from collections.abc import Callable
+
+
+def fail(prog: str, msg: str) -> int:
+    """Print ``prog: error: msg`` on stderr (one line, no traceback) and return the exit status 2."""
+    print(f"{prog}: error: {' '.join(str(msg).split())}", file=sys.stderr)
+    return 2
+
+
+def int_at_least(minimum: int) -> Callable[[str], int]:
+    """An argparse ``type`` accepting integers >= ``minimum`` with a one-line message otherwise."""
+
+    def parse(text: str) -> int:
+        try:
+            value = int(text)
+        except ValueError:
+            raise argparse.ArgumentTypeError(f"expected an integer, got {text!r}") from None
+        if value < minimum:
+            raise argparse.ArgumentTypeError(f"must be >= {minimum}, got {value}")
+        return value
+
+    parse.__name__ = f"int>={minimum}"
+    return parse
+
+
+positive_int = int_at_least(1)
+non_negative_int = int_at_least(0)
+
+
+def add_lookahead_arguments(p: argparse.ArgumentParser) -> None:
+    """``--lookahead-horizon``, ``--lookahead-samples`` and ``--lookahead-perceived``: how the lookahead
+    planners imagine (``lc-eval``, ``lc-record`` and the tools that run the same drivers)."""
+    p.add_argument("--lookahead-horizon", type=int_at_least(1), default=None,
+                   help="lookahead drivers: decisions imagined after each candidate one (default 16, i.e. 8 s)")
+    p.add_argument("--lookahead-samples", type=int_at_least(1), default=None,
+                   help="lookahead-blind drivers: redrawn futures imagined per candidate decision (default 1)")
+    p.add_argument("--lookahead-perceived", action="store_true",
+                   help="lookahead-blind drivers: imagine each future from what the ego's sensors show (no traffic "
+                   "beyond the scenario's sensing range, each vehicle's unseen desired speed read from its motion): "
+                   "the planner needs no privileged state, only the traffic's rules")
+
+
+def lookahead_options(args: argparse.Namespace) -> dict[str, int]:
+    """The ``--lookahead-*`` options given (``LookaheadConfig`` fields, for ``driver_for``)."""
+    given = {"horizon_decisions": args.lookahead_horizon, "samples": args.lookahead_samples,
+             "perceived": args.lookahead_perceived or None}
+    return {k: v for k, v in given.items() if v is not None}
+
+
+def add_trust_pickle_argument(p: argparse.ArgumentParser, what: str = "policies") -> None:
+    """``--trust-pickle``: accept legacy stable-baselines3 ``.zip`` files, which run code when loaded."""
+    p.add_argument("--trust-pickle", action="store_true",
+                   help=f"accept legacy stable-baselines3 .zip {what}; loading one runs code stored in it, so only "
+                   "for files from a source you trust")

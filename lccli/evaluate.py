@@ -1,0 +1,202 @@
+"""``lc-eval``: a policy or a built-in driver on fixed held-out seeds; and the held-out arguments the
+analysis tools share."""
+
+from __future__ import annotations
+
+import argparse
+import functools
+import json
+import time
+from pathlib import Path
+from typing import TYPE_CHECKING, Any
+
+from lccli.common import add_lookahead_arguments, fail, int_at_least, lookahead_options, positive_int
+
+if TYPE_CHECKING:
+    from lcsim.config import ScenarioConfig
+
+def format_eval(ev: dict) -> str:
+    """One line: the outcome rates and means of an evaluation summary, each with its 95% interval."""
+    def rate(k: str) -> str:
+        lo, hi = ev[f"{k}_rate_ci95"]
+        return f"{k} {100 * ev[f'{k}_rate']:.1f}% [{100 * lo:.1f}, {100 * hi:.1f}]"
+
+    lo, hi = ev["mean_safe_forward_m_ci95"]
+    rlo, rhi = ev["mean_return_ci95"]
+    return (f"held-out evaluation, {ev['episodes']} episodes: " + ", ".join(rate(k) for k in
+            ("success", "collision", "off_road", "timeout")) +
+            f"; safe forward {ev['mean_safe_forward_m']:.1f} m [{lo:.1f}, {hi:.1f}]"
+            f"; return {ev['mean_return']:.1f} [{rlo:.1f}, {rhi:.1f}]")
+
+
+EVAL_EPILOG = """examples:
+  lc-eval runs/hybrid-ppo/policy.safetensors --episodes 200 --seed 0 --json-out runs/hybrid-ppo/eval200.json
+  lc-eval rule --episodes 200 --out runs/rule-eval
+  lc-eval lookahead-blind:runs/hybrid-ppo/policy.safetensors --lookahead-follow runs/ppo-pure/policy.safetensors \\
+      --lookahead-horizon 32 --no-record     # Hybrid-PPO behind the planner, imagining 16 s with the pure policy
+
+Evaluation episode i uses the user seed 1000000000 + 100000 * SEED + i, disjoint from training seeds.
+Prints outcome rates (fractions) and means with 95% intervals; --json-out writes them as JSON; every
+episode is recorded to MCAP under --out (actions, reward components, predictions the policy saw).
+"""
+
+
+def heldout_driver(args: argparse.Namespace) -> tuple[Any, ScenarioConfig]:
+    """The driver and scenario named by :func:`add_heldout_arguments`' ``policy`` and ``--predictor``
+    (a built-in driver runs the paper scenario without the image). ``ValueError`` with a one-line message
+    for a checkpoint that is missing, unreadable or does not fit its predictor."""
+    from lcmodels.policy.evaluate import driver_for
+    from lcsim.config import paper_scenario
+
+    try:
+        driver, config = driver_for(args.policy, predictor=args.predictor, lookahead=lookahead_options(args),
+                                    follow=args.lookahead_follow, trust_pickle=args.trust_pickle)
+    except (ValueError, OSError) as exc:
+        raise ValueError(str(exc).splitlines()[0]) from exc
+    return driver, config or paper_scenario(render_image=False)
+
+
+def predictor_unused(policy: str, follow: str | None, predictor: Path) -> str:
+    """Why ``--predictor`` makes no sense for the policies named (none reads a prediction), or "" when one
+    does or a policy file cannot be read (loading it reports that)."""
+    from lcmodels.policy.checkpoint import read_meta
+    from lcmodels.policy.evaluate import policy_path_of
+    from lcmodels.policy.obs import OBS_MODES, needs_predictor
+    from lcsim.registry import DRIVER_NAMES
+
+    modes = []
+    for spec in (policy, follow):
+        if spec is None or spec in DRIVER_NAMES:
+            continue
+        try:
+            modes.append(str(read_meta(policy_path_of(spec)).get("obs_mode")))
+        except ValueError:
+            return ""
+    if any(needs_predictor(m) for m in modes if m in OBS_MODES):
+        return ""
+    what = f"observation mode {', '.join(modes)}" if modes else "a built-in driver"
+    return f"--predictor {predictor}: {policy} reads no prediction ({what}); drop --predictor"
+
+
+def add_heldout_arguments(p: argparse.ArgumentParser, episodes: int = 200) -> None:
+    """Who drives which held-out episodes: ``policy``, ``--episodes``, ``--seed``, ``--predictor``, ``--batch``
+    (lc-eval's arguments, shared by the tools that run the same episodes)."""
+    p.add_argument("policy", help="policy checkpoint (policy.safetensors), or a built-in driver: rule / lookahead / "
+                   "lookahead-blind / oracle (planners, upper references) / keep / random, or lookahead:POLICY / "
+                   "lookahead-blind:POLICY (the lookahead following a policy without image in its imagined futures; "
+                   "see --lookahead-follow)")
+    p.add_argument("--episodes", type=positive_int, default=episodes, help="episodes (default %(default)s)")
+    p.add_argument("--seed", type=int_at_least(0), default=0, help="evaluation seed (default %(default)s)")
+    p.add_argument("--predictor", type=Path, default=None,
+                   help="predictor checkpoint (default: the one the policy was trained with)")
+    p.add_argument("--batch", type=positive_int, default=20, help="episodes simulated together (default 20)")
+    add_lookahead_arguments(p)
+    p.add_argument("--lookahead-follow", metavar="DRIVER", default=None,
+                   help="with lookahead:POLICY / lookahead-blind:POLICY: the policy proposes each decision and the "
+                   "imagined futures follow DRIVER (a built-in driver or a policy.safetensors without image), which "
+                   "lets the lookahead guard a policy that reads the image (default: the policy itself)")
+    p.add_argument("--trust-pickle", action="store_true",
+                   help="accept legacy stable-baselines3 .zip policies; loading one runs code stored in it, so only "
+                   "for files from a source you trust")
+
+
+def eval_parser() -> argparse.ArgumentParser:
+    p = argparse.ArgumentParser(
+        prog="lc-eval",
+        description="Evaluate a trained policy (or a non-learning driver) on fixed held-out seeds.",
+        epilog=EVAL_EPILOG,
+        formatter_class=argparse.RawDescriptionHelpFormatter,
+    )
+    add_heldout_arguments(p)
+    p.add_argument("--scenario", default=None, metavar="{paper,light,tiny,FILE}",
+                   help="scenario for a built-in driver (default paper), or a scenario file (.toml/.json of "
+                   "ScenarioConfig fields); a policy uses its own")
+    p.add_argument("--out", type=Path, default=None,
+                   help="record every episode here (default: eval-<name>-s<seed> next to the checkpoint, "
+                   "or runs/eval-<driver> for a driver)")
+    p.add_argument("--no-record", action="store_true", help="do not record episodes")
+    p.add_argument("--overwrite", action="store_true", help="replace existing episode files")
+    p.add_argument("--json-out", type=Path, default=None, help="write the summary as JSON here")
+    p.add_argument("--threads", type=positive_int, default=2, help="torch threads (default 2)")
+    p.add_argument("-q", "--quiet", action="store_true", help="no progress lines")
+    return p
+
+
+def eval_main(argv: list[str] | None = None) -> int:
+    args = eval_parser().parse_args(argv)
+
+    error = functools.partial(fail, "lc-eval")
+
+    import numpy as np
+    import torch
+
+    from lcmodels.policy.evaluate import driver_for, evaluate, policy_path_of
+    from lcsim.planning import LookaheadDriver
+    from lcsim.registry import DRIVER_NAMES, scenario
+
+    is_driver = args.policy in DRIVER_NAMES
+    ckpt = policy_path_of(args.policy)
+    if not is_driver and not ckpt.is_file():
+        what = "is a directory" if ckpt.is_dir() else "does not exist"
+        return error(f"{args.policy} {what} (expected a policy.safetensors, or {' / '.join(DRIVER_NAMES)})")
+    if args.json_out is not None and args.json_out.exists() and not args.overwrite:
+        return error(f"{args.json_out} already exists; pass --overwrite or choose another --json-out")
+    if args.predictor is not None:
+        problem = predictor_unused(args.policy, args.lookahead_follow, args.predictor)
+        if problem:
+            return error(problem)
+    torch.set_num_threads(args.threads)
+    try:
+        driver, config = driver_for(args.policy, predictor=str(args.predictor) if args.predictor else None,
+                                    lookahead=lookahead_options(args), follow=args.lookahead_follow,
+                                    trust_pickle=args.trust_pickle)
+    except ValueError as exc:
+        return error(str(exc).splitlines()[0])
+    if config is None:
+        try:
+            config = scenario(args.scenario or "paper")
+        except ValueError as exc:
+            return error(str(exc))
+    elif args.scenario is not None:
+        return error("--scenario applies to built-in drivers; a policy is evaluated in its own scenario")
+    out = None
+    if not args.no_record:
+        if args.out is not None:
+            out = args.out
+        elif is_driver:
+            out = Path("runs") / f"eval-{args.policy}-s{args.seed}"
+        else:
+            out = ckpt.parent / f"eval-{ckpt.stem}-s{args.seed}"
+    train_seeds = None
+    if not is_driver:
+        seeds_file = ckpt.parent / "train_episode_seeds.npy"
+        train_seeds = np.load(seeds_file) if seeds_file.exists() else None
+    show = None if args.quiet else (lambda k, n: print(f"evaluating: {k}/{n} episodes", flush=True))
+    start = time.perf_counter()
+    try:
+        summary, results = evaluate(driver, config, episodes=args.episodes, seed=args.seed, out_dir=out,
+                                    batch=args.batch, overwrite=args.overwrite, train_seeds=train_seeds,
+                                    progress=show)  # fmt: skip
+    except (ValueError, OSError) as exc:
+        return error(str(exc).splitlines()[0])
+    summary["wall_s"] = round(time.perf_counter() - start, 1)
+    summary["decisions"] = sum(r.length for r in results)
+    if isinstance(driver, LookaheadDriver):  # a planner: how often it overrode the driver it checks
+        summary["planner_choices"], summary["planner_overrides"] = driver.choices, driver.overrides
+    print(format_eval(summary))
+    print(f"{summary['decisions']} decisions in {summary['wall_s']} s ({args.batch} episodes at a time, "
+          f"{args.threads} torch threads)")
+    if "planner_overrides" in summary:
+        print(f"the planner overrode {summary['planner_overrides']} of {summary['planner_choices']} decisions "
+              "with a choice")
+    if "overlap_with_training" in summary:
+        print(f"evaluation episodes also seen in training: {summary['overlap_with_training']}")
+    if out is not None:
+        print(f"recorded {args.episodes} episodes in {out}")
+    if args.json_out is not None:
+        args.json_out.parent.mkdir(parents=True, exist_ok=True)
+        args.json_out.write_text(json.dumps(summary, indent=2, sort_keys=True) + "\n")
+        print(f"wrote {args.json_out}")
+    return 0
+
+

@@ -1,0 +1,123 @@
+"""``lc-train-predictor``: build the trajectory corpus from recordings, train the transformer, report
+ADE/FDE next to the constant-velocity and constant-acceleration baselines."""
+
+from __future__ import annotations
+
+import argparse
+import functools
+import json
+import logging
+from pathlib import Path
+
+from lccli.common import fail, positive_int
+
+TRAIN_PREDICTOR_EPILOG = """examples:
+  lc-record --scenario corpus --episodes 24 --seed 100 --out runs/corpus --workers 2
+  lc-train-predictor --data runs/corpus --out runs/predictor-10-10
+  lc-train-predictor --data runs/corpus --history 20 --future 60 --stride 5 --out runs/predictor-20-60
+
+outputs (in --out): predictor.pt (weights, normalisation statistics, config; loads with
+torch.load(weights_only=True)), metrics.json (test-split ADE/FDE/curve/miss rate of the model,
+constant velocity and constant acceleration on the same windows, corpus statistics), tensorboard/.
+"""
+
+
+def train_predictor_parser() -> argparse.ArgumentParser:
+    p = argparse.ArgumentParser(
+        prog="lc-train-predictor",
+        description="Build the trajectory corpus from recorded MCAP episodes (split by episode), train the "
+        "transformer predictor with early stopping, and report test ADE/FDE next to the "
+        "constant-velocity and constant-acceleration baselines.",
+        epilog=TRAIN_PREDICTOR_EPILOG,
+        formatter_class=argparse.RawDescriptionHelpFormatter,
+    )
+    p.add_argument(
+        "--data", type=Path, required=True, help="directory of recorded .mcap episodes (at least 3)"
+    )
+    p.add_argument(
+        "--out", type=Path, default=Path("runs/predictor"), help="output directory (default runs/predictor)"
+    )
+    p.add_argument("--history", type=positive_int, default=10, help="history steps H at 20 Hz (default 10)")
+    p.add_argument("--future", type=positive_int, default=10, help="future steps F at 20 Hz (default 10)")
+    p.add_argument("--epochs", type=positive_int, default=20, help="maximum epochs (default 20)")
+    p.add_argument(
+        "--patience", type=int, default=4, help="epochs without improvement before stopping (default 4)"
+    )
+    p.add_argument(
+        "--stride", type=positive_int, default=1, help="steps between windows of a vehicle (default 1)"
+    )
+    p.add_argument("--batch-size", type=positive_int, default=512, help="windows per step (default 512)")
+    p.add_argument(
+        "--max-train-windows",
+        type=positive_int,
+        default=200_000,
+        help="deterministic subsample of training windows (default 200000)",
+    )
+    p.add_argument(
+        "--time-limit", type=float, default=None, help="stop after the epoch that passes this many seconds"
+    )
+    p.add_argument(
+        "--seed", type=int, default=0, help="seed for the split, initialisation and batches (default 0)"
+    )
+    p.add_argument("--threads", type=positive_int, default=2, help="torch threads (default 2)")
+    p.add_argument(
+        "--overwrite", action="store_true", help="replace an existing predictor.pt / metrics.json in --out"
+    )
+    p.add_argument("-q", "--quiet", action="store_true", help="no progress bar")
+    return p
+
+
+def train_predictor_main(argv: list[str] | None = None) -> int:
+    args = train_predictor_parser().parse_args(argv)
+
+    error = functools.partial(fail, "lc-train-predictor")
+
+    if not args.data.is_dir():
+        return error(f"--data {args.data} is not a directory")
+    from lcmodels.predictor.train import METRICS_NAME
+
+    existing = [p for p in (args.out / "predictor.pt", args.out / METRICS_NAME) if p.exists()]
+    if existing and not args.overwrite:
+        return error(f"{existing[0]} already exists; choose another --out or pass --overwrite")
+    if args.time_limit is not None and args.time_limit <= 0:
+        return error(f"--time-limit must be > 0, got {args.time_limit}")
+    logging.basicConfig(level=logging.WARNING if args.quiet else logging.INFO, format="%(message)s")
+
+    from lcdata.corpus import load_tracks
+    from lcmodels.predictor import PredictorConfig, TrainConfig, train_predictor
+
+    try:
+        config = TrainConfig(
+            model=PredictorConfig(history_steps=args.history, future_steps=args.future),
+            stride=args.stride,
+            batch_size=args.batch_size,
+            max_epochs=args.epochs,
+            patience=args.patience,
+            max_train_windows=args.max_train_windows,
+            seed=args.seed,
+            num_threads=args.threads,
+            time_limit_s=args.time_limit,
+            progress=not args.quiet,
+        )
+        tracks = load_tracks(args.data)
+        metrics = train_predictor(tracks, config, args.out)
+    except (ValueError, OSError) as exc:
+        return error(str(exc).splitlines()[0])
+    rows = [
+        ("model", metrics["model"]),
+        ("constant velocity", metrics["constant_velocity"]),
+        ("constant acceleration", metrics["constant_acceleration"]),
+    ]
+    print(
+        f"test split, {args.history}+{args.future} steps ({metrics['corpus'].get('windows', {}).get('test', '?')} windows):"
+    )
+    for name, m in rows:
+        print(f"  {name:22s} ADE {m['ade']:.4f} m   FDE {m['fde']:.4f} m   miss rate {m['miss_rate']:.4f}")
+    print(f"wrote {args.out / 'predictor.pt'} and {args.out / METRICS_NAME}")
+    if not args.quiet:
+        logging.getLogger(__name__).info("training: %s", json.dumps(metrics.get("training", {}))[:300])
+    return 0
+
+
+
+

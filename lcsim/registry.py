@@ -1,0 +1,97 @@
+"""The names a user gives: scenarios and drivers, one registry each, used by the gym ids and every command.
+
+Scenarios: :data:`SCENARIOS` (``paper``, ``light``, ``tiny``, ``corpus``); :func:`scenario` also takes the
+path of a scenario file, a TOML or JSON table of :class:`~lcsim.config.ScenarioConfig` fields (missing
+fields keep their defaults; a misspelt one is an error naming it)::
+
+    # my-scenario.toml
+    route_length_m = 400.0
+    [traffic]
+    num_vehicles = 60
+
+Drivers: :data:`DRIVER_NAMES` for :func:`make_driver`, and the policy specs (``policy:PATH``,
+``lookahead:PATH``, ``lookahead-blind:PATH``) that :mod:`lcmodels` builds.
+"""
+
+from __future__ import annotations
+
+import json
+import tomllib
+from collections.abc import Callable
+from pathlib import Path
+
+from lcsim.config import ScenarioConfig, corpus_scenario, light_scenario, paper_scenario, tiny_scenario
+from lcsim.drivers import Driver, KeepLaneDriver, RandomDriver, RuleBasedDriver
+from lcsim.planning import LookaheadConfig, LookaheadDriver, OracleDriver
+
+SCENARIOS: dict[str, Callable[[], ScenarioConfig]] = {
+    "paper": paper_scenario,
+    "light": light_scenario,
+    "tiny": tiny_scenario,
+    "corpus": corpus_scenario,
+}
+"""Every named scenario: the paper's task (100 vehicles, 600 m), a light one (30 vehicles, 300 m), a tiny one
+for tests (8 vehicles, 150 m), and the trajectory corpus (20 autopilot vehicles, 2000 steps, no image)."""
+TASK_SCENARIOS: tuple[str, ...] = ("paper", "light", "tiny")
+"""The named scenarios with the ego's lane-change task (the corpus scenario records traffic only)."""
+SCENARIO_FILE_SUFFIXES = (".toml", ".json")
+
+
+def scenario(name_or_file: str | Path) -> ScenarioConfig:
+    """The scenario of a registered name or of a scenario file (``.toml`` or ``.json``).
+
+    Raises:
+        ValueError: an unknown name, a missing or unreadable file, or a field the config refuses (named).
+    """
+    text = str(name_or_file)
+    if text in SCENARIOS:
+        return SCENARIOS[text]()
+    path = Path(text)
+    if path.suffix not in SCENARIO_FILE_SUFFIXES:
+        raise ValueError(f"unknown scenario {text!r}: choose {', '.join(SCENARIOS)} or a scenario file "
+                         f"({' / '.join(SCENARIO_FILE_SUFFIXES)})")
+    if not path.is_file():
+        raise ValueError(f"scenario file {path} does not exist")
+    try:
+        data = tomllib.loads(path.read_text()) if path.suffix == ".toml" else json.loads(path.read_text())
+    except (OSError, UnicodeDecodeError, ValueError) as exc:  # tomllib and json errors are ValueErrors
+        raise ValueError(f"scenario file {path} is not valid {path.suffix[1:].upper()}: {exc}") from None
+    try:
+        return ScenarioConfig.from_dict(data)
+    except ValueError as exc:
+        raise ValueError(f"scenario file {path}: {exc}") from None
+
+
+def scenario_label(name_or_file: str | Path) -> str:
+    """The name a scenario goes by in file names and metadata: its registry name, or a file's stem."""
+    text = str(name_or_file)
+    return text if text in SCENARIOS else Path(text).stem
+
+
+_FACTORIES: dict[str, Callable[[int], Driver]] = {
+    "rule": lambda seed: RuleBasedDriver(),
+    "lookahead": lambda seed: LookaheadDriver(),
+    "lookahead-blind": lambda seed: LookaheadDriver(LookaheadConfig(blind=True)),
+    "oracle": lambda seed: OracleDriver(),
+    "keep": lambda seed: KeepLaneDriver(),
+    "random": RandomDriver,
+}
+DRIVER_NAMES = tuple(_FACTORIES)
+"""Names :func:`make_driver` accepts."""
+POLICY_PREFIXES = ("policy:", "lookahead:", "lookahead-blind:")
+"""Prefixes of a driver spec that name a policy checkpoint: the policy itself, or the lookahead (blind or not)
+following it (built in lcmodels, which loads policies)."""
+
+
+def split_policy_spec(spec: str) -> tuple[str, str] | None:
+    """``(prefix, checkpoint path)`` of a spec with one of :data:`POLICY_PREFIXES` and a non-empty path, else None."""
+    prefix = next((p for p in POLICY_PREFIXES if spec.startswith(p) and len(spec) > len(p)), None)
+    return None if prefix is None else (prefix, spec.removeprefix(prefix))
+
+
+def make_driver(name: str, seed: int = 0) -> Driver:
+    """A driver by name (``autopilot`` is a simulator mode, not a policy); ``seed`` seeds ``random``."""
+    factory = _FACTORIES.get(name)
+    if factory is None:
+        raise ValueError(f"unknown driver {name!r}; choose {', '.join(DRIVER_NAMES)}")
+    return factory(seed)
