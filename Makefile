@@ -26,7 +26,7 @@ test: $(STAMP)
 	$(BIN)/python -m pytest -n 2 -q
 
 lint: $(STAMP)
-	$(BIN)/ruff check lcsim lcdata lcmodels tools tests
+	$(BIN)/ruff check lcsim lcdata lcmodels lccli tools tests experiments
 
 bench: $(STAMP)
 	$(BIN)/python tools/bench_sim.py

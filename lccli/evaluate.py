@@ -7,6 +7,7 @@ import argparse
 import functools
 import json
 import time
+from collections.abc import Callable
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
@@ -119,6 +120,25 @@ def eval_parser() -> argparse.ArgumentParser:
     p.add_argument("--json-out", type=Path, default=None, help="write the summary as JSON here")
     p.add_argument("--threads", type=positive_int, default=2, help="torch threads (default 2)")
     p.add_argument("-q", "--quiet", action="store_true", help="no progress lines")
+    why = p.add_argument_group("why it crashes (--breakdown)")
+    why.add_argument("--breakdown", action="store_true",
+                     help="also sort every collision at contact: trapped, missed_gap, late_change, short_gap, "
+                     "hit_from_behind (see lcmodels.analysis)")
+    why.add_argument("--window-s", type=float, default=5.0,
+                     help="how far back a side gap counts as missed (default 5)")
+    why.add_argument("--front-gap-m", type=float, default=12.0, help="a side gap's room ahead (default 12)")
+    why.add_argument("--rear-gap-m", type=float, default=5.0, help="a side gap's room behind (default 5)")
+    bound = p.add_argument_group("what the scenario allows (lc-eval oracle --bound)")
+    bound.add_argument("--bound", action="store_true",
+                       help="with the oracle: prove, episode by episode, whether it can be won at all (the search's "
+                       "winning decisions replayed from a fresh reset): the ceiling of any policy's success rate")
+    bound.add_argument("--memory", type=positive_int, default=8,
+                       help="decisions after which the ego's last lane change is forgotten when the search merges "
+                       "states (default 8; more merges less)")
+    bound.add_argument("--max-nodes", type=positive_int, default=200_000,
+                       help="give up on an episode after this many simulated decisions (default 200000)")
+    bound.add_argument("--only", type=int, nargs="+", metavar="I", help="only these episode indices (0-based)")
+    bound.add_argument("--workers", type=positive_int, default=2, help="processes searching at once (default 2)")
     return p
 
 
@@ -145,6 +165,10 @@ def eval_main(argv: list[str] | None = None) -> int:
         problem = predictor_unused(args.policy, args.lookahead_follow, args.predictor)
         if problem:
             return error(problem)
+    if args.bound:
+        return _bound_main(args, error)
+    if args.window_s <= 0:
+        return error(f"--window-s must be > 0, got {args.window_s}")
     torch.set_num_threads(args.threads)
     try:
         driver, config = driver_for(args.policy, predictor=str(args.predictor) if args.predictor else None,
@@ -173,12 +197,20 @@ def eval_main(argv: list[str] | None = None) -> int:
         train_seeds = np.load(seeds_file) if seeds_file.exists() else None
     show = None if args.quiet else (lambda k, n: print(f"evaluating: {k}/{n} episodes", flush=True))
     start = time.perf_counter()
+    hooks = []
+    if args.breakdown:
+        from lcmodels.analysis import CollisionBreakdown
+
+        hooks.append(CollisionBreakdown(window_s=args.window_s, front_gap_m=args.front_gap_m,
+                                        rear_gap_m=args.rear_gap_m))  # fmt: skip
     try:
         summary, results = evaluate(driver, config, episodes=args.episodes, seed=args.seed, out_dir=out,
                                     batch=args.batch, overwrite=args.overwrite, train_seeds=train_seeds,
-                                    progress=show)  # fmt: skip
+                                    progress=show, hooks=hooks)  # fmt: skip
     except (ValueError, OSError) as exc:
         return error(str(exc).splitlines()[0])
+    if hooks:
+        summary["collision_kinds"] = hooks[0].counts
     summary["wall_s"] = round(time.perf_counter() - start, 1)
     summary["decisions"] = sum(r.length for r in results)
     if isinstance(driver, LookaheadDriver):  # a planner: how often it overrode the driver it checks
@@ -191,6 +223,8 @@ def eval_main(argv: list[str] | None = None) -> int:
               "with a choice")
     if "overlap_with_training" in summary:
         print(f"evaluation episodes also seen in training: {summary['overlap_with_training']}")
+    if "collision_kinds" in summary:
+        print("collisions by kind: " + ", ".join(f"{k} {v}" for k, v in summary["collision_kinds"].items()))
     if out is not None:
         print(f"recorded {args.episodes} episodes in {out}")
     if args.json_out is not None:
@@ -200,3 +234,40 @@ def eval_main(argv: list[str] | None = None) -> int:
     return 0
 
 
+def _bound_main(args: argparse.Namespace, error: Callable[[str], int]) -> int:
+    """``lc-eval oracle --bound``: the share of the held-out episodes that can be won at all."""
+    from lcmodels.analysis import oracle_bound
+    from lcmodels.policy.evaluate import eval_user_seeds
+    from lcsim.registry import scenario
+
+    if args.policy != "oracle":
+        return error(f"--bound applies to the oracle (lc-eval oracle --bound), not to {args.policy}")
+    if args.out is not None or args.breakdown:
+        return error("--bound records no episodes and sorts no collisions; write its figures with --json-out")
+    try:
+        config = scenario(args.scenario or "paper")
+        users = eval_user_seeds(args.episodes, args.seed)
+    except ValueError as exc:
+        return error(str(exc))
+    show = None if args.quiet else (lambda k, n: print(f"\rsearching: {k}/{n} episodes", end="", flush=True))
+    try:
+        summary, rows = oracle_bound(config, users, indices=args.only, memory_decisions=args.memory,
+                                     max_nodes=args.max_nodes, workers=args.workers, progress=show)
+    except ValueError as exc:
+        return error(str(exc))
+    if show is not None:
+        print()
+    summary.update(scenario=args.scenario or "paper", eval_seed=args.seed)
+    won, n = summary["winnable"], summary["episodes"]
+    lo, hi = summary["winnable_rate_ci95"]
+    print(f"winnable: {won}/{n} = {100 * won / n:.1f}% [{100 * lo:.1f}, {100 * hi:.1f}] "
+          f"(every winning sequence replayed to success: {summary['replayed_success']}/{won})")
+    print(f"no winning sequence: episodes {summary['not_winnable_episodes'] or 'none'}; undecided (--max-nodes): "
+          f"{summary['undecided_episodes'] or 'none'}")
+    print(f"search: {summary['nodes_total']} decisions simulated, {summary['cpu_s_total']} s CPU, "
+          f"{summary['wall_s']} s wall on {args.workers} workers")
+    if args.json_out is not None:
+        args.json_out.parent.mkdir(parents=True, exist_ok=True)
+        args.json_out.write_text(json.dumps({"summary": summary, "episodes": rows}, indent=1) + "\n")
+        print(f"wrote {args.json_out}")
+    return 0 if summary["replayed_success"] == won else 1

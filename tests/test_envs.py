@@ -30,8 +30,12 @@ def test_step_info_and_spaces():
     assert set(info["reward_components"]) == {"collision", "off_road", "forward", "success"}
     assert reward == pytest.approx(sum(info["reward_components"].values()))
     assert info["reward_components"]["forward"] > 0
-    frame = env.unwrapped.render() if env.unwrapped.render_mode else None
-    assert frame is None
+    assert env.unwrapped.render() is None  # no render mode asked: nothing drawn
+    viewer = gym.make("lcsim/LaneChangeLight-v0", render_mode="rgb_array")
+    viewer.reset(seed=1)
+    frame = viewer.render()
+    assert frame.shape == (480, 480, 3) and frame.dtype == np.uint8
+    assert len(np.unique(frame.reshape(-1, 3), axis=0)) >= 4  # road, markings, vehicles, ego: not blank
     with pytest.raises(ValueError, match="action"):
         env.step(3)
     with pytest.raises(ValueError, match="action"):  # not truncated to 1

@@ -90,19 +90,3 @@ def test_search_rejects_bad_settings():
         search_episode(BUSY, 0, memory_decisions=0)
     with pytest.raises(ValueError, match="max_nodes"):
         search_episode(BUSY, 0, max_nodes=0)
-
-
-def test_oracle_bound_tool_reports_the_winnable_share_and_refuses_to_overwrite(tmp_path, capsys):
-    import json
-
-    from tools.oracle_bound import main
-
-    out = tmp_path / "bound.json"
-    assert main(["--scenario", "tiny", "--episodes", "2", "--workers", "1", "--json", "--out", str(out)]) == 0
-    summary = json.loads(capsys.readouterr().out)
-    assert summary["episodes"] == 2 and summary["winnable"] + len(summary["not_winnable_episodes"]) == 2
-    assert summary["replayed_success"] == summary["winnable"]
-    rows = json.loads(out.read_text())["episodes"]
-    assert [r["episode"] for r in rows] == [0, 1] and all(r["nodes"] > 0 for r in rows)
-    assert main(["--scenario", "tiny", "--episodes", "2", "--out", str(out)]) == 2
-    assert "already exists" in capsys.readouterr().err

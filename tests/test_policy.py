@@ -21,16 +21,16 @@ from lcmodels.policy import (
     CompactVGG,
     HybridExtractor,
     PolicyConfig,
-    PolicyVecEnv,
     bc_loss,
     load_demonstrations,
     load_policy,
+    policy_vec_env,
     pretrain,
     read_meta,
     train_policy,
 )
 from lcmodels.policy.evaluate import PolicyDriver, driver_for, evaluate, wilson_interval
-from lcmodels.policy.obs import OBS_MODES, policy_observation_space, scenario_for_mode
+from lcmodels.policy.obs import OBS_MODES, episode_stats, policy_observation_space, scenario_for_mode
 from lcmodels.policy.train import build_model, default_learning_rate
 from lcmodels.policy.warmstart import Demonstrations
 from lcmodels.predictor import Predictor, PredictorConfig, TrajectoryTransformer
@@ -207,7 +207,7 @@ def test_runs_stored_before_contact_features_read_as_without_them() -> None:
     assert stored["contact_features"] is True
     del stored["contact_features"]
     assert PolicyConfig.from_dict(stored).contact_features is False
-    env = PolicyVecEnv(LaneChangeSB3VecEnv(2, scenario_for_mode(tiny_scenario(), "pure")), "pure")
+    env = policy_vec_env(LaneChangeSB3VecEnv(2, scenario_for_mode(tiny_scenario(), "pure")), "pure")
     inputs = {flag: build_model(_tiny(obs="pure", contact_features=flag), env).policy.features_extractor
               .branches["current"].net[-4].in_features for flag in (False, True)}  # fmt: skip
     assert inputs == {False: 9 * 9, True: 9 * 9 + 3 * 8}
@@ -227,7 +227,7 @@ def test_prediction_wrapper_equals_the_predictor(predictor_path: Path) -> None:
     config = tiny_scenario()
     pred = Predictor.load(predictor_path)
     base = LaneChangeSB3VecEnv(3, scenario_for_mode(config, "hybrid"))
-    env = PolicyVecEnv(base, "hybrid", pred)
+    env = policy_vec_env(base, "hybrid", pred)
     env.seed(5)
     obs = env.reset()
     assert set(obs) == {"current", "image", "prediction"} and obs["prediction"].shape == (3, 8, 10, 2)
@@ -245,7 +245,7 @@ def test_collision_weight_scales_only_the_learners_collision_reward() -> None:
     """Two wrappers on the same seeds and actions: the learner's rewards differ by (w - 1) times the
     collision component, the logged returns not at all."""
     config = scenario_for_mode(tiny_scenario(), "pure")
-    envs = [PolicyVecEnv(LaneChangeSB3VecEnv(4, config), "pure", reward_scale=0.01, collision_weight=w)
+    envs = [policy_vec_env(LaneChangeSB3VecEnv(4, config), "pure", reward_scale=0.01, collision_weight=w)
             for w in (1.0, 4.0)]
     raw = LaneChangeSB3VecEnv(4, config)  # what the environment itself pays
     for env in (*envs, raw):
@@ -253,16 +253,19 @@ def test_collision_weight_scales_only_the_learners_collision_reward() -> None:
         env.reset()
     rng = np.random.default_rng(0)
     crashes = 0
+    finished: list[list] = [[], []]
     for _ in range(120):
         actions = rng.choice([0, 2], 4)  # changing lanes all the time: collisions come soon
-        (_, r1, d1, i1), (_, r4, d4, _) = (env.step(actions) for env in envs)
+        (_, r1, d1, i1), (_, r4, d4, i4) = (env.step(actions) for env in envs)
+        for got, infos in zip(finished, (i1, i4), strict=True):
+            got += [e for e in map(episode_stats, infos) if e is not None]
         assert np.array_equal(d1, d4)
         assert np.array_equal(r1, raw.step(actions)[1] * np.float32(0.01))  # weight 1: exactly the scaled reward
         col = np.array([info["reward_components"]["collision"] for info in i1])
         crashes += int((col < 0).sum())
         np.testing.assert_allclose(r4, r1 + 0.01 * 3.0 * col, rtol=1e-5, atol=1e-5)
     assert crashes > 0
-    assert [e.ret for e in envs[0].finished] == [e.ret for e in envs[1].finished]
+    assert finished[0] and [e.ret for e in finished[0]] == [e.ret for e in finished[1]]
     with pytest.raises(ValueError, match="collision_weight"):
         _tiny(collision_weight=0.0)
 
@@ -281,10 +284,10 @@ def test_demonstration_returns_carry_the_collision_weight(tmp_path: Path) -> Non
 
 
 def test_pure_mode_drops_the_image_and_skips_rendering() -> None:
-    env = PolicyVecEnv(LaneChangeSB3VecEnv(2, scenario_for_mode(tiny_scenario(), "pure")), "pure")
+    env = policy_vec_env(LaneChangeSB3VecEnv(2, scenario_for_mode(tiny_scenario(), "pure")), "pure")
     assert set(env.reset()) == {"current"}
     with pytest.raises(ValueError, match="predictor"):
-        PolicyVecEnv(LaneChangeSB3VecEnv(2, tiny_scenario()), "prediction")
+        policy_vec_env(LaneChangeSB3VecEnv(2, tiny_scenario()), "prediction")
 
 
 @pytest.mark.parametrize(("algo", "mode"), [("ppo", "pure"), ("ppo", "image"), ("ppo", "prediction"),
@@ -371,7 +374,7 @@ def test_warm_start_lowers_the_behaviour_cloning_loss(tmp_path: Path) -> None:
     record_episodes(config, [1, 2, 3], "rule", tmp_path / "demos", scenario="tiny")
     demos = load_demonstrations(tmp_path / "demos", "image", None, scenario=config)
     assert len(demos) > 20 and demos.obs["image"].shape[1:] == (3, 120, 120)
-    env = PolicyVecEnv(LaneChangeSB3VecEnv(2, config), "image")
+    env = policy_vec_env(LaneChangeSB3VecEnv(2, config), "image")
     model = build_model(_tiny(obs="image"), env)
     before = bc_loss(model, demos)
     losses = pretrain(model, demos, epochs=4, batch_size=32)
@@ -386,7 +389,7 @@ def test_sample_weights_decide_between_conflicting_labels(heavier: int) -> None:
     states = np.stack([space["current"].sample() for _ in range(8)] * 2)
     labels = np.array([0] * 8 + [2] * 8)
     weights = np.where(labels == heavier, 9.0, 1.0)
-    env = PolicyVecEnv(LaneChangeSB3VecEnv(2, scenario_for_mode(tiny_scenario(), "pure")), "pure")
+    env = policy_vec_env(LaneChangeSB3VecEnv(2, scenario_for_mode(tiny_scenario(), "pure")), "pure")
     model = build_model(_tiny(obs="pure"), env)
     pretrain(model, Demonstrations({"current": states}, labels, np.zeros(16, np.float32), 0, weights),
              epochs=60, batch_size=16, value_coef=0.0)  # fmt: skip
@@ -526,7 +529,7 @@ def test_policy_obs_env_passes_sb3_check_on_single_view(predictor_path: Path) ->
     env = LaneChangeEnv(tiny_scenario())
     check_env(env, warn=False)
     space = policy_observation_space(tiny_scenario(), "hybrid")
-    penv = PolicyVecEnv(LaneChangeSB3VecEnv(1, tiny_scenario()), "hybrid", Predictor.load(predictor_path))
+    penv = policy_vec_env(LaneChangeSB3VecEnv(1, tiny_scenario()), "hybrid", Predictor.load(predictor_path))
     obs = penv.reset()
     for k, s in space.spaces.items():
         assert s.contains(obs[k][0]), k
@@ -748,9 +751,9 @@ def test_frozen_image_branch_trains_faster_form_and_saves_a_plain_policy(tmp_pat
     base = LaneChangeSB3VecEnv(3, plain.scenario)
     base.seed(5)
     raw = base.reset()
-    obs = PolicyVecEnv(base, "hybrid", plain.predictor)._convert(raw)
-    wrapper = PolicyVecEnv(base, "hybrid", plain.predictor, image_encoder=ImageEncoder(net, 10))
-    feats = wrapper._convert(raw)
+    obs = policy_vec_env(base, "hybrid", plain.predictor).convert(raw)
+    wrapper = policy_vec_env(base, "hybrid", plain.predictor, image_encoder=ImageEncoder(net, 10))
+    feats = wrapper.convert(raw)
     assert set(feats) == set(wrapper.observation_space.spaces) == {"current", IMAGE_FEATURES, "prediction"}
     assert feats[IMAGE_FEATURES].shape == (3, 10) and feats[IMAGE_FEATURES].any()
 

@@ -93,6 +93,14 @@ def test_policy_file_is_safetensors_with_its_card_and_loads_to_the_same_actions(
         assert torch.equal(v, again.model.policy.state_dict()[k])
 
 
+def test_the_same_training_writes_the_same_policy_bytes(run_dir: Path, tmp_path: Path) -> None:
+    """No time, no unordered map in the file: the same run gives the same SHA-256, checkable by anyone."""
+    again = tmp_path / "again"
+    train_policy(_tiny(), again)
+    assert (again / "policy.safetensors").read_bytes() == (run_dir / "policy.safetensors").read_bytes()
+    assert read_meta(run_dir / "policy.safetensors")["tensor_aliases"]  # PPO's shared extractor, stored once
+
+
 def test_a_crafted_policy_zip_is_refused_and_its_code_never_runs(run_dir: Path, tmp_path: Path,
                                                                  capsys: pytest.CaptureFixture[str]) -> None:
     marker = tmp_path / "marker.txt"

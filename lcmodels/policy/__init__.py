@@ -3,7 +3,7 @@
 Public API::
 
     HybridExtractor, CompactVGG, VGG16                      # extractor.py
-    OBS_MODES, PolicyVecEnv, build_observation              # obs.py
+    OBS_MODES, ObsMode, policy_vec_env, build_observation   # obs.py
     PolicyConfig, train_policy                              # train.py
     load_demonstrations, pretrain, bc_loss                  # warmstart.py
     evaluate, PolicyDriver, eval_user_seeds                 # evaluate.py
@@ -13,7 +13,7 @@ Public API::
 from lcmodels.policy.checkpoint import load_policy, read_meta, save_policy
 from lcmodels.policy.evaluate import PolicyDriver, eval_user_seeds, evaluate
 from lcmodels.policy.extractor import VGG16, CompactVGG, HybridExtractor
-from lcmodels.policy.obs import OBS_MODES, PolicyVecEnv, build_observation
+from lcmodels.policy.obs import OBS_MODES, ObsMode, build_observation, policy_vec_env
 from lcmodels.policy.train import PolicyConfig, train_policy
 from lcmodels.policy.warmstart import bc_loss, load_demonstrations, pretrain
 
@@ -22,15 +22,16 @@ __all__ = [
     "VGG16",
     "CompactVGG",
     "HybridExtractor",
+    "ObsMode",
     "PolicyConfig",
     "PolicyDriver",
-    "PolicyVecEnv",
     "bc_loss",
     "build_observation",
     "eval_user_seeds",
     "evaluate",
     "load_demonstrations",
     "load_policy",
+    "policy_vec_env",
     "pretrain",
     "read_meta",
     "save_policy",

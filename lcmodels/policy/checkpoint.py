@@ -27,8 +27,9 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
+import torch
 from safetensors import SafetensorError, safe_open
-from safetensors.torch import load_model, save_model
+from safetensors.torch import load_file, save_file
 from stable_baselines3.common.base_class import BaseAlgorithm
 
 from lcmodels.fileio import file_sha256, write_json
@@ -57,13 +58,35 @@ def save_policy(model: BaseAlgorithm, path: str | os.PathLike[str], meta: dict[s
     (``.partial`` then rename), and the card's copy beside it. Returns ``path``."""
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
-    card = {**{k: v for k, v in meta.items() if k not in ("format", "version", "legacy_pickle")},
+    card = {**{k: v for k, v in meta.items() if k not in ("format", "version", "legacy_pickle", "tensor_aliases")},
             "format": META_FORMAT, "version": META_VERSION}
+    tensors, aliases = _unique_tensors(model.policy.state_dict())
+    if aliases:
+        card["tensor_aliases"] = aliases
     tmp = path.with_name(path.name + ".partial")
-    save_model(model.policy, str(tmp), metadata={CARD_KEY: json.dumps(card, sort_keys=True)})
+    # One metadata entry: safetensors writes the metadata map in no fixed order, so one key keeps the bytes
+    # of the same policy the same.
+    save_file(tensors, str(tmp), metadata={CARD_KEY: json.dumps(card, sort_keys=True)})
     tmp.replace(path)
     write_json(card_path(path), card)
     return path
+
+
+def _unique_tensors(state: dict[str, torch.Tensor]) -> tuple[dict[str, torch.Tensor], dict[str, str]]:
+    """The state dict with every tensor stored once (modules a policy shares, like its features extractor,
+    appear under several names), and the other names of each: ``{alias: name kept}``, sorted."""
+    kept: dict[tuple[int, int, tuple[int, ...], tuple[int, ...], torch.dtype], str] = {}
+    tensors: dict[str, torch.Tensor] = {}
+    aliases: dict[str, str] = {}
+    for name in sorted(state):
+        t = state[name].detach().cpu()
+        key = (t.untyped_storage().data_ptr(), t.storage_offset(), tuple(t.shape), tuple(t.stride()), t.dtype)
+        if key in kept:
+            aliases[name] = kept[key]
+        else:
+            kept[key] = name
+            tensors[name] = t.contiguous()
+    return tensors, aliases
 
 
 def read_meta(path: str | os.PathLike[str]) -> dict[str, Any]:
@@ -195,8 +218,11 @@ def load_weights(model: BaseAlgorithm, path: str | os.PathLike[str], device: str
     """Fill ``model``'s policy network with the tensors of the policy file ``path`` (no code runs);
     ``ValueError`` when they do not fit the network exactly."""
     try:
-        load_model(model.policy, str(path), strict=True, device=device)
-    except (RuntimeError, SafetensorError, OSError) as exc:
+        state = load_file(str(path), device=device)
+        for alias, name in (read_meta(path).get("tensor_aliases") or {}).items():
+            state[alias] = state[name]
+        model.policy.load_state_dict(state, strict=True)
+    except (RuntimeError, SafetensorError, OSError, KeyError) as exc:
         detail = " ".join(str(exc).split())[:200]
         raise ValueError(f"{path}: its tensors do not fit the network its card describes: {detail}") from None
 

@@ -12,7 +12,7 @@ from pathlib import Path
 from typing import Any, ClassVar
 
 from lcmodels.policy.extractor import IMAGE_NETS
-from lcmodels.policy.obs import OBS_MODES, mode_keys, scenario_for_mode
+from lcmodels.policy.obs import OBS_MODES, ObsMode, scenario_for_mode
 from lcsim.config import (
     NEIGHBOUR_SELECTIONS,
     JsonConfig,
@@ -132,7 +132,7 @@ class PolicyConfig(JsonConfig):
                self.init_policy)  # fmt: skip
         check_field(not self.freeze_image or bool(self.init_policy), self, "freeze_image",
                "needs init_policy (a policy whose image branch is trained already)", self.freeze_image)
-        check_field(not self.freeze_image or "image" in mode_keys(self.obs), self, "freeze_image",
+        check_field(not self.freeze_image or ObsMode.of(self.obs).reads_image, self, "freeze_image",
                f"needs an observation mode with the image (image, hybrid), not {self.obs!r}", self.freeze_image)
         check_field(self.timesteps > 0 or bool(self.warm_start), self, "timesteps",
                "must be > 0 without a warm start (0 with one: behaviour cloning only)", self.timesteps)  # fmt: skip

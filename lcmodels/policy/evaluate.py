@@ -24,11 +24,11 @@ import numpy as np
 
 from lcdata.record import RecordingHook, episode_filename, episode_metadata
 from lcmodels.policy.checkpoint import LoadedPolicy
-from lcmodels.policy.obs import EpisodeStats, build_observation, mode_keys, scenario_for_mode
+from lcmodels.policy.obs import EpisodeStats, ObsMode, build_observation, scenario_for_mode
 from lcsim.config import ScenarioConfig
 from lcsim.core import OUTCOMES, LaneChangeCore
 from lcsim.drivers import Driver
-from lcsim.episodes import run_episodes
+from lcsim.episodes import EpisodeHook, run_episodes
 from lcsim.registry import split_policy_spec
 
 EVAL_SEED_BASE = 1_000_000_000
@@ -120,6 +120,7 @@ def evaluate(
     images: bool = True,
     train_seeds: np.ndarray | None = None,
     progress: Callable[[int, int], None] | None = None,
+    hooks: Sequence[EpisodeHook] = (),
 ) -> tuple[dict[str, Any], list[EpisodeStats]]:
     """Run ``episodes`` held-out episodes with ``driver`` and summarise them.
 
@@ -131,6 +132,7 @@ def evaluate(
         batch: episodes simulated together.
         train_seeds: simulator seeds seen in training, for the overlap check.
         progress: called with (done, total) after each batch.
+        hooks: more watchers of the episodes (:class:`lcsim.episodes.EpisodeHook`, e.g. an analysis).
 
     Returns:
         ``(summary, per-episode statistics)``; the summary has the keys of
@@ -146,7 +148,7 @@ def evaluate(
             if existing:
                 raise FileExistsError(f"{existing[0]} exists ({len(existing)} evaluation files); use --overwrite "
                                       "or another output directory")  # fmt: skip
-    hooks = []
+    hooks = list(hooks)
     if out_path is not None:
         hooks.append(RecordingHook(
             lambda u: out_path / episode_filename(scenario, name, u),
@@ -203,7 +205,7 @@ def driver_for(spec: str, *, predictor: str | None = None, device: str = "cpu",
             if follow is not None:
                 driver = LookaheadDriver(planner, rule=_follower(follow, config, predictor, device, trust_pickle),
                                          proposer=driver)
-            elif "image" in mode_keys(policy.obs_mode):
+            elif ObsMode.of(policy.obs_mode).reads_image:
                 raise ValueError(f"{path}: a lookahead cannot follow a policy that reads the image (mode "
                                  f"{policy.obs_mode}): its imagined futures are not rendered; name a driver "
                                  "for them to follow (--lookahead-follow)")
@@ -232,7 +234,7 @@ def _follower(spec: str, scenario: ScenarioConfig, predictor: str | None, device
         policy = load_policy(path, predictor=predictor, scenario=scenario, device=device, trust_pickle=trust_pickle)
     except ValueError as exc:
         raise ValueError(f"driver to follow: {exc}") from exc
-    if "image" in mode_keys(policy.obs_mode):
+    if ObsMode.of(policy.obs_mode).reads_image:
         raise ValueError(f"driver to follow: {path} reads the image (mode {policy.obs_mode}), which the "
                          "imagined futures do not render")
     return PolicyDriver(policy)

@@ -1,4 +1,4 @@
-"""Observation modes of the ablation (Table IV) and the vector-env wrapper that builds them.
+"""Observation modes of the ablation (Table IV) and the vector-env wrappers a policy trains in.
 
 =============  =====================================  ==========================
 mode           keys the policy sees                   the paper's row
@@ -11,20 +11,23 @@ mode           keys the policy sees                   the paper's row
 
 ``prediction`` is ``(K, F, 2)``: the trained predictor's positions of the K neighbour slots F steps
 ahead, in the ego frame, from the ``history`` the simulator observes (zeros for absent neighbours).
-:class:`PolicyVecEnv` computes it once per step for all environments and neighbours in one batched call,
-drops the keys the mode does not use, and keeps per-episode statistics (outcome, return, forward
-distance) for logging.
+
+:func:`policy_vec_env` composes small wrappers, each with one job, over the simulator's SB3 vector env:
+:class:`EpisodeInfoVecEnv` + SB3's ``VecMonitor`` (episode statistics in ``info["episode"]``: return,
+length, outcome, distance, seed), :class:`RewardShapingVecEnv` (the learner's pay) and
+:class:`ObservationModeVecEnv` (the mode's keys, the predictor's batched prediction of all environments'
+neighbours in one call, a frozen image branch's features in place of the image).
 """
 
 from __future__ import annotations
 
 import dataclasses
-import time
+from enum import StrEnum
 from typing import Any
 
 import numpy as np
 from gymnasium import spaces
-from stable_baselines3.common.vec_env import VecEnv, VecEnvWrapper
+from stable_baselines3.common.vec_env import VecEnv, VecEnvWrapper, VecMonitor
 
 from lcmodels.policy.extractor import IMAGE_FEATURES, ImageEncoder
 from lcmodels.predictor.inference import Predictor
@@ -32,29 +35,58 @@ from lcsim.config import ScenarioConfig
 from lcsim.core import COLLISION, OFF_ROAD, OUTCOMES
 from lcsim.envs import observation_space
 
-OBS_MODES: tuple[str, ...] = ("pure", "image", "prediction", "hybrid")
+
+class ObsMode(StrEnum):
+    """An observation mode of the ablation: which keys the policy sees (a ``str``, so configs store it as one)."""
+
+    PURE = "pure"
+    IMAGE = "image"
+    PREDICTION = "prediction"
+    HYBRID = "hybrid"
+
+    @classmethod
+    def of(cls, mode: str) -> ObsMode:
+        """The mode named ``mode``; ``ValueError`` listing the modes for an unknown one."""
+        try:
+            return cls(mode)
+        except ValueError:
+            raise ValueError(f"unknown observation mode {mode!r}; choose one of {', '.join(OBS_MODES)}") from None
+
+    @property
+    def keys(self) -> tuple[str, ...]:
+        """The observation keys the policy sees."""
+        return _KEYS[self]
+
+    @property
+    def reads_image(self) -> bool:
+        return "image" in _KEYS[self]
+
+    @property
+    def needs_predictor(self) -> bool:
+        return "prediction" in _KEYS[self]
+
+
 _KEYS = {
-    "pure": ("current",),
-    "image": ("current", "image"),
-    "prediction": ("current", "prediction"),
-    "hybrid": ("current", "image", "prediction"),
+    ObsMode.PURE: ("current",),
+    ObsMode.IMAGE: ("current", "image"),
+    ObsMode.PREDICTION: ("current", "prediction"),
+    ObsMode.HYBRID: ("current", "image", "prediction"),
 }
+OBS_MODES: tuple[str, ...] = tuple(m.value for m in ObsMode)
 
 
 def mode_keys(mode: str) -> tuple[str, ...]:
     """The observation keys of ``mode``; ``ValueError`` for an unknown mode."""
-    if mode not in _KEYS:
-        raise ValueError(f"unknown observation mode {mode!r}; choose one of {', '.join(OBS_MODES)}")
-    return _KEYS[mode]
+    return ObsMode.of(mode).keys
 
 
 def needs_predictor(mode: str) -> bool:
-    return "prediction" in mode_keys(mode)
+    return ObsMode.of(mode).needs_predictor
 
 
 def scenario_for_mode(config: ScenarioConfig, mode: str) -> ScenarioConfig:
     """``config`` with the bird's-eye image rendered only when the mode uses it (rendering costs time)."""
-    return dataclasses.replace(config, render_image="image" in mode_keys(mode))
+    return dataclasses.replace(config, render_image=ObsMode.of(mode).reads_image)
 
 
 def policy_observation_space(config: ScenarioConfig, mode: str, future_steps: int = 10,
@@ -120,99 +152,142 @@ class EpisodeStats:
         return cls(outcome, ret, length, fwd, 0.0 if outcome in (COLLISION, OFF_ROAD) else fwd, seed)
 
 
-class PolicyVecEnv(VecEnvWrapper):
-    """Observation mode, batched prediction and episode statistics on top of a SB3 vector env.
+class EpisodeInfoVecEnv(VecEnvWrapper):
+    """Puts in the info of each finished episode what :class:`~stable_baselines3.common.vec_env.VecMonitor`
+    does not sum itself: the distance travelled (``forward_m``, from the reward's go-forward component) and
+    the episode's simulator seed (``episode_seed``); keeps the seed of every episode started
+    (:attr:`episode_seeds`, what the held-out check compares against)."""
 
-    Args:
-        venv: :class:`lcsim.sb3.LaneChangeSB3VecEnv` (or a wrapper of it).
-        mode: one of :data:`OBS_MODES`.
-        predictor: required by ``prediction`` and ``hybrid``.
-        reward_scale: rewards handed to the learner are multiplied by this; statistics stay unscaled.
-        image_encoder: a frozen image branch; when given, the policy sees its output (key
-            ``image_features``) in place of the image (``image`` and ``hybrid`` modes).
-        collision_weight: the collision component of the learner's reward is multiplied by this (training
-            shaping; statistics and the environment's reward stay as they are).
-    """
+    def __init__(self, venv: VecEnv) -> None:
+        super().__init__(venv)
+        base: Any = venv
+        while not hasattr(base, "core") and hasattr(base, "venv"):
+            base = base.venv
+        self.core = base.core
+        self.forward_per_m = base.config.reward.forward_per_m
+        self._fwd = np.zeros(self.num_envs)
+        self._seed = np.zeros(self.num_envs, dtype=np.int64)
+        self.episode_seeds: list[int] = []
+
+    def reset(self) -> Any:
+        obs = self.venv.reset()
+        self._fwd[:] = 0.0
+        self._seed[:] = self.core.seeds
+        self.episode_seeds.extend(int(s) for s in self.core.seeds)
+        return obs
+
+    def step_wait(self) -> Any:
+        obs, reward, dones, infos = self.venv.step_wait()
+        for i, info in enumerate(infos):
+            self._fwd[i] += info["reward_components"]["forward"]
+        for i in np.flatnonzero(dones):
+            infos[i]["forward_m"] = float(self._fwd[i]) / self.forward_per_m if self.forward_per_m else 0.0
+            infos[i]["episode_seed"] = int(self._seed[i])
+            self._fwd[i] = 0.0
+            self._seed[i] = self.core.seeds[i]
+            self.episode_seeds.append(int(self.core.seeds[i]))
+        return obs, reward, dones, infos
+
+
+EPISODE_INFO_KEYS = ("outcome", "forward_m", "episode_seed")
+"""What :class:`VecMonitor` copies into ``info["episode"]`` next to its return ``r`` and length ``l``."""
+
+
+def monitored(venv: VecEnv) -> VecMonitor:
+    """``venv`` with episode statistics: SB3's :class:`VecMonitor` over :class:`EpisodeInfoVecEnv`."""
+    return VecMonitor(EpisodeInfoVecEnv(venv), info_keywords=EPISODE_INFO_KEYS)
+
+
+def episode_stats(info: dict[str, Any]) -> EpisodeStats | None:
+    """The statistics of the episode an info reports finished (``info["episode"]`` of :func:`monitored`)."""
+    ep = info.get("episode")
+    if ep is None:
+        return None
+    outcome, fwd = str(ep["outcome"]), float(ep["forward_m"])
+    return EpisodeStats(outcome, float(ep["r"]), int(ep["l"]), fwd, 0.0 if outcome in (COLLISION, OFF_ROAD) else fwd,
+                        int(ep["episode_seed"]))
+
+
+class RewardShapingVecEnv(VecEnvWrapper):
+    """The learner's pay: the collision component weighted by ``collision_weight``, all scaled by
+    ``reward_scale`` (training shaping; the environment's reward, and so the statistics below, stay)."""
+
+    def __init__(self, venv: VecEnv, *, reward_scale: float = 1.0, collision_weight: float = 1.0) -> None:
+        super().__init__(venv)
+        self.reward_scale, self.collision_weight = float(reward_scale), float(collision_weight)
+
+    def reset(self) -> Any:
+        return self.venv.reset()
+
+    def step_wait(self) -> Any:
+        obs, reward, dones, infos = self.venv.step_wait()
+        collision = np.array([info["reward_components"]["collision"] for info in infos],
+                             dtype=reward.dtype)  # (in the reward's dtype: weight 1 pays it exactly)
+        learner = reward + (self.collision_weight - 1.0) * collision
+        return obs, (learner * self.reward_scale).astype(np.float32), dones, infos
+
+
+class ObservationModeVecEnv(VecEnvWrapper):
+    """The policy's observation of a mode: the keys it sees, the predictor's batched prediction of the
+    neighbours, and, with a frozen ``image_encoder``, its features in place of the image (key
+    ``image_features``). Terminal observations are converted too."""
 
     def __init__(self, venv: VecEnv, mode: str, predictor: Predictor | None = None,
-                 reward_scale: float = 1.0, image_encoder: ImageEncoder | None = None,
-                 collision_weight: float = 1.0) -> None:
-        self.mode = mode
-        if needs_predictor(mode) and predictor is None:
+                 image_encoder: ImageEncoder | None = None) -> None:
+        self.mode = ObsMode.of(mode)
+        if self.mode.needs_predictor and predictor is None:
             raise ValueError(f"observation mode {mode!r} needs a trained predictor (--predictor)")
-        if image_encoder is not None and "image" not in mode_keys(mode):
+        if image_encoder is not None and not self.mode.reads_image:
             raise ValueError(f"observation mode {mode!r} has no image to encode")
-        self.predictor = predictor if needs_predictor(mode) else None
+        self.predictor = predictor if self.mode.needs_predictor else None
         self.image_encoder = image_encoder
         base: Any = venv
-        while not hasattr(base, "venv") or not hasattr(base.venv, "core"):
+        while not hasattr(base, "config") and hasattr(base, "venv"):
             base = base.venv
-        self.core = base.venv.core
-        config: ScenarioConfig = base.venv.config
         future = predictor.future_steps if self.predictor is not None else 10
         features = image_encoder.out_features if image_encoder is not None else None
-        super().__init__(venv, observation_space=policy_observation_space(config, mode, future, features))
-        self.reward_scale = float(reward_scale)
-        self.collision_weight = float(collision_weight)
-        self.forward_per_m = config.reward.forward_per_m
-        n = self.num_envs
-        self._ret = np.zeros(n)
-        self._len = np.zeros(n, dtype=np.int64)
-        self._fwd = np.zeros(n)
-        self._seed = np.zeros(n, dtype=np.int64)
-        self._t0 = time.perf_counter()
-        self.finished: list[EpisodeStats] = []
-        """Every episode finished since the last :meth:`pop_finished`."""
-        self.episode_seeds: list[int] = []
-        """Simulator seeds of every episode started (what the held-out check compares against)."""
+        super().__init__(venv, observation_space=policy_observation_space(base.config, mode, future, features))
 
-    def _convert(self, obs: dict[str, np.ndarray]) -> dict[str, np.ndarray]:
+    def convert(self, obs: dict[str, np.ndarray]) -> dict[str, np.ndarray]:
+        """The policy observation of a batched simulator observation."""
         out = build_observation(obs, self.mode, self.predictor)
         if self.image_encoder is not None:
             out[IMAGE_FEATURES] = self.image_encoder(out.pop("image"))
         return out
 
     def reset(self) -> dict[str, np.ndarray]:
-        obs = self.venv.reset()
-        self._ret[:] = 0.0
-        self._len[:] = 0
-        self._fwd[:] = 0.0
-        self._seed[:] = self.core.seeds
-        self.episode_seeds.extend(int(s) for s in self.core.seeds)
-        return self._convert(obs)
+        return self.convert(self.venv.reset())
 
-    def step_wait(self):
+    def step_wait(self) -> Any:
         obs, reward, dones, infos = self.venv.step_wait()
-        self._ret += reward
-        self._len += 1
-        collision = np.zeros(len(infos), dtype=reward.dtype)  # (in the reward's dtype: w = 1 pays it exactly)
-        for i, info in enumerate(infos):
-            components = info["reward_components"]
-            self._fwd[i] += components["forward"]
-            collision[i] = components["collision"]
         done_ids = np.flatnonzero(dones)
         if done_ids.size:
             terminal = [infos[i]["terminal_observation"] for i in done_ids]
-            batched = {k: np.stack([t[k] for t in terminal]) for k in terminal[0]}
-            converted = self._convert(batched)
+            converted = self.convert({k: np.stack([t[k] for t in terminal]) for k in terminal[0]})
             for j, i in enumerate(done_ids):
-                info = infos[i]
-                info["terminal_observation"] = {k: v[j] for k, v in converted.items()}
-                outcome = str(info["outcome"])
-                stats = EpisodeStats.of(outcome, float(self._ret[i]), int(self._len[i]), float(self._fwd[i]),
-                                        self.forward_per_m, int(self._seed[i]))  # fmt: skip
-                self.finished.append(stats)
-                info["episode"] = {"r": stats.ret, "l": stats.length, "t": round(time.perf_counter() - self._t0, 6)}
-                info["lc_episode"] = dataclasses.asdict(stats)
-                self._ret[i], self._len[i], self._fwd[i] = 0.0, 0, 0.0
-                self._seed[i] = self.core.seeds[i]
-                self.episode_seeds.append(int(self.core.seeds[i]))
-        learner = reward + (self.collision_weight - 1.0) * collision  # the learner's pay (reward when w is 1)
-        return self._convert(obs), (learner * self.reward_scale).astype(np.float32), dones, infos
+                infos[i]["terminal_observation"] = {k: v[j] for k, v in converted.items()}
+        return self.convert(obs), reward, dones, infos
 
-    def pop_finished(self) -> list[EpisodeStats]:
-        out, self.finished = self.finished, []
-        return out
+
+def policy_vec_env(venv: VecEnv, mode: str, predictor: Predictor | None = None, *, reward_scale: float = 1.0,
+                   image_encoder: ImageEncoder | None = None, collision_weight: float = 1.0) -> ObservationModeVecEnv:
+    """The training environment of a policy: ``venv`` (a :class:`lcsim.sb3.LaneChangeSB3VecEnv`) with
+    episode statistics (:func:`monitored`), the learner's reward (:class:`RewardShapingVecEnv`) and the
+    observation of ``mode`` (:class:`ObservationModeVecEnv`), composed in that order. The episode
+    statistics come in ``info["episode"]`` (:func:`episode_stats`); :func:`episode_seeds_of` gives the
+    seeds of every episode started."""
+    shaped = RewardShapingVecEnv(monitored(venv), reward_scale=reward_scale, collision_weight=collision_weight)
+    return ObservationModeVecEnv(shaped, mode, predictor, image_encoder)
+
+
+def episode_seeds_of(venv: VecEnv) -> list[int]:
+    """The simulator seeds of every episode started in a :func:`policy_vec_env` (or any stack holding an
+    :class:`EpisodeInfoVecEnv`)."""
+    while not isinstance(venv, EpisodeInfoVecEnv):
+        if not hasattr(venv, "venv"):
+            raise ValueError("no EpisodeInfoVecEnv in this stack of environments")
+        venv = venv.venv
+    return venv.episode_seeds
 
 
 def summarize(episodes: list[EpisodeStats]) -> dict[str, float]:

@@ -44,6 +44,7 @@ import torch
 from stable_baselines3.common.base_class import BaseAlgorithm
 from stable_baselines3.common.callbacks import BaseCallback
 from stable_baselines3.common.logger import configure
+from stable_baselines3.common.vec_env import VecEnv
 
 from lcmodels.fileio import POLICY_FILE, file_sha256, write_json
 from lcmodels.policy.checkpoint import (
@@ -61,7 +62,14 @@ from lcmodels.policy.config import (  # re-exported: the names training's caller
 from lcmodels.policy.evaluate import EVAL_SEED_BASE, PolicyDriver, evaluate
 from lcmodels.policy.extractor import IMAGE_FEATURES, HybridExtractor, ImageEncoder, make_image_net
 from lcmodels.policy.network import build_model
-from lcmodels.policy.obs import EpisodeStats, PolicyVecEnv, needs_predictor
+from lcmodels.policy.obs import (
+    EpisodeStats,
+    ObservationModeVecEnv,
+    episode_seeds_of,
+    episode_stats,
+    needs_predictor,
+    policy_vec_env,
+)
 from lcmodels.predictor.inference import Predictor
 from lcsim.config import ScenarioConfig
 from lcsim.sb3 import LaneChangeSB3VecEnv
@@ -95,16 +103,16 @@ class TrainResult:
 class _Logger(BaseCallback):
     """Outcome statistics to TensorBoard and progress.csv; periodic checkpoints."""
 
-    def __init__(self, run: _Run, env: PolicyVecEnv, log_every: int) -> None:
+    def __init__(self, run: _Run, log_every: int) -> None:
         super().__init__()
-        self.run, self.env, self.log_every = run, env, log_every
+        self.run, self.log_every = run, log_every
         self.window: deque[EpisodeStats] = deque(maxlen=100)
         self.episodes_total = run.episodes_total
         self.last_log = run.start_timesteps
         self.last_ckpt = run.start_timesteps
 
     def _on_step(self) -> bool:
-        finished = self.env.pop_finished()
+        finished = [e for e in map(episode_stats, self.locals["infos"]) if e is not None]
         self.window.extend(finished)
         self.episodes_total += len(finished)
         t = self.num_timesteps
@@ -151,7 +159,7 @@ class _Run:
         self.t_start = time.perf_counter()
         self.seeds_path = out / "train_episode_seeds.npy"
         self.prior_seeds = np.zeros(0, dtype=np.int64)
-        self.env: PolicyVecEnv | None = None
+        self.env: VecEnv | None = None
 
     def wall_s(self) -> float:
         return self.wall_before + time.perf_counter() - self.t_start
@@ -167,7 +175,7 @@ class _Run:
         return meta
 
     def all_seeds(self) -> np.ndarray:
-        new = np.asarray(self.env.episode_seeds if self.env is not None else [], dtype=np.int64)
+        new = np.asarray(episode_seeds_of(self.env) if self.env is not None else [], dtype=np.int64)
         return np.concatenate([self.prior_seeds, new])
 
     def checkpoint(self, model: BaseAlgorithm, t: int, episodes_total: int) -> None:
@@ -430,7 +438,7 @@ def _train(cfg: PolicyConfig, run: _Run, pred: Predictor | None, device: str, lo
     # The initial policy (loaded once, before anything was written): its weights start the model, its image
     # branch (when frozen) the wrapper.
     encoder = _frozen_image_encoder(cfg, run, config, initial) if cfg.freeze_image else None
-    env = PolicyVecEnv(base, cfg.obs, pred, reward_scale=cfg.reward_scale, image_encoder=encoder,
+    env = policy_vec_env(base, cfg.obs, pred, reward_scale=cfg.reward_scale, image_encoder=encoder,
                        collision_weight=cfg.collision_weight)
     run.env = env
     tb = str(out / "tb")
@@ -449,7 +457,7 @@ def _train(cfg: PolicyConfig, run: _Run, pred: Predictor | None, device: str, lo
     env.seed(train_seed_base(cfg.seed, run.start_timesteps))
     model.set_logger(configure(tb, ["tensorboard"]))
     every = log_every or (cfg.n_envs * cfg.n_steps if cfg.algo != "dqn" else 2048)
-    callback = _Logger(run, env, every)
+    callback = _Logger(run, every)
     remaining = cfg.timesteps - run.start_timesteps
     if remaining > 0:
         model.learn(total_timesteps=remaining, callback=callback, reset_num_timesteps=False,
@@ -459,7 +467,7 @@ def _train(cfg: PolicyConfig, run: _Run, pred: Predictor | None, device: str, lo
         callback._log(t)
     run.checkpoint(model, t, callback.episodes_total)
     if encoder is not None:
-        model = _with_image_branch(cfg, model, encoder, PolicyVecEnv(base, cfg.obs, pred), device)
+        model = _with_image_branch(cfg, model, encoder, ObservationModeVecEnv(base, cfg.obs, pred), device)
     save_policy(model, final, run.meta(t))
     info = {"timesteps": t, "wall_s": run.wall_s(), "episodes": callback.episodes_total,
             "resumed_from": run.start_timesteps, "warm_start": warm}  # fmt: skip
@@ -467,7 +475,7 @@ def _train(cfg: PolicyConfig, run: _Run, pred: Predictor | None, device: str, lo
     return info
 
 
-def _resume_model(cfg: PolicyConfig, env: PolicyVecEnv, tb: str, device: str, folder: Path,
+def _resume_model(cfg: PolicyConfig, env: VecEnv, tb: str, device: str, folder: Path,
                   state: dict[str, Any]) -> BaseAlgorithm:
     """The model of a checkpoint (``latest.json``'s ``state``): a fresh network of this run's config filled
     with the checkpoint's tensors, optimiser state and counters; nothing unpickled."""
@@ -548,7 +556,7 @@ def _frozen_image_encoder(cfg: PolicyConfig, run: _Run, config: ScenarioConfig,
     return ImageEncoder(net, cfg.image_features)
 
 
-def _with_image_branch(cfg: PolicyConfig, model: BaseAlgorithm, encoder: ImageEncoder, env: PolicyVecEnv,
+def _with_image_branch(cfg: PolicyConfig, model: BaseAlgorithm, encoder: ImageEncoder, env: VecEnv,
                        device: str) -> BaseAlgorithm:
     """A plain policy of the mode (``env``: the wrapper without the encoder) with ``model``'s weights and
     the frozen image branch: the same function of the observation, in a file any loader reads."""

@@ -1,4 +1,4 @@
-"""tools/eval_shield.py: the gap shield vetoes exactly the lane changes into gaps shorter than asked."""
+"""experiments/gap_shield/gap_shield.py: the gap shield vetoes exactly the lane changes into gaps shorter than asked."""
 
 import json
 
@@ -26,7 +26,7 @@ def _drive(shield, episodes=3, decisions=60):
 
 
 def test_shield_vetoes_every_change_into_a_short_gap_and_none_into_any_gap():
-    from tools.eval_shield import GapShield
+    from .gap_shield import GapShield
 
     strict = GapShield(RuleBasedDriver(), front_gap_m=1e9, rear_gap_m=1e9, headway_s=0.0)
     assert _drive(strict) == 0
@@ -36,7 +36,7 @@ def test_shield_vetoes_every_change_into_a_short_gap_and_none_into_any_gap():
 
 
 def test_cli_reference_and_bad_input(capsys):
-    from tools.eval_shield import main
+    from .gap_shield import main
 
     assert main(["keep", "--episodes", "2", "--batch", "2", "--front-gap-m", "-1"]) == 0
     out = json.loads(capsys.readouterr().out)

@@ -1,4 +1,4 @@
-"""The planner's survival labels (LookaheadDriver.last_alive) and tools/safety_critic.py, on small real episodes."""
+"""The planner's survival labels (LookaheadDriver.last_alive) and experiments/safety_critic/safety_critic.py, on small real episodes."""
 
 import dataclasses
 from pathlib import Path
@@ -8,10 +8,19 @@ import pytest
 import torch
 
 from lcmodels.policy.train import PolicyConfig, train_policy
+from lcsim.config import ScenarioConfig, TrafficConfig
 from lcsim.core import KEEP, LEFT, RUNNING, LaneChangeCore
 from lcsim.planning import LookaheadConfig, LookaheadDriver
-from tests.conftest import small_config
-from tools.safety_critic import CriticEnsemble, CriticGuard, SafetyCritic, critic_loss, main, train_critics
+
+from .safety_critic import CriticEnsemble, CriticGuard, SafetyCritic, critic_loss, main, train_critics
+
+
+def small_config(**overrides) -> ScenarioConfig:
+    """6 traffic vehicles on a 150 m route: fast, but with traffic around the ego."""
+    kwargs = dict(traffic=TrafficConfig(num_vehicles=6, spawn_behind_m=40.0, spawn_ahead_m=80.0),
+                  route_length_m=150.0, time_limit_s=25.0)
+    kwargs.update(overrides)
+    return ScenarioConfig(**kwargs)
 
 
 def _labelled(decisions: int = 40, envs: int = 4) -> tuple[np.ndarray, np.ndarray, list[np.ndarray]]:
@@ -219,7 +228,7 @@ def test_cli_trains_and_evaluates_and_refuses_bad_input(
 
 
 def test_auc_counts_ties_half() -> None:
-    from tools.safety_critic import _auc
+    from .safety_critic import _auc
 
     y = np.array([False, False, True, True])
     assert _auc(np.array([0.1, 0.2, 0.3, 0.4]), y) == 1.0 and _auc(np.array([0.4, 0.3, 0.2, 0.1]), y) == 0.0

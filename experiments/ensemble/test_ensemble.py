@@ -1,4 +1,4 @@
-"""tools/eval_ensemble.py: the ensemble decides by the members' mean probabilities and refuses mismatched members."""
+"""experiments/ensemble/ensemble.py: the ensemble decides by the members' mean probabilities and refuses mismatched members."""
 
 import json
 from pathlib import Path
@@ -7,11 +7,18 @@ import numpy as np
 import pytest
 import torch
 
-from lcmodels.policy import load_policy, train_policy
+from lcmodels.policy import PolicyConfig, load_policy, train_policy
 from lcmodels.policy.evaluate import PolicyDriver
 from lcsim.core import LaneChangeCore
-from tests.test_policy import _tiny
-from tools.eval_ensemble import EnsembleDriver, load_ensemble, main
+
+from .ensemble import EnsembleDriver, load_ensemble, main
+
+
+def _tiny(**kw) -> PolicyConfig:
+    base = dict(scenario="tiny", timesteps=128, n_envs=2, n_steps=32, batch_size=64, n_epochs=2,
+                eval_episodes=2, eval_batch=2, checkpoint_every=64, buffer_size=500, learning_starts=32)
+    base.update(kw)
+    return PolicyConfig(**base)
 
 
 @pytest.fixture(scope="module")

@@ -1,5 +1,4 @@
-#!/usr/bin/env python
-"""DAgger with the oracle (or another expert) as the expert, from an lc-train-policy run.
+"""``lc-dagger``: DAgger with the oracle (or another expert) as the expert, from an lc-train-policy run.
 
 Each round the policy drives new training episodes; the oracle (lcsim.oracle, which sees the future)
 labels every state the policy reaches with the decision of a winning plan from there; the policy is
@@ -8,10 +7,10 @@ episodes. See lcmodels.policy.dagger.
 
     lc-record --driver oracle --episodes 200 --out runs/oracle-demos --workers 2
     lc-train-policy --obs hybrid --predictor P.pt --warm-start runs/oracle-demos --timesteps 0 --out runs/bc
-    python tools/dagger.py runs/bc --rounds 2 --episodes 100 --out runs/bc-dagger
-    python tools/dagger.py runs/bc --rounds 4 --episodes 100 --out runs/bc-dagger --resume   # rounds 3 and 4
-    python tools/dagger.py runs/ppo --expert lookahead-blind:runs/ppo/policy.safetensors --out runs/ppo-improved
-    python tools/dagger.py runs/ppo --expert lookahead-blind:runs/ppo/policy.safetensors --lookahead-horizon 32 \
+    lc-dagger runs/bc --rounds 2 --episodes 100 --out runs/bc-dagger
+    lc-dagger runs/bc --rounds 4 --episodes 100 --out runs/bc-dagger --resume   # rounds 3 and 4
+    lc-dagger runs/ppo --expert lookahead-blind:runs/ppo/policy.safetensors --out runs/ppo-improved
+    lc-dagger runs/ppo --expert lookahead-blind:runs/ppo/policy.safetensors --lookahead-horizon 32 \
         --out runs/ppo-improved-16s    # the planner imagining 16 s instead of 8 s
     lc-eval runs/bc-dagger/round4/policy.safetensors --episodes 200
 
@@ -23,25 +22,23 @@ the policy drove into and their labels, for --resume), dagger.json (all rounds).
 from __future__ import annotations
 
 import argparse
-import sys
 
-from lccli.common import add_lookahead_arguments, lookahead_options
-from lcmodels.policy.dagger import dagger
+from lccli.common import add_lookahead_arguments, fail, lookahead_options, non_negative_int, positive_int
 
 
 def main(argv: list[str] | None = None) -> int:
-    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0],
+    ap = argparse.ArgumentParser(prog="lc-dagger", description=__doc__.split("\n\n")[0],
                                  formatter_class=argparse.RawDescriptionHelpFormatter,
                                  epilog="\n\n".join(__doc__.split("\n\n")[1:]))  # fmt: skip
     ap.add_argument("run", help="lc-train-policy run directory (warm-started: its demonstrations stay in the data)")
     ap.add_argument("--out", required=True, help="directory for the rounds: a new one, or one to --resume")
-    ap.add_argument("--rounds", type=int, default=2, help="DAgger rounds (2)")
-    ap.add_argument("--episodes", type=int, default=100, help="episodes the policy drives per round (100)")
-    ap.add_argument("--epochs", type=int, default=10, help="behaviour-cloning epochs per round over all states (10)")
-    ap.add_argument("--seed", type=int, default=100_000, help="first training user seed of the rounds (100000)")
-    ap.add_argument("--workers", type=int, default=2, help="processes that drive and label episodes (2)")
-    ap.add_argument("--eval-episodes", type=int, default=200, help="held-out episodes after each round, 0 to skip")
-    ap.add_argument("--eval-seed", type=int, default=0, help="evaluation seed, as lc-eval --seed (0)")
+    ap.add_argument("--rounds", type=positive_int, default=2, help="DAgger rounds (2)")
+    ap.add_argument("--episodes", type=positive_int, default=100, help="episodes the policy drives per round (100)")
+    ap.add_argument("--epochs", type=positive_int, default=10, help="behaviour-cloning epochs per round over all states (10)")
+    ap.add_argument("--seed", type=non_negative_int, default=100_000, help="first training user seed of the rounds (100000)")
+    ap.add_argument("--workers", type=positive_int, default=2, help="processes that drive and label episodes (2)")
+    ap.add_argument("--eval-episodes", type=non_negative_int, default=200, help="held-out episodes after each round, 0 to skip")
+    ap.add_argument("--eval-seed", type=non_negative_int, default=0, help="evaluation seed, as lc-eval --seed (0)")
     ap.add_argument("--labels", choices=("plan", "winning"), default="plan",
                     help="plan: the oracle's decision at every state; winning: keep the policy's own decision "
                     "where the episode can still be won after it, correct only the losing ones (plan)")
@@ -53,16 +50,16 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--correction-weight", type=float, default=1.0,
                     help="weight in training of a state whose label differs from the policy's own decision, "
                     "against 1 for one where they agree (1)")
-    ap.add_argument("--threads", type=int, default=2, help="torch threads for training (2)")
+    ap.add_argument("--threads", type=positive_int, default=2, help="torch threads for training (2)")
     ap.add_argument("--resume", action="store_true",
                     help="continue the rounds already in --out (same run, --episodes, --seed, --labels) up to "
                     "--rounds in all")
     args = ap.parse_args(argv)
-    if args.eval_episodes < 0 or args.threads < 1 or not 0 <= args.seed < 1_000_000_000:
-        print("dagger: error: --eval-episodes >= 0, --threads >= 1, 0 <= --seed < 10^9 (evaluation's seeds)",
-              file=sys.stderr)
-        return 2
+    if args.seed >= 1_000_000_000:
+        return fail("lc-dagger", f"--seed must be < 1000000000 (evaluation's seeds start there), got {args.seed}")
     import torch
+
+    from lcmodels.policy.dagger import dagger
 
     torch.set_num_threads(args.threads)
     try:
@@ -72,10 +69,5 @@ def main(argv: list[str] | None = None) -> int:
                expert_lookahead=lookahead_options(args),
                progress=lambda msg: print(msg, flush=True))  # fmt: skip
     except (ValueError, OSError) as exc:
-        print(f"dagger: error: {str(exc).splitlines()[0]}", file=sys.stderr)
-        return 2
+        return fail("lc-dagger", str(exc).splitlines()[0])
     return 0
-
-
-if __name__ == "__main__":
-    sys.exit(main())

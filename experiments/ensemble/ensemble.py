@@ -8,8 +8,8 @@ rare decisions that end in a collision than each alone? The members must share t
 scenario and the predictor; PPO and A2C only (DQN has no action distribution). Prints one JSON object with
 lc-eval's keys, the members and the wall time.
 
-    python tools/eval_ensemble.py runs/ppo-s0/policy.safetensors runs/ppo-s1/policy.safetensors --episodes 200 --seed 0
-    python tools/eval_ensemble.py runs/ppo/policy-600000.safetensors runs/ppo/policy-900000.safetensors runs/ppo/policy.safetensors \\
+    python -m experiments.ensemble.ensemble runs/ppo-s0/policy.safetensors runs/ppo-s1/policy.safetensors --episodes 200 --seed 0
+    python -m experiments.ensemble.ensemble runs/ppo/policy-600000.safetensors runs/ppo/policy-900000.safetensors runs/ppo/policy.safetensors \\
         --json-out ensemble.json
 """
 

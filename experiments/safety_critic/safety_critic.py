@@ -20,9 +20,9 @@ with what was measured in ``OUT/critic.json``. ``--from-states FILE [FILE ...]``
 unless the critic gives it a crash probability above ``--threshold`` and another allowed decision one
 lower by more than ``--margin`` (keep first). It prints one JSON object.
 
-    python tools/safety_critic.py train runs/pure91/policy.safetensors --expert lookahead-blind:runs/pure91/policy.safetensors \\
+    python -m experiments.safety_critic.safety_critic train runs/pure91/policy.safetensors --expert lookahead-blind:runs/pure91/policy.safetensors \\
         --lookahead-horizon 32 --episodes 600 --workers 2 --out runs/critic
-    python tools/safety_critic.py eval runs/pure91/policy.safetensors --critic runs/critic/critic.pt --seed 0
+    python -m experiments.safety_critic.safety_critic eval runs/pure91/policy.safetensors --critic runs/critic/critic.pt --seed 0
 """
 
 from __future__ import annotations
@@ -43,7 +43,13 @@ from torch import nn
 from lccli.common import fail, int_at_least, positive_int
 from lccli.evaluate import add_heldout_arguments, heldout_driver
 from lcmodels.fileio import write_json
-from lcmodels.policy.extractor import CURRENT_SCALE, ContactFeatures, WindowFeatures, ConcatFeatures, ScaledMLP
+from lcmodels.policy.extractor import (
+    CURRENT_SCALE,
+    ConcatFeatures,
+    ContactFeatures,
+    ScaledMLP,
+    WindowFeatures,
+)
 from lcsim.core import KEEP, LaneChangeCore
 
 FORMAT = "lc-safety-critic"

@@ -7,8 +7,8 @@ lane instead when the gap ahead is under ``max(--front-gap-m, --headway-s x clos
 behind under ``max(--rear-gap-m, --headway-s x the follower's closing speed)``. ``--front-gap-m -1``
 runs the driver without the shield (the reference). Prints one JSON object per run.
 
-    python tools/eval_shield.py runs/ppo/policy.safetensors --front-gap-m 1 --rear-gap-m 1
-    python tools/eval_shield.py rule --front-gap-m -1
+    python -m experiments.gap_shield.gap_shield runs/ppo/policy.safetensors --front-gap-m 1 --rear-gap-m 1
+    python -m experiments.gap_shield.gap_shield rule --front-gap-m -1
 """
 
 from __future__ import annotations

@@ -1,7 +1,7 @@
 #!/usr/bin/env python
 """The run committed under docs/results/paper-50k: lc-experiment's paper preset at 50k steps per policy.
 
-    python tools/run_paper_50k.py [--out runs/paper-50k]
+    python -m experiments.paper_50k.run [--out runs/paper-50k]
 
 Resumable like lc-experiment: rerunning skips complete stages.
 """
@@ -19,5 +19,5 @@ if __name__ == "__main__":  # the corpus stage records with worker processes (sp
     args = ap.parse_args()
     preset = dataclasses.replace(PRESETS["paper"], name="paper-50k", ppo_timesteps=50_000, a2c_timesteps=50_000,
                                  dqn_timesteps=50_000, predictor_time_limit_s=300.0, record_eval=False)
-    run_experiment(preset, args.out, seeds=1, command=f"python tools/run_paper_50k.py --out {args.out}", threads=1,
+    run_experiment(preset, args.out, seeds=1, command=f"python -m experiments.paper_50k.run --out {args.out}", threads=1,
                    progress=lambda m: print(m, flush=True))

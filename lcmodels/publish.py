@@ -1,0 +1,56 @@
+"""Copy an ``lc-experiment`` directory's report and small result files to a folder meant for git.
+
+:func:`publish` copies ``REPORT.md``, the figures, ``experiment.json``, ``invocations.json``, the complete
+stage records (``stages/*.json``) and, per stage, ``metrics.json`` / ``run.json`` / ``progress.csv`` /
+``warm_start.json``: every file the report's *Files* table names, and nothing large (no checkpoints,
+TensorBoard logs or MCAP episodes). It refuses a run without a report or with unfinished stages, and a
+destination that exists unless ``overwrite``; then it replaces only files of that layout (and removes
+those of it the run no longer has), keeping anything else there (a note written by hand).
+"""
+
+from __future__ import annotations
+
+import shutil
+from pathlib import Path
+
+from lcmodels.presets import INVOCATIONS, MARKER, REPORT_NAME, RULE_KEY, STAGES_DIR
+
+TOP = (REPORT_NAME, MARKER)
+OPTIONAL_TOP = (INVOCATIONS,)  # runs of lc-toolkit versions before it have none
+PER_STAGE = ("metrics.json", "run.json", "progress.csv", "warm_start.json")
+
+
+def published_files(run: Path) -> list[Path]:
+    """Paths (relative to ``run``) of the files to publish."""
+    files = [Path(n) for n in TOP] + [Path(n) for n in OPTIONAL_TOP if (run / n).is_file()]
+    files += sorted(p.relative_to(run) for p in run.glob("*.png"))
+    files += sorted(p.relative_to(run) for p in (run / STAGES_DIR).glob("*.json") if not p.name.endswith(".pending.json"))
+    stage_dirs = [run / "predictor", run / RULE_KEY, *sorted(run.glob("policies/*/seed*"))]
+    for d in stage_dirs:
+        files += [(d / n).relative_to(run) for n in PER_STAGE if (d / n).is_file()]
+    return files
+
+
+def publish(run: Path, dest: Path, *, overwrite: bool = False) -> list[Path]:
+    """Copy the published files of ``run`` to ``dest``; returns their paths relative to both.
+
+    Raises:
+        ValueError: ``run`` is no finished experiment, or ``dest`` exists and not ``overwrite``.
+    """
+    run, dest = Path(run), Path(dest)
+    if not all((run / n).is_file() for n in TOP):
+        raise ValueError(f"{run} is not an lc-experiment directory with a {REPORT_NAME}")
+    pending = sorted(p.name for p in (run / STAGES_DIR).glob("*.pending.json"))
+    if pending:
+        raise ValueError(f"{run} has {len(pending)} unfinished stage(s) ({pending[0]}); finish the run first")
+    if dest.exists() and not overwrite:
+        raise ValueError(f"{dest} exists; pass --overwrite to replace the published files in it")
+    files = published_files(run)
+    if dest.exists():  # the layout's files the run no longer has go; nothing else is touched
+        stale = set(published_files(dest)) - set(files)
+        for rel in stale:
+            (dest / rel).unlink()
+    for rel in files:
+        (dest / rel).parent.mkdir(parents=True, exist_ok=True)
+        shutil.copy2(run / rel, dest / rel)
+    return files
