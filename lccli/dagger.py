@@ -1,6 +1,6 @@
 """``lc-dagger``: DAgger with the oracle (or another expert) as the expert, from an lc-train-policy run.
 
-Each round the policy drives new training episodes; the oracle (lcsim.oracle, which sees the future)
+Each round the policy drives new training episodes; the oracle (lcsim.planning.oracle, which sees the future)
 labels every state the policy reaches with the decision of a winning plan from there; the policy is
 cloned again on the demonstrations plus every labelled state, saved and evaluated on lc-eval's held-out
 episodes. See lcmodels.policy.dagger.

@@ -1,4 +1,4 @@
-"""CARLA's ``VehiclePIDController`` law and a kinematic bicycle model, batched over environments.
+"""The ego's control: CARLA's ``VehiclePIDController`` law and a kinematic bicycle model (:func:`ego_step`).
 
 The PID law follows CARLA's ``PIDLongitudinalController`` / ``PIDLateralController``: errors are kept
 in a window of the last ``pid_window`` values (CARLA's ``deque(maxlen=10)``), the integral is
@@ -7,14 +7,18 @@ is in km/h; the lateral error is the signed angle between the heading and the ve
 waypoint. ``VehiclePIDController.run_step`` then caps throttle and brake, rate-limits the steering
 command by ``max_steer_change`` per step and clips it to ``max_steer``.
 
-The longitudinal and lateral controllers of E vehicles are stepped together as ``(E, 2)`` arrays.
+The longitudinal and lateral controllers of E vehicles are stepped together as ``(E, 2)`` arrays. The law
+is written once (:func:`ego_step`) and runs on arrays for a batch or on floats for one environment.
 """
 
 from __future__ import annotations
 
 import math
 import operator
+from collections.abc import Callable
+from dataclasses import dataclass
 from functools import reduce
+from typing import Any
 
 import numpy as np
 
@@ -93,41 +97,123 @@ def pid_reference(errors: list[float], kp: float, ki: float, kd: float, dt: floa
     return min(max(kp * buf[-1] + kd * de + ki * ie, -1.0), 1.0)
 
 
-def split_throttle_brake(u: np.ndarray, cfg: EgoConfig) -> tuple[np.ndarray, np.ndarray]:
-    """CARLA: a non-negative output is throttle (<= max_throttle), a negative one brake (<= max_brake)."""
-    return np.minimum(np.maximum(u, 0.0), cfg.max_throttle), np.minimum(np.maximum(-u, 0.0), cfg.max_brake)
+class ArrayOps:
+    """The operations of :func:`ego_step` on ``(E,)`` arrays (many environments)."""
+
+    minimum = staticmethod(np.minimum)
+    maximum = staticmethod(np.maximum)
+    ceil = staticmethod(np.ceil)
+    remainder = staticmethod(np.remainder)
+    arctan2 = staticmethod(np.arctan2)
+    arctan = staticmethod(np.arctan)
+    tan = staticmethod(np.tan)
+    cos = staticmethod(np.cos)
+    sin = staticmethod(np.sin)
+
+    @staticmethod
+    def positive(v: np.ndarray) -> np.ndarray:
+        return v > 0.0
 
 
-def limit_steer(steer: np.ndarray, past: np.ndarray, cfg: EgoConfig) -> np.ndarray:
-    """Rate-limit to ``past +- max_steer_change`` then clip to ``+-max_steer``."""
-    lo = np.maximum(past - cfg.max_steer_change, -cfg.max_steer)
-    hi = np.minimum(past + cfg.max_steer_change, cfg.max_steer)
-    return np.minimum(np.maximum(steer, lo), hi)
+class FloatOps:
+    """The same operations on Python floats (one environment: a dozen numpy calls on 1-element arrays cost
+    about 20x the same arithmetic on floats). IEEE arithmetic gives the same bits; the transcendental
+    functions still come from numpy, whose SIMD versions can differ from ``math`` in the last bit."""
+
+    minimum = staticmethod(min)
+    maximum = staticmethod(max)
+
+    @staticmethod
+    def ceil(x: float) -> float:
+        return float(math.ceil(x))
+
+    @staticmethod
+    def remainder(x: float, m: float) -> float:
+        return x % m
+
+    @staticmethod
+    def arctan2(y: float, x: float) -> float:
+        return float(np.arctan2(y, x))
+
+    @staticmethod
+    def arctan(x: float) -> float:
+        return float(np.arctan(x))
+
+    @staticmethod
+    def tan(x: float) -> float:
+        return float(np.tan(x))
+
+    @staticmethod
+    def cos(x: float) -> float:
+        return float(np.cos(x))
+
+    @staticmethod
+    def sin(x: float) -> float:
+        return float(np.sin(x))
+
+    @staticmethod
+    def positive(v: float) -> float:
+        return 1.0 if v > 0.0 else 0.0
 
 
-def heading_error(x: np.ndarray, y: np.ndarray, yaw: np.ndarray, tx: np.ndarray, ty: np.ndarray) -> np.ndarray:
-    """Signed angle (rad) from the heading to the vector (target - position); positive to the left."""
-    return (np.arctan2(ty - y, tx - x) - yaw + math.pi) % (2 * math.pi) - math.pi
+@dataclass(frozen=True, slots=True)
+class EgoStep:
+    """What one control step gives: the new pose and speed, and the commands that led there."""
+
+    x: Any
+    y: Any
+    yaw: Any
+    speed: Any
+    accel: Any
+    steer: Any
+    throttle: Any
+    brake: Any
 
 
-def longitudinal_accel(throttle: np.ndarray, brake: np.ndarray, speed: np.ndarray, cfg: EgoConfig) -> np.ndarray:
-    """Acceleration (m/s^2) from pedal commands, with rolling resistance and drag (none at standstill)."""
-    resist = (cfg.rolling_resistance_mps2 + cfg.drag_per_speed2 * speed * speed) * (speed > 0.0)
-    return throttle * cfg.max_accel_mps2 - brake * cfg.max_brake_decel_mps2 - resist
+def ego_step(ops: type[ArrayOps] | type[FloatOps], cfg: EgoConfig, *, x: Any, y: Any, yaw: Any, speed: Any,
+             target_speed: Any, lead_gap: Any, path: tuple[Any, Any, Any, Any], steer_past: Any, accel_past: Any,
+             lag_alpha: float, dt: float, pid: Callable[[Any, Any], tuple[Any, Any]]) -> EgoStep:
+    """The ego's control law, written once: CARLA's local planner and ``VehiclePIDController`` on the planned
+    path, a first-order powertrain lag and the kinematic bicycle model, for ``(E,)`` arrays (``ArrayOps``)
+    or one environment's floats (``FloatOps``), with the same operations in the same order, so both give
+    the same bits.
 
-
-def bicycle_step(x: np.ndarray, y: np.ndarray, yaw: np.ndarray, speed: np.ndarray, accel: np.ndarray,
-                 steer: np.ndarray, cfg: EgoConfig, dt: float) -> tuple[np.ndarray, ...]:
-    """One Euler step of the kinematic bicycle model about the centre of gravity (mid-wheelbase).
-
-    Shapes (E,); ``steer`` in [-1, 1] maps to ``steer * max_steer_angle_deg`` at the front wheels.
-    Returns the new ``x, y, yaw, speed``.
+    Args:
+        path: ``(x0, length, y0, y1)`` of the planned path: the lateral move from ``y0`` to ``y1`` over
+            ``length`` metres from ``x0`` (``length`` is the same lane when no change is under way).
+        lead_gap: the gap to the leader (m), used with ``adaptive_cruise``.
+        pid: ``(speed error in km/h, heading error in rad) -> (longitudinal, lateral) command in [-1, 1]``
+            (a :class:`PIDBank`'s ``step`` or ``step_one``).
     """
-    beta = np.arctan(0.5 * np.tan(steer * math.radians(cfg.max_steer_angle_deg)))
+    px0, plen, py0, py1 = path
+    if cfg.adaptive_cruise:
+        target_speed = ops.minimum(target_speed, ops.maximum((lead_gap - cfg.acc_min_gap_m) / cfg.acc_time_headway_s,
+                                                             0.0))
+    # Local planner: the first waypoint (every waypoint_spacing_m along the path) beyond the look-ahead.
+    sp = cfg.waypoint_spacing_m
+    tx = px0 + ops.ceil((x + (cfg.base_min_distance_m + cfg.distance_ratio * speed) - px0) / sp) * sp
+    frac = ops.minimum(ops.maximum((tx - px0) / plen, 0.0), 1.0)
+    ty = py0 + (py1 - py0) * frac
+    # Errors: speed in km/h; heading: the signed angle from the heading to the waypoint, positive to the left.
+    e_speed = (target_speed - speed) * 3.6
+    e_head = ops.remainder(ops.arctan2(ty - y, tx - x) - yaw + math.pi, 2 * math.pi) - math.pi
+    u_long, u_lat = pid(e_speed, e_head)
+    # VehiclePIDController.run_step: throttle and brake capped, steering rate-limited and clipped.
+    throttle = ops.minimum(ops.maximum(u_long, 0.0), cfg.max_throttle)
+    brake = ops.minimum(ops.maximum(-u_long, 0.0), cfg.max_brake)
+    lo = ops.maximum(steer_past - cfg.max_steer_change, -cfg.max_steer)
+    hi = ops.minimum(steer_past + cfg.max_steer_change, cfg.max_steer)
+    steer = ops.minimum(ops.maximum(u_lat, lo), hi)
+    # Pedals to acceleration (rolling resistance and drag, none at standstill), through the powertrain lag.
+    resist = (cfg.rolling_resistance_mps2 + cfg.drag_per_speed2 * speed * speed) * ops.positive(speed)
+    drive = throttle * cfg.max_accel_mps2 - brake * cfg.max_brake_decel_mps2 - resist
+    accel = accel_past + (drive - accel_past) * lag_alpha
+    # Kinematic bicycle about the centre of gravity (mid-wheelbase), one Euler step.
+    beta = ops.arctan(0.5 * ops.tan(steer * math.radians(cfg.max_steer_angle_deg)))
     heading = yaw + beta
     vdt = speed * dt
-    x = x + vdt * np.cos(heading)
-    y = y + vdt * np.sin(heading)
-    yaw = yaw + vdt * (2.0 / cfg.wheelbase_m) * np.sin(beta)
-    speed = np.maximum(speed + accel * dt, 0.0)
-    return x, y, yaw, speed
+    return EgoStep(
+        x=x + vdt * ops.cos(heading), y=y + vdt * ops.sin(heading),
+        yaw=yaw + vdt * (2.0 / cfg.wheelbase_m) * ops.sin(beta), speed=ops.maximum(speed + accel * dt, 0.0),
+        accel=accel, steer=steer, throttle=throttle, brake=brake,
+    )  # fmt: skip

@@ -18,11 +18,10 @@ from lcsim import rng
 from lcsim.collision import obb_overlap
 from lcsim.config import ScenarioConfig
 from lcsim.control import (
+    ArrayOps,
+    FloatOps,
     PIDBank,
-    bicycle_step,
-    limit_steer,
-    longitudinal_accel,
-    split_throttle_brake,
+    ego_step,
 )
 from lcsim.neighbours import LaneIndex
 from lcsim.road import StraightRoad
@@ -348,98 +347,43 @@ class HighwaySim:
 
     def _ego_step(self, lead_gap: np.ndarray, x_out: np.ndarray, y_out: np.ndarray, yaw_out: np.ndarray,
                   v_out: np.ndarray, a_out: np.ndarray) -> None:
-        """PID control on the planned path and a bicycle-model step; writes column 0 of the outputs."""
+        """PID control on the planned path and a bicycle-model step (:func:`lcsim.control.ego_step`, on arrays,
+        or on floats for one environment); writes column 0 of the outputs."""
+        ec = self.config.ego
         if self.num_envs == 1:
-            self._ego_step_one(lead_gap, x_out, y_out, yaw_out, v_out, a_out)
-            return
-        ec, dt = self.config.ego, self.dt
-        x, y, yaw, v = self.x[:, 0], self.y[:, 0], self.yaw[:, 0], self.speed[:, 0]
-        px0 = self.path_x0
-        target = self.target_speed
-        if ec.adaptive_cruise:
-            target = np.minimum(target, np.maximum((lead_gap - ec.acc_min_gap_m) / ec.acc_time_headway_s, 0.0))
-        # Local planner: first waypoint (every waypoint_spacing_m along the path) beyond the look-ahead.
-        # (The control.py functions, inlined with in-place steps: the same operations in the same order.)
-        sp = ec.waypoint_spacing_m
-        tx = ec.distance_ratio * v
-        tx += ec.base_min_distance_m
-        tx += x
-        tx -= px0
-        tx /= sp
-        np.ceil(tx, out=tx)
-        tx *= sp
-        tx += px0
-        frac = tx - px0
-        frac /= self.path_len
-        np.minimum(np.maximum(frac, 0.0, out=frac), 1.0, out=frac)
-        ty = self.path_y1 - self.path_y0
-        ty *= frac
-        ty += self.path_y0
-        err = np.empty((self.num_envs, 2))
-        e_speed, e_head = err[:, 0], err[:, 1]
-        np.subtract(target, v, out=e_speed)
-        e_speed *= 3.6
-        head = np.arctan2(ty - y, tx - x)  # heading_error (contiguous, as the E = 1 path computes it)
-        head -= yaw
-        head += math.pi
-        np.remainder(head, 2 * math.pi, out=head)
-        head -= math.pi
-        e_head[:] = head
-        u = self.pid.step(err)
-        throttle, brake = split_throttle_brake(u[:, 0], ec)
-        steer = limit_steer(u[:, 1], self.steer, ec)
-        drive = longitudinal_accel(throttle, brake, v, ec)
-        drive -= self.ego_accel
-        drive *= self.lag_alpha
-        accel = drive
-        accel += self.ego_accel
-        self.ego_accel = accel
-        nx, ny, nyaw, nv = bicycle_step(x, y, yaw, v, accel, steer, ec, dt)
-        self.steer, self.throttle, self.brake = steer, throttle, brake
-        if self.ego_lc_active.any():
-            done = self.ego_lc_active & (nx >= px0 + self.path_len) & (
-                np.abs(ny - self.path_y1) < ec.lane_change_tolerance_m)
-            self.ego_lc_active &= ~done
-        x_out[:, 0], y_out[:, 0], yaw_out[:, 0], v_out[:, 0], a_out[:, 0] = nx, ny, nyaw, nv, accel
+            pid = self.pid
 
-    def _ego_step_one(self, lead_gap: np.ndarray, x_out: np.ndarray, y_out: np.ndarray, yaw_out: np.ndarray,
-                      v_out: np.ndarray, a_out: np.ndarray) -> None:
-        """:meth:`_ego_step` for E = 1 on Python floats: the same operations in the same order, so the
-        result is bit-identical (IEEE arithmetic; the transcendental functions still come from numpy,
-        whose SIMD versions can differ from ``math`` in the last bit)."""
-        ec, dt = self.config.ego, self.dt
-        x, y, yaw, v = self.x.item(0), self.y.item(0), self.yaw.item(0), self.speed.item(0)
-        px0, plen, py0, py1 = self.path_x0.item(0), self.path_len.item(0), self.path_y0.item(0), self.path_y1.item(0)
-        target = self.target_speed
-        if ec.adaptive_cruise:
-            target = min(target, max((lead_gap.item(0) - ec.acc_min_gap_m) / ec.acc_time_headway_s, 0.0))
-        sp = ec.waypoint_spacing_m
-        tx = px0 + float(math.ceil((x + (ec.base_min_distance_m + ec.distance_ratio * v) - px0) / sp)) * sp
-        frac = min(max((tx - px0) / plen, 0.0), 1.0)
-        ty = py0 + (py1 - py0) * frac
-        head_err = (float(np.arctan2(ty - y, tx - x)) - yaw + math.pi) % (2 * math.pi) - math.pi
-        u_long, u_lat = self.pid.step_one(((target - v) * 3.6, head_err))
-        throttle, brake = min(max(u_long, 0.0), ec.max_throttle), min(max(-u_long, 0.0), ec.max_brake)
-        past = self.steer.item(0)
-        lo = max(past - ec.max_steer_change, -ec.max_steer)
-        hi = min(past + ec.max_steer_change, ec.max_steer)
-        steer = min(max(u_lat, lo), hi)
-        resist = (ec.rolling_resistance_mps2 + ec.drag_per_speed2 * v * v) * (1.0 if v > 0.0 else 0.0)
-        drive = throttle * ec.max_accel_mps2 - brake * ec.max_brake_decel_mps2 - resist
-        accel_prev = self.ego_accel.item(0)
-        accel = accel_prev + (drive - accel_prev) * self.lag_alpha
-        # Kinematic bicycle (control.bicycle_step).
-        beta = float(np.arctan(0.5 * float(np.tan(steer * math.radians(ec.max_steer_angle_deg)))))
-        heading = yaw + beta
-        vdt = v * dt
-        nx = x + vdt * float(np.cos(heading))
-        ny = y + vdt * float(np.sin(heading))
-        nyaw = yaw + vdt * (2.0 / ec.wheelbase_m) * float(np.sin(beta))
-        nv = max(v + accel * dt, 0.0)
-        self.ego_accel[0], self.steer[0], self.throttle[0], self.brake[0] = accel, steer, throttle, brake
-        if self.ego_lc_active.item(0) and nx >= px0 + plen and abs(ny - py1) < ec.lane_change_tolerance_m:
-            self.ego_lc_active[0] = False
-        x_out[0, 0], y_out[0, 0], yaw_out[0, 0], v_out[0, 0], a_out[0, 0] = nx, ny, nyaw, nv, accel
+            def step_one(e_speed: float, e_head: float) -> tuple[float, float]:
+                u_long, u_lat = pid.step_one((e_speed, e_head))
+                return u_long, u_lat
+
+            r = ego_step(FloatOps, ec, x=self.x.item(0), y=self.y.item(0), yaw=self.yaw.item(0),
+                         speed=self.speed.item(0), target_speed=self.target_speed, lead_gap=lead_gap.item(0),
+                         path=(self.path_x0.item(0), self.path_len.item(0), self.path_y0.item(0),
+                               self.path_y1.item(0)),
+                         steer_past=self.steer.item(0), accel_past=self.ego_accel.item(0), lag_alpha=self.lag_alpha,
+                         dt=self.dt, pid=step_one)  # fmt: skip
+            self.ego_accel[0], self.steer[0], self.throttle[0], self.brake[0] = r.accel, r.steer, r.throttle, r.brake
+            if (self.ego_lc_active.item(0) and r.x >= self.path_x0.item(0) + self.path_len.item(0)
+                    and abs(r.y - self.path_y1.item(0)) < ec.lane_change_tolerance_m):
+                self.ego_lc_active[0] = False
+            x_out[0, 0], y_out[0, 0], yaw_out[0, 0], v_out[0, 0], a_out[0, 0] = r.x, r.y, r.yaw, r.speed, r.accel
+            return
+
+        def step_batch(e_speed: np.ndarray, e_head: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+            u = self.pid.step(np.stack((e_speed, e_head), axis=1))
+            return u[:, 0], u[:, 1]
+
+        r = ego_step(ArrayOps, ec, x=self.x[:, 0], y=self.y[:, 0], yaw=self.yaw[:, 0], speed=self.speed[:, 0],
+                     target_speed=self.target_speed, lead_gap=lead_gap,
+                     path=(self.path_x0, self.path_len, self.path_y0, self.path_y1), steer_past=self.steer,
+                     accel_past=self.ego_accel, lag_alpha=self.lag_alpha, dt=self.dt, pid=step_batch)  # fmt: skip
+        self.ego_accel, self.steer, self.throttle, self.brake = r.accel, r.steer, r.throttle, r.brake
+        if self.ego_lc_active.any():
+            done = self.ego_lc_active & (r.x >= self.path_x0 + self.path_len) & (
+                np.abs(r.y - self.path_y1) < ec.lane_change_tolerance_m)
+            self.ego_lc_active &= ~done
+        x_out[:, 0], y_out[:, 0], yaw_out[:, 0], v_out[:, 0], a_out[:, 0] = r.x, r.y, r.yaw, r.speed, r.accel
 
     def _traffic_lane_changes(self, index: LaneIndex, due: np.ndarray) -> None:
         """Traffic-Manager-like lane changes: when blocked (or at random), into a free side lane."""

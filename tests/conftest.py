@@ -43,3 +43,32 @@ def wait_gone(pid: int, timeout: float = 30.0) -> None:
             return
         assert time.monotonic() < deadline, f"process {pid} still running"
         time.sleep(0.05)
+
+
+@pytest.fixture(scope="session")
+def predictor_path(tmp_path_factory: pytest.TempPathFactory):
+    """A small predictor (untrained: exactly the constant-velocity baseline, which is what it starts as)."""
+    import torch
+
+    from lcmodels.predictor import Predictor, PredictorConfig, TrajectoryTransformer
+
+    torch.manual_seed(0)
+    path = tmp_path_factory.mktemp("pred") / "predictor.pt"
+    Predictor(TrajectoryTransformer(PredictorConfig(d_model=16, ff_dim=32, num_layers=1))).save(path)
+    return path
+
+
+def tiny_policy(**kw):
+    """A :class:`~lcmodels.policy.PolicyConfig` that trains in seconds in the tiny scenario."""
+    from lcmodels.policy import PolicyConfig
+
+    base = dict(scenario="tiny", timesteps=128, n_envs=2, n_steps=32, batch_size=64, n_epochs=2,
+                eval_episodes=2, eval_batch=2, checkpoint_every=64, buffer_size=500, learning_starts=32)
+    base.update(kw)
+    return PolicyConfig(**base)
+
+
+EVAL_KEYS = {"success_rate", "collision_rate", "off_road_rate", "timeout_rate", "mean_safe_forward_m",
+             "mean_return", "success_rate_ci95", "collision_rate_ci95", "off_road_rate_ci95",
+             "timeout_rate_ci95", "mean_safe_forward_m_ci95", "mean_return_ci95", "episodes"}  # fmt: skip
+"""The keys every evaluation summary has."""

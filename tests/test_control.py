@@ -11,7 +11,7 @@ from lcsim.config import (
     ScenarioConfig,
     TrafficConfig,
 )
-from lcsim.control import PIDBank, limit_steer, pid_reference, split_throttle_brake
+from lcsim.control import ArrayOps, FloatOps, PIDBank, ego_step, pid_reference
 from lcsim.core import KEEP, LEFT, LaneChangeCore
 from lcsim.traffic import idm_accel
 
@@ -68,13 +68,47 @@ def test_pid_step_one_is_bit_identical_to_the_batched_step():
     np.testing.assert_array_equal(one.errors[0], batch.errors[0])
 
 
+def _step(ops, cfg, n, rng, pid):
+    """One ego_step on ``n`` random states (arrays for ArrayOps, the first state's floats for FloatOps)."""
+    state = dict(x=rng.uniform(0, 500, n), y=rng.uniform(0, 14, n), yaw=rng.normal(0, 0.1, n),
+                 speed=rng.uniform(0, 12, n), lead_gap=rng.uniform(0, 60, n), steer_past=rng.uniform(-0.8, 0.8, n),
+                 accel_past=rng.normal(0, 1, n))
+    path = (rng.uniform(0, 500, n), rng.uniform(2, 20, n), rng.uniform(0, 14, n), rng.uniform(0, 14, n))
+    if ops is FloatOps:
+        state = {k: float(v[0]) for k, v in state.items()}
+        path = tuple(float(v[0]) for v in path)
+    return ego_step(ops, cfg, **state, target_speed=30 / 3.6, path=path, lag_alpha=0.25, dt=0.05, pid=pid)
+
+
+@pytest.mark.parametrize("cfg", [EgoConfig(), EgoConfig(adaptive_cruise=True)], ids=["plain", "adaptive-cruise"])
+def test_the_control_law_gives_the_same_bits_on_floats_and_on_arrays(cfg):
+    """Written once, run two ways: one environment's floats and a batch's arrays agree bit for bit."""
+    def pid(e_speed, e_head):  # a stand-in controller: any function of the errors will do
+        return np.tanh(0.3 * e_speed), np.tanh(2.0 * e_head)
+
+    def pid_float(e_speed, e_head):
+        u, v = pid(np.array([e_speed]), np.array([e_head]))
+        return float(u[0]), float(v[0])
+
+    for seed in range(200):
+        batch = _step(ArrayOps, cfg, 3, np.random.default_rng(seed), pid)
+        one = _step(FloatOps, cfg, 3, np.random.default_rng(seed), pid_float)
+        for field in ("x", "y", "yaw", "speed", "accel", "steer", "throttle", "brake"):
+            assert getattr(one, field) == getattr(batch, field)[0], (seed, field)
+
+
 def test_throttle_brake_and_steer_limits():
+    """VehiclePIDController.run_step: throttle <= 0.75, brake <= 0.3, steering within 0.1 of the last and +-0.8."""
     cfg = EgoConfig()
-    thr, brk = split_throttle_brake(np.array([0.5, 0.9, -0.1, -0.9]), cfg)
-    np.testing.assert_allclose(thr, [0.5, 0.75, 0.0, 0.0])
-    np.testing.assert_allclose(brk, [0.0, 0.0, 0.1, 0.3])
-    steer = limit_steer(np.array([0.9, -0.9, 0.05]), np.array([0.75, 0.0, 0.0]), cfg)
-    np.testing.assert_allclose(steer, [0.8, -0.1, 0.05])
+    u_long, u_lat = np.array([0.5, 0.9, -0.1, -0.9]), np.array([0.9, -0.9, 0.05, 0.0])
+    r = ego_step(ArrayOps, cfg, x=np.zeros(4), y=np.zeros(4), yaw=np.zeros(4), speed=np.full(4, 8.0),
+                 target_speed=8.0, lead_gap=np.full(4, 100.0), path=(np.zeros(4), np.full(4, 10.0), np.zeros(4),
+                                                                      np.zeros(4)),
+                 steer_past=np.array([0.75, 0.0, 0.0, 0.0]), accel_past=np.zeros(4), lag_alpha=1.0, dt=0.05,
+                 pid=lambda e_speed, e_head: (u_long, u_lat))  # fmt: skip
+    np.testing.assert_allclose(r.throttle, [0.5, 0.75, 0.0, 0.0])
+    np.testing.assert_allclose(r.brake, [0.0, 0.0, 0.1, 0.3])
+    np.testing.assert_allclose(r.steer, [0.8, -0.1, 0.05, 0.0])
 
 
 @pytest.mark.parametrize("ego", [EgoConfig(start_lane=1),

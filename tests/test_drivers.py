@@ -130,6 +130,7 @@ def _dense_core() -> LaneChangeCore:
     return core
 
 
+@pytest.mark.slow
 def test_blind_lookahead_with_several_futures_keeps_a_decision_that_survives_the_most_of_them():
     core = _dense_core()
     driver = LookaheadDriver(LookaheadConfig(horizon_decisions=6, blind=True, samples=3))

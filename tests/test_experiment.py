@@ -33,6 +33,7 @@ from lcmodels.policy.train import check_run_dir
 SEEDS = 2
 
 
+@pytest.mark.slow
 def test_tiny_preset_end_to_end(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
     """One pipeline run (under pytest-xdist a shared fixture would run once per worker)."""
     run_dir = tmp_path / "tiny"

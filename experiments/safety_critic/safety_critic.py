@@ -8,7 +8,7 @@ gain. This tool teaches a separate network the planner's *survival labels* inste
 a choice, whether the imagined future after right / keep / left crashed, three labels a state.
 
 ``train`` lets POLICY drive ``--episodes`` training episodes (user seeds from ``--first-seed``), labels
-every state with a choice by the expert's imagined futures (:attr:`lcsim.drivers.LookaheadDriver.last_alive`),
+every state with a choice by the expert's imagined futures (:attr:`lcsim.planning.LookaheadDriver.last_alive`),
 keeps them in ``OUT/states.npz`` and fits ``--members`` critics (``current`` with contact features, an
 MLP, three logits of the probability that each decision's future crashes) to them: ``OUT/critic.pt``,
 with what was measured in ``OUT/critic.json``. ``--from-states FILE [FILE ...]`` refits on states kept before

@@ -219,7 +219,11 @@ def load_weights(model: BaseAlgorithm, path: str | os.PathLike[str], device: str
     ``ValueError`` when they do not fit the network exactly."""
     try:
         state = load_file(str(path), device=device)
-        for alias, name in (read_meta(path).get("tensor_aliases") or {}).items():
+        with safe_open(str(path), framework="pt") as f:
+            header = f.metadata() or {}
+        aliases = read_meta(path).get("tensor_aliases") or {
+            k: v for k, v in header.items() if k != CARD_KEY and v in state}  # (as safetensors' save_model names them)
+        for alias, name in aliases.items():
             state[alias] = state[name]
         model.policy.load_state_dict(state, strict=True)
     except (RuntimeError, SafetensorError, OSError, KeyError) as exc:

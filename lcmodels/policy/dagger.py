@@ -5,7 +5,7 @@ policy that errs drifts to states the demonstrations never show (a gap closing i
 not be in) and errs more. DAgger (Ross et al., 2011) closes that loop. Each round:
 
 1. the current policy drives ``episodes`` training episodes (deterministic actions);
-2. at every decision, :func:`lcsim.oracle.search_from` labels the state with the first decision of a
+2. at every decision, :func:`lcsim.planning.search_from` labels the state with the first decision of a
    winning plan from there (or, when none exists, of the branch that survives longest). A plan stays
    valid while the policy follows it, so a new search runs only after the policy deviates. With
    ``labels="winning"``, a deviation after which the episode can still be won keeps the policy's own
@@ -36,19 +36,19 @@ from typing import Any
 import numpy as np
 import torch
 
-from lcdata.record import episode_seed
 from lcmodels.fileio import POLICY_FILE, write_json
 from lcmodels.policy.checkpoint import load_policy, save_policy
 from lcmodels.policy.evaluate import PolicyDriver, evaluate
-from lcmodels.policy.obs import build_observation, mode_keys, scenario_for_mode
+from lcmodels.policy.obs import mode_keys, scenario_for_mode
 from lcmodels.policy.warmstart import Demonstrations, every_tenth, load_demonstrations, pretrain
-from lcsim.core import KEEP, RUNNING, SUCCESS, LaneChangeCore
-from lcsim.planning import LookaheadConfig, LookaheadDriver, search_from
+from lcsim.core import KEEP, SUCCESS, LaneChangeCore, StepResult
+from lcsim.episodes import EpisodeHook, run_episodes
+from lcsim.planning import LookaheadConfig, LookaheadDriver, SearchResult, search_from
 
 LABELS = ("plan", "winning")
 """How :func:`collect` labels a state (see there)."""
 ORACLE = "oracle"
-"""The default expert of :func:`dagger`: :func:`lcsim.oracle.search_from`, which sees the whole future."""
+"""The default expert of :func:`dagger`: :func:`lcsim.planning.search_from`, which sees the whole future."""
 
 
 @dataclass
@@ -67,7 +67,55 @@ class Collected:
     policy's own decision as their label when ``labels="winning"``)."""
     alive: np.ndarray | None = None
     """``(N, 3)`` for a lookahead expert: the share of its imagined futures each decision survived in each
-    state (:attr:`lcsim.drivers.LookaheadDriver.last_alive`; NaN for a decision not allowed there)."""
+    state (:attr:`lcsim.planning.LookaheadDriver.last_alive`; NaN for a decision not allowed there)."""
+
+
+class _OracleLabels(EpisodeHook):
+    """Labels every state a policy drives into (one environment) with the oracle's plan from it; see
+    :func:`collect`."""
+
+    def __init__(self, driver: PolicyDriver, keys: tuple[str, ...], keep_winning: bool) -> None:
+        self.driver, self.keys, self.keep_winning = driver, keys, keep_winning
+        self.rows: dict[str, list[np.ndarray]] = {k: [] for k in keys}
+        self.labels: list[int] = []
+        self.own: list[int] = []
+        self.agreed = self.searches = self.harmless = 0
+
+    def start(self, core: LaneChangeCore, user_seeds: Sequence[int], driver: Any) -> None:
+        self.plan: SearchResult | None = None
+        self.j = 0
+        self.deviated: tuple[int, int] | None = None  # (state, the policy's decision) off the plan, awaiting a verdict
+
+    def before_step(self, core: LaneChangeCore, obs: dict[str, np.ndarray], mask: np.ndarray, actions: np.ndarray,
+                    running: np.ndarray) -> None:
+        if self.plan is None or self.j >= len(self.plan.actions):
+            self.plan, self.j = search_from(core), 0
+            self.searches += 1
+            if self.deviated is not None and self.plan.winnable:  # the policy's decision still wins
+                self._harmless()
+            self.deviated = None
+        label = self.plan.actions[self.j] if self.j < len(self.plan.actions) else KEEP
+        action = int(actions[0])
+        for k in self.keys:
+            self.rows[k].append(self.driver.last_observation[k][0])
+        self.labels.append(label)
+        self.own.append(action)
+        if action == label:
+            self.agreed += 1
+            self.j += 1
+        else:
+            self.plan, self.deviated = None, (len(self.labels) - 1, action)
+
+    def after_step(self, core: LaneChangeCore, result: StepResult, running: np.ndarray) -> None:
+        if core.outcome[0] == SUCCESS and self.deviated is not None:
+            self._harmless()
+            self.deviated = None
+
+    def _harmless(self) -> None:
+        assert self.deviated is not None
+        self.harmless += 1
+        if self.keep_winning:
+            self.labels[self.deviated[0]] = self.deviated[1]
 
 
 def collect(policy_path: str | os.PathLike[str], user_seeds: Sequence[int], *,
@@ -80,52 +128,40 @@ def collect(policy_path: str | os.PathLike[str], user_seeds: Sequence[int], *,
     """
     if labels not in LABELS:
         raise ValueError(f"labels must be one of {', '.join(LABELS)}, got {labels!r}")
-    keep_winning = labels == "winning"
     torch.set_num_threads(threads)
     loaded = load_policy(policy_path, predictor=predictor)
-    mode, model = loaded.obs_mode, loaded.model
-    config = scenario_for_mode(loaded.scenario, mode)
-    keys = mode_keys(mode)
-    rows: dict[str, list[np.ndarray]] = {k: [] for k in keys}
-    labels_: list[int] = []
-    own: list[int] = []
-    agreed = searches = harmless = 0
-    outcomes: list[str] = []
-    for user in user_seeds:
-        core = LaneChangeCore(config, 1)
-        core.reset([0], [episode_seed(int(user))])
-        plan, j = None, 0
-        deviated: tuple[int, int] | None = None  # (state, the policy's decision) off the plan, awaiting a verdict
-        while core.outcome[0] == RUNNING:
-            pobs = build_observation(core.observe(), mode, loaded.predictor)
-            if plan is None or j >= len(plan.actions):
-                plan, j = search_from(core), 0
-                searches += 1
-                if deviated is not None and plan.winnable:  # the policy's decision still wins
-                    harmless += 1
-                    if keep_winning:
-                        labels_[deviated[0]] = deviated[1]
-                deviated = None
-            label = plan.actions[j] if j < len(plan.actions) else KEEP
-            action = int(np.asarray(model.predict(pobs, deterministic=True)[0]).reshape(-1)[0])
-            for k in keys:
-                rows[k].append(pobs[k][0])
-            labels_.append(label)
-            own.append(action)
-            core.step(np.array([action]))
-            if action == label:
-                agreed += 1
-                j += 1
-            else:
-                plan, deviated = None, (len(labels_) - 1, action)
-        if deviated is not None and core.outcome[0] == SUCCESS:
-            harmless += 1
-            if keep_winning:
-                labels_[deviated[0]] = deviated[1]
-        outcomes.append(str(core.outcome[0]))
-    obs = {k: np.stack(v) if v else np.zeros((0,)) for k, v in rows.items()}
-    return Collected(obs, np.asarray(labels_, dtype=np.int64), agreed, searches, outcomes,
-                     np.asarray(own, dtype=np.int64), harmless)
+    driver = PolicyDriver(loaded)
+    hook = _OracleLabels(driver, mode_keys(loaded.obs_mode), labels == "winning")
+    done = run_episodes(driver, scenario_for_mode(loaded.scenario, loaded.obs_mode), user_seeds, batch=1,
+                        hooks=[hook])
+    obs = {k: np.stack(v) if v else np.zeros((0,)) for k, v in hook.rows.items()}
+    return Collected(obs, np.asarray(hook.labels, dtype=np.int64), hook.agreed, hook.searches,
+                     [r.outcome for r in done], np.asarray(hook.own, dtype=np.int64), hook.harmless)
+
+
+class _ExpertLabels(EpisodeHook):
+    """Labels every state with a choice that a policy drives into with an expert driver's decision."""
+
+    def __init__(self, driver: PolicyDriver, teacher: Any, keys: tuple[str, ...]) -> None:
+        self.driver, self.teacher, self.keys = driver, teacher, keys
+        self.rows: dict[str, list[np.ndarray]] = {k: [] for k in keys}
+        self.labels: list[np.ndarray] = []
+        self.own: list[np.ndarray] = []
+        # the lookahead's survival of each decision, kept alongside its labels
+        self.alive: list[np.ndarray] | None = [np.zeros((0, 3))] if isinstance(teacher, LookaheadDriver) else None
+        self.agreed = 0
+
+    def before_step(self, core: LaneChangeCore, obs: dict[str, np.ndarray], mask: np.ndarray, actions: np.ndarray,
+                    running: np.ndarray) -> None:
+        live = np.flatnonzero(running & (mask.sum(axis=1) > 1))
+        label = np.asarray(self.teacher(obs, mask, core), dtype=np.int64).reshape(-1)[live]
+        if self.alive is not None:
+            self.alive.append(self.teacher.last_alive[live])
+        for k in self.keys:
+            self.rows[k].append(self.driver.last_observation[k][live])
+        self.labels.append(label)
+        self.own.append(actions[live])
+        self.agreed += int((label == actions[live]).sum())
 
 
 def collect_from_driver(policy_path: str | os.PathLike[str], user_seeds: Sequence[int], expert: str, *,
@@ -137,51 +173,25 @@ def collect_from_driver(policy_path: str | os.PathLike[str], user_seeds: Sequenc
     ``lookahead-blind:runs/pure/policy.safetensors``, which sees no more of the future than the policy could).
     Only states with a choice are kept: in the middle of a lane change the simulator ignores the decision,
     and a label there ("keep") would teach the network something that matters nowhere. ``lookahead``:
-    :class:`lcsim.drivers.LookaheadConfig` fields for a lookahead expert (as ``driver_for``'s), whose
+    :class:`lcsim.planning.LookaheadConfig` fields for a lookahead expert (as ``driver_for``'s), whose
     survival of each decision is kept too (``Collected.alive``). ``progress`` is called with (episodes done,
     episodes) after each batch."""
     from lcmodels.policy.evaluate import driver_for
 
     torch.set_num_threads(threads)
     loaded = load_policy(policy_path, predictor=predictor)
-    mode, model = loaded.obs_mode, loaded.model
-    config = scenario_for_mode(loaded.scenario, mode)
+    config = scenario_for_mode(loaded.scenario, loaded.obs_mode)
     teacher, teacher_config = driver_for(expert, lookahead=lookahead)
     if teacher_config is not None and replace(teacher_config, render_image=False) != replace(config, render_image=False):
         raise ValueError(f"the expert {expert} was trained on another scenario than {policy_path}")
-    keys = mode_keys(mode)
-    rows: dict[str, list[np.ndarray]] = {k: [] for k in keys}
-    labels_: list[np.ndarray] = []
-    own: list[np.ndarray] = []
-    # the lookahead's survival of each decision, kept alongside its labels
-    alive: list[np.ndarray] | None = [np.zeros((0, 3))] if isinstance(teacher, LookaheadDriver) else None
-    agreed = 0
-    outcomes: list[str] = []
-    for start in range(0, len(user_seeds), batch):
-        chunk = user_seeds[start : start + batch]
-        core = LaneChangeCore(config, len(chunk))
-        core.reset(np.arange(len(chunk)), [episode_seed(int(u)) for u in chunk])
-        while (core.outcome == RUNNING).any():
-            obs, mask = core.observe(), core.action_mask()
-            live = np.flatnonzero((core.outcome == RUNNING) & (mask.sum(axis=1) > 1))
-            pobs = build_observation(obs, mode, loaded.predictor)
-            actions = np.asarray(model.predict(pobs, deterministic=True)[0], dtype=np.int64).reshape(-1)
-            label = np.asarray(teacher(obs, mask, core), dtype=np.int64).reshape(-1)[live]
-            if alive is not None:
-                alive.append(teacher.last_alive[live])
-            for k in keys:
-                rows[k].append(pobs[k][live])
-            labels_.append(label)
-            own.append(actions[live])
-            agreed += int((label == actions[live]).sum())
-            core.step(actions)
-        outcomes += [str(o) for o in core.outcome]
-        if progress is not None:
-            progress(len(outcomes), len(user_seeds))
-    obs_ = {k: np.concatenate(v) if v else np.zeros((0,)) for k, v in rows.items()}
-    labels = np.concatenate(labels_) if labels_ else np.zeros(0, dtype=np.int64)
-    actions_ = np.concatenate(own) if own else np.zeros(0, dtype=np.int64)
-    return Collected(obs_, labels, agreed, 0, outcomes, actions_, alive=None if alive is None else np.concatenate(alive))
+    driver = PolicyDriver(loaded)
+    hook = _ExpertLabels(driver, teacher, mode_keys(loaded.obs_mode))
+    done = run_episodes(driver, config, user_seeds, batch=batch, hooks=[hook], progress=progress)
+    obs_ = {k: np.concatenate(v) if v else np.zeros((0,)) for k, v in hook.rows.items()}
+    labels = np.concatenate(hook.labels) if hook.labels else np.zeros(0, dtype=np.int64)
+    actions_ = np.concatenate(hook.own) if hook.own else np.zeros(0, dtype=np.int64)
+    return Collected(obs_, labels, hook.agreed, 0, [r.outcome for r in done], actions_,
+                     alive=None if hook.alive is None else np.concatenate(hook.alive))
 
 
 _STATES = "states.npz"
@@ -254,7 +264,7 @@ def dagger(
         correction_weight: how much more a labelled state counts in training when its label differs from
             the decision the policy took there (a correction), than one where they agree. An expert
             that corrects one decision in a hundred needs this above 1 to be heard.
-        expert_lookahead: :class:`lcsim.drivers.LookaheadConfig` fields for a lookahead expert, for example
+        expert_lookahead: :class:`lcsim.planning.LookaheadConfig` fields for a lookahead expert, for example
             ``{"horizon_decisions": 32}`` (16 s); ``ValueError`` for an expert that is not a lookahead.
         resume: continue the rounds already in ``out`` (made with the same run, episodes, seed and labels)
             up to ``rounds`` in all: their labelled states rejoin the training set and the last round's

@@ -50,13 +50,15 @@ class PolicyDriver:
     """
 
     needs_observation = True
-    """It reads the observation (a :class:`lcsim.drivers.LookaheadDriver` builds one in its imagined futures)."""
+    """It reads the observation (a :class:`lcsim.planning.LookaheadDriver` builds one in its imagined futures)."""
 
     def __init__(self, policy: LoadedPolicy, *, deterministic: bool = True) -> None:
         self.policy = policy
         self.name = f"{policy.algo}-{policy.obs_mode}"
         self.deterministic = deterministic
         self.last_prediction: np.ndarray | None = None
+        self.last_observation: dict[str, np.ndarray] = {}
+        """The policy observation of the last call (what the network saw)."""
 
     @property
     def config(self) -> ScenarioConfig:
@@ -65,6 +67,7 @@ class PolicyDriver:
 
     def __call__(self, obs: dict[str, np.ndarray], action_mask: np.ndarray, core: LaneChangeCore) -> np.ndarray:
         pobs = build_observation(obs, self.policy.obs_mode, self.policy.predictor)
+        self.last_observation = pobs
         self.last_prediction = pobs.get("prediction")
         actions, _ = self.policy.model.predict(pobs, deterministic=self.deterministic)
         return np.asarray(actions, dtype=np.int64).reshape(-1)
@@ -177,12 +180,12 @@ def driver_for(spec: str, *, predictor: str | None = None, device: str = "cpu",
                lookahead: dict[str, int] | None = None, follow: str | None = None,
                trust_pickle: bool = False) -> tuple[Any, ScenarioConfig | None]:
     """A driver from a built-in name (:data:`lcsim.drivers.DRIVER_NAMES`), a policy checkpoint path (``policy:``
-    prefix optional), or ``lookahead:PATH`` / ``lookahead-blind:PATH``: :class:`lcsim.drivers.LookaheadDriver`
+    prefix optional), or ``lookahead:PATH`` / ``lookahead-blind:PATH``: :class:`lcsim.planning.LookaheadDriver`
     following that policy in its imagined futures (blind: with the traffic's random draws redrawn). The
     policy must not read the image (the imagined futures are not rendered), unless ``follow`` names the
     driver the imagined futures follow instead (a built-in driver or a checkpoint of the same scenario that
     does not read the image): then the policy proposes and the lookahead vetoes. ``lookahead``: fields of
-    :class:`lcsim.drivers.LookaheadConfig` (``horizon_decisions``, ``samples``) for a lookahead driver.
+    :class:`lcsim.planning.LookaheadConfig` (``horizon_decisions``, ``samples``) for a lookahead driver.
     ``ValueError`` when ``lookahead`` or ``follow`` is given for a driver they do not apply to.
     ``trust_pickle``: accept legacy stable-baselines3 ``.zip`` policies (loading one runs code stored in it).
 

@@ -15,7 +15,7 @@ the ego in the same (target) lane, the same time since its last lane change star
 the first one is expanded. The ego cannot brake, so its longitudinal state hardly depends on the path;
 what a merge can hide is a difference in the traffic the ego's earlier moves caused (a follower that
 braked for it). A larger ``memory_decisions`` merges less and searches more; the episodes the search
-gives up on can be checked again with a larger one (``tools/oracle_bound.py --memory``).
+gives up on can be checked again with a larger one (``lc-eval oracle --bound --memory``).
 
 Branches are tried in the order the rule-based driver would choose (its action first, then keep, then
 left, then right), so an episode the rule-based driver wins costs one simulation per decision.

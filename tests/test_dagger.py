@@ -1,0 +1,132 @@
+"""DAgger: rounds labelled by the oracle or a driver, resumed rounds equal uninterrupted ones."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+import pytest
+import torch
+
+from lcdata.record import episode_seed, record_episodes
+from lcmodels.policy import (
+    load_demonstrations,
+    load_policy,
+    train_policy,
+)
+from lcmodels.policy.evaluate import PolicyDriver
+from lcmodels.policy.obs import scenario_for_mode
+from lcsim.config import tiny_scenario
+from lcsim.core import KEEP, RUNNING, LaneChangeCore
+
+from .conftest import tiny_policy
+
+
+@pytest.mark.slow
+def test_dagger_round_labels_the_policys_states_with_the_oracle_and_saves_a_loadable_policy(tmp_path: Path) -> None:
+    from lcmodels.policy.dagger import collect, dagger
+
+    config = scenario_for_mode(tiny_scenario(), "pure")
+    record_episodes(config, [1, 2], "oracle", tmp_path / "demos", scenario="tiny", images=False)
+    cfg = tiny_policy(obs="pure", timesteps=0, warm_start=str(tmp_path / "demos"), warm_start_epochs=2, eval_episodes=0)
+    train_policy(cfg, tmp_path / "bc")
+    demos = load_demonstrations(tmp_path / "demos", "pure", None, scenario=config)
+    got = collect(tmp_path / "bc" / "policy.safetensors", [7, 8])
+    assert len(got.labels) == len(got.obs["current"]) > 0 and got.searches >= 1 and len(got.outcomes) == 2
+    assert set(got.labels.tolist()) <= {0, 1, 2} and got.agreed <= len(got.labels)
+    again = collect(tmp_path / "bc" / "policy.safetensors", [7, 8])
+    assert np.array_equal(again.labels, got.labels) and np.array_equal(again.obs["current"], got.obs["current"])
+    winning = collect(tmp_path / "bc" / "policy.safetensors", [7, 8], labels="winning")  # the same states, other labels
+    assert np.array_equal(winning.obs["current"], got.obs["current"]) and winning.harmless == got.harmless
+    assert (winning.labels != got.labels).sum() == got.harmless  # exactly the harmless deviations keep their own
+    with pytest.raises(ValueError, match="labels"):
+        collect(tmp_path / "bc" / "policy.safetensors", [7], labels="best")
+    records = dagger(tmp_path / "bc", tmp_path / "dg", rounds=1, episodes=2, epochs=1, seed=7, workers=1,
+                     eval_episodes=2)  # fmt: skip
+    assert records[0]["states_labelled"] == len(got.labels)  # the same seeds, the same policy: the same states
+    assert records[0]["training_states"] == len(demos) + len(got.labels)
+    assert set(records[0]["eval"]) >= {"success_rate", "collision_rate"}
+    loaded = load_policy(tmp_path / "dg" / "round1" / "policy.safetensors")
+    assert loaded.meta["dagger"]["round"] == 1
+    with pytest.raises(FileExistsError):
+        dagger(tmp_path / "bc", tmp_path / "dg", rounds=1, episodes=1, epochs=1)
+
+
+@pytest.mark.slow
+def test_dagger_resumed_gives_the_rounds_of_an_uninterrupted_run(tmp_path: Path) -> None:
+    from lcmodels.policy.dagger import dagger
+
+    config = scenario_for_mode(tiny_scenario(), "pure")
+    record_episodes(config, [1, 2], "oracle", tmp_path / "demos", scenario="tiny", images=False)
+    train_policy(tiny_policy(obs="pure", timesteps=0, warm_start=str(tmp_path / "demos"), warm_start_epochs=2,
+                       eval_episodes=0), tmp_path / "bc")  # fmt: skip
+    args = dict(episodes=2, epochs=1, seed=7, workers=1, eval_episodes=0)
+    straight = dagger(tmp_path / "bc", tmp_path / "straight", rounds=2, **args)
+    dagger(tmp_path / "bc", tmp_path / "parts", rounds=1, **args)
+    resumed = dagger(tmp_path / "bc", tmp_path / "parts", rounds=2, resume=True, **args)
+    assert [r["round"] for r in resumed] == [1, 2]
+    for key in ("states_labelled", "training_states", "epoch_losses"):
+        assert resumed[1][key] == straight[1][key], key
+    a = load_policy(tmp_path / "straight" / "round2" / "policy.safetensors").model.policy.state_dict()
+    b = load_policy(tmp_path / "parts" / "round2" / "policy.safetensors").model.policy.state_dict()
+    assert all(torch.equal(a[k], b[k]) for k in a)
+    with pytest.raises(ValueError, match="labels: plan there, winning asked"):
+        dagger(tmp_path / "bc", tmp_path / "parts", rounds=3, resume=True, **{**args, "labels": "winning"})
+    with pytest.raises(FileNotFoundError, match="no DAgger rounds"):
+        dagger(tmp_path / "bc", tmp_path / "empty", rounds=1, resume=True, **args)
+
+
+@pytest.mark.slow
+def test_dagger_with_a_driver_as_the_expert_labels_every_state_with_its_decision(tmp_path: Path) -> None:
+    from lcmodels.policy.dagger import collect_from_driver, dagger
+
+    train_policy(tiny_policy(obs="pure", timesteps=64, n_steps=16, eval_episodes=0), tmp_path / "run")
+    policy = tmp_path / "run" / "policy.safetensors"
+    keep = collect_from_driver(policy, [7, 8, 9], "keep", batch=2)
+    assert len(keep.labels) == len(keep.obs["current"]) > 0 and len(keep.outcomes) == 3
+    drv, decisions, with_choice = PolicyDriver(load_policy(policy)), 0, 0  # the same episodes, counted
+    core = LaneChangeCore(drv.config, 3)
+    core.reset(range(3), [episode_seed(u) for u in (7, 8, 9)])
+    while (core.outcome == RUNNING).any():
+        mask = core.action_mask()
+        decisions += int((core.outcome == RUNNING).sum())
+        with_choice += int(((core.outcome == RUNNING) & (mask.sum(axis=1) > 1)).sum())
+        core.step(drv(core.observe(), mask, core))
+    assert len(keep.labels) == with_choice < decisions  # mid-change states (no choice) are not kept
+    assert (keep.labels == KEEP).all() and keep.agreed <= len(keep.labels) and keep.alive is None
+    expert = f"lookahead-blind:{policy}"
+    got = collect_from_driver(policy, [7, 8, 9], expert, batch=2)
+    assert got.alive.shape == (len(got.labels), 3) and not np.isnan(got.alive[:, KEEP]).any()
+    rows = np.arange(len(got.labels))  # the planner's decision survives as many imagined futures as the best one
+    # (a decision the simulator does not allow, as an untrained policy proposes, stands only when nothing survives)
+    assert np.array_equal(np.nan_to_num(got.alive)[rows, got.labels], np.nanmax(got.alive, axis=1))
+    assert np.array_equal(got.obs["current"], keep.obs["current"])  # the policy drives: the same states
+    again = collect_from_driver(policy, [7, 8, 9], expert, batch=3)  # batching does not change a label
+    assert np.array_equal(np.sort(again.labels), np.sort(got.labels)) and again.agreed == got.agreed
+    records = dagger(tmp_path / "run", tmp_path / "dg", rounds=1, episodes=3, epochs=1, seed=7, workers=1,
+                     eval_episodes=0, expert=expert)  # fmt: skip
+    assert records[0]["expert"] == expert and records[0]["states_labelled"] == len(got.labels)
+    assert records[0]["training_states"] == len(got.labels)  # a run without demonstrations: its states only
+    with np.load(tmp_path / "dg" / "round1" / "states.npz") as kept:  # the policy's own decisions are kept
+        assert np.array_equal(kept["actions"], again.actions) and np.array_equal(kept["labels"], again.labels)
+    assert got.agreed == int((got.actions == got.labels).sum())
+    with pytest.raises(ValueError, match=r"correction weight: 1\.0 there, 5\.0 asked"):
+        dagger(tmp_path / "run", tmp_path / "dg", rounds=2, episodes=3, epochs=1, seed=7, workers=1,
+               eval_episodes=0, expert=expert, correction_weight=5.0, resume=True)  # fmt: skip
+    with pytest.raises(ValueError, match="there, oracle asked"):
+        dagger(tmp_path / "run", tmp_path / "dg", rounds=2, episodes=3, epochs=1, seed=7, workers=1,
+               eval_episodes=0, resume=True)  # fmt: skip
+    with pytest.raises(ValueError, match=r"expert's lookahead: \{\} there"):
+        dagger(tmp_path / "run", tmp_path / "dg", rounds=2, episodes=3, epochs=1, seed=7, workers=1,
+               eval_episodes=0, expert=expert, expert_lookahead={"horizon_decisions": 2}, resume=True)  # fmt: skip
+    for bad, what in (({"expert": "oracle", "expert_lookahead": {"horizon_decisions": 2}}, "lookahead expert only"),
+                      ({"expert": f"lookahead:{policy}", "expert_lookahead": {"samples": 2}}, "samples")):
+        with pytest.raises(ValueError, match=what):
+            dagger(tmp_path / "run", tmp_path / "bad", rounds=1, episodes=3, epochs=1, seed=7, workers=1,
+                   eval_episodes=0, **bad)  # fmt: skip
+    short = collect_from_driver(policy, [7, 8, 9], expert, batch=3, lookahead={"horizon_decisions": 2})
+    records = dagger(tmp_path / "run", tmp_path / "dg-short", rounds=1, episodes=3, epochs=1, seed=7, workers=1,
+                     eval_episodes=0, expert=expert, expert_lookahead={"horizon_decisions": 2})  # fmt: skip
+    assert records[0]["expert_lookahead"] == {"horizon_decisions": 2}
+    with np.load(tmp_path / "dg-short" / "round1" / "states.npz") as kept:
+        assert np.array_equal(kept["labels"], short.labels)
