@@ -24,7 +24,7 @@ import numpy as np
 
 from lcdata.record import RecordingHook, episode_filename, episode_metadata
 from lcmodels.policy.checkpoint import LoadedPolicy
-from lcmodels.policy.obs import EpisodeStats, ObsMode, build_observation, scenario_for_mode
+from lcmodels.policy.obs import EpisodeStats, ObsMode, build_observation, scenario_for_mode, summarize
 from lcsim.config import ScenarioConfig
 from lcsim.core import OUTCOMES, LaneChangeCore
 from lcsim.drivers import Driver
@@ -95,18 +95,14 @@ def mean_interval(values: Sequence[float], z: float = 1.959964) -> tuple[float, 
 
 
 def summarize_with_intervals(episodes: Sequence[EpisodeStats]) -> dict[str, Any]:
-    """``{outcome}_rate`` fractions, mean return and safe forward distance, each with ``*_ci95``."""
-    n = len(episodes)
-    out: dict[str, Any] = {"episodes": n}
+    """:func:`lcmodels.policy.obs.summarize` with a 95% interval for each figure (``*_ci95``: Wilson for the
+    rates, normal for the means)."""
+    out = summarize(episodes)
     for o in OUTCOMES:
-        k = sum(e.outcome == o for e in episodes)
-        out[f"{o}_rate"] = k / n if n else float("nan")
-        out[f"{o}_rate_ci95"] = list(wilson_interval(k, n))
+        out[f"{o}_rate_ci95"] = list(wilson_interval(sum(e.outcome == o for e in episodes), len(episodes)))
     for key, attr in (("mean_return", "ret"), ("mean_safe_forward_m", "safe_forward_m"),
                       ("mean_forward_m", "forward_m")):  # fmt: skip
-        vals = [getattr(e, attr) for e in episodes]
-        out[key] = float(np.mean(vals)) if n else float("nan")
-        out[f"{key}_ci95"] = list(mean_interval(vals))
+        out[f"{key}_ci95"] = list(mean_interval([getattr(e, attr) for e in episodes]))
     return out
 
 

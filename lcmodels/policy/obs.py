@@ -22,6 +22,7 @@ neighbours in one call, a frozen image branch's features in place of the image).
 from __future__ import annotations
 
 import dataclasses
+from collections.abc import Sequence
 from enum import StrEnum
 from typing import Any
 
@@ -290,10 +291,11 @@ def episode_seeds_of(venv: VecEnv) -> list[int]:
     return venv.episode_seeds
 
 
-def summarize(episodes: list[EpisodeStats]) -> dict[str, float]:
-    """Rates of each outcome, mean return and mean (safe) forward distance of ``episodes``."""
+def summarize(episodes: Sequence[EpisodeStats]) -> dict[str, Any]:
+    """``episodes`` (their count), the rate of each outcome, the mean return and mean (safe) forward distance
+    (NaN for no episodes): what training logs and evaluation reports (with intervals)."""
     n = len(episodes)
-    out: dict[str, float] = {"episodes": float(n)}
+    out: dict[str, Any] = {"episodes": n}
     for o in OUTCOMES:
         out[f"{o}_rate"] = sum(e.outcome == o for e in episodes) / n if n else float("nan")
     out["mean_return"] = float(np.mean([e.ret for e in episodes])) if n else float("nan")

@@ -69,6 +69,7 @@ from lcmodels.policy.obs import (
     episode_stats,
     needs_predictor,
     policy_vec_env,
+    summarize,
 )
 from lcmodels.predictor.inference import Predictor
 from lcsim.config import ScenarioConfig
@@ -129,11 +130,7 @@ class _Logger(BaseCallback):
         n = len(w)
         row: dict[str, float] = {"timesteps": t, "wall_s": round(self.run.wall_s(), 3),
                                  "episodes_total": self.episodes_total, "window": n}  # fmt: skip
-        for o in ("success", "collision", "off_road", "timeout"):
-            row[f"{o}_rate"] = sum(e.outcome == o for e in w) / n if n else float("nan")
-        row["mean_return"] = float(np.mean([e.ret for e in w])) if n else float("nan")
-        row["mean_safe_forward_m"] = float(np.mean([e.safe_forward_m for e in w])) if n else float("nan")
-        row["mean_forward_m"] = float(np.mean([e.forward_m for e in w])) if n else float("nan")
+        row.update((k, v) for k, v in summarize(w).items() if k != "episodes")
         for k, v in row.items():
             if k not in ("timesteps", "wall_s"):
                 self.logger.record(f"lc/{k}", v)
