@@ -14,8 +14,58 @@ from __future__ import annotations
 import dataclasses
 import json
 import math
+import os
+import pathlib
+import tomllib
+from collections.abc import Sequence
 from dataclasses import dataclass, field
 from typing import Any, ClassVar, Self
+
+
+def _toml_value(v: object) -> str:
+    if isinstance(v, bool):
+        return "true" if v else "false"
+    if isinstance(v, int | float):
+        if isinstance(v, float) and not math.isfinite(v):
+            raise ValueError(f"{v!r} has no TOML form")
+        return repr(v)
+    if isinstance(v, str):
+        return json.dumps(v)  # a TOML basic string
+    if isinstance(v, list | tuple):
+        return "[" + ", ".join(_toml_value(x) for x in v) + "]"
+    raise ValueError(f"{v!r} has no TOML form")
+
+
+def _toml_table(data: dict[str, object], path: list[str], lines: list[str]) -> None:
+    scalars = {k: v for k, v in data.items() if not isinstance(v, dict)}
+    if path and (scalars or not data):
+        lines += ["", f"[{'.'.join(path)}]"]
+    lines += [f"{k} = {_toml_value(v)}" for k, v in scalars.items()]
+    for k, v in data.items():
+        if isinstance(v, dict):
+            _toml_table(v, [*path, k], lines)
+
+
+def _parse_value(text: str, like: object, what: str) -> object:
+    """``text`` read as the type of the field's current value ``like``."""
+    try:
+        if isinstance(like, bool):
+            lowered = text.lower()
+            if lowered not in ("true", "false", "1", "0", "yes", "no", "on", "off"):
+                raise ValueError("expected true or false")
+            return lowered in ("true", "1", "yes", "on")
+        if isinstance(like, int):
+            return int(text)
+        if isinstance(like, float):
+            return float(text)
+        if isinstance(like, tuple):
+            items = json.loads(text)
+            if not isinstance(items, list):
+                raise ValueError("expected a JSON list such as [1, 2]")
+            return tuple(items)
+        return text
+    except (ValueError, json.JSONDecodeError) as exc:
+        raise ValueError(f"{what}: expected a value like {like!r} ({exc})") from None
 
 
 def check_field(cond: bool, cls: object, name: str, msg: str, value: object) -> None:
@@ -76,6 +126,67 @@ class JsonConfig:
             return cls(**kwargs)
         except (TypeError, AttributeError, OverflowError) as exc:  # a value of the wrong type met a check
             raise ValueError(f"{cls.__name__}: a value of the wrong type ({exc})") from None
+
+    def to_toml(self, table: str | None = None) -> str:
+        """The config as TOML (nested configs as tables; under ``[table]`` when given): what
+        :meth:`from_file` reads back to an equal config."""
+        lines: list[str] = []
+        _toml_table(self.to_dict(), [table] if table else [], lines)
+        return "\n".join(lines).strip() + "\n"
+
+    @classmethod
+    def from_file(cls, path: str | os.PathLike[str], table: str | None = None) -> Self:
+        """The config of a TOML or JSON file of its fields (those missing keep their defaults); with
+        ``table``, the fields may also sit under that top-level table (``[policy]``). ``ValueError`` naming
+        the file and the problem."""
+        path = pathlib.Path(path)
+        if path.suffix not in (".toml", ".json"):
+            raise ValueError(f"{path}: a config file must be .toml or .json")
+        try:
+            text = path.read_text()
+            data = tomllib.loads(text) if path.suffix == ".toml" else json.loads(text)
+        except FileNotFoundError:
+            raise ValueError(f"config file {path} does not exist") from None
+        except (OSError, UnicodeDecodeError, ValueError) as exc:  # tomllib's and json's errors are ValueErrors
+            raise ValueError(f"{path} is not valid {path.suffix[1:].upper()}: {exc}") from None
+        if table is not None and isinstance(data, dict) and isinstance(data.get(table), dict):
+            data = data[table]
+        try:
+            return cls.from_dict(data)
+        except ValueError as exc:
+            raise ValueError(f"{path}: {exc}") from None
+
+    def with_settings(self, settings: Sequence[str]) -> Self:
+        """This config with ``key=value`` settings (``traffic.num_vehicles=30`` reaches a nested config),
+        validated together once all are applied (so that fields that must agree can change together). Each
+        value is read as its field's type (``true``/``false`` for a flag, a JSON list for a tuple).
+        ``ValueError`` naming the setting for an unknown key or a value of the wrong type, and naming the
+        settings for a combination the config refuses."""
+        if not settings:
+            return self
+        data = self.to_dict()
+        for text in settings:
+            key, sep, value = text.partition("=")
+            if not sep or not key.strip():
+                raise ValueError(f"--set {text!r}: expected KEY=VALUE")
+            *parents, name = key.strip().split(".")
+            node: dict[str, Any] = data
+            owner = type(self).__name__
+            for part in parents:
+                child = node.get(part)
+                if not isinstance(child, dict):
+                    what = "has no field" if part not in node else "has no fields of its own under"
+                    raise ValueError(f"--set {text}: {owner} {what} {part!r}")
+                node, owner = child, part
+            if name not in node:
+                raise ValueError(f"--set {text}: {owner} has no field {name!r} (fields: {', '.join(sorted(node))})")
+            if isinstance(node[name], dict):
+                raise ValueError(f"--set {text}: {name} is a nested config; set its fields ({name}.field=value)")
+            node[name] = _parse_value(value.strip(), node[name], f"--set {text}")
+        try:
+            return type(self).from_dict(data)
+        except ValueError as exc:
+            raise ValueError(f"--set {', '.join(settings)}: {exc}") from None
 
     @classmethod
     def from_json(cls, text: str) -> Self:

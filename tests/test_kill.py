@@ -100,8 +100,8 @@ def test_kill_9_of_lc_record_with_workers_leaves_no_process_and_resumes(tmp_path
 
 def test_kill_9_of_lc_train_policy_resumes_the_step_count(tmp_path: Path) -> None:
     out = tmp_path / "run"
-    base = ["--obs", "pure", "--scenario", "tiny", "--n-envs", "2", "--checkpoint-every", "128",
-            "--eval-episodes", "0", "--threads", "1", "--out", str(out), "-q"]
+    base = ["--obs", "pure", "--scenario", "tiny", "--set", "n_envs=2", "--set", "checkpoint_every=128",
+            "--set", "eval_episodes=0", "--threads", "1", "--out", str(out), "-q"]
     proc = subprocess.Popen(_command("lccli.policy:train_policy_main", [*base, "--timesteps", "1000000"]), cwd=ROOT,
                             stdout=subprocess.DEVNULL, stderr=subprocess.PIPE)
     state_file = out / "checkpoints" / "latest.json"

@@ -48,8 +48,8 @@ def test_policy_driver_records_predictions(tmp_path: Path, predictor_path: Path)
 
 def test_cli_train_and_eval_json(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
     out = tmp_path / "run"
-    assert train_policy_main(["--obs", "pure", "--scenario", "tiny", "--timesteps", "128", "--n-envs", "2",
-                              "--n-steps", "32", "--eval-episodes", "2", "--out", str(out), "-q"]) == 0
+    assert train_policy_main(["--obs", "pure", "--scenario", "tiny", "--timesteps", "128", "--set", "n_envs=2",
+                              "--set", "n_steps=32", "--set", "eval_episodes=2", "--out", str(out), "-q"]) == 0
     js = tmp_path / "eval.json"
     assert eval_main([str(out / "policy.safetensors"), "--episodes", "3", "--seed", "1", "--json-out", str(js),
                       "--no-record", "-q"]) == 0

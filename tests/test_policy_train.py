@@ -126,8 +126,8 @@ def test_init_policy_starts_online_training_from_its_weights(tmp_path: Path) -> 
     with pytest.raises(ValueError, match="observation mode"):
         train_policy(tiny_policy(obs="image", eval_episodes=0, init_policy=str(start)), tmp_path / "other")
     # From the command line, PPO continuing from a policy defaults to a tenth of the usual learning rate
-    assert train_policy_main(["--obs", "pure", "--scenario", "tiny", "--timesteps", "64", "--n-envs", "2",
-                              "--n-steps", "32", "--eval-episodes", "0", "--init-policy", str(start),
+    assert train_policy_main(["--obs", "pure", "--scenario", "tiny", "--timesteps", "64", "--set", "n_envs=2",
+                              "--set", "n_steps=32", "--set", "eval_episodes=0", "--init-policy", str(start),
                               "--out", str(tmp_path / "cli"), "-q"]) == 0  # fmt: skip
     stored = json.loads((tmp_path / "cli" / "run.json").read_text())["config"]
     assert stored["learning_rate"] == 3e-5 == default_learning_rate("ppo", fine_tune=True)

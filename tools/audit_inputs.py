@@ -148,6 +148,7 @@ def build_cases(root: Path) -> list[Case]:
     (root / "empty").mkdir()
     (root / "a_file").write_text("not a directory")
     (root / "existing.json").write_text("{}")
+    (root / "bad_config.toml").write_text("[policy]\ngama = 0.9\n")
     (root / "existing.rrd").write_text("a viewer file somebody made")
     foreign = root / "foreign"
     foreign.mkdir()
@@ -185,8 +186,8 @@ def build_cases(root: Path) -> list[Case]:
 
     foreign_kept = lambda: "" if [p.name for p in foreign.iterdir()] == ["thesis.tex"] else "files in --out changed"  # noqa: E731
     rec = ["lc-record", "--vehicles", "8", "--steps", "40"]
-    tiny_train = ["lc-train-policy", "--scenario", "tiny", "--timesteps", "64", "--n-envs", "2", "--eval-episodes",
-                  "0", "-q"]
+    tiny_train = ["lc-train-policy", "--scenario", "tiny", "--timesteps", "64", "--set", "n_envs=2", "--set",
+                  "eval_episodes=0", "-q"]
     r = str(root)
     return [
         # lc-record
@@ -234,19 +235,27 @@ def build_cases(root: Path) -> list[Case]:
                                                      "--out", f"{r}/t1"], check=not_written(root / "t1")),
         Case("lc-train-policy: zero timesteps without warm start", ["lc-train-policy", "--obs", "pure", "--timesteps",
                                                                     "0", "--out", f"{r}/t1"]),
-        Case("lc-train-policy: negative learning rate", [*tiny_train, "--obs", "pure", "--lr", "-1", "--out", f"{r}/t1"]),
-        Case("lc-train-policy: gamma 2", [*tiny_train, "--obs", "pure", "--gamma", "2", "--out", f"{r}/t1"]),
+        Case("lc-train-policy: negative learning rate", [*tiny_train, "--obs", "pure", "--set", "learning_rate=-1",
+                                                         "--out", f"{r}/t1"]),
+        Case("lc-train-policy: gamma 2", [*tiny_train, "--obs", "pure", "--set", "gamma=2", "--out", f"{r}/t1"]),
         Case("lc-train-policy: seed too large", [*tiny_train, "--obs", "pure", "--seed", "2000000", "--out", f"{r}/t1"]),
         Case("lc-train-policy: --freeze-image without --init-policy", [*tiny_train, "--obs", "image",
-                                                                       "--freeze-image", "--out", f"{r}/t1"]),
+                                                                       "--set", "freeze_image=true", "--out", f"{r}/t1"]),
         Case("lc-train-policy: --overwrite on a directory it did not write", [*tiny_train, "--obs", "pure", "--out",
                                                                               str(foreign), "--overwrite"],
              check=foreign_kept),
         Case("lc-train-policy: another run's --out", [*tiny_train, "--obs", "pure", "--seed", "3", "--out",
                                                       str(other_run)],
              **unchanged(other_run / "policy.safetensors")),
+        Case("lc-train-policy: unknown --set key", [*tiny_train, "--obs", "pure", "--set", "gama=0.9", "--out", f"{r}/t1"],
+             check=not_written(root / "t1")),
+        Case("lc-train-policy: --set value of the wrong type", [*tiny_train, "--obs", "pure", "--set", "n_envs=many",
+                                                                "--out", f"{r}/t1"], check=not_written(root / "t1")),
+        Case("lc-train-policy: --config file with an unknown field", [*tiny_train, "--obs", "pure", "--config",
+                                                                      f"{r}/bad_config.toml", "--out", f"{r}/t1"],
+             check=not_written(root / "t1")),
         Case("lc-train-policy: corrupt checkpoints/latest.json", [*tiny_train, "--obs", "pure", "--timesteps", "128",
-                                                                  "--n-steps", "32", "--out", str(corrupt)]),
+                                                                  "--set", "n_steps=32", "--out", str(corrupt)]),
         # lc-eval
         Case("lc-eval: missing policy", ["lc-eval", f"{r}/missing.safetensors", "--no-record"]),
         Case("lc-eval: a directory", ["lc-eval", r, "--no-record"]),

@@ -1,0 +1,90 @@
+"""Configuration as data: a config round-trips through its file, --set reaches every field, and an unknown
+key or a bad value is one error naming it (library and command line)."""
+
+import json
+
+import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
+
+from lccli.policy import policy_config_of, train_policy_main, train_policy_parser
+from lcmodels.policy import PolicyConfig
+from lcsim.config import ScenarioConfig, paper_scenario
+
+
+@pytest.mark.parametrize("cfg", [PolicyConfig(), PolicyConfig(algo="dqn", obs="pure", window_features=True,
+                                                              gamma=0.99, scenario="tiny"), paper_scenario()],
+                         ids=["policy-defaults", "policy-changed", "scenario"])
+def test_a_config_round_trips_through_toml_and_json(tmp_path, cfg):
+    table = "policy" if isinstance(cfg, PolicyConfig) else None
+    toml = tmp_path / "c.toml"
+    toml.write_text(cfg.to_toml(table))
+    back = type(cfg).from_file(toml, table=table)
+    assert back == cfg and back.to_toml(table) == toml.read_text()  # file -> config -> file
+    js = tmp_path / "c.json"
+    js.write_text(cfg.to_json())
+    assert type(cfg).from_file(js) == cfg
+
+
+def test_set_reaches_every_field_nested_ones_too():
+    cfg = PolicyConfig().with_settings(["gamma=0.99", "window_features=true", "n_envs=4", "image_net=vgg16"])
+    assert (cfg.gamma, cfg.window_features, cfg.n_envs, cfg.image_net) == (0.99, True, 4, "vgg16")
+    scenario = paper_scenario().with_settings(["traffic.num_vehicles=30", "reward.milestones=[0.5, 1.0]",
+                                               "reward.milestone_rewards=[1, 2]"])
+    assert scenario.traffic.num_vehicles == 30 and scenario.reward.milestones == (0.5, 1.0)
+
+
+@pytest.mark.parametrize(("setting", "message"), [
+    ("gama=0.9", "PolicyConfig has no field 'gama'"),
+    ("gamma=high", "--set gamma=high: expected a value like 0.95"),
+    ("gamma=2", "gamma must be in"),
+    ("n_envs=2.5", "--set n_envs=2.5: expected a value like 16"),
+    ("window_features=maybe", "expected true or false"),
+    ("algo=sac", "PolicyConfig.algo must be one of"),
+    ("no-equals-sign", "expected KEY=VALUE"),
+])
+def test_a_bad_setting_is_one_error_naming_it(setting, message, capsys):
+    with pytest.raises(ValueError, match=message.replace("(", r"\(")):
+        PolicyConfig().with_settings([setting])
+    assert train_policy_main(["--obs", "pure", "--set", setting, "--out", "never-written"]) == 2
+    err = capsys.readouterr().err
+    assert err.startswith("lc-train-policy: error:") and len(err.strip().splitlines()) == 1 and message in err
+
+
+def test_a_bad_config_file_is_one_error_naming_it(tmp_path, capsys):
+    bad = tmp_path / "bad.toml"
+    bad.write_text("[policy]\ngama = 0.9\n")
+    with pytest.raises(ValueError, match=r"bad\.toml: PolicyConfig: unknown field\(s\) \['gama'\]"):
+        PolicyConfig.from_file(bad, table="policy")
+    broken = tmp_path / "broken.toml"
+    broken.write_text("gamma = \n")
+    for path, message in ((bad, "gama"), (broken, "not valid TOML"), (tmp_path / "missing.toml", "does not exist")):
+        assert train_policy_main(["--config", str(path), "--out", str(tmp_path / "out")]) == 2
+        err = capsys.readouterr().err
+        assert len(err.strip().splitlines()) == 1 and message in err
+    assert not (tmp_path / "out").exists()
+
+
+def test_defaults_then_file_then_flags_then_set(tmp_path):
+    cfg_file = tmp_path / "run.toml"
+    cfg_file.write_text(PolicyConfig(obs="pure", gamma=0.9, n_envs=4, seed=3).to_toml("policy"))
+    parse = train_policy_parser().parse_args
+    cfg = policy_config_of(parse(["--config", str(cfg_file), "--seed", "5", "--set", "n_envs=2", "--out", "x"]))
+    assert (cfg.obs, cfg.gamma, cfg.seed, cfg.n_envs) == ("pure", 0.9, 5, 2)
+    # a learning rate and rollout length nobody gave follow the algorithm and the start
+    assert policy_config_of(parse(["--algo", "a2c", "--out", "x"])).n_steps == 8
+    assert policy_config_of(parse(["--init-policy", "p.safetensors", "--out", "x"])).learning_rate == 3e-5
+    assert policy_config_of(parse(["--set", "algo=dqn", "--out", "x"])).learning_rate == 1e-4
+    json_file = tmp_path / "lr.json"
+    json_file.write_text(json.dumps({"learning_rate": 1e-3}))
+    assert policy_config_of(parse(["--config", str(json_file), "--init-policy", "p", "--out", "x"])).learning_rate == 1e-3
+
+
+@settings(max_examples=80, deadline=None)
+@given(st.sampled_from(sorted(PolicyConfig().to_dict())), st.text(max_size=12))
+def test_any_setting_gives_a_config_or_a_value_error(key, value):
+    try:
+        cfg = PolicyConfig().with_settings([f"{key}={value}"])
+    except ValueError:
+        return
+    assert isinstance(cfg, PolicyConfig) and isinstance(cfg.scenario_config(), ScenarioConfig)
