@@ -12,6 +12,7 @@ from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
 from lccli.common import add_lookahead_arguments, fail, int_at_least, lookahead_options, positive_int
+from lcdata.executors import EXECUTORS
 
 if TYPE_CHECKING:
     from lcsim.config import ScenarioConfig
@@ -128,6 +129,14 @@ def eval_parser() -> argparse.ArgumentParser:
                      help="how far back a side gap counts as missed (default 5)")
     why.add_argument("--front-gap-m", type=float, default=12.0, help="a side gap's room ahead (default 12)")
     why.add_argument("--rear-gap-m", type=float, default=5.0, help="a side gap's room behind (default 5)")
+    where = p.add_argument_group("where the episodes run")
+    where.add_argument("--executor", choices=EXECUTORS, default="local",
+                       help="local (default: this process) or ray: the episodes cut into --shards parts, each a Ray "
+                       "task (the same figures, episode for episode; needs pip install -e \".[ray]\")")
+    where.add_argument("--ray-address", default=None,
+                       help="a running Ray cluster (ray start --head prints it; default RAY_ADDRESS, else a local "
+                       "instance started for the run); episodes are written by the nodes: --out on shared storage")
+    where.add_argument("--shards", type=positive_int, default=4, help="Ray tasks the episodes are cut into (4)")
     bound = p.add_argument_group("what the scenario allows (lc-eval oracle --bound)")
     bound.add_argument("--bound", action="store_true",
                        help="with the oracle: prove, episode by episode, whether it can be won at all (the search's "
@@ -150,9 +159,11 @@ def eval_main(argv: list[str] | None = None) -> int:
     import numpy as np
     import torch
 
+    from lcmodels.policy.checkpoint import read_meta
     from lcmodels.policy.evaluate import driver_for, evaluate, policy_path_of
     from lcsim.planning import LookaheadDriver
     from lcsim.registry import DRIVER_NAMES, scenario
+    from lcsim.registry import scenario_label as registry_label
 
     is_driver = args.policy in DRIVER_NAMES
     ckpt = policy_path_of(args.policy)
@@ -195,6 +206,10 @@ def eval_main(argv: list[str] | None = None) -> int:
     if not is_driver:
         seeds_file = ckpt.parent / "train_episode_seeds.npy"
         train_seeds = np.load(seeds_file) if seeds_file.exists() else None
+    if is_driver:
+        scenario_label = registry_label(args.scenario or "paper")
+    else:
+        scenario_label = str(read_meta(ckpt).get("scenario_name") or "paper")
     show = None if args.quiet else (lambda k, n: print(f"evaluating: {k}/{n} episodes", flush=True))
     start = time.perf_counter()
     hooks = []
@@ -204,16 +219,30 @@ def eval_main(argv: list[str] | None = None) -> int:
         hooks.append(CollisionBreakdown(window_s=args.window_s, front_gap_m=args.front_gap_m,
                                         rear_gap_m=args.rear_gap_m))  # fmt: skip
     try:
-        summary, results = evaluate(driver, config, episodes=args.episodes, seed=args.seed, out_dir=out,
-                                    batch=args.batch, overwrite=args.overwrite, train_seeds=train_seeds,
-                                    progress=show, hooks=hooks)  # fmt: skip
+        if args.executor == "ray":
+            if hooks:
+                return error("--breakdown runs with the local executor only")
+            from lcdata.executors import ray_session
+            from lcmodels.policy.evaluate import evaluate_sharded
+
+            with ray_session(args.ray_address):
+                summary, results = evaluate_sharded(
+                    args.policy, config if is_driver else None, episodes=args.episodes, seed=args.seed,
+                    shards=args.shards, executor="ray", predictor=str(args.predictor) if args.predictor else None,
+                    lookahead=lookahead_options(args), follow=args.lookahead_follow, trust_pickle=args.trust_pickle,
+                    out_dir=out, scenario=scenario_label, batch=args.batch, overwrite=args.overwrite,
+                    train_seeds=train_seeds, progress=show)  # fmt: skip
+        else:
+            summary, results = evaluate(driver, config, episodes=args.episodes, seed=args.seed, out_dir=out,
+                                        batch=args.batch, overwrite=args.overwrite, train_seeds=train_seeds,
+                                        progress=show, hooks=hooks, scenario=scenario_label)  # fmt: skip
     except (ValueError, OSError) as exc:
         return error(str(exc).splitlines()[0])
     if hooks:
         summary["collision_kinds"] = hooks[0].counts
     summary["wall_s"] = round(time.perf_counter() - start, 1)
     summary["decisions"] = sum(r.length for r in results)
-    if isinstance(driver, LookaheadDriver):  # a planner: how often it overrode the driver it checks
+    if isinstance(driver, LookaheadDriver) and args.executor != "ray":  # a planner: how often it overrode
         summary["planner_choices"], summary["planner_overrides"] = driver.choices, driver.overrides
     print(format_eval(summary))
     print(f"{summary['decisions']} decisions in {summary['wall_s']} s ({args.batch} episodes at a time, "

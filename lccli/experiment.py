@@ -10,6 +10,7 @@ import time
 from pathlib import Path
 
 from lccli.common import fail, positive_int
+from lcdata.executors import EXECUTORS
 
 EXPERIMENT_EPILOG = """stages (each skipped when complete, redone when missing or stale):
   corpus      autopilot trajectory corpus (MCAP)                 DIR/corpus/
@@ -49,6 +50,13 @@ def experiment_parser() -> argparse.ArgumentParser:
     p.add_argument("--jobs", type=positive_int, default=1,
                    help="policies trained at once, each in its own process with --threads torch threads "
                    "(default 1; on 2 cores --jobs 2 --threads 1 keeps both busy; results do not depend on it)")
+    p.add_argument("--executor", choices=EXECUTORS, default="local",
+                   help="local (default: this machine, --jobs processes) or ray: every independent stage as Ray tasks "
+                   "(each policy x seed, each evaluation shard, each recorded episode); the same results. Needs "
+                   "pip install -e \".[ray]\"")
+    p.add_argument("--ray-address", default=None,
+                   help="a running Ray cluster (ray start --head prints it; default RAY_ADDRESS, else a local "
+                   "instance for the run); --out must then be on storage every node sees")
     p.add_argument("--skip-train", action="store_true",
                    help="do not train policies; report what the directory already holds")
     p.add_argument("--dry-run", action="store_true",
@@ -75,7 +83,8 @@ def experiment_main(argv: list[str] | None = None) -> int:
         print(f"{(time.perf_counter() - t0) / 60:6.1f} min  {msg}", flush=True)
 
     exp = Experiment(PRESETS[args.preset], args.out, seeds=args.seeds, command=command, threads=args.threads,
-                     progress=None if args.quiet else show)  # fmt: skip
+                     progress=None if args.quiet else show, executor=args.executor,
+                     ray_address=args.ray_address)  # fmt: skip
     try:
         exp.check_out()
     except ValueError as exc:

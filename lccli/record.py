@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import argparse
 import collections
+import contextlib
 import dataclasses
 import logging
 import os
@@ -15,6 +16,7 @@ from collections.abc import Sequence
 from tqdm import tqdm
 
 from lccli.common import add_lookahead_arguments, int_at_least, lookahead_options
+from lcdata.executors import EXECUTORS
 from lcdata.record import DRIVERS, episode_filename, iter_record_episodes
 from lcdata.writer_process import WRITER_MODES
 from lcsim.config import ScenarioConfig
@@ -103,6 +105,12 @@ def build_parser() -> argparse.ArgumentParser:
                    help="the wall-clock time of t = 0 in each file: seed (default: 2024-01-01T00:00:00Z plus the "
                    "episode's seed in seconds, so that the same command writes the same bytes), now, or a time "
                    "such as 2025-06-01T12:00:00Z for every episode")
+    p.add_argument("--executor", choices=EXECUTORS, default="local",
+                   help="local (default: --workers processes here) or ray: each episode a Ray task (the same files; "
+                   "built-in drivers only; needs pip install -e \".[ray]\")")
+    p.add_argument("--ray-address", default=None,
+                   help="a running Ray cluster (default RAY_ADDRESS, else a local instance for the run); the nodes "
+                   "write the files: --out on storage every node sees")
     p.add_argument("--writer", choices=WRITER_MODES, default=None,
                    help="where files are encoded and compressed: process (a helper process, on the core "
                    "the simulator leaves idle), thread, or inline; the files are the same. Default: process "
@@ -250,6 +258,9 @@ def record_main(argv: Sequence[str] | None = None) -> int:
         except ValueError as exc:
             raise UsageError(str(exc)) from None
         if split_policy_spec(driver):
+            if args.executor == "ray":
+                raise UsageError("--executor ray records built-in drivers; a policy drives in this process "
+                                 "(lc-eval --executor ray shards a policy's episodes)")
             driver, config = _policy_driver(driver, args, config)
             scenario_name = _policy_scenario_label(args.driver)
         elif args.lookahead_follow is not None or lookahead_options(args):
@@ -283,17 +294,25 @@ def record_main(argv: Sequence[str] | None = None) -> int:
     messages = size = 0
     start = time.perf_counter()
     workers = args.workers if isinstance(driver, str) else 1  # a loaded policy stays in this process
-    results = iter_record_episodes(config, todo, driver, args.out, scenario=label, workers=workers,
-                                   overwrite=args.overwrite, images=not args.no_images,
-                                   writer=args.writer, start_time_ns=start_ns)  # fmt: skip
+    session = contextlib.nullcontext()
+    if args.executor == "ray":
+        from lcdata.executors import ray_session
+
+        session = ray_session(args.ray_address)
     try:
-        with tqdm(total=len(todo), unit="ep", desc=f"{label}/{name}", disable=None) as bar:
-            for result in results:
+        with session, tqdm(total=len(todo), unit="ep", desc=f"{label}/{name}", disable=None) as bar:
+            for result in iter_record_episodes(config, todo, driver, args.out, scenario=label, workers=workers,
+                                               overwrite=args.overwrite, images=not args.no_images,
+                                               writer=args.writer, start_time_ns=start_ns,
+                                               executor=args.executor):  # fmt: skip
                 outcomes[result.outcome] += 1
                 messages += result.messages
                 size += result.bytes
                 bar.set_postfix_str(", ".join(f"{k} {v}" for k, v in sorted(outcomes.items())))
                 bar.update()
+    except ValueError as exc:  # Ray missing or unreachable
+        print(f"lc-record: error: {exc}", file=sys.stderr)
+        return 2
     except KeyboardInterrupt:
         print("lc-record: interrupted; unfinished episodes are left as .partial files; rerun the same command to "
               "record the missing ones", file=sys.stderr)

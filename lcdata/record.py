@@ -41,6 +41,7 @@ from typing import Any
 import numpy as np
 
 from lcdata.corpus import from_frame
+from lcdata.executors import EXECUTORS, ray_map
 from lcdata.procs import die_with_parent
 from lcdata.writer import EpisodeWriter, package_version
 from lcdata.writer_process import WRITER_MODES, ProcessEpisodeWriter, open_writer
@@ -446,6 +447,7 @@ def iter_record_episodes(
     writer: str | None = None,
     skip_existing: bool = False,
     start_time_ns: int | None = None,
+    executor: str = "local",
 ) -> Iterator[RecordResult]:
     """Record one episode per seed into ``out_dir`` (file names from :func:`episode_filename`).
 
@@ -457,7 +459,9 @@ def iter_record_episodes(
     worker would cost more CPU in all). ``skip_existing``: leave the finished files there as they are and
     record only the missing episodes (a resumed run). ``start_time_ns``: every file's ``t = 0`` (default:
     derived from each seed, :func:`seed_start_time_ns`). Worker processes die with this process
-    (:func:`lcdata.procs.die_with_parent`): a killed run leaves no orphan writing on.
+    (:func:`lcdata.procs.die_with_parent`): a killed run leaves no orphan writing on. ``executor="ray"``
+    records each episode as a Ray task in the open :func:`lcdata.executors.ray_session` (a driver name only:
+    an object is not shipped); the files are the same.
     """
     if workers < 1:
         raise ValueError(f"workers must be >= 1, got {workers}")
@@ -475,6 +479,13 @@ def iter_record_episodes(
     out.mkdir(parents=True, exist_ok=True)
     args = [(config.to_json(), int(s), driver, str(p), scenario, overwrite, images, writer, start_time_ns)
             for s, p in zip(seeds, paths, strict=True) if overwrite or not p.exists()]  # fmt: skip
+    if executor == "ray":
+        if not isinstance(driver, str):
+            raise ValueError("a driver object is not shipped to Ray tasks: record it with the local executor")
+        yield from ray_map(_record_one, args, num_cpus=1)
+        return
+    if executor != "local":
+        raise ValueError(f"executor must be one of {', '.join(EXECUTORS)}, got {executor!r}")
     if workers == 1 or len(args) <= 1:
         for a in args:
             yield _record_one(*a)

@@ -109,7 +109,13 @@ class Experiment:
     """The stages of one experiment directory; :meth:`run` does what is missing or stale."""
 
     def __init__(self, preset: Preset, out: str | Path, *, seeds: int = 1, command: str = "", threads: int = 1,
-                 progress: Progress | None = None) -> None:  # fmt: skip
+                 progress: Progress | None = None, executor: str = "local",
+                 ray_address: str | None = None) -> None:  # fmt: skip
+        from lcdata.executors import EXECUTORS
+
+        if executor not in EXECUTORS:
+            raise ValueError(f"executor must be one of {', '.join(EXECUTORS)}, got {executor!r}")
+        self.executor, self.ray_address = executor, ray_address
         if seeds < 1:
             raise ValueError(f"seeds must be >= 1, got {seeds}")
         if threads < 1:
@@ -241,7 +247,8 @@ class Experiment:
             todo = [s for s, n in zip(seeds, names, strict=True) if not (path / n).exists()]
             workers = max(1, min(self.preset.record_workers, len(todo)))
             for k, r in enumerate(iter_record_episodes(config, todo, driver, path, scenario=scenario,
-                                                       workers=workers, images=images), 1):  # fmt: skip
+                                                       workers=workers, images=images,
+                                                       executor=self.executor), 1):  # fmt: skip
                 self._save_wall()  # an interrupted stage keeps the time of the episodes it has written
                 self.emit(f"[{name}] {k}/{len(todo)} episodes: {r.path.name} {r.outcome}")
 
@@ -304,13 +311,13 @@ class Experiment:
         path = self.out / RULE_KEY
 
         def work(keep: bool) -> None:
-            from lcmodels.policy.evaluate import evaluate
-            from lcsim.drivers import RuleBasedDriver
+            from lcmodels.policy.evaluate import evaluate_sharded
 
             t0 = time.perf_counter()
-            summary, _ = evaluate(RuleBasedDriver(), config, episodes=p.eval_episodes, seed=p.eval_seed,
-                                  out_dir=path / "episodes" if p.record_eval else None, scenario=p.scenario,
-                                  overwrite=True)  # fmt: skip
+            summary, _ = evaluate_sharded("rule", config, episodes=p.eval_episodes, seed=p.eval_seed,
+                                          shards=1 if self.executor == "local" else RAY_SHARDS, executor=self.executor,
+                                          out_dir=path / "episodes" if p.record_eval else None, scenario=p.scenario,
+                                          overwrite=True)  # fmt: skip
             summary["wall_s"] = time.perf_counter() - t0
             write_json(path / "metrics.json", {"config": cfg, "eval": summary})
             self.emit(f"[{RULE_KEY}] success {100 * summary['success_rate']:.1f}% "
@@ -411,7 +418,13 @@ class Experiment:
             try:
                 self._save_invocation(finished=False)
                 torch.set_num_threads(self.threads)
-                self._stages(skip_train=skip_train, jobs=jobs)
+                if self.executor == "ray":
+                    from lcdata.executors import ray_session
+
+                    with ray_session(self.ray_address):
+                        self._stages(skip_train=skip_train, jobs=jobs)
+                else:
+                    self._stages(skip_train=skip_train, jobs=jobs)
                 self._save_invocation(finished=True)
             finally:
                 self._invocation_t0 = None
@@ -473,11 +486,25 @@ class Experiment:
                         self.stages[-1] = StageResult(res.name, "not run", res.path, 0.0)
                     continue
                 tasks.append(task)
-        if jobs == 1 or self.dry_run or len(tasks) < 2:
+        if self.executor == "ray" and not self.dry_run and tasks:
+            self.stages.extend(self._ray_policies(tasks))
+        elif jobs == 1 or self.dry_run or len(tasks) < 2:
             for task in tasks:
                 self.policy(*task)
         else:
             self.stages.extend(self._parallel_policies(tasks, jobs))
+
+    def _ray_policies(self, tasks: list[tuple[Any, ...]]) -> list[StageResult]:
+        """The policy stages ``tasks`` as Ray tasks of ``threads`` CPUs each; results in task order. A stage
+        records, resumes and skips as it does locally: each task runs :meth:`policy` in this directory."""
+        from lcdata.executors import ray_map
+
+        calls = [(i, self.preset, self.out, self.seeds, self.threads, *task) for i, task in enumerate(tasks)]
+        done: dict[int, StageResult] = {}
+        for i, result in ray_map(_ray_policy_task, calls, num_cpus=self.threads):
+            done[i] = result
+            self.emit(f"[{result.name}] {result.status} on Ray ({len(done)}/{len(tasks)} policy stages)")
+        return [done[i] for i in range(len(tasks))]
 
     def _parallel_policies(self, tasks: list[tuple[Any, ...]], jobs: int) -> list[StageResult]:
         """The policy stages ``tasks`` in ``jobs`` spawned processes; results in task order.
@@ -496,7 +523,8 @@ class Experiment:
 
         printer = threading.Thread(target=pump, daemon=True)
         printer.start()
-        pool = ctx.Pool(min(jobs, len(tasks)), initializer=_policy_worker_init, initargs=(queue, self.threads))
+        pool = ctx.Pool(min(jobs, len(tasks)), initializer=_policy_worker_init,
+                        initargs=(queue, self.threads, os.getpid()))
         try:
             pending = [pool.apply_async(_policy_worker, (self.preset, self.out, self.seeds, *task)) for task in tasks]
             while not all(r.ready() for r in pending):
@@ -520,8 +548,27 @@ class Experiment:
 _WORKER: dict[str, Any] = {}
 
 
-def _policy_worker_init(queue: Any, threads: int) -> None:
+RAY_SHARDS = 4
+"""Ray tasks an evaluation stage is cut into."""
+
+
+def _ray_policy_task(index: int, preset: Preset, out: Path, seeds: int, threads: int, method: Method, seed: int,
+                     predictor: StageResult | None, demos: StageResult | None) -> tuple[int, StageResult]:
+    """One policy stage as a Ray task of :meth:`Experiment._ray_policies` (its progress lines go to the task's
+    log, which Ray forwards to the driver)."""
     import torch
+
+    torch.set_num_threads(threads)
+    exp = Experiment(preset, out, seeds=seeds, threads=threads, progress=lambda msg: print(msg, flush=True))
+    return index, exp.policy(method, seed, predictor, demos)
+
+
+def _policy_worker_init(queue: Any, threads: int, parent: int | None = None) -> None:
+    import torch
+
+    from lcdata.procs import die_with_parent
+
+    die_with_parent(parent)
 
     torch.set_num_threads(threads)
     _WORKER["queue"], _WORKER["threads"] = queue, threads
@@ -535,13 +582,15 @@ def _policy_worker(preset: Preset, out: Path, seeds: int, method: Method, seed: 
 
 
 def run_experiment(preset: Preset | str, out: str | Path, *, seeds: int = 1, command: str = "", threads: int = 1,
-                   progress: Progress | None = None, skip_train: bool = False, jobs: int = 1) -> ExperimentResult:  # fmt: skip
+                   progress: Progress | None = None, skip_train: bool = False, jobs: int = 1, executor: str = "local",
+                   ray_address: str | None = None) -> ExperimentResult:  # fmt: skip
     """Run (or resume) the experiment of ``preset`` in ``out``; see the module docstring."""
     if isinstance(preset, str):
         if preset not in PRESETS:
             raise ValueError(f"unknown preset {preset!r}; choose one of {', '.join(PRESETS)}")
         preset = PRESETS[preset]
-    exp = Experiment(preset, out, seeds=seeds, command=command, threads=threads, progress=progress)
+    exp = Experiment(preset, out, seeds=seeds, command=command, threads=threads, progress=progress,
+                     executor=executor, ray_address=ray_address)
     return exp.run(skip_train=skip_train, jobs=jobs)
 
 

@@ -120,6 +120,7 @@ def evaluate(
     train_seeds: np.ndarray | None = None,
     progress: Callable[[int, int], None] | None = None,
     hooks: Sequence[EpisodeHook] = (),
+    user_seeds: Sequence[int] | None = None,
 ) -> tuple[dict[str, Any], list[EpisodeStats]]:
     """Run ``episodes`` held-out episodes with ``driver`` and summarise them.
 
@@ -132,12 +133,13 @@ def evaluate(
         train_seeds: simulator seeds seen in training, for the overlap check.
         progress: called with (done, total) after each batch.
         hooks: more watchers of the episodes (:class:`lcsim.episodes.EpisodeHook`, e.g. an analysis).
+        user_seeds: run these episodes instead of the ``episodes`` of evaluation seed ``seed`` (a shard).
 
     Returns:
         ``(summary, per-episode statistics)``; the summary has the keys of
         :func:`summarize_with_intervals` plus ``seeds``, ``overlap_with_training`` and ``driver``.
     """
-    user_seeds = eval_user_seeds(episodes, seed)
+    user_seeds = eval_user_seeds(episodes, seed) if user_seeds is None else [int(u) for u in user_seeds]
     name = str(getattr(driver, "name", type(driver).__name__))
     out_path = Path(out_dir) if out_dir is not None else None
     if out_path is not None:
@@ -152,7 +154,7 @@ def evaluate(
         hooks.append(RecordingHook(
             lambda u: out_path / episode_filename(scenario, name, u),
             lambda u: episode_metadata(config, u, driver=name, scenario=scenario,
-                                       driver_description=f"{name}: evaluation episode {u - user_seeds[0]}"),
+                                       driver_description=f"{name}: evaluation episode of user seed {u}"),
             overwrite=overwrite, images=images, writer="thread",
         ))  # fmt: skip
     done = run_episodes(driver, config, user_seeds, batch=batch, hooks=hooks, progress=progress)
@@ -245,8 +247,84 @@ __all__ = [
     "driver_for",
     "eval_user_seeds",
     "evaluate",
+    "evaluate_sharded",
     "mean_interval",
     "policy_path_of",
     "summarize_with_intervals",
     "wilson_interval",
 ]
+
+
+def _evaluate_shard(index: int, spec: str, scenario_json: str | None, user_seeds: list[int],
+                    options: dict[str, Any]) -> tuple[int, str, list[dict[str, Any]], int, int]:
+    """One shard of :func:`evaluate_sharded`, in a worker: the driver rebuilt from its spec (nothing loaded
+    is shipped), its episodes run and recorded. Returns the shard's index, the driver's name, the episodes'
+    statistics and the planner's choices and overrides (0 for other drivers)."""
+    from lcsim.planning import LookaheadDriver
+
+    driver, config = driver_for(spec, predictor=options["predictor"], lookahead=options["lookahead"],
+                                follow=options["follow"], trust_pickle=options["trust_pickle"])
+    if config is None:
+        config = ScenarioConfig.from_json(str(scenario_json))
+    out_dir = options["out_dir"]
+    _, results = evaluate(driver, config, out_dir=out_dir, scenario=options["scenario"], batch=options["batch"],
+                          overwrite=options["overwrite"], user_seeds=user_seeds)
+    planner = driver if isinstance(driver, LookaheadDriver) else None
+    return (index, str(getattr(driver, "name", type(driver).__name__)), [dataclasses.asdict(r) for r in results],
+            planner.choices if planner else 0, planner.overrides if planner else 0)
+
+
+def _evaluate_shard_task(*args: Any) -> tuple[int, str, list[dict[str, Any]], int, int]:
+    """:func:`_evaluate_shard` as a Ray task of one CPU (one torch thread)."""
+    import torch
+
+    torch.set_num_threads(1)
+    return _evaluate_shard(*args)
+
+
+def evaluate_sharded(spec: str, config: ScenarioConfig | None, *, episodes: int = 200, seed: int = 0,
+                     shards: int = 4, executor: str = "local", predictor: str | None = None,
+                     lookahead: dict[str, int] | None = None, follow: str | None = None, trust_pickle: bool = False,
+                     out_dir: str | os.PathLike[str] | None = None, scenario: str = "paper", batch: int = 16,
+                     overwrite: bool = False, train_seeds: np.ndarray | None = None,
+                     progress: Callable[[int, int], None] | None = None) -> tuple[dict[str, Any], list[EpisodeStats]]:
+    """:func:`evaluate` of the driver spec ``spec`` (as :func:`driver_for` takes it) with the episodes cut into
+    ``shards`` parts, each run where ``executor`` says (``local``: one after the other here; ``ray``: as Ray
+    tasks in the open :func:`lcdata.executors.ray_session`), each shard whole batches of ``batch`` episodes.
+    Every episode depends only on its seed and runs where :func:`evaluate` runs it, so the summary and the
+    recorded files are the ones :func:`evaluate` gives, episode for episode (the ``random`` driver aside,
+    whose draws follow the batch's calls). ``config``: the scenario of a built-in driver (a policy brings its own). The summary
+    also has ``planner_choices`` / ``planner_overrides`` for a lookahead."""
+    from lcdata.executors import EXECUTORS, ray_map
+    from lcdata.executors import shards as cut
+
+    if executor not in EXECUTORS:
+        raise ValueError(f"executor must be one of {', '.join(EXECUTORS)}, got {executor!r}")
+    user_seeds = eval_user_seeds(episodes, seed)
+    options = {"predictor": predictor, "lookahead": lookahead, "follow": follow, "trust_pickle": trust_pickle,
+               "out_dir": None if out_dir is None else str(out_dir), "scenario": scenario, "batch": batch,
+               "overwrite": overwrite}  # fmt: skip
+    scenario_json = None if config is None else config.to_json()
+    # whole batches per shard: an episode then runs at the same place of the same batch as in evaluate(),
+    # so even what a recording says of its batch (the environment's index) is the same
+    batches = [user_seeds[i : i + batch] for i in range(0, len(user_seeds), batch)]
+    parts = [[u for b in group for u in b] for group in cut(batches, shards)]
+    calls = [(i, spec, scenario_json, part, options) for i, part in enumerate(parts)]
+    done: dict[int, tuple[str, list[dict[str, Any]], int, int]] = {}
+    runner = ray_map(_evaluate_shard_task, calls) if executor == "ray" else (_evaluate_shard(*c) for c in calls)
+    for index, *out in runner:
+        done[index] = tuple(out)  # type: ignore[assignment]
+        if progress is not None:
+            progress(sum(len(d[1]) for d in done.values()), len(user_seeds))
+    ordered = [done[i] for i in range(len(parts))]
+    results = [EpisodeStats(**r) for _, rows, _, _ in ordered for r in rows]
+    summary = summarize_with_intervals(results)
+    summary["driver"] = ordered[0][0] if ordered else spec
+    summary["eval_seed"] = seed
+    summary["user_seeds"] = [user_seeds[0], user_seeds[-1]] if user_seeds else []
+    if train_seeds is not None:
+        summary["overlap_with_training"] = int(np.isin([r.seed for r in results], train_seeds).sum())
+    if any(d[2] for d in ordered):
+        summary["planner_choices"] = sum(d[2] for d in ordered)
+        summary["planner_overrides"] = sum(d[3] for d in ordered)
+    return summary, results

@@ -1,0 +1,192 @@
+"""Sweeps: a grid of policy-config values times training seeds, each trial a training run with its held-out
+evaluation, gathered into one table sorted by held-out success (``lc-tune``).
+
+A sweep file (TOML or JSON)::
+
+    seeds = [0, 1]              # training seeds of every grid point
+    [base]                      # PolicyConfig fields every trial shares
+    obs = "pure"
+    scenario = "light"
+    timesteps = 200000
+    [grid]                      # each field: the values to try; every combination is a grid point
+    gamma = [0.9, 0.95]
+    window_features = [false, true]
+
+Trials run one after the other here (``executor="local"``) or as Ray Tune trials (``"ray"``), each in
+``DIR/trials/<name>`` (an ``lc-train-policy`` run directory: a rerun skips the finished ones and resumes
+the others). ``DIR/SWEEP.md`` and ``DIR/sweep.json`` hold the table.
+"""
+
+from __future__ import annotations
+
+import itertools
+import json
+import os
+import time
+from collections.abc import Callable
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+from lcmodels.fileio import read_json, write_json
+from lcmodels.policy.config import PolicyConfig
+
+SWEEP_JSON = "sweep.json"
+SWEEP_MD = "SWEEP.md"
+
+
+@dataclass(frozen=True)
+class Sweep:
+    """The trials of a sweep file: the shared config, the grid and the seeds."""
+
+    base: dict[str, Any]
+    grid: dict[str, list[Any]]
+    seeds: list[int]
+
+    @classmethod
+    def from_file(cls, path: str | os.PathLike[str]) -> Sweep:
+        """``ValueError`` naming the file and the problem: an unknown field, an empty grid axis, a config the
+        policy refuses."""
+        import tomllib
+
+        path = Path(path)
+        try:
+            text = path.read_text()
+            data = tomllib.loads(text) if path.suffix == ".toml" else json.loads(text)
+        except FileNotFoundError:
+            raise ValueError(f"sweep file {path} does not exist") from None
+        except (OSError, UnicodeDecodeError, ValueError) as exc:
+            raise ValueError(f"{path} is not valid {path.suffix[1:].upper() or 'TOML'}: {exc}") from None
+        unknown = set(data) - {"base", "grid", "seeds"}
+        if unknown:
+            raise ValueError(f"{path}: unknown top-level key(s) {sorted(unknown)} (base, grid, seeds)")
+        base, grid = data.get("base", {}), data.get("grid", {})
+        seeds = data.get("seeds", [0])
+        if not isinstance(base, dict) or not isinstance(grid, dict):
+            raise ValueError(f"{path}: base and grid must be tables")
+        if not isinstance(seeds, list) or not seeds or not all(isinstance(s, int) and s >= 0 for s in seeds):
+            raise ValueError(f"{path}: seeds must be a non-empty list of integers >= 0, got {seeds!r}")
+        for key, values in grid.items():
+            if not isinstance(values, list) or not values:
+                raise ValueError(f"{path}: grid.{key} must be a non-empty list of values, got {values!r}")
+        sweep = cls(base, {k: list(v) for k, v in grid.items()}, list(seeds))
+        for _, cfg in sweep.trials():  # every trial is a valid config, or the file is refused now
+            del cfg
+        return sweep
+
+    def trials(self) -> list[tuple[str, PolicyConfig]]:
+        """``(name, config)`` of every trial: grid points in file order, each with every seed."""
+        out = []
+        keys = list(self.grid)
+        for values in itertools.product(*(self.grid[k] for k in keys)):
+            point = dict(zip(keys, values, strict=True))
+            for seed in self.seeds:
+                name = "_".join(f"{k}={_label(v)}" for k, v in point.items()) or "base"
+                try:
+                    cfg = PolicyConfig.from_dict({**self.base, **point, "seed": seed})
+                except ValueError as exc:
+                    raise ValueError(f"trial {name}, seed {seed}: {exc}") from None
+                out.append((f"{name}_seed{seed}", cfg))
+        return out
+
+
+def _label(v: Any) -> str:
+    return json.dumps(v) if isinstance(v, list | dict) else str(v).lower() if isinstance(v, bool) else str(v)
+
+
+def _trial(name: str, cfg_json: str, out: str, predictor: str | None, threads: int) -> dict[str, Any]:
+    """One trial: the training run and its held-out evaluation in ``out/trials/name``."""
+    import torch
+
+    from lcmodels.policy.train import train_policy
+
+    torch.set_num_threads(threads)
+    cfg = PolicyConfig.from_json(cfg_json)
+    res = train_policy(cfg, Path(out) / "trials" / name, predictor=predictor if _needs(cfg) else None)
+    ev = res.metrics.get("eval", {})
+    return {"trial": name, "policy_config": cfg.to_dict(), "timesteps": res.timesteps, "train_wall_s": res.wall_s,
+            **{k: ev.get(k) for k in ("episodes", "success_rate", "success_rate_ci95", "collision_rate",
+                                      "collision_rate_ci95", "mean_return")}}  # fmt: skip
+
+
+def _needs(cfg: PolicyConfig) -> bool:
+    from lcmodels.policy.obs import needs_predictor
+
+    return needs_predictor(cfg.obs)
+
+
+def _tune_trial(config: dict[str, Any]) -> None:
+    """A Ray Tune trainable: one trial, its figures reported to Tune."""
+    from ray import tune
+
+    name = config["name"]
+    tune.report(_trial(name, config["configs"][name], config["out"], config["predictor"], config["threads"]))
+
+
+def run_sweep(sweep: Sweep, out: str | os.PathLike[str], *, predictor: str | None = None, threads: int = 1,
+              executor: str = "local", ray_address: str | None = None,
+              progress: Callable[[str], None] | None = None) -> list[dict[str, Any]]:
+    """Run every trial (skipping finished ones), write the table, return its rows sorted by held-out success."""
+    out = Path(out)
+    trials = sweep.trials()
+    if any(_needs(cfg) for _, cfg in trials) and predictor is None:
+        raise ValueError("the sweep has prediction or hybrid trials: give the predictor (--predictor)")
+    out.mkdir(parents=True, exist_ok=True)
+    t0 = time.perf_counter()
+    rows: list[dict[str, Any]] = []
+    if executor == "ray":
+        from lcdata.executors import ray_session
+
+        with ray_session(ray_address):
+            from ray import tune
+
+            configs = {n: cfg.to_json() for n, cfg in trials}
+            space = {"name": tune.grid_search(list(configs)), "configs": configs, "out": str(out.resolve()),
+                     "predictor": None if predictor is None else str(Path(predictor).resolve()),
+                     "threads": threads}  # fmt: skip
+            tuner = tune.Tuner(tune.with_resources(_tune_trial, {"cpu": threads}), param_space=space,
+                               run_config=tune.RunConfig(storage_path=str((out / "ray_results").resolve()),
+                                                         name="sweep", verbose=0))  # fmt: skip
+            grid = tuner.fit()
+            for result in grid:
+                if result.error is not None:
+                    raise ValueError(f"a Ray Tune trial failed: {' '.join(str(result.error).split())[:200]}")
+                rows.append({k: v for k, v in result.metrics.items() if k in _ROW_KEYS})
+    elif executor == "local":
+        for k, (name, cfg) in enumerate(trials, 1):
+            rows.append(_trial(name, cfg.to_json(), str(out), predictor, threads))
+            if progress is not None:
+                progress(f"[{name}] {k}/{len(trials)}: success {100 * (rows[-1]['success_rate'] or 0):.1f}%")
+    else:
+        raise ValueError(f"executor must be local or ray, got {executor!r}")
+    rows.sort(key=lambda r: (-(r["success_rate"] or 0.0), r["trial"]))
+    write_json(out / SWEEP_JSON, {"trials": rows, "wall_s": time.perf_counter() - t0,
+                                  "seeds": sweep.seeds, "grid": sweep.grid, "base": sweep.base})  # fmt: skip
+    (out / SWEEP_MD).write_text(_table(rows, sweep))
+    return rows
+
+
+_ROW_KEYS = ("trial", "policy_config", "timesteps", "train_wall_s", "episodes", "success_rate", "success_rate_ci95",
+             "collision_rate", "collision_rate_ci95", "mean_return")
+
+
+def _table(rows: list[dict[str, Any]], sweep: Sweep) -> str:
+    keys = list(sweep.grid)
+    lines = ["# Sweep", "", f"Grid: {json.dumps(sweep.grid)}; seeds {sweep.seeds}; shared: {json.dumps(sweep.base)}.",
+             "Sorted by held-out success (95% Wilson intervals).", "",
+             "| " + " | ".join([*keys, "seed", "success %", "collision %", "return", "episodes"]) + " |",
+             "|" + "---|" * (len(keys) + 5)]  # fmt: skip
+    for r in rows:
+        lo, hi = r["success_rate_ci95"] or (float("nan"), float("nan"))
+        clo, chi = r["collision_rate_ci95"] or (float("nan"), float("nan"))
+        cells = [_label(r["policy_config"][k]) for k in keys] + [str(r["policy_config"]["seed"])]
+        cells += [f"{100 * r['success_rate']:.1f} [{100 * lo:.1f}, {100 * hi:.1f}]",
+                  f"{100 * r['collision_rate']:.1f} [{100 * clo:.1f}, {100 * chi:.1f}]",
+                  f"{r['mean_return']:.1f}", str(r["episodes"])]
+        lines.append("| " + " | ".join(cells) + " |")
+    return "\n".join(lines) + "\n"
+
+
+def read_sweep(out: str | os.PathLike[str]) -> dict[str, Any] | None:
+    """The table of a finished sweep directory (``sweep.json``), or None."""
+    return read_json(Path(out) / SWEEP_JSON)
