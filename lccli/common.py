@@ -58,3 +58,18 @@ def add_trust_pickle_argument(p: argparse.ArgumentParser, what: str = "policies"
     p.add_argument("--trust-pickle", action="store_true",
                    help=f"accept legacy stable-baselines3 .zip {what}; loading one runs code stored in it, so only "
                    "for files from a source you trust")
+
+
+def add_executor_arguments(p: argparse.ArgumentParser | argparse._ArgumentGroup, ray_does: str,
+                           local_does: str = "this machine") -> None:
+    """``--executor {local,ray}`` and ``--ray-address``: where a command's independent work runs
+    (:mod:`lcdata.executors`); ``ray_does`` says what becomes a Ray task."""
+    from lcdata.executors import EXECUTORS
+
+    p.add_argument("--executor", choices=EXECUTORS, default="local",
+                   help=f"local (default: {local_does}) or ray: {ray_does}; the same results. Needs "
+                   'pip install -e ".[ray]"')
+    p.add_argument("--ray-address", default=None,
+                   help="a running Ray cluster (ray start --head prints it; default RAY_ADDRESS, else a local "
+                   "instance started for the run); the nodes write the files: --out on storage every node sees")
+

@@ -11,8 +11,14 @@ from collections.abc import Callable
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
-from lccli.common import add_lookahead_arguments, fail, int_at_least, lookahead_options, positive_int
-from lcdata.executors import EXECUTORS
+from lccli.common import (
+    add_executor_arguments,
+    add_lookahead_arguments,
+    fail,
+    int_at_least,
+    lookahead_options,
+    positive_int,
+)
 
 if TYPE_CHECKING:
     from lcsim.config import ScenarioConfig
@@ -130,12 +136,7 @@ def eval_parser() -> argparse.ArgumentParser:
     why.add_argument("--front-gap-m", type=float, default=12.0, help="a side gap's room ahead (default 12)")
     why.add_argument("--rear-gap-m", type=float, default=5.0, help="a side gap's room behind (default 5)")
     where = p.add_argument_group("where the episodes run")
-    where.add_argument("--executor", choices=EXECUTORS, default="local",
-                       help="local (default: this process) or ray: the episodes cut into --shards parts, each a Ray "
-                       "task (the same figures, episode for episode; needs pip install -e \".[ray]\")")
-    where.add_argument("--ray-address", default=None,
-                       help="a running Ray cluster (ray start --head prints it; default RAY_ADDRESS, else a local "
-                       "instance started for the run); episodes are written by the nodes: --out on shared storage")
+    add_executor_arguments(where, "the episodes cut into --shards parts, each a Ray task", "this process")
     where.add_argument("--shards", type=positive_int, default=4, help="Ray tasks the episodes are cut into (4)")
     bound = p.add_argument_group("what the scenario allows (lc-eval oracle --bound)")
     bound.add_argument("--bound", action="store_true",

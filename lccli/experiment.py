@@ -9,8 +9,7 @@ import sys
 import time
 from pathlib import Path
 
-from lccli.common import fail, positive_int
-from lcdata.executors import EXECUTORS
+from lccli.common import add_executor_arguments, fail, positive_int
 
 EXPERIMENT_EPILOG = """stages (each skipped when complete, redone when missing or stale):
   corpus      autopilot trajectory corpus (MCAP)                 DIR/corpus/
@@ -50,13 +49,8 @@ def experiment_parser() -> argparse.ArgumentParser:
     p.add_argument("--jobs", type=positive_int, default=1,
                    help="policies trained at once, each in its own process with --threads torch threads "
                    "(default 1; on 2 cores --jobs 2 --threads 1 keeps both busy; results do not depend on it)")
-    p.add_argument("--executor", choices=EXECUTORS, default="local",
-                   help="local (default: this machine, --jobs processes) or ray: every independent stage as Ray tasks "
-                   "(each policy x seed, each evaluation shard, each recorded episode); the same results. Needs "
-                   "pip install -e \".[ray]\"")
-    p.add_argument("--ray-address", default=None,
-                   help="a running Ray cluster (ray start --head prints it; default RAY_ADDRESS, else a local "
-                   "instance for the run); --out must then be on storage every node sees")
+    add_executor_arguments(p, "every independent stage a Ray task (each policy x seed, each evaluation shard, "
+                           "each recorded episode)", "this machine, --jobs processes")
     p.add_argument("--skip-train", action="store_true",
                    help="do not train policies; report what the directory already holds")
     p.add_argument("--dry-run", action="store_true",

@@ -15,8 +15,7 @@ from collections.abc import Sequence
 
 from tqdm import tqdm
 
-from lccli.common import add_lookahead_arguments, int_at_least, lookahead_options
-from lcdata.executors import EXECUTORS
+from lccli.common import add_executor_arguments, add_lookahead_arguments, int_at_least, lookahead_options
 from lcdata.record import DRIVERS, episode_filename, iter_record_episodes
 from lcdata.writer_process import WRITER_MODES
 from lcsim.config import ScenarioConfig
@@ -105,12 +104,7 @@ def build_parser() -> argparse.ArgumentParser:
                    help="the wall-clock time of t = 0 in each file: seed (default: 2024-01-01T00:00:00Z plus the "
                    "episode's seed in seconds, so that the same command writes the same bytes), now, or a time "
                    "such as 2025-06-01T12:00:00Z for every episode")
-    p.add_argument("--executor", choices=EXECUTORS, default="local",
-                   help="local (default: --workers processes here) or ray: each episode a Ray task (the same files; "
-                   "built-in drivers only; needs pip install -e \".[ray]\")")
-    p.add_argument("--ray-address", default=None,
-                   help="a running Ray cluster (default RAY_ADDRESS, else a local instance for the run); the nodes "
-                   "write the files: --out on storage every node sees")
+    add_executor_arguments(p, "each episode a Ray task (built-in drivers)", "--workers processes here")
     p.add_argument("--writer", choices=WRITER_MODES, default=None,
                    help="where files are encoded and compressed: process (a helper process, on the core "
                    "the simulator leaves idle), thread, or inline; the files are the same. Default: process "

@@ -7,8 +7,7 @@ import argparse
 import logging
 from pathlib import Path
 
-from lccli.common import fail, positive_int
-from lcdata.executors import EXECUTORS
+from lccli.common import add_executor_arguments, fail, positive_int
 
 EPILOG = """a sweep file (TOML or JSON):
   seeds = [0, 1]              # training seeds of every grid point
@@ -36,10 +35,7 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--out", type=Path, required=True, help="the sweep's directory (resumed when rerun)")
     p.add_argument("--predictor", type=Path, default=None, help="predictor.pt for prediction and hybrid trials")
     p.add_argument("--threads", type=positive_int, default=1, help="torch threads (and Ray CPUs) per trial (1)")
-    p.add_argument("--executor", choices=EXECUTORS, default="local",
-                   help='local (default: trials one after the other) or ray (Ray Tune trials; pip install -e ".[ray]")')
-    p.add_argument("--ray-address", default=None,
-                   help="a running Ray cluster (default RAY_ADDRESS, else a local instance); --out on shared storage")
+    add_executor_arguments(p, "each trial a Ray Tune trial", "trials one after the other here")
     p.add_argument("-q", "--quiet", action="store_true", help="no progress lines")
     args = p.parse_args(argv)
     from lcmodels.sweep import SWEEP_MD, Sweep, run_sweep
