@@ -6,6 +6,7 @@ import argparse
 import collections
 import contextlib
 import dataclasses
+import json
 import logging
 import os
 import pathlib
@@ -161,7 +162,8 @@ def record_flags(args: argparse.Namespace, driver: str, scenario_name: str) -> d
     """The flags that decide what the episode files hold (``OUT/record.json``); --seed, --episodes,
     --workers and --writer only decide which files are written, and how fast."""
     flags: dict[str, object] = {
-        "scenario": scenario_name, "driver": driver, "vehicles": args.vehicles, "steps": args.steps,
+        "scenario": scenario_name, "scenario_config": _scenario_content(scenario_name), "driver": driver,
+        "vehicles": args.vehicles, "steps": args.steps,
         "images": not args.no_images, "start_time": args.start_time if args.start_time != "now" else None,
         "lookahead_follow": args.lookahead_follow,
         "lookahead": {k: v for k, v in lookahead_options(args).items()},
@@ -174,7 +176,7 @@ def record_flags(args: argparse.Namespace, driver: str, scenario_name: str) -> d
                 path = pathlib.Path((split_policy_spec(spec) or ("", spec))[1])
                 if path.is_file():
                     flags[key] = file_sha256(path)
-    return flags
+    return json.loads(json.dumps(flags))  # as record.json holds them (lists, not tuples)
 
 
 def _read_record_json(out: pathlib.Path) -> dict[str, dict[str, object]]:
@@ -193,15 +195,28 @@ def _read_record_json(out: pathlib.Path) -> dict[str, dict[str, object]]:
     return runs
 
 
+def _scenario_content(name: str) -> dict[str, object] | None:
+    """What a scenario name or file holds now (so that an edited scenario file is a difference)."""
+    try:
+        return scenario(name).to_dict()
+    except ValueError:
+        return None
+
+
 def _check_resume(out: pathlib.Path, key: str, flags: dict[str, object], paths: list[pathlib.Path],
                   overwrite: bool) -> bool:
     """Whether this run resumes the one in ``out`` (same flags, some of its episodes there). ``UsageError``
     when the episodes of this scenario and driver there were recorded with other flags, or when episode
     files are there without their flags in ``record.json`` (unless ``overwrite``)."""
     existing = [p for p in paths if p.exists()]
-    if overwrite:
-        return False
     before = _read_record_json(out).get(key)
+    if overwrite:
+        others = sorted(set(out.glob(f"{key}_s*.mcap")) - set(paths))
+        if before is not None and before != flags and others:
+            raise UsageError(f"{len(others)} other episodes of this scenario and driver in {out} (e.g. "
+                             f"{others[0].name}) were recorded with other flags, which --overwrite of these seeds "
+                             "would leave behind; overwrite them too or use another --out")
+        return False
     if before is not None:
         diffs = [f"{k}: {before.get(k)!r} there, {flags.get(k)!r} now" for k in sorted(set(before) | set(flags))
                  if before.get(k) != flags.get(k)]

@@ -51,7 +51,10 @@ def main(argv: list[str] | None = None) -> int:
     except (ValueError, OSError) as exc:
         return fail("lc-tune", str(exc).splitlines()[0])
     best = rows[0]
-    print(f"{len(rows)} trials; best {best['trial']}: success {100 * best['success_rate']:.1f}% "
-          f"[{100 * best['success_rate_ci95'][0]:.1f}, {100 * best['success_rate_ci95'][1]:.1f}]")
+    if best["success_rate"] is None:
+        print(f"{len(rows)} trials, none evaluated (eval_episodes = 0)")
+    else:
+        print(f"{len(rows)} trials; best {best['trial']}: success {100 * best['success_rate']:.1f}% "
+              f"[{100 * best['success_rate_ci95'][0]:.1f}, {100 * best['success_rate_ci95'][1]:.1f}]")
     print(f"table: {args.out / SWEEP_MD}")
     return 0

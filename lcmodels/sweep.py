@@ -90,6 +90,20 @@ class Sweep:
         return out
 
 
+def _absolute_paths(cfg: PolicyConfig) -> PolicyConfig:
+    """``cfg`` with its file paths (a scenario file, demonstrations, an initial policy) made absolute: a Ray
+    Tune trial runs in a working directory of its own."""
+    import dataclasses
+
+    from lcsim.registry import SCENARIOS
+
+    changes = {k: str(Path(v).resolve()) for k, v in (("warm_start", cfg.warm_start), ("init_policy", cfg.init_policy))
+               if v}  # fmt: skip
+    if cfg.scenario not in SCENARIOS:
+        changes["scenario"] = str(Path(cfg.scenario).resolve())
+    return dataclasses.replace(cfg, **changes)
+
+
 def _label(v: Any) -> str:
     return json.dumps(v) if isinstance(v, list | dict) else str(v).lower() if isinstance(v, bool) else str(v)
 
@@ -140,7 +154,7 @@ def run_sweep(sweep: Sweep, out: str | os.PathLike[str], *, predictor: str | Non
         with ray_session(ray_address):
             from ray import tune
 
-            configs = {n: cfg.to_json() for n, cfg in trials}
+            configs = {n: _absolute_paths(cfg).to_json() for n, cfg in trials}  # trials run in their own folders
             space = {"name": tune.grid_search(list(configs)), "configs": configs, "out": str(out.resolve()),
                      "predictor": None if predictor is None else str(Path(predictor).resolve()),
                      "threads": threads}  # fmt: skip
@@ -159,7 +173,7 @@ def run_sweep(sweep: Sweep, out: str | os.PathLike[str], *, predictor: str | Non
                 progress(f"[{name}] {k}/{len(trials)}: success {100 * (rows[-1]['success_rate'] or 0):.1f}%")
     else:
         raise ValueError(f"executor must be local or ray, got {executor!r}")
-    rows.sort(key=lambda r: (-(r["success_rate"] or 0.0), r["trial"]))
+    rows.sort(key=lambda r: (r["success_rate"] is None, -(r["success_rate"] or 0.0), r["trial"]))
     write_json(out / SWEEP_JSON, {"trials": rows, "wall_s": time.perf_counter() - t0,
                                   "seeds": sweep.seeds, "grid": sweep.grid, "base": sweep.base})  # fmt: skip
     (out / SWEEP_MD).write_text(_table(rows, sweep))
@@ -177,12 +191,15 @@ def _table(rows: list[dict[str, Any]], sweep: Sweep) -> str:
              "| " + " | ".join([*keys, "seed", "success %", "collision %", "return", "episodes"]) + " |",
              "|" + "---|" * (len(keys) + 5)]  # fmt: skip
     for r in rows:
-        lo, hi = r["success_rate_ci95"] or (float("nan"), float("nan"))
-        clo, chi = r["collision_rate_ci95"] or (float("nan"), float("nan"))
         cells = [_label(r["policy_config"][k]) for k in keys] + [str(r["policy_config"]["seed"])]
-        cells += [f"{100 * r['success_rate']:.1f} [{100 * lo:.1f}, {100 * hi:.1f}]",
-                  f"{100 * r['collision_rate']:.1f} [{100 * clo:.1f}, {100 * chi:.1f}]",
-                  f"{r['mean_return']:.1f}", str(r["episodes"])]
+        if r["success_rate"] is None:  # no held-out evaluation (eval_episodes = 0)
+            cells += ["—", "—", "—", "0"]
+        else:
+            lo, hi = r["success_rate_ci95"]
+            clo, chi = r["collision_rate_ci95"]
+            cells += [f"{100 * r['success_rate']:.1f} [{100 * lo:.1f}, {100 * hi:.1f}]",
+                      f"{100 * r['collision_rate']:.1f} [{100 * clo:.1f}, {100 * chi:.1f}]",
+                      f"{r['mean_return']:.1f}", str(r["episodes"])]
         lines.append("| " + " | ".join(cells) + " |")
     return "\n".join(lines) + "\n"
 

@@ -46,8 +46,10 @@ def _toml_table(data: dict[str, object], path: list[str], lines: list[str]) -> N
             _toml_table(v, [*path, k], lines)
 
 
-def _parse_value(text: str, like: object, what: str) -> object:
-    """``text`` read as the type of the field's current value ``like``."""
+def _parse_value(text: str, like: object, what: str, declared: str = "") -> object:
+    """``text`` read as the field's declared type (else as the type of its current value ``like``)."""
+    if declared in ("float", "int", "bool", "str"):
+        like = {"float": 0.0, "int": 0, "bool": False, "str": ""}[declared]
     try:
         if isinstance(like, bool):
             lowered = text.lower()
@@ -65,7 +67,26 @@ def _parse_value(text: str, like: object, what: str) -> object:
             return tuple(items)
         return text
     except (ValueError, json.JSONDecodeError) as exc:
-        raise ValueError(f"{what}: expected a value like {like!r} ({exc})") from None
+        wanted = f"a value of type {declared}" if declared else f"a value like {like!r}"
+        raise ValueError(f"{what}: expected {wanted} ({exc})") from None
+
+
+_SCALAR_TYPES: dict[str, tuple[type, ...]] = {"int": (int,), "float": (int, float), "bool": (bool,), "str": (str,)}
+
+
+def check_types(obj: object) -> None:
+    """``ValueError`` naming the field when a field declared ``int``, ``float``, ``bool`` or ``str`` holds a
+    value of another type (``True`` is no ``int`` here, ``2.5`` no ``int``, ``"no"`` no ``bool``)."""
+    for f in dataclasses.fields(obj):  # type: ignore[arg-type]
+        want = _SCALAR_TYPES.get(str(f.type))
+        v = getattr(obj, f.name)
+        if want is not None and (not isinstance(v, want) or (isinstance(v, bool) and bool not in want)):
+            raise ValueError(f"{type(obj).__name__}.{f.name} must be of type {f.type}, got {v!r}")
+
+
+def field_type(obj: object, name: str) -> str:
+    """The declared type of field ``name`` of a config, as written (``"float"``, ``"tuple[float, ...]"``)."""
+    return str(next(f.type for f in dataclasses.fields(obj) if f.name == name))  # type: ignore[arg-type]
 
 
 def check_field(cond: bool, cls: object, name: str, msg: str, value: object) -> None:
@@ -171,18 +192,18 @@ class JsonConfig:
                 raise ValueError(f"--set {text!r}: expected KEY=VALUE")
             *parents, name = key.strip().split(".")
             node: dict[str, Any] = data
-            owner = type(self).__name__
+            owner, obj = type(self).__name__, self
             for part in parents:
                 child = node.get(part)
                 if not isinstance(child, dict):
                     what = "has no field" if part not in node else "has no fields of its own under"
                     raise ValueError(f"--set {text}: {owner} {what} {part!r}")
-                node, owner = child, part
+                node, owner, obj = child, part, getattr(obj, part)
             if name not in node:
                 raise ValueError(f"--set {text}: {owner} has no field {name!r} (fields: {', '.join(sorted(node))})")
             if isinstance(node[name], dict):
                 raise ValueError(f"--set {text}: {name} is a nested config; set its fields ({name}.field=value)")
-            node[name] = _parse_value(value.strip(), node[name], f"--set {text}")
+            node[name] = _parse_value(value.strip(), node[name], f"--set {text}", field_type(obj, name))
         try:
             return type(self).from_dict(data)
         except ValueError as exc:

@@ -220,3 +220,35 @@ def test_corrupt_checkpoint_state_names_the_file(run_dir: Path, tmp_path: Path) 
     (out / "checkpoints" / "latest.json").write_text('{"timesteps": 64,')
     with pytest.raises(ValueError, match=r"checkpoints/latest\.json is corrupt"):
         train_policy(_tiny(timesteps=128), out)
+
+
+def test_overwrite_refuses_to_start_from_what_it_would_remove(run_dir: Path, tmp_path: Path) -> None:
+    import shutil
+
+    out = tmp_path / "run"
+    shutil.copytree(run_dir, out)
+    with pytest.raises(ValueError, match="inside"):
+        train_policy(_tiny(gamma=0.9, init_policy=str(out / "policy.safetensors")), out, overwrite=True)
+    assert (out / "policy.safetensors").read_bytes() == (run_dir / "policy.safetensors").read_bytes()
+
+
+def test_a_run_whose_scenario_file_changed_is_not_resumed(tmp_path: Path) -> None:
+    scenario_file = tmp_path / "s.json"
+    scenario_file.write_text(json.dumps({"route_length_m": 150.0, "time_limit_s": 25.0,
+                                         "traffic": {"num_vehicles": 6, "spawn_behind_m": 40.0, "spawn_ahead_m": 80.0}}))
+    train_policy(_tiny(scenario=str(scenario_file)), tmp_path / "run")
+    scenario_file.write_text(json.dumps({"route_length_m": 150.0, "time_limit_s": 25.0,
+                                         "traffic": {"num_vehicles": 2, "spawn_behind_m": 40.0, "spawn_ahead_m": 80.0}}))
+    with pytest.raises(ValueError, match="scenario's content differs"):
+        train_policy(_tiny(scenario=str(scenario_file), timesteps=128), tmp_path / "run")
+
+
+def test_overwrite_leaves_none_of_the_previous_runs_tensorboard(run_dir: Path, tmp_path: Path) -> None:
+    import shutil
+
+    out = tmp_path / "run"
+    shutil.copytree(run_dir, out)
+    old = {p.name for p in (out / "tb").rglob("events.out.tfevents.*")}
+    assert old
+    train_policy(_tiny(seed=2), out, overwrite=True)
+    assert not old & {p.name for p in (out / "tb").rglob("events.out.tfevents.*")}

@@ -116,3 +116,21 @@ def test_help_has_an_example(capsys: pytest.CaptureFixture[str]) -> None:
     assert record_main(["--help"]) == 0
     out = capsys.readouterr().out
     assert "lc-record --scenario paper --episodes" in out and "--workers" in out
+
+
+def test_resume_sees_an_edited_scenario_file_and_overwrite_leaves_no_mixed_flags(tmp_path, capsys):
+    import json
+
+    scenario_file = tmp_path / "s.json"
+    scenario_file.write_text(json.dumps({"traffic": {"num_vehicles": 4}}))
+    out = tmp_path / "rec"
+    common = ["--scenario", str(scenario_file), "--steps", "20", "--no-images", "--out", str(out)]
+    assert record_main([*common, "--episodes", "2"]) == 0
+    scenario_file.write_text(json.dumps({"traffic": {"num_vehicles": 2}}))
+    assert record_main([*common, "--episodes", "4"]) == 2  # the file says something else now
+    assert "scenario_config" in capsys.readouterr().err
+    assert record_main([*common, "--episodes", "1", "--overwrite"]) == 2  # seed 1 would stay as it was
+    assert "other episodes" in capsys.readouterr().err
+    assert record_main([*common, "--episodes", "2", "--overwrite"]) == 0
+    assert record_main([*common, "--episodes", "3"]) == 0  # resumes, with one set of flags
+    assert names(out) == [f"s_rule_s000000{i}.mcap" for i in range(3)]

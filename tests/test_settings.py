@@ -36,9 +36,9 @@ def test_set_reaches_every_field_nested_ones_too():
 
 @pytest.mark.parametrize(("setting", "message"), [
     ("gama=0.9", "PolicyConfig has no field 'gama'"),
-    ("gamma=high", "--set gamma=high: expected a value like 0.95"),
+    ("gamma=high", "--set gamma=high: expected a value of type float"),
     ("gamma=2", "gamma must be in"),
-    ("n_envs=2.5", "--set n_envs=2.5: expected a value like 16"),
+    ("n_envs=2.5", "--set n_envs=2.5: expected a value of type int"),
     ("window_features=maybe", "expected true or false"),
     ("algo=sac", "PolicyConfig.algo must be one of"),
     ("no-equals-sign", "expected KEY=VALUE"),
@@ -88,3 +88,13 @@ def test_any_setting_gives_a_config_or_a_value_error(key, value):
     except ValueError:
         return
     assert isinstance(cfg, PolicyConfig) and isinstance(cfg.scenario_config(), ScenarioConfig)
+
+
+def test_a_setting_is_read_as_the_fields_type_not_the_files(tmp_path):
+    path = tmp_path / "c.toml"
+    path.write_text("[policy]\ngamma = 1\n")  # an integer where the field is a float
+    assert PolicyConfig.from_file(path, table="policy").with_settings(["gamma=0.99"]).gamma == 0.99
+    with pytest.raises(ValueError, match="must be of type bool"):
+        PolicyConfig(record_eval="no")
+    with pytest.raises(ValueError, match="must be of type int"):
+        PolicyConfig(n_envs=2.5)

@@ -52,3 +52,10 @@ def test_a_local_sweep_writes_its_table_and_a_rerun_skips_the_finished_trials(tm
     assert {p: p.stat().st_mtime_ns for p in policies} == policies  # finished trials are not trained again
     again = json.loads((tmp_path / "out" / "sweep.json").read_text())["trials"]
     assert [r["success_rate"] for r in again] == [r["success_rate"] for r in first]
+
+
+def test_a_sweep_without_evaluation_still_writes_its_table(tmp_path):
+    path = tmp_path / "s.toml"
+    path.write_text("seeds = [0]\n" + BASE.replace("eval_episodes = 2", "eval_episodes = 0") + "[grid]\ngamma = [0.9]\n")
+    assert tune_main([str(path), "--out", str(tmp_path / "out"), "-q"]) == 0
+    assert "—" in (tmp_path / "out" / "SWEEP.md").read_text()

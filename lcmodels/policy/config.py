@@ -18,6 +18,7 @@ from lcsim.config import (
     JsonConfig,
     ScenarioConfig,
     check_field,
+    check_types,
     require_non_negative,
     require_positive,
 )
@@ -113,6 +114,7 @@ class PolicyConfig(JsonConfig):
     included; ``checkpoints/latest.json`` is in the training form, for resuming only."""
 
     def __post_init__(self) -> None:
+        check_types(self)
         check_field(self.algo in ALGORITHMS, self, "algo", f"must be one of {', '.join(ALGORITHMS)}", self.algo)
         check_field(self.obs in OBS_MODES, self, "obs", f"must be one of {', '.join(OBS_MODES)}", self.obs)
         check_field(self.scenario in TASK_SCENARIOS or Path(self.scenario).suffix in SCENARIO_FILE_SUFFIXES, self,
@@ -141,13 +143,18 @@ class PolicyConfig(JsonConfig):
                self.exploration_fraction)  # fmt: skip
         check_field(self.seed < 1_000_000, self, "seed", "must be < 1000000 (keeps training seeds off evaluation's)",
                self.seed)  # fmt: skip
+        try:
+            base = scenario(self.scenario)
+        except ValueError as exc:
+            raise ValueError(f"PolicyConfig.scenario: {exc}") from None
         try:  # slots (and neighbours) as the scenario itself validates them
-            self.scenario_config()
+            self.scenario_config(base)
         except ValueError as exc:
             raise ValueError(f"PolicyConfig.slots {self.slots} does not fit the scenario: {exc}") from None
 
-    def scenario_config(self) -> ScenarioConfig:
-        base = dataclasses.replace(scenario(self.scenario), neighbour_selection=self.neighbours,
+    def scenario_config(self, base: ScenarioConfig | None = None) -> ScenarioConfig:
+        """The scenario the policy sees: its ``scenario`` with this config's view of the traffic."""
+        base = dataclasses.replace(base or scenario(self.scenario), neighbour_selection=self.neighbours,
                                    num_neighbours=self.slots, observe_acceleration=self.accel_features)
         return scenario_for_mode(base, self.obs)
 

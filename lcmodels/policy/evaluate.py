@@ -301,6 +301,14 @@ def evaluate_sharded(spec: str, config: ScenarioConfig | None, *, episodes: int 
     if executor not in EXECUTORS:
         raise ValueError(f"executor must be one of {', '.join(EXECUTORS)}, got {executor!r}")
     user_seeds = eval_user_seeds(episodes, seed)
+    if out_dir is not None and not overwrite:  # refuse before any shard writes, as evaluate() does
+        driver, _ = driver_for(spec, predictor=predictor, lookahead=lookahead, follow=follow,
+                               trust_pickle=trust_pickle)
+        name = str(getattr(driver, "name", type(driver).__name__))
+        existing = [p for u in user_seeds if (p := Path(out_dir) / episode_filename(scenario, name, u)).exists()]
+        if existing:
+            raise FileExistsError(f"{existing[0]} exists ({len(existing)} evaluation files); use --overwrite "
+                                  "or another output directory")
     options = {"predictor": predictor, "lookahead": lookahead, "follow": follow, "trust_pickle": trust_pickle,
                "out_dir": None if out_dir is None else str(out_dir), "scenario": scenario, "batch": batch,
                "overwrite": overwrite}  # fmt: skip

@@ -245,7 +245,7 @@ RUN_OUTPUTS: tuple[str, ...] = (
     POLICY_FILE, card_path(POLICY_FILE).name, "checkpoints/latest.json", "checkpoints/step-*.safetensors",
     "checkpoints/step-*.card.json", "checkpoints/step-*.optim.pt", "checkpoints/*.partial*", "*.partial*",
     "eval/metrics.json", "eval/metrics.json.partial", "eval/episodes/*.mcap", "eval/episodes/*.mcap.partial",
-    "tb/*/events.out.tfevents.*",
+    "tb/events.out.tfevents.*", "tb/*/events.out.tfevents.*",
 )  # fmt: skip
 """The files a training run writes in its directory (glob patterns relative to it): all that ``overwrite``
 removes."""
@@ -306,6 +306,12 @@ def check_run_dir(cfg: PolicyConfig, out: Path, predictor_sha256: str | None, *,
              if k not in _RESUMABLE_FIELDS and prev_cfg.get(k) != now[k]]  # fmt: skip
     if (prev.get("predictor") or {}).get("sha256") != predictor_sha256:
         diffs.append("predictor file content differs")
+    if "scenario" in prev and not diffs:  # a scenario file whose content changed since the run began
+        from lcmodels.policy.checkpoint import scenario_differences
+
+        changed = scenario_differences(prev["scenario"] or {}, cfg.scenario_config())
+        if changed:
+            diffs.append(f"the scenario's content differs ({'; '.join(changed[:3])})")
     if diffs and not overwrite:
         raise ValueError(f"{out} holds a run with another configuration ({'; '.join(diffs)}); "
                          "use another --out or --overwrite")  # fmt: skip
@@ -357,6 +363,11 @@ def train_policy(
     run = _Run(cfg, out, pred_path, pred_sha, progress)
     if cfg.warm_start:
         _check_demonstrations(Path(cfg.warm_start))
+    if replace:  # what the run starts from must not be among what --overwrite removes
+        for what, given in (("init_policy", cfg.init_policy), ("warm_start", cfg.warm_start)):
+            if given and Path(given).resolve().is_relative_to(out.resolve()):
+                raise ValueError(f"{what} {given} is inside {out}, whose run --overwrite would remove; copy it "
+                                 "elsewhere first, or use another --out")
     initial = None
     if cfg.init_policy and (replace or not run.ckpt_state.exists()):
         initial = _load_init_policy(cfg, run, cfg.scenario_config(), device, trust_pickle)
@@ -382,7 +393,8 @@ def train_policy(
     if cfg.eval_episodes > 0:
         summary = json.loads(eval_json.read_text()) if eval_json.exists() else {}
         policy_sha = file_sha256(final)  # a run continued to more timesteps has a new policy to evaluate
-        if (summary.get("episodes"), summary.get("eval_seed"), summary.get("policy_sha256")) != (
+        recorded = (out / "eval" / "episodes").is_dir() or not cfg.record_eval
+        if not recorded or (summary.get("episodes"), summary.get("eval_seed"), summary.get("policy_sha256")) != (
                 cfg.eval_episodes, cfg.eval_seed, policy_sha):
             from lcmodels.policy.checkpoint import load_policy
 
