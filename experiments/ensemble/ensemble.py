@@ -2,7 +2,7 @@
 """An ensemble of policies on lc-eval's held-out episodes: each decision the argmax of the members' mean
 action probabilities.
 
-An experiment, not a method of record (session 21): do several PPO policies together, trained with other
+An experiment, not a method of record (the ensemble study): do several PPO policies together, trained with other
 seeds or taken at other points of one run (a snapshot ensemble, free in training time), make fewer of the
 rare decisions that end in a collision than each alone? The members must share the observation mode, the
 scenario and the predictor; PPO and A2C only (DQN has no action distribution). Prints one JSON object with

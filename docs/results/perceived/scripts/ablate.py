@@ -1,8 +1,8 @@
-"""One-off ablation (session 19): which half of ``HighwaySim.perceive`` costs the perceived planner its points.
+"""One-off ablation (the perceived-planner study): which half of ``HighwaySim.perceive`` costs the perceived planner its points.
 
     python docs/results/perceived/scripts/ablate.py range  LC-EVAL-ARGS...   # only the sensing range
     python docs/results/perceived/scripts/ablate.py speeds LC-EVAL-ARGS...   # only the desired-speed estimate
-    python docs/results/perceived/scripts/ablate.py crude  LC-EVAL-ARGS...   # the session's first, cruder estimate
+    python docs/results/perceived/scripts/ablate.py crude  LC-EVAL-ARGS...   # the first, cruder estimate
 
 Runs ``lc-eval`` with ``--lookahead-perceived`` given in LC-EVAL-ARGS, with ``perceive`` cut down to one of its
 two parts: ``range`` parks the traffic beyond the range but keeps every vehicle's true desired speed;

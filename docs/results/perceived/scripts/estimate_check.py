@@ -1,4 +1,4 @@
-"""One-off check (session 19): how well HighwaySim.estimated_desired_speeds recovers the true desired speeds.
+"""One-off check (the perceived-planner study): how well HighwaySim.estimated_desired_speeds recovers the true desired speeds.
 
     python docs/results/perceived/scripts/estimate_check.py
 

@@ -1,4 +1,4 @@
-"""One-off robustness check (session 19): the perceived planner with a traffic model that is off.
+"""One-off robustness check (the perceived-planner study): the perceived planner with a traffic model that is off.
 
     python docs/results/perceived/scripts/misspecified.py 0.8 LC-EVAL-ARGS...   # parameters 20% low
     python docs/results/perceived/scripts/misspecified.py 1.2 LC-EVAL-ARGS...   # parameters 20% high

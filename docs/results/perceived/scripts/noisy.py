@@ -1,4 +1,4 @@
-"""One-off robustness check (session 19): the perceived planner with a noisy perception.
+"""One-off robustness check (the perceived-planner study): the perceived planner with a noisy perception.
 
     python docs/results/perceived/scripts/noisy.py SIGMA_X SIGMA_V SIGMA_A LC-EVAL-ARGS...
 

@@ -2,7 +2,7 @@
 16-slot scenario (its first 8 slots are the 8-slot layout), label every state with a choice by the blind
 16 s planner following the same policy, and keep the 16-slot ``current`` (slice ``[:, :9]`` for 8 slots).
 
-A one-off experiment of session 18 (see ../NOTE.md), kept to reproduce its figures:
+A one-off experiment of the window-critic study (see ../NOTE.md), kept to reproduce its figures:
 
     python docs/results/window-critic/scripts/collect16.py POLICY FIRST_USER_SEED EPISODES OUT.npz
 """

@@ -1,6 +1,6 @@
 """Quick experiment: average the action probabilities of several policies (a policy ensemble).
 
-A one-off experiment of session 18 (see ../NOTE.md), kept to reproduce its figures:
+A one-off experiment of the window-critic study (see ../NOTE.md), kept to reproduce its figures:
 
     python docs/results/window-critic/scripts/ensemble.py SEED POLICY [POLICY ...]
 """

@@ -1,6 +1,6 @@
 """Quick experiment: an observation-only guard from the window features in front of a policy.
 
-A one-off experiment of session 18 (see ../NOTE.md), kept to reproduce its figures:
+A one-off experiment of the window-critic study (see ../NOTE.md), kept to reproduce its figures:
 
     python docs/results/window-critic/scripts/guard.py POLICY SEED RESCUE_S|none veto PREDICTOR
 """

@@ -1,7 +1,7 @@
 """How repeatable is the planner's keep label? For each state with a choice, imagine keep + 16 s of the
 follower policy in K redrawn futures; report how often the K futures agree.
 
-A one-off experiment of session 18 (see ../NOTE.md), kept to reproduce its figures:
+A one-off experiment of the window-critic study (see ../NOTE.md), kept to reproduce its figures:
 
     python docs/results/window-critic/scripts/noise.py POLICY FIRST_USER_SEED EPISODES FUTURES
 """

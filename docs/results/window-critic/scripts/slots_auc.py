@@ -1,7 +1,7 @@
 """Fit critics on one states file of collect16.py and score them on another: 8 slots (the first 9 rows of
 ``current``) against 16, each with and without the window features.
 
-A one-off experiment of session 18 (see ../NOTE.md), kept to reproduce its figures:
+A one-off experiment of the window-critic study (see ../NOTE.md), kept to reproduce its figures:
 
     python docs/results/window-critic/scripts/slots_auc.py FIT.npz SCORE.npz EPOCHS
 """
