@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import argparse
+import logging
 import sys
 from collections.abc import Callable
 
@@ -72,4 +73,23 @@ def add_executor_arguments(p: argparse.ArgumentParser | argparse._ArgumentGroup,
     p.add_argument("--ray-address", default=None,
                    help="a running Ray cluster (ray start --head prints it; default RAY_ADDRESS, else a local "
                    "instance started for the run); the nodes write the files: --out on storage every node sees")
+
+
+class _CliFormatter(logging.Formatter):
+    """The library's log lines as a command shows them: progress as it is, a warning as ``prog: warning: ...``."""
+
+    def __init__(self, prog: str) -> None:
+        super().__init__("%(message)s")
+        self.prog = prog
+
+    def format(self, record: logging.LogRecord) -> str:
+        text = super().format(record)
+        return f"{self.prog}: {record.levelname.lower()}: {text}" if record.levelno >= logging.WARNING else text
+
+
+def setup_logging(prog: str, verbose: bool) -> None:
+    """Show the libraries' log on stderr: their progress (INFO) when ``verbose``, always their warnings."""
+    handler = logging.StreamHandler(sys.stderr)
+    handler.setFormatter(_CliFormatter(prog))
+    logging.basicConfig(level=logging.INFO if verbose else logging.WARNING, handlers=[handler], force=True)
 

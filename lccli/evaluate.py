@@ -232,7 +232,8 @@ def eval_main(argv: list[str] | None = None) -> int:
                     shards=args.shards, executor="ray", predictor=str(args.predictor) if args.predictor else None,
                     lookahead=lookahead_options(args), follow=args.lookahead_follow, trust_pickle=args.trust_pickle,
                     out_dir=out, scenario=scenario_label, batch=args.batch, overwrite=args.overwrite,
-                    train_seeds=train_seeds, progress=show)  # fmt: skip
+                    train_seeds=train_seeds, progress=show,
+                    driver_name=str(getattr(driver, "name", type(driver).__name__)))  # fmt: skip
         else:
             summary, results = evaluate(driver, config, episodes=args.episodes, seed=args.seed, out_dir=out,
                                         batch=args.batch, overwrite=args.overwrite, train_seeds=train_seeds,

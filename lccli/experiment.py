@@ -4,12 +4,11 @@ from __future__ import annotations
 
 import argparse
 import functools
-import logging
 import sys
 import time
 from pathlib import Path
 
-from lccli.common import add_executor_arguments, fail, positive_int
+from lccli.common import add_executor_arguments, fail, positive_int, setup_logging
 
 EXPERIMENT_EPILOG = """stages (each skipped when complete, redone when missing or stale):
   corpus      autopilot trajectory corpus (MCAP)                 DIR/corpus/
@@ -83,7 +82,7 @@ def experiment_main(argv: list[str] | None = None) -> int:
         exp.check_out()
     except ValueError as exc:
         return error(str(exc))
-    logging.basicConfig(level=logging.WARNING, format="%(message)s")
+    setup_logging("lc-experiment", verbose=False)
     if args.dry_run:
         if not args.out.exists():
             print(f"{args.out} does not exist: every stage would run")

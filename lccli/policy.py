@@ -4,11 +4,10 @@ from __future__ import annotations
 
 import argparse
 import functools
-import logging
 from pathlib import Path
 from typing import Any
 
-from lccli.common import add_trust_pickle_argument, fail, int_at_least, positive_int
+from lccli.common import add_trust_pickle_argument, fail, int_at_least, positive_int, setup_logging
 from lccli.evaluate import format_eval
 
 TRAIN_POLICY_EPILOG = """examples:
@@ -85,13 +84,21 @@ def policy_config_of(args: argparse.Namespace) -> Any:
     import dataclasses
 
     from lcmodels.policy.config import PolicyConfig, default_learning_rate
+    from lcsim.config import read_data_file
 
-    cfg = PolicyConfig.from_file(args.config, table="policy") if args.config is not None else PolicyConfig()
+    data: dict[str, Any] = {}
+    if args.config is not None:
+        data = read_data_file(args.config, "config file")
+        data = data["policy"] if isinstance(data.get("policy"), dict) else data
+    try:
+        cfg = PolicyConfig.from_dict(data, stored=False)
+    except ValueError as exc:
+        raise ValueError(f"{args.config}: {exc}") from None
     given = {"algo": args.algo, "obs": args.obs, "scenario": args.scenario, "timesteps": args.timesteps,
              "seed": args.seed, "warm_start": None if args.warm_start is None else str(args.warm_start),
              "init_policy": None if args.init_policy is None else str(args.init_policy)}  # fmt: skip
     cfg = dataclasses.replace(cfg, **{k: v for k, v in given.items() if v is not None})
-    chosen = set(_file_keys(args.config)) | {s.partition("=")[0].strip() for s in args.settings}
+    chosen = set(data) | {s.partition("=")[0].strip() for s in args.settings}
     final = cfg.with_settings(args.settings)  # the algorithm and the start the run ends up with
     defaults: dict[str, Any] = {}
     if "learning_rate" not in chosen:
@@ -99,18 +106,6 @@ def policy_config_of(args: argparse.Namespace) -> Any:
     if "n_steps" not in chosen:
         defaults["n_steps"] = 8 if final.algo == "a2c" else 128
     return dataclasses.replace(cfg, **defaults).with_settings(args.settings)
-
-
-def _file_keys(path: Path | None) -> list[str]:
-    """The fields a config file sets (to leave the algorithm's defaults alone for the others)."""
-    if path is None:
-        return []
-    import json
-    import tomllib
-
-    data = tomllib.loads(path.read_text()) if path.suffix == ".toml" else json.loads(path.read_text())
-    data = data.get("policy", data) if isinstance(data.get("policy"), dict) else data
-    return list(data)
 
 
 def _fmt_row(row: dict) -> str:
@@ -146,7 +141,7 @@ def train_policy_main(argv: list[str] | None = None) -> int:
     if args.predictor is not None and not needs_predictor(cfg.obs):
         return error(f"--obs {cfg.obs} uses no predictor; drop --predictor {args.predictor}")
     torch.set_num_threads(args.threads)
-    logging.basicConfig(level=logging.WARNING if args.quiet else logging.INFO, format="%(message)s")
+    setup_logging("lc-train-policy", verbose=not args.quiet)
     show = None if args.quiet else (lambda row: print(_fmt_row(row), flush=True))
     show_eval = None if args.quiet else (lambda k, n: print(f"evaluating: {k}/{n} episodes", flush=True))
     try:

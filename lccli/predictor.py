@@ -9,7 +9,7 @@ import json
 import logging
 from pathlib import Path
 
-from lccli.common import fail, positive_int
+from lccli.common import fail, positive_int, setup_logging
 
 TRAIN_PREDICTOR_EPILOG = """examples:
   lc-record --scenario corpus --episodes 24 --seed 100 --out runs/corpus --workers 2
@@ -81,7 +81,7 @@ def train_predictor_main(argv: list[str] | None = None) -> int:
         return error(f"{existing[0]} already exists; choose another --out or pass --overwrite")
     if args.time_limit is not None and args.time_limit <= 0:
         return error(f"--time-limit must be > 0, got {args.time_limit}")
-    logging.basicConfig(level=logging.WARNING if args.quiet else logging.INFO, format="%(message)s")
+    setup_logging("lc-train-predictor", verbose=not args.quiet)
 
     from lcdata.corpus import load_tracks
     from lcmodels.predictor import PredictorConfig, TrainConfig, train_predictor

@@ -7,7 +7,6 @@ import collections
 import contextlib
 import dataclasses
 import json
-import logging
 import os
 import pathlib
 import sys
@@ -16,7 +15,13 @@ from collections.abc import Sequence
 
 from tqdm import tqdm
 
-from lccli.common import add_executor_arguments, add_lookahead_arguments, int_at_least, lookahead_options
+from lccli.common import (
+    add_executor_arguments,
+    add_lookahead_arguments,
+    int_at_least,
+    lookahead_options,
+    setup_logging,
+)
 from lcdata.record import DRIVERS, episode_filename, iter_record_episodes
 from lcdata.writer_process import WRITER_MODES
 from lcsim.config import ScenarioConfig
@@ -291,7 +296,7 @@ def record_main(argv: Sequence[str] | None = None) -> int:
         return 2
     except SystemExit as exc:  # --help
         return int(exc.code or 0)
-    logging.basicConfig(level=logging.INFO if args.verbose else logging.WARNING, format="%(message)s")
+    setup_logging("lc-record", verbose=args.verbose)
     from lcdata.fileio import write_json
 
     write_json(args.out / RECORD_JSON, {"runs": {**_read_record_json(args.out), key: flags}})

@@ -4,10 +4,9 @@ held-out evaluation, one table sorted by held-out success (:mod:`lcmodels.sweep`
 from __future__ import annotations
 
 import argparse
-import logging
 from pathlib import Path
 
-from lccli.common import add_executor_arguments, fail, positive_int
+from lccli.common import add_executor_arguments, fail, positive_int, setup_logging
 
 EPILOG = """a sweep file (TOML or JSON):
   seeds = [0, 1]              # training seeds of every grid point
@@ -42,7 +41,7 @@ def main(argv: list[str] | None = None) -> int:
 
     if args.predictor is not None and not args.predictor.is_file():
         return fail("lc-tune", f"--predictor {args.predictor} does not exist")
-    logging.basicConfig(level=logging.WARNING, format="%(message)s")
+    setup_logging("lc-tune", verbose=False)
     try:
         sweep = Sweep.from_file(args.sweep)
         rows = run_sweep(sweep, args.out, predictor=None if args.predictor is None else str(args.predictor),

@@ -4,12 +4,12 @@
 from __future__ import annotations
 
 import argparse
-import logging
 import pathlib
 import sys
 import time
 from collections.abc import Sequence
 
+from lccli.common import setup_logging
 from lcdata.viewer.app import (
     EXIT_BAD_INPUT,
     ViewError,
@@ -75,7 +75,7 @@ def build_parser() -> argparse.ArgumentParser:
 def main(argv: Sequence[str] | None = None) -> int:
     """Entry point of ``lc-view``; returns the exit status (2 for bad input)."""
     args = build_parser().parse_args(argv)
-    logging.basicConfig(level=logging.INFO if args.verbose else logging.WARNING, format="%(message)s")
+    setup_logging("lc-view", verbose=args.verbose)
     if args.save is not None and args.save.suffix != ".rrd":
         print(f"lc-view: error: --save {args.save}: the file name must end in .rrd", file=sys.stderr)
         return EXIT_BAD_INPUT

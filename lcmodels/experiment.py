@@ -558,8 +558,9 @@ def _ray_policy_task(index: int, preset: Preset, out: Path, seeds: int, threads:
     log, which Ray forwards to the driver)."""
     import torch
 
+    logging.basicConfig(level=logging.INFO, format="%(message)s")  # a fresh worker: its log goes to the driver
     torch.set_num_threads(threads)
-    exp = Experiment(preset, out, seeds=seeds, threads=threads, progress=lambda msg: print(msg, flush=True))
+    exp = Experiment(preset, out, seeds=seeds, threads=threads, progress=log.info)
     return index, exp.policy(method, seed, predictor, demos)
 
 

@@ -28,8 +28,9 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
-from lcmodels.fileio import read_json, write_json
+from lcmodels.fileio import write_json
 from lcmodels.policy.config import PolicyConfig
+from lcsim.config import read_data_file
 
 SWEEP_JSON = "sweep.json"
 SWEEP_MD = "SWEEP.md"
@@ -47,16 +48,8 @@ class Sweep:
     def from_file(cls, path: str | os.PathLike[str]) -> Sweep:
         """``ValueError`` naming the file and the problem: an unknown field, an empty grid axis, a config the
         policy refuses."""
-        import tomllib
-
         path = Path(path)
-        try:
-            text = path.read_text()
-            data = tomllib.loads(text) if path.suffix == ".toml" else json.loads(text)
-        except FileNotFoundError:
-            raise ValueError(f"sweep file {path} does not exist") from None
-        except (OSError, UnicodeDecodeError, ValueError) as exc:
-            raise ValueError(f"{path} is not valid {path.suffix[1:].upper() or 'TOML'}: {exc}") from None
+        data = read_data_file(path, "sweep file")
         unknown = set(data) - {"base", "grid", "seeds"}
         if unknown:
             raise ValueError(f"{path}: unknown top-level key(s) {sorted(unknown)} (base, grid, seeds)")
@@ -83,7 +76,7 @@ class Sweep:
             for seed in self.seeds:
                 name = "_".join(f"{k}={_label(v)}" for k, v in point.items()) or "base"
                 try:
-                    cfg = PolicyConfig.from_dict({**self.base, **point, "seed": seed})
+                    cfg = PolicyConfig.from_dict({**self.base, **point, "seed": seed}, stored=False)
                 except ValueError as exc:
                     raise ValueError(f"trial {name}, seed {seed}: {exc}") from None
                 out.append((f"{name}_seed{seed}", cfg))
@@ -202,8 +195,3 @@ def _table(rows: list[dict[str, Any]], sweep: Sweep) -> str:
                       f"{r['mean_return']:.1f}", str(r["episodes"])]
         lines.append("| " + " | ".join(cells) + " |")
     return "\n".join(lines) + "\n"
-
-
-def read_sweep(out: str | os.PathLike[str]) -> dict[str, Any] | None:
-    """The table of a finished sweep directory (``sweep.json``), or None."""
-    return read_json(Path(out) / SWEEP_JSON)

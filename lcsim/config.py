@@ -22,6 +22,24 @@ from dataclasses import dataclass, field
 from typing import Any, ClassVar, Self
 
 
+def read_data_file(path: str | os.PathLike[str], what: str = "file") -> dict[str, Any]:
+    """The table a ``.toml`` or ``.json`` file holds (a config, a scenario, a sweep). ``ValueError`` in one line
+    naming the file: another suffix, a missing file, text that does not parse, or no table at the top."""
+    path = pathlib.Path(path)
+    if path.suffix not in (".toml", ".json"):
+        raise ValueError(f"{what} {path}: the name must end in .toml or .json")
+    try:
+        text = path.read_text()
+        data = tomllib.loads(text) if path.suffix == ".toml" else json.loads(text)
+    except FileNotFoundError:
+        raise ValueError(f"{what} {path} does not exist") from None
+    except (OSError, UnicodeDecodeError, ValueError) as exc:  # tomllib's and json's errors are ValueErrors
+        raise ValueError(f"{what} {path} is not valid {path.suffix[1:].upper()}: {exc}") from None
+    if not isinstance(data, dict):
+        raise ValueError(f"{what} {path} holds no table at the top")
+    return data
+
+
 def _toml_value(v: object) -> str:
     if isinstance(v, bool):
         return "true" if v else "false"
@@ -124,22 +142,25 @@ class JsonConfig:
         return json.dumps(self.to_dict(), sort_keys=True, **kwargs)
 
     @classmethod
-    def from_dict(cls, data: dict[str, Any]) -> Self:
+    def from_dict(cls, data: dict[str, Any], *, stored: bool = True) -> Self:
         """The config a dict describes; ``ValueError`` naming the problem for an unknown field, a value of
-        the wrong type or out of range, or anything that is not such a dict (stored files are untrusted)."""
+        the wrong type or out of range, or anything that is not such a dict (stored files are untrusted).
+        ``stored``: the dict was stored by an earlier version (a recording, a run), so a field it lacks takes
+        its ``LEGACY_DEFAULTS`` value; a file a person writes (``stored=False``) gets today's defaults."""
         if not isinstance(data, dict):
             raise ValueError(f"{cls.__name__}: expected a JSON object, got {type(data).__name__}")
         fields = {f.name: f for f in dataclasses.fields(cls)}  # type: ignore[arg-type]
         unknown = set(data) - set(fields)
         if unknown:
             raise ValueError(f"{cls.__name__}: unknown field(s) {sorted(unknown)}")
-        kwargs: dict[str, Any] = {name: value for name, value in cls.LEGACY_DEFAULTS.items() if name not in data}
+        legacy = cls.LEGACY_DEFAULTS if stored else {}
+        kwargs: dict[str, Any] = {name: value for name, value in legacy.items() if name not in data}
         for name, value in data.items():
             sub = _NESTED.get((cls.__name__, name))
             if sub is not None:
                 if not isinstance(value, dict):
                     raise ValueError(f"{cls.__name__}.{name} must be a JSON object, got {value!r}")
-                value = sub.from_dict(value)
+                value = sub.from_dict(value, stored=stored)
             elif isinstance(value, list):
                 value = tuple(value)
             kwargs[name] = value
@@ -160,20 +181,11 @@ class JsonConfig:
         """The config of a TOML or JSON file of its fields (those missing keep their defaults); with
         ``table``, the fields may also sit under that top-level table (``[policy]``). ``ValueError`` naming
         the file and the problem."""
-        path = pathlib.Path(path)
-        if path.suffix not in (".toml", ".json"):
-            raise ValueError(f"{path}: a config file must be .toml or .json")
-        try:
-            text = path.read_text()
-            data = tomllib.loads(text) if path.suffix == ".toml" else json.loads(text)
-        except FileNotFoundError:
-            raise ValueError(f"config file {path} does not exist") from None
-        except (OSError, UnicodeDecodeError, ValueError) as exc:  # tomllib's and json's errors are ValueErrors
-            raise ValueError(f"{path} is not valid {path.suffix[1:].upper()}: {exc}") from None
-        if table is not None and isinstance(data, dict) and isinstance(data.get(table), dict):
+        data = read_data_file(path, "config file")
+        if table is not None and isinstance(data.get(table), dict):
             data = data[table]
         try:
-            return cls.from_dict(data)
+            return cls.from_dict(data, stored=False)
         except ValueError as exc:
             raise ValueError(f"{path}: {exc}") from None
 

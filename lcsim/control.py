@@ -16,9 +16,8 @@ from __future__ import annotations
 import math
 import operator
 from collections.abc import Callable
-from dataclasses import dataclass
 from functools import reduce
-from typing import Any
+from typing import Any, NamedTuple
 
 import numpy as np
 
@@ -156,8 +155,7 @@ class FloatOps:
         return 1.0 if v > 0.0 else 0.0
 
 
-@dataclass(frozen=True, slots=True)
-class EgoStep:
+class EgoStep(NamedTuple):
     """What one control step gives: the new pose and speed, and the commands that led there."""
 
     x: Any

@@ -15,12 +15,17 @@ Drivers: :data:`DRIVER_NAMES` for :func:`make_driver`, and the policy specs (``p
 
 from __future__ import annotations
 
-import json
-import tomllib
 from collections.abc import Callable
 from pathlib import Path
 
-from lcsim.config import ScenarioConfig, corpus_scenario, light_scenario, paper_scenario, tiny_scenario
+from lcsim.config import (
+    ScenarioConfig,
+    corpus_scenario,
+    light_scenario,
+    paper_scenario,
+    read_data_file,
+    tiny_scenario,
+)
 from lcsim.drivers import Driver, KeepLaneDriver, RandomDriver, RuleBasedDriver
 from lcsim.planning import LookaheadConfig, LookaheadDriver, OracleDriver
 
@@ -50,16 +55,10 @@ def scenario(name_or_file: str | Path) -> ScenarioConfig:
     if path.suffix not in SCENARIO_FILE_SUFFIXES:
         raise ValueError(f"unknown scenario {text!r}: choose {', '.join(SCENARIOS)} or a scenario file "
                          f"({' / '.join(SCENARIO_FILE_SUFFIXES)})")
-    if not path.is_file():
-        raise ValueError(f"scenario file {path} does not exist")
     try:
-        data = tomllib.loads(path.read_text()) if path.suffix == ".toml" else json.loads(path.read_text())
-    except (OSError, UnicodeDecodeError, ValueError) as exc:  # tomllib and json errors are ValueErrors
-        raise ValueError(f"scenario file {path} is not valid {path.suffix[1:].upper()}: {exc}") from None
-    try:
-        return ScenarioConfig.from_dict(data)
+        return ScenarioConfig.from_dict(read_data_file(path, "scenario file"), stored=False)
     except ValueError as exc:
-        raise ValueError(f"scenario file {path}: {exc}") from None
+        raise ValueError(str(exc) if str(path) in str(exc) else f"scenario file {path}: {exc}") from None
 
 
 def scenario_label(name_or_file: str | Path) -> str:

@@ -345,24 +345,27 @@ class HighwaySim:
             active[e, v] = tau < 1.0
         new_yaw.put(changing, np.arctan2(rates, speeds))  # one call (elementwise: the same as one per vehicle)
 
+    def _pid_floats(self, e_speed: float, e_head: float) -> list[float]:
+        """The ego's PID commands (longitudinal, lateral) of one environment's errors, on floats."""
+        return self.pid.step_one((e_speed, e_head))
+
+    def _pid_arrays(self, e_speed: np.ndarray, e_head: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """The same for ``(E,)`` arrays of errors."""
+        u = self.pid.step(np.stack((e_speed, e_head), axis=1))
+        return u[:, 0], u[:, 1]
+
     def _ego_step(self, lead_gap: np.ndarray, x_out: np.ndarray, y_out: np.ndarray, yaw_out: np.ndarray,
                   v_out: np.ndarray, a_out: np.ndarray) -> None:
         """PID control on the planned path and a bicycle-model step (:func:`lcsim.control.ego_step`, on arrays,
         or on floats for one environment); writes column 0 of the outputs."""
         ec = self.config.ego
         if self.num_envs == 1:
-            pid = self.pid
-
-            def step_one(e_speed: float, e_head: float) -> tuple[float, float]:
-                u_long, u_lat = pid.step_one((e_speed, e_head))
-                return u_long, u_lat
-
             r = ego_step(FloatOps, ec, x=self.x.item(0), y=self.y.item(0), yaw=self.yaw.item(0),
                          speed=self.speed.item(0), target_speed=self.target_speed, lead_gap=lead_gap.item(0),
                          path=(self.path_x0.item(0), self.path_len.item(0), self.path_y0.item(0),
                                self.path_y1.item(0)),
                          steer_past=self.steer.item(0), accel_past=self.ego_accel.item(0), lag_alpha=self.lag_alpha,
-                         dt=self.dt, pid=step_one)  # fmt: skip
+                         dt=self.dt, pid=self._pid_floats)  # fmt: skip
             self.ego_accel[0], self.steer[0], self.throttle[0], self.brake[0] = r.accel, r.steer, r.throttle, r.brake
             if (self.ego_lc_active.item(0) and r.x >= self.path_x0.item(0) + self.path_len.item(0)
                     and abs(r.y - self.path_y1.item(0)) < ec.lane_change_tolerance_m):
@@ -370,14 +373,10 @@ class HighwaySim:
             x_out[0, 0], y_out[0, 0], yaw_out[0, 0], v_out[0, 0], a_out[0, 0] = r.x, r.y, r.yaw, r.speed, r.accel
             return
 
-        def step_batch(e_speed: np.ndarray, e_head: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-            u = self.pid.step(np.stack((e_speed, e_head), axis=1))
-            return u[:, 0], u[:, 1]
-
         r = ego_step(ArrayOps, ec, x=self.x[:, 0], y=self.y[:, 0], yaw=self.yaw[:, 0], speed=self.speed[:, 0],
                      target_speed=self.target_speed, lead_gap=lead_gap,
                      path=(self.path_x0, self.path_len, self.path_y0, self.path_y1), steer_past=self.steer,
-                     accel_past=self.ego_accel, lag_alpha=self.lag_alpha, dt=self.dt, pid=step_batch)  # fmt: skip
+                     accel_past=self.ego_accel, lag_alpha=self.lag_alpha, dt=self.dt, pid=self._pid_arrays)  # fmt: skip
         self.ego_accel, self.steer, self.throttle, self.brake = r.accel, r.steer, r.throttle, r.brake
         if self.ego_lc_active.any():
             done = self.ego_lc_active & (r.x >= self.path_x0 + self.path_len) & (

@@ -98,3 +98,13 @@ def test_a_setting_is_read_as_the_fields_type_not_the_files(tmp_path):
         PolicyConfig(record_eval="no")
     with pytest.raises(ValueError, match="must be of type int"):
         PolicyConfig(n_envs=2.5)
+
+
+def test_a_file_a_person_writes_gets_todays_defaults_a_stored_config_its_own(tmp_path):
+    """A field missing from a stored run reads as it was before the field existed; from a config or
+    scenario file a person writes, it takes today's default."""
+    path = tmp_path / "c.toml"
+    path.write_text("[policy]\nobs = \"pure\"\n")
+    assert PolicyConfig.from_file(path, table="policy").contact_features is True  # today's default
+    assert PolicyConfig.from_dict({"obs": "pure"}).contact_features is False  # a run stored before it existed
+    assert policy_config_of(train_policy_parser().parse_args(["--out", "x"])).contact_features is True

@@ -70,7 +70,7 @@ def open_episodes(paths: Sequence[pathlib.Path]) -> list[Episode]:
                 raise ViewError(_one_line(exc, f)) from None
         for w in caught:
             if issubclass(w.category, TruncatedFileWarning):
-                print(f"lc-view: warning: {w.message}; showing the recovered part", file=sys.stderr)
+                log.warning("%s; showing the recovered part", w.message)
         episodes.append(episode)
     return episodes
 

@@ -214,15 +214,16 @@ class LoadedPolicy:
         return str(self.meta["algo"])
 
 
-def load_weights(model: BaseAlgorithm, path: str | os.PathLike[str], device: str = "cpu") -> None:
+def load_weights(model: BaseAlgorithm, path: str | os.PathLike[str], device: str = "cpu",
+                 meta: dict[str, Any] | None = None) -> None:
     """Fill ``model``'s policy network with the tensors of the policy file ``path`` (no code runs);
-    ``ValueError`` when they do not fit the network exactly."""
+    ``meta``: its card when the caller has read it. ``ValueError`` when they do not fit the network exactly."""
     try:
         state = load_file(str(path), device=device)
-        with safe_open(str(path), framework="pt") as f:
-            header = f.metadata() or {}
-        aliases = read_meta(path).get("tensor_aliases") or {
-            k: v for k, v in header.items() if k != CARD_KEY and v in state}  # (as safetensors' save_model names them)
+        aliases = (meta if meta is not None else read_meta(path)).get("tensor_aliases")
+        if aliases is None:  # a file written by safetensors' save_model names its shared tensors in the header
+            with safe_open(str(path), framework="pt") as f:
+                aliases = {k: v for k, v in (f.metadata() or {}).items() if k != CARD_KEY and v in state}
         for alias, name in aliases.items():
             state[alias] = state[name]
         model.policy.load_state_dict(state, strict=True)
@@ -295,7 +296,7 @@ def load_policy(path: str | os.PathLike[str], *, obs_mode: str | None = None,
     else:
         future = loaded_predictor.future_steps if loaded_predictor is not None else 10
         model = policy_model(meta, future_steps=future, device=device)
-        load_weights(model, path, device)
+        load_weights(model, path, device, meta)
         model.num_timesteps = int(meta.get("timesteps", 0))
     return LoadedPolicy(model, meta, loaded_predictor, ScenarioConfig.from_dict(meta["scenario"]))
 

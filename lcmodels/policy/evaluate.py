@@ -287,14 +287,17 @@ def evaluate_sharded(spec: str, config: ScenarioConfig | None, *, episodes: int 
                      lookahead: dict[str, int] | None = None, follow: str | None = None, trust_pickle: bool = False,
                      out_dir: str | os.PathLike[str] | None = None, scenario: str = "paper", batch: int = 16,
                      overwrite: bool = False, train_seeds: np.ndarray | None = None,
-                     progress: Callable[[int, int], None] | None = None) -> tuple[dict[str, Any], list[EpisodeStats]]:
+                     progress: Callable[[int, int], None] | None = None,
+                     driver_name: str | None = None) -> tuple[dict[str, Any], list[EpisodeStats]]:
     """:func:`evaluate` of the driver spec ``spec`` (as :func:`driver_for` takes it) with the episodes cut into
     ``shards`` parts, each run where ``executor`` says (``local``: one after the other here; ``ray``: as Ray
     tasks in the open :func:`lcdata.executors.ray_session`), each shard whole batches of ``batch`` episodes.
     Every episode depends only on its seed and runs where :func:`evaluate` runs it, so the summary and the
     recorded files are the ones :func:`evaluate` gives, episode for episode (the ``random`` driver aside,
-    whose draws follow the batch's calls). ``config``: the scenario of a built-in driver (a policy brings its own). The summary
-    also has ``planner_choices`` / ``planner_overrides`` for a lookahead."""
+    whose draws follow the batch's calls). ``config``: the scenario of a built-in driver (a policy brings
+    its own). The summary
+    also has ``planner_choices`` / ``planner_overrides`` for a lookahead. ``driver_name``: the driver's name,
+    when the caller has built it already (else it is built here once, to check for existing files)."""
     from lcdata.executors import EXECUTORS, ray_map
     from lcdata.executors import shards as cut
 
@@ -302,9 +305,11 @@ def evaluate_sharded(spec: str, config: ScenarioConfig | None, *, episodes: int 
         raise ValueError(f"executor must be one of {', '.join(EXECUTORS)}, got {executor!r}")
     user_seeds = eval_user_seeds(episodes, seed)
     if out_dir is not None and not overwrite:  # refuse before any shard writes, as evaluate() does
-        driver, _ = driver_for(spec, predictor=predictor, lookahead=lookahead, follow=follow,
-                               trust_pickle=trust_pickle)
-        name = str(getattr(driver, "name", type(driver).__name__))
+        name = driver_name
+        if name is None:  # (the name the files carry: build the driver once here to learn it)
+            driver, _ = driver_for(spec, predictor=predictor, lookahead=lookahead, follow=follow,
+                                   trust_pickle=trust_pickle)
+            name = str(getattr(driver, "name", type(driver).__name__))
         existing = [p for u in user_seeds if (p := Path(out_dir) / episode_filename(scenario, name, u)).exists()]
         if existing:
             raise FileExistsError(f"{existing[0]} exists ({len(existing)} evaluation files); use --overwrite "

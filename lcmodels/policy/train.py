@@ -438,9 +438,9 @@ def _train(cfg: PolicyConfig, run: _Run, pred: Predictor | None, device: str, lo
     elif (out / "progress.csv").exists():
         (out / "progress.csv").unlink()  # a previous attempt died before its first checkpoint
     # Checkpoint files a killed attempt left that latest.json does not name (it is written last) are its own.
-    named = {state.get("weights"), state.get("optimizer")}
+    keep = {state["weights"], state["optimizer"], card_path(state["weights"]).name} if state else set()
     for f in run.ckpt_state.parent.glob("step-*"):
-        if f.name not in named and card_path(run.ckpt_state.parent / str(state.get("weights"))).name != f.name:
+        if f.name not in keep:
             f.unlink()
     config = cfg.scenario_config()
     base = LaneChangeSB3VecEnv(cfg.n_envs, config)
