@@ -89,7 +89,7 @@ class EpisodeRecorder:
         core: the :class:`~lcsim.core.LaneChangeCore` being stepped (any number of environments).
         env: index of the environment to record.
         images: write the observation's bird's-eye image (when it has one) at every decision.
-        scene: write ``/tf`` and ``/scene`` at every decision and the lane markings once.
+        scene: write ``/tf`` and ``/scene`` (vehicles and lane markings) at every decision.
     """
 
     MAX_PENDING_STEPS = 64

@@ -12,6 +12,8 @@ import warnings
 
 import numpy as np
 import pytest
+from mcap.reader import make_reader
+from mcap_protobuf.decoder import DecoderFactory
 
 from lcdata import (
     EpisodeRecorder,
@@ -144,6 +146,24 @@ def test_hook_only_recording_flushes_by_itself(tmp_path: pathlib.Path, small: Sc
     tracks = track_arrays(read_episode(tmp_path / "ep.mcap"))
     np.testing.assert_array_equal(tracks.steps, np.arange(151))
     assert tracks.columns["x"][1:].tobytes() == np.stack(seen).tobytes()
+
+
+@pytest.mark.parametrize("writer", ["process", "inline"])
+def test_every_scene_message_carries_the_lane_markings(tmp_path: pathlib.Path, small: ScenarioConfig,
+                                                       writer: str) -> None:  # fmt: skip
+    """Foxglove's 3D panel clears on a seek and replays the latest ``/scene`` message: each one must hold the
+    road (entity ``lanes``, the same markings every time) next to the vehicles."""
+    path = record_episode(small, 4, "rule", tmp_path / "ep.mcap", writer=writer).path
+    with path.open("rb") as f:
+        scenes = [proto for _, channel, _, proto in make_reader(f, decoder_factories=[DecoderFactory()])
+                  .iter_decoded_messages() if channel.topic == "/scene"]  # fmt: skip
+    entities = [{e.id: e for e in scene.entities} for scene in scenes]
+    assert len(entities) == len(read_episode(path).steps) + 1  # the markings alone first, then one per decision
+    assert [sorted(e) for e in entities] == [["lanes"]] + [["lanes", "vehicles"]] * (len(entities) - 1)
+    lanes = [e["lanes"] for e in entities]
+    assert len(lanes[0].lines) == small.road.num_lanes + 1
+    assert all(lane.lines == lanes[0].lines for lane in lanes)
+    assert all(len(e["vehicles"].cubes) == small.traffic.num_vehicles + 1 for e in entities[1:])
 
 
 def test_rebuilt_observations_equal_the_environments(tmp_path: pathlib.Path, small: ScenarioConfig) -> None:

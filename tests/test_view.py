@@ -12,6 +12,7 @@ import pytest
 from mcap.writer import Writer as McapWriter
 from rerun.chunk import RrdReader
 
+from lccli.record import record_main
 from lccli.view import main
 from lcdata import EpisodeWriter, read_episode
 from lcdata.viewer.geometry import box_corners
@@ -224,6 +225,132 @@ def test_truncated_file_shows_recovered_part(
     assert "warning" in err and "truncated" in err and "Traceback" not in err
     boxes = temporal(read_rrd(out)["world/vehicles/boxes"], "LineStrips2D:strips")
     assert 0 < len(boxes["step"]) < len(read_episode(full).ego)
+
+
+# -- colours of the plots ---------------------------------------------------------------------------
+BACKGROUNDS = {"light": (255, 255, 255), "dark": (13, 16, 17)}
+"""The plot backgrounds of Rerun's light and dark themes (white; the dark theme's near-black)."""
+
+
+def _linear(rgb: tuple[int, ...]) -> np.ndarray:
+    c = np.asarray(rgb[:3], dtype=np.float64) / 255
+    return np.where(c <= 0.04045, c / 12.92, ((c + 0.055) / 1.055) ** 2.4)
+
+
+def contrast(a: tuple[int, ...], b: tuple[int, ...]) -> float:
+    """WCAG contrast ratio of two sRGB colours (1 to 21; 3 is the least for lines and marks)."""
+    la, lb = sorted(float(_linear(c) @ [0.2126, 0.7152, 0.0722]) for c in (a, b))
+    return (lb + 0.05) / (la + 0.05)
+
+
+def lab(rgb: tuple[int, ...]) -> np.ndarray:
+    """CIELAB (D65) of an sRGB colour: distances of more than about 25 read as different colours."""
+    xyz = np.array([[0.4124, 0.3576, 0.1805], [0.2126, 0.7152, 0.0722], [0.0193, 0.1192, 0.9505]]) @ _linear(rgb)
+    f = np.cbrt(xyz / [0.9505, 1.0, 1.089])
+    return np.array([116 * f[1] - 16, 500 * (f[0] - f[1]), 200 * (f[1] - f[2])])
+
+
+def series_colours(chunks: dict[str, list[tuple[bool, pa.RecordBatch]]]) -> dict[str, tuple[int, int, int, int]]:
+    """Entity -> the RGBA colour of its series, for every entity holding scalars (None where it has none)."""
+    out = {}
+    for entity, batches in chunks.items():
+        names = {n for _, b in batches for n in b.schema.names}
+        if "Scalars:scalars" not in names:
+            continue
+        packed = [c for _, b in batches for n in ("SeriesLines:colors", "SeriesPoints:colors") if n in b.schema.names
+                  for c in b.column(n).flatten().to_pylist()]  # fmt: skip
+        out[entity] = tuple(packed[-1].to_bytes(4, "big")) if packed else None
+    return out
+
+
+def assert_plot_colours(colours: dict[str, tuple[int, int, int, int] | None], plot_of) -> None:
+    """Every series has a colour of some saturation that reads on both themes, unlike every other series
+    of its plot (``plot_of(entity)``)."""
+    assert colours and all(c is not None for c in colours.values()), colours
+    for entity, rgba in colours.items():
+        for theme, background in BACKGROUNDS.items():
+            assert contrast(rgba, background) >= 3.0, (entity, rgba, theme)
+        assert max(rgba[:3]) - min(rgba[:3]) >= 60, (entity, rgba, "grey")
+    plots = defaultdict(list)
+    for entity, rgba in colours.items():
+        plots[plot_of(entity)].append((entity, rgba))
+    for plot, series in plots.items():
+        for i, (a, ca) in enumerate(series):
+            for b, cb in series[i + 1 :]:
+                assert np.linalg.norm(lab(ca) - lab(cb)) > 25, (plot, a, ca, b, cb)
+
+
+def test_every_series_has_a_colour_for_both_themes(
+    saved: dict[str, list[tuple[bool, pa.RecordBatch]]], tmp_path: pathlib.Path
+) -> None:
+    colours = series_colours(saved)
+    assert {"plots/speed/ego", "plots/speed/target", "plots/reward/total", "plots/return",
+            "plots/lane/action"} <= set(colours)  # fmt: skip
+    assert_plot_colours(colours, lambda entity: entity.split("/")[1])  # plots/<plot>/...
+    # side by side: the returns (and ego speeds) of all episodes are drawn in one plot
+    paths = [record(tmp_path / f"{name}.mcap", seed=k + 1, decisions=3, predictions=False)
+             for k, name in enumerate("abc")]  # fmt: skip
+    assert main([*map(str, paths), "--side-by-side", "--save", str(tmp_path / "abc.rrd")]) == 0
+    both = series_colours(read_rrd(tmp_path / "abc.rrd"))
+    assert_plot_colours(both, lambda entity: "/".join(entity.split("/")[:4]))  # episodes/<id>/plots/<plot>/...
+    shared = {e: c for e, c in both.items() if e.endswith(("plots/return", "plots/speed/ego"))}
+    assert len(shared) == 6
+    assert_plot_colours(shared, lambda entity: entity.split("/", 2)[2])  # one plot per stream
+
+
+# -- the layout ---------------------------------------------------------------------------------------
+def blueprint_views(path: pathlib.Path) -> list[dict[str, object]]:
+    """The views of the default blueprint saved in ``path``: class (``2D``, ``TimeSeries``, ``TextLog``),
+    origin and content queries (``$origin/**``, ``/world/**`` or entity paths)."""
+    reader = RrdReader(path)
+    (store,) = reader.blueprints()
+    views: dict[str, dict[str, object]] = defaultdict(dict)
+    for chunk in reader.stream(store=store):
+        parts = chunk.entity_path.strip("/").split("/")
+        batch = chunk.to_record_batch()
+        for column in ("ViewBlueprint:class_identifier", "ViewBlueprint:space_origin", "ViewContents:query"):
+            if parts[0] == "view" and column in batch.schema.names:
+                views[parts[1]][column.split(":")[1]] = batch.column(column).to_pylist()[-1]
+    return [{"class": v["class_identifier"][0], "origin": v["space_origin"][0], "query": v["query"]}
+            for v in views.values()]  # fmt: skip
+
+
+def assert_views_have_data(views: list[dict[str, object]], entities: set[str]) -> None:
+    """Each view shows at least one logged entity: no empty panel."""
+    for view in views:
+        shown = set()
+        for query in view["query"]:
+            query = query.replace("$origin", "/" + view["origin"]).lstrip("+ ").strip("/")
+            if query.endswith("/**"):
+                base = query.removesuffix("/**")
+                shown |= {e for e in entities if e == base or e.startswith(base + "/")}
+            else:
+                shown |= {e for e in entities if e == query}
+        assert shown, view
+
+
+def test_layout_shows_only_views_with_data(
+    episode_file: pathlib.Path, tmp_path: pathlib.Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """A corpus recording (lc-record --scenario corpus: no bird's-eye image) gets no image view."""
+    assert record_main(["--scenario", "corpus", "--out", str(tmp_path), "--vehicles", "4", "--steps", "40"]) == 0
+    (corpus,) = tmp_path.glob("*.mcap")
+    assert "/camera/bev_semantic" not in read_episode(corpus).topics
+    assert main([str(corpus), "--save", str(tmp_path / "corpus.rrd")]) == 0
+    views = blueprint_views(tmp_path / "corpus.rrd")
+    assert not [v for v in views if v["origin"].startswith("camera")], views
+    assert {v["origin"] for v in views} >= {"world/ego", "world", "plots/speed", "plots/return", "log"}
+    assert_views_have_data(views, set(read_rrd(tmp_path / "corpus.rrd")))
+    # a file with images keeps its image view; side by side each episode's tab has the views of its own data
+    assert main([str(episode_file), "--save", str(tmp_path / "images.rrd")]) == 0
+    assert "camera" in {v["origin"] for v in blueprint_views(tmp_path / "images.rrd")}
+    both = tmp_path / "both.rrd"
+    assert main([str(corpus), str(episode_file), "--side-by-side", "--save", str(both)]) == 0
+    views = blueprint_views(both)
+    cameras = [v["origin"] for v in views if v["origin"].endswith("/camera")]
+    assert cameras == ["episodes/ep/camera"], cameras
+    assert_views_have_data(views, set(read_rrd(both)))
+    capsys.readouterr()
 
 
 def test_bad_input_one_line_error(tmp_path: pathlib.Path, capsys: pytest.CaptureFixture[str]) -> None:

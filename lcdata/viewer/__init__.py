@@ -19,6 +19,8 @@ entity                         content
 
 Time lines: ``step`` (simulation step) and ``sim_time`` (simulation time). The scene is drawn
 top-down with x to the right and the road's left (+y) upwards (see :mod:`lcdata.viewer.geometry`).
+The layout (:func:`blueprint`) has a view only for what the file holds (:func:`views_with_data`): a corpus
+recording, without bird's-eye images, gets no image view.
 """
 
 from __future__ import annotations
@@ -29,15 +31,20 @@ from lcdata.reader import Episode
 from lcdata.viewer import streams
 from lcdata.viewer.geometry import TrackGrid
 from lcdata.viewer.layout import blueprint, episode_views
-from lcdata.viewer.streams import SIM_TIME, STEP, describe
+from lcdata.viewer.streams import SIM_TIME, STEP, VIEWS, describe, views_with_data
 
-__all__ = ["SIM_TIME", "STEP", "blueprint", "describe", "episode_views", "log_episode"]
+__all__ = ["SIM_TIME", "STEP", "VIEWS", "blueprint", "describe", "episode_views", "log_episode", "views_with_data"]
 
 _ROAD_MARGIN_M = 100.0
 
 
-def log_episode(rec: rr.RecordingStream, episode: Episode, prefix: str = "") -> None:
-    """Log every stream of ``episode`` to ``rec`` under the entity prefix ``prefix``."""
+def log_episode(rec: rr.RecordingStream, episode: Episode, prefix: str = "", index: int = 0) -> None:
+    """Log every stream of ``episode`` to ``rec`` under the entity prefix ``prefix``.
+
+    ``index``: the episode's place among episodes side by side (a prefix given), which picks the colour of
+    its return and ego speed (:data:`~lcdata.viewer.streams.EPISODE_RGB`) in the plots they share.
+    """
+    rgb = streams.EPISODE_RGB[index % len(streams.EPISODE_RGB)] if prefix else None
     grid, tracks = TrackGrid.from_tracks(episode.tracks)
     if len(tracks):
         x = tracks["x"].to_numpy()
@@ -49,7 +56,7 @@ def log_episode(rec: rr.RecordingStream, episode: Episode, prefix: str = "") -> 
     streams.log_ego(rec, episode, prefix, grid, tracks)
     streams.log_predictions(rec, episode, prefix, grid)
     streams.log_camera(rec, episode, prefix)
-    streams.log_speed(rec, episode, prefix, grid, tracks)
-    streams.log_rewards(rec, episode, prefix)
+    streams.log_speed(rec, episode, prefix, grid, tracks, rgb)
+    streams.log_rewards(rec, episode, prefix, rgb)
     streams.log_lanes(rec, episode, prefix, tracks)
     streams.log_events(rec, episode, prefix)

@@ -19,7 +19,7 @@ from collections.abc import Sequence
 import rerun as rr
 
 from lcdata.reader import Episode, TruncatedFileWarning, list_episodes, read_episode
-from lcdata.viewer import blueprint, describe, log_episode
+from lcdata.viewer import blueprint, describe, log_episode, views_with_data
 
 log = logging.getLogger(__name__)
 
@@ -109,8 +109,10 @@ def make_recordings(episodes: Sequence[Episode], *, side_by_side: bool,
 
 
 def layout(recording: Recording) -> rr.blueprint.Blueprint:
+    """The recording's blueprint, with views only for the data its episodes have."""
     prefixes = [p for _, p in recording.episodes]
-    return blueprint(prefixes, [p.rsplit("/", 1)[-1] for p in prefixes] if len(prefixes) > 1 else ())
+    titles = [p.rsplit("/", 1)[-1] for p in prefixes] if len(prefixes) > 1 else []
+    return blueprint(prefixes, titles, [views_with_data(e) for e, _ in recording.episodes])
 
 
 def log_recording(recording: Recording) -> None:
@@ -118,12 +120,12 @@ def log_recording(recording: Recording) -> None:
     rec = recording.stream
     names = [e.episode_id for e, _ in recording.episodes]
     rec.send_recording_name(" | ".join(names))
-    for episode, prefix in recording.episodes:
+    for index, (episode, prefix) in enumerate(recording.episodes):
         summary = describe(episode)
         key = prefix.rsplit("/", 1)[-1] if prefix else "episode"
         rec.send_property(key, rr.AnyValues(**summary))
         start = time.perf_counter()
-        log_episode(rec, episode, prefix)
+        log_episode(rec, episode, prefix, index)
         log.info("%s: logged in %.2f s", episode.path, time.perf_counter() - start)
 
 

@@ -28,11 +28,20 @@ TRAFFIC_RGB = (90, 150, 255)
 PREDICTED_RGB = (255, 120, 40)
 ACTUAL_RGB = (60, 220, 120)
 UNKNOWN_CLASS = 255
+# Plot colours: mid-saturation, at least 3:1 contrast against both the light and the dark theme's
+# background, and far apart (CIELAB distance > 30) from every other series of their plot.
+GOLD, PURPLE, BLUE, TEAL = (180, 130, 0), (148, 103, 189), (31, 119, 180), (0, 150, 150)
+GREEN, RED, ORANGE, MAGENTA, BROWN = (44, 160, 44), (214, 39, 40), (230, 110, 20), (200, 60, 160), (140, 86, 75)
 SERIES_RGB = {
-    "ego": EGO_RGB, "target": (200, 200, 200), "traffic_mean": TRAFFIC_RGB, "total": (240, 240, 240),
-    "forward": (60, 220, 120), "collision": (240, 60, 60), "off_road": (240, 160, 40), "success": (120, 160, 255),
-    "return": (240, 240, 240), "target_lane": (200, 200, 200), "action": (255, 120, 40),
+    "ego": GOLD, "target": PURPLE, "traffic_mean": BLUE,  # plots/speed (the ego's colour, a darker yellow)
+    "total": TEAL, "forward": GREEN, "collision": RED, "off_road": ORANGE, "success": BLUE,  # plots/reward
+    "return": TEAL,  # plots/return
+    "target_lane": PURPLE, "action": MAGENTA,  # plots/lane (with "ego")
 }  # fmt: skip
+"""Colour of each time series by key (every series has one)."""
+EPISODE_RGB = (GOLD, TEAL, RED, GREEN, MAGENTA, BROWN, ORANGE)
+"""Side by side, the k-th episode's return and ego speed (drawn together in one plot) get colour k (cycled);
+none is the target's or the traffic's colour, drawn next to the ego speed in an episode's own plot."""
 
 
 def path(prefix: str, *parts: str) -> str:
@@ -49,14 +58,13 @@ def times(steps: np.ndarray, t: np.ndarray) -> list[rr.TimeColumn]:
 
 
 def _series(rec: rr.RecordingStream, entity: str, steps: np.ndarray, t: np.ndarray, values: np.ndarray,
-            name: str, key: str | None = None) -> None:  # fmt: skip
-    """A named, coloured scalar time series (one row per step)."""
+            name: str, key: str | None = None, rgb: tuple[int, int, int] | None = None) -> None:  # fmt: skip
+    """A named scalar time series (one row per step) in colour ``rgb`` (default: ``SERIES_RGB[key]``)."""
     key = key or name
     episode_prefix = entity.split("/plots/")[0] if "/plots/" in entity else ""
     if episode_prefix:  # side by side: say which episode a line belongs to
         name = f"{episode_prefix.rsplit('/', 1)[-1]}: {name}"
-    rec.log(entity, rr.SeriesLines(names=name, colors=[SERIES_RGB.get(key, (200, 200, 200))], widths=2.0),
-            static=True)  # fmt: skip
+    rec.log(entity, rr.SeriesLines(names=name, colors=[rgb or SERIES_RGB[key]], widths=2.0), static=True)
     if len(steps):
         rec.send_columns(entity, indexes=times(steps, t), columns=rr.Scalars.columns(scalars=values))
 
@@ -229,14 +237,14 @@ def _step_times(episode: Episode, steps: np.ndarray) -> np.ndarray:
 
 
 # -- plots ------------------------------------------------------------------------------------------
-def log_speed(
-    rec: rr.RecordingStream, episode: Episode, prefix: str, grid: TrackGrid, tracks: pd.DataFrame
-) -> None:
-    """``plots/speed``: ego speed, its target speed and the mean traffic speed (km/h)."""
+def log_speed(rec: rr.RecordingStream, episode: Episode, prefix: str, grid: TrackGrid, tracks: pd.DataFrame,
+              ego_rgb: tuple[int, int, int] | None = None) -> None:  # fmt: skip
+    """``plots/speed``: ego speed (in ``ego_rgb``, default the ego's), its target speed and the mean
+    traffic speed (km/h)."""
     ego = episode.ego
     if len(ego):
         _series(rec, path(prefix, "plots/speed/ego"), ego["step"].to_numpy(), ego["t"].to_numpy(),
-                ego["speed"].to_numpy() * 3.6, "ego", "ego")  # fmt: skip
+                ego["speed"].to_numpy() * 3.6, "ego", "ego", ego_rgb)  # fmt: skip
         target = episode.metadata["config"].get("ego", {}).get("target_speed_kmh")
         if target is not None:
             ends = np.array([0, len(ego) - 1])
@@ -253,8 +261,10 @@ def log_speed(
                 total[has] / n[has] * 3.6, "traffic mean", "traffic_mean")  # fmt: skip
 
 
-def log_rewards(rec: rr.RecordingStream, episode: Episode, prefix: str) -> None:
-    """``plots/reward/*``: reward and its components per decision; ``plots/return``: cumulative return."""
+def log_rewards(rec: rr.RecordingStream, episode: Episode, prefix: str,
+                return_rgb: tuple[int, int, int] | None = None) -> None:  # fmt: skip
+    """``plots/reward/*``: reward and its components per decision; ``plots/return``: cumulative return
+    (in ``return_rgb``, default ``SERIES_RGB["return"]``)."""
     steps = episode.steps
     if not len(steps):
         return
@@ -262,7 +272,8 @@ def log_rewards(rec: rr.RecordingStream, episode: Episode, prefix: str) -> None:
     _series(rec, path(prefix, "plots/reward/total"), s, t, steps["reward"].to_numpy(), "reward", "total")
     for name in ("forward", "collision", "off_road", "success"):
         _series(rec, path(prefix, "plots/reward", name), s, t, steps[f"r_{name}"].to_numpy(), name)
-    _series(rec, path(prefix, "plots/return"), s, t, np.cumsum(steps["reward"].to_numpy()), "return")
+    _series(rec, path(prefix, "plots/return"), s, t, np.cumsum(steps["reward"].to_numpy()), "return",
+            rgb=return_rgb)
 
 
 def log_lanes(rec: rr.RecordingStream, episode: Episode, prefix: str, tracks: pd.DataFrame) -> None:
@@ -312,6 +323,28 @@ def log_events(rec: rr.RecordingStream, episode: Episode, prefix: str) -> None:
         levels = np.where(steps["action"].to_numpy() == ACTION_NAMES.index("keep"), "DEBUG", "INFO").tolist()
         rec.send_columns(path(prefix, "log/decisions"), indexes=times(steps["step"], steps["t"]),
                          columns=rr.TextLog.columns(text=text, level=levels))  # fmt: skip
+
+
+# -- what the layout shows --------------------------------------------------------------------------
+VIEWS = ("world", "camera", "speed", "reward", "return", "lane", "log")
+"""The views of an episode's layout (:func:`lcdata.viewer.layout.episode_views`), named after their entities."""
+
+
+def views_with_data(episode: Episode) -> frozenset[str]:
+    """The :data:`VIEWS` the functions above fill for ``episode`` (the same conditions), so that the layout
+    leaves out the others: a corpus recording has no bird's-eye image, a file without decisions no rewards."""
+    tracks, steps = episode.tracks, episode.steps
+    ego = tracks["is_ego"].to_numpy()
+    filled = {
+        "world": True,  # the road, at least
+        "camera": len(episode.image_steps) > 0,
+        "speed": len(episode.ego) > 0 or not ego.all(),
+        "reward": len(steps) > 0,
+        "return": len(steps) > 0,
+        "lane": ego.any() or len(steps) > 0,
+        "log": len(episode.events) > 0 or len(steps) > 0,
+    }
+    return frozenset(view for view, has in filled.items() if has)
 
 
 def describe(episode: Episode) -> dict[str, Any]:
