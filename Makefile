@@ -1,5 +1,6 @@
 # Two commands set everything up on a fresh machine with only Python 3.11:
-#   make demo   - lc-experiment --preset quick: the paper's tables and figures end to end (~15 min)
+#   make demo   - lc-experiment --preset quick: the zoo's policies on fresh held-out episodes next to the
+#                 paper's tables, a quick recipe trained from scratch, a recorded episode to view
 #   make test   - run the test suite
 PYTHON ?= $(shell command -v python3.11 || command -v python3)
 VENV   := .venv
@@ -20,7 +21,9 @@ $(STAMP): pyproject.toml
 
 demo: $(STAMP)
 	$(BIN)/lc-experiment --preset quick --out $(DEMO_OUT)
+	@sed -n '/^## Table III/,/^## Every row/p' $(DEMO_OUT)/REPORT.md | grep -v '^## Every row'
 	@echo "make demo: the report is $(DEMO_OUT)/REPORT.md (figures next to it); rerun to resume or refresh it"
+	@echo "make demo: recorded episodes of the best shipped policy: $(DEMO_OUT)/showcase/ (lc-view $(DEMO_OUT)/showcase/*.rrd)"
 
 test: $(STAMP)
 	$(BIN)/python -m pytest -n 2 -q

@@ -93,3 +93,16 @@ def setup_logging(prog: str, verbose: bool) -> None:
     handler.setFormatter(_CliFormatter(prog))
     logging.basicConfig(level=logging.INFO if verbose else logging.WARNING, handlers=[handler], force=True)
 
+
+
+def zoo_spec(text: str) -> str:
+    """argparse type of a driver or policy argument: ``zoo:NAME`` (also ``lookahead-blind:zoo:NAME``) becomes
+    the zoo entry's policy file; anything else is returned as given."""
+    if "zoo:" not in text:
+        return text
+    from lcmodels.zoo import resolve_policy_spec
+
+    try:
+        return resolve_policy_spec(text)[0]
+    except ValueError as exc:
+        raise argparse.ArgumentTypeError(str(exc)) from None

@@ -18,6 +18,7 @@ from lccli.common import (
     int_at_least,
     lookahead_options,
     positive_int,
+    zoo_spec,
 )
 
 if TYPE_CHECKING:
@@ -89,7 +90,9 @@ def predictor_unused(policy: str, follow: str | None, predictor: Path) -> str:
 def add_heldout_arguments(p: argparse.ArgumentParser, episodes: int = 200) -> None:
     """Who drives which held-out episodes: ``policy``, ``--episodes``, ``--seed``, ``--predictor``, ``--batch``
     (lc-eval's arguments, shared by the tools that run the same episodes)."""
-    p.add_argument("policy", help="policy checkpoint (policy.safetensors), or a built-in driver: rule / lookahead / "
+    p.add_argument("policy", type=zoo_spec,
+                   help="policy checkpoint (policy.safetensors), zoo:NAME (a shipped policy: zoo/), or a built-in "
+                   "driver: rule / lookahead / "
                    "lookahead-blind / oracle (planners, upper references) / keep / random, or lookahead:POLICY / "
                    "lookahead-blind:POLICY (the lookahead following a policy without image in its imagined futures; "
                    "see --lookahead-follow)")
@@ -99,7 +102,7 @@ def add_heldout_arguments(p: argparse.ArgumentParser, episodes: int = 200) -> No
                    help="predictor checkpoint (default: the one the policy was trained with)")
     p.add_argument("--batch", type=positive_int, default=20, help="episodes simulated together (default 20)")
     add_lookahead_arguments(p)
-    p.add_argument("--lookahead-follow", metavar="DRIVER", default=None,
+    p.add_argument("--lookahead-follow", metavar="DRIVER", default=None, type=zoo_spec,
                    help="with lookahead:POLICY / lookahead-blind:POLICY: the policy proposes each decision and the "
                    "imagined futures follow DRIVER (a built-in driver or a policy.safetensors without image), which "
                    "lets the lookahead guard a policy that reads the image (default: the policy itself)")

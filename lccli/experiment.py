@@ -10,21 +10,27 @@ from pathlib import Path
 
 from lccli.common import add_executor_arguments, fail, positive_int, setup_logging
 
-EXPERIMENT_EPILOG = """stages (each skipped when complete, redone when missing or stale):
-  corpus      autopilot trajectory corpus (MCAP)                 DIR/corpus/
-  predictor   transformer + constant velocity/acceleration        DIR/predictor/metrics.json  (Table II)
-  demos       demonstrations (the oracle's) for the warm start    DIR/demos/
-  rule        rule-based reference on the held-out seeds          DIR/rule/metrics.json
-  policies    A2C, DQN, PPO pure/image/prediction/hybrid, Hybrid-PPO + warm start, K seeds each
-                                                                  DIR/policies/<method>/seed<k>/
+EXPERIMENT_EPILOG = """stages (each skipped when complete, redone when missing or stale, resumed when interrupted):
+  corpus      autopilot trajectory corpus (MCAP)                        DIR/corpus/
+  predictor   transformer + constant velocity/acceleration (Table II)   DIR/predictor/
+  demos       demonstrations a recipe clones, shared between recipes    DIR/demos/<driver>-s<seed>-n<episodes>/
+  recipes     per recipe and training seed: clone, dagger, train (as the recipe says), then eval on the
+              validation and test episodes, and safety (behind the lookahead planner) where it asks
+                                                                        DIR/policies/<recipe>/seed<k>/<stage>/
+  rule, oracle  the references on the same episodes                    DIR/rule/, DIR/oracle/
+  zoo         (quick) the shipped policies on the test episodes, a few recorded   DIR/zoo/, DIR/showcase/
   report      DIR/REPORT.md, DIR/fig5_safe_forward.png, DIR/fig6_total_reward.png
 
-presets: tiny (seconds, for tests), quick (about 15 min on 2 cores, what `make demo` runs),
-paper (the budgets each method needs to converge: hours).
+recipes: lcmodels/recipes/*.toml (paper-*: the paper's methods as it trains them; hybrid-ppo, pure-ppo, ...:
+the project's best per method; quick-pure: make demo's), or a .toml file of your own (--recipe FILE).
+
+presets: tiny (seconds, for tests: every recipe with tiny budgets), quick (make demo: the zoo, one quick
+recipe, minutes on 2 cores), paper (every recipe at its own budget, 1000 test episodes: hours).
 
 examples:
   lc-experiment --preset quick --out runs/demo
-  lc-experiment --preset paper --seeds 3 --jobs 2 --out runs/paper   # stop any time; rerun to continue
+  lc-experiment --preset paper --seeds 2 --jobs 2 --out runs/paper   # stop any time; rerun to continue
+  lc-experiment --preset paper --recipe hybrid-ppo --recipe pure-ppo --jobs 2 --out runs/best
 """
 
 
@@ -33,20 +39,24 @@ def experiment_parser() -> argparse.ArgumentParser:
 
     p = argparse.ArgumentParser(
         prog="lc-experiment",
-        description="Reproduce the paper's tables and figures end to end: record the trajectory corpus, train "
-        "the predictor, record rule-based warm-start episodes, train every policy with K seeds, evaluate on "
-        "held-out seeds and write DIR/REPORT.md. Resumable: a rerun skips what is complete.",
+        description="Reproduce the paper's tables and figures end to end from recipes: record the trajectory "
+        "corpus, train the predictor, run every recipe's stages (demonstrations, cloning, DAgger, RL) with K "
+        "training seeds, evaluate on validation and test episodes and write DIR/REPORT.md. Resumable: a rerun "
+        "skips what is complete.",
         epilog=EXPERIMENT_EPILOG,
         formatter_class=argparse.RawDescriptionHelpFormatter,
     )
     p.add_argument("--preset", choices=list(PRESETS), default="quick", help="budgets (default %(default)s)")
-    p.add_argument("--seeds", type=positive_int, default=1, help="training seeds per method (default 1)")
+    p.add_argument("--recipe", action="append", default=None, metavar="NAME_OR_FILE",
+                   help="run this recipe (a name in lcmodels/recipes/ or a .toml file) instead of the preset's; "
+                   "repeat for several")
+    p.add_argument("--seeds", type=positive_int, default=1, help="training seeds per recipe (default 1)")
     p.add_argument("--out", type=Path, required=True, help="experiment directory (resumed when it holds one)")
     p.add_argument("--threads", type=positive_int, default=1,
                    help="torch threads (default 1: on a shared 2-core machine 1 is often fastest; results do "
                    "not depend on it beyond float rounding, and changing it does not make stages stale)")
     p.add_argument("--jobs", type=positive_int, default=1,
-                   help="policies trained at once, each in its own process with --threads torch threads "
+                   help="recipes trained at once, each in its own process with --threads torch threads "
                    "(default 1; on 2 cores --jobs 2 --threads 1 keeps both busy; results do not depend on it)")
     add_executor_arguments(p, "every independent stage a Ray task (each policy x seed, each evaluation shard, "
                            "each recorded episode)", "this machine, --jobs processes")
@@ -75,7 +85,19 @@ def experiment_main(argv: list[str] | None = None) -> int:
     def show(msg: str) -> None:
         print(f"{(time.perf_counter() - t0) / 60:6.1f} min  {msg}", flush=True)
 
-    exp = Experiment(PRESETS[args.preset], args.out, seeds=args.seeds, command=command, threads=args.threads,
+    preset = PRESETS[args.preset]
+    if args.recipe:
+        import dataclasses
+
+        from lcmodels.recipe import load_recipe
+
+        try:
+            for r in args.recipe:
+                load_recipe(r)
+        except ValueError as exc:
+            return error(str(exc).splitlines()[0])
+        preset = dataclasses.replace(preset, recipes=tuple(args.recipe))
+    exp = Experiment(preset, args.out, seeds=args.seeds, command=command, threads=args.threads,
                      progress=None if args.quiet else show, executor=args.executor,
                      ray_address=args.ray_address)  # fmt: skip
     try:

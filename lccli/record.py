@@ -21,6 +21,7 @@ from lccli.common import (
     int_at_least,
     lookahead_options,
     setup_logging,
+    zoo_spec,
 )
 from lcdata.record import DRIVERS, episode_filename, iter_record_episodes
 from lcdata.writer_process import WRITER_MODES
@@ -64,10 +65,11 @@ _non_negative_int = int_at_least(0)
 
 
 def _driver_spec(text: str) -> str:
+    text = zoo_spec(text)
     if text in DRIVERS or split_policy_spec(text):
         return text
     raise argparse.ArgumentTypeError(f"invalid choice: {text!r} (choose from {', '.join(DRIVERS)}, policy:CKPT, "
-                                     "lookahead:CKPT or lookahead-blind:CKPT)")
+                                     "zoo:NAME, lookahead:CKPT or lookahead-blind:CKPT)")
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -90,7 +92,7 @@ def build_parser() -> argparse.ArgumentParser:
                    "policy:CKPT drives with a trained policy (a policy.safetensors from lc-train-policy); "
                    "lookahead:CKPT / lookahead-blind:CKPT with the lookahead planner following that policy "
                    "(one that does not read the image) in its imagined futures")  # fmt: skip
-    p.add_argument("--lookahead-follow", metavar="DRIVER", default=None,
+    p.add_argument("--lookahead-follow", metavar="DRIVER", default=None, type=zoo_spec,
                    help="with --driver lookahead:CKPT / lookahead-blind:CKPT: the policy CKPT proposes each "
                    "decision and the imagined futures follow DRIVER (a built-in driver or a policy.safetensors that "
                    "does not read the image), so the planner can guard a policy that reads the image")

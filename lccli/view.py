@@ -53,7 +53,8 @@ def build_parser() -> argparse.ArgumentParser:
         formatter_class=argparse.RawDescriptionHelpFormatter,
     )
     parser.add_argument("paths", nargs="+", type=pathlib.Path, metavar="PATH",
-                        help="episode files (.mcap or .mcap.partial) or directories of them")  # fmt: skip
+                        help="episode files (.mcap or .mcap.partial) or directories of them, or zoo:NAME (a shipped "
+                        "policy: one held-out episode of it is recorded into a temporary directory and shown)")  # fmt: skip
     parser.add_argument("--save", type=pathlib.Path, metavar="OUT.rrd",
                         help="write the recording(s) to this .rrd file instead of opening the native viewer")  # fmt: skip
     parser.add_argument("--web", action="store_true",
@@ -72,6 +73,25 @@ def build_parser() -> argparse.ArgumentParser:
 
 
 
+def _zoo_episode(name: str) -> pathlib.Path:
+    """One held-out episode (lc-eval's seed 0, the first) driven by zoo policy ``name``, recorded into a temporary
+    directory; ``ViewError`` for a name the zoo does not have."""
+    import tempfile
+
+    from lcmodels.policy.evaluate import driver_for, evaluate
+    from lcmodels.zoo import resolve_policy_spec
+
+    try:
+        spec, _ = resolve_policy_spec(name)
+        driver, config = driver_for(spec)
+    except ValueError as exc:
+        raise ViewError(str(exc).splitlines()[0]) from None
+    out = pathlib.Path(tempfile.mkdtemp(prefix="lc-view-zoo-"))
+    evaluate(driver, config, episodes=1, seed=0, out_dir=out, scenario=name.replace(":", "-"))
+    print(f"lc-view: recorded one held-out episode of {name} in {out}", flush=True)
+    return out
+
+
 def main(argv: Sequence[str] | None = None) -> int:
     """Entry point of ``lc-view``; returns the exit status (2 for bad input)."""
     args = build_parser().parse_args(argv)
@@ -84,7 +104,8 @@ def main(argv: Sequence[str] | None = None) -> int:
               "--save OUT.rrd, or serve one with --web --headless", file=sys.stderr)
         return EXIT_BAD_INPUT
     try:
-        episodes = open_episodes(args.paths)
+        paths = [_zoo_episode(str(p)) if str(p).startswith("zoo:") else p for p in args.paths]
+        episodes = open_episodes(paths)
     except ViewError as exc:
         print(f"lc-view: error: {exc}", file=sys.stderr)
         return EXIT_BAD_INPUT

@@ -46,27 +46,27 @@ from lcmodels.presets import (  # re-exported: the experiment's vocabulary
     INVOCATIONS,
     LOCK_NAME,
     MARKER,
-    METHOD_BY_KEY,
-    METHODS,
+    ORACLE_KEY,
     PAPER_TABLE2,
     PAPER_TABLE3,
     PAPER_TABLE4,
     PRESETS,
     REPORT_NAME,
+    ROWS,
     RULE_KEY,
     RULE_LABEL,
     STAGES_DIR,
     TABLE3_ROWS,
     TABLE4_ROWS,
-    Method,
     Preset,
     StageResult,
     canonical,
-    method_timesteps,
+    demos_key,
     outputs_digest,
-    policy_config,
     policy_dir,
+    previous_policy,
 )
+from lcmodels.recipe import DemoSpec, Recipe, load_recipe
 
 log = logging.getLogger(__name__)
 
@@ -103,6 +103,8 @@ def _resumable_policy_change(prior: dict[str, Any], now: dict[str, Any]) -> bool
 
 def _no_wall() -> None:
     pass
+
+
 
 
 class Experiment:
@@ -295,55 +297,94 @@ class Experiment:
         return self._stage("predictor", path, cfg, {"corpus": corpus.digest},
                            lambda: ["predictor.pt", "metrics.json"], work)  # fmt: skip
 
-    def demos(self) -> StageResult:
-        from lcmodels.policy.train import PolicyConfig
+    def demos(self, spec: DemoSpec) -> StageResult:
+        """The demonstrations ``spec`` (with images), recorded once however many recipes clone them."""
+        from lcmodels.policy.config import PolicyConfig
 
         config = PolicyConfig(scenario=self.preset.scenario, obs="hybrid").scenario_config()
+        seeds = list(range(spec.seed, spec.seed + spec.episodes))
+        key = demos_key(spec)
+        return self._record_stage(f"demos/{key}", self.out / "demos" / key, config, seeds, spec.driver,
+                                  self.preset.scenario, True)  # fmt: skip
+
+    def evaluation(self, name: str, path: Path, spec: str, inputs: dict[str, str], *,
+                   predictor: Path | None = None, follow: str | None = None,
+                   lookahead: dict[str, Any] | None = None, scenario: Any = None,
+                   label: str | None = None) -> StageResult:  # fmt: skip
+        """``metrics.json`` of driver ``spec`` on the validation seeds and the test episodes (see :class:`Preset`).
+        ``label``: the driver as the stage's config names it (not the policy's path, an input by its hash)."""
         p = self.preset
-        seeds = list(range(p.demo_seed, p.demo_seed + p.demo_episodes))
-        return self._record_stage("demos", self.out / "demos", config, seeds, p.demo_driver, p.scenario, True)
+        splits = [("val", s, p.val_episodes) for s in p.val_seeds] + [("test", p.test_seed, p.test_episodes)]
 
-    def rule(self) -> StageResult:
-        from lcmodels.policy.train import PolicyConfig
-
-        p = self.preset
-        config = PolicyConfig(scenario=p.scenario, obs="pure").scenario_config()
-        path = self.out / RULE_KEY
-
-        def work(keep: bool) -> None:
+        def work(keep: bool) -> float:
             from lcmodels.policy.evaluate import evaluate_sharded
 
-            t0 = time.perf_counter()
-            summary, _ = evaluate_sharded("rule", config, episodes=p.eval_episodes, seed=p.eval_seed,
-                                          shards=1 if self.executor == "local" else RAY_SHARDS, executor=self.executor,
-                                          out_dir=path / "episodes" if p.record_eval else None, scenario=p.scenario,
-                                          overwrite=True)  # fmt: skip
-            summary["wall_s"] = time.perf_counter() - t0
-            write_json(path / "metrics.json", {"config": cfg, "eval": summary})
-            self.emit(f"[{RULE_KEY}] success {100 * summary['success_rate']:.1f}% "
-                      f"collision {100 * summary['collision_rate']:.1f}%")  # fmt: skip
+            result: dict[str, Any] = {"config": cfg, "val": {}}
+            total = 0.0
+            for split, seed, episodes in splits:
+                done = path / f"{split}-seed{seed}.json"  # a split finished before an interruption is kept
+                summary = read_json(done) if keep else None
+                if summary is not None and summary.get("episodes") == episodes:
+                    total += float(summary.get("wall_s", 0.0))
+                    result["val" if split == "val" else "test"] = (
+                        result["val"] | {str(seed): summary} if split == "val" else summary)
+                    continue
+                t0 = time.perf_counter()
+                rec = p.record_eval and split == "test"
+                summary, _ = evaluate_sharded(
+                    spec, scenario, episodes=episodes, seed=seed,
+                    shards=1 if self.executor == "local" else RAY_SHARDS, executor=self.executor,
+                    predictor=str(predictor) if predictor else None, follow=follow, lookahead=lookahead,
+                    out_dir=path / "episodes" if rec else None, scenario=p.scenario, overwrite=True)  # fmt: skip
+                summary["wall_s"] = time.perf_counter() - t0
+                write_json(done, summary)
+                total += summary["wall_s"]
+                if split == "val":
+                    result["val"][str(seed)] = summary
+                else:
+                    result["test"] = summary
+                self._save_wall()
+                self.emit(f"[{name}] {split} (seed {seed}, {episodes} episodes): success "
+                          f"{100 * summary['success_rate']:.1f}% collision {100 * summary['collision_rate']:.1f}%")
+            write_json(path / "metrics.json", result)
+            return total
 
-        cfg = {"driver": "rule", "scenario": config.to_dict(), "episodes": p.eval_episodes, "seed": p.eval_seed,
-               "record": p.record_eval}  # fmt: skip
-        return self._stage(RULE_KEY, path, cfg, {}, lambda: ["metrics.json"], work)
+        cfg = {"driver": label or spec, "splits": splits, "follow": bool(follow), "lookahead": lookahead or {},
+               "record": p.record_eval, "scenario": p.scenario}  # fmt: skip
+        return self._stage(name, path, cfg, inputs, lambda: ["metrics.json"], work)
 
-    def policy(self, method: Method, seed: int, predictor: StageResult | None, demos: StageResult | None) -> StageResult:
+    def reference(self, key: str) -> StageResult:
+        """The rule-based driver or the oracle on the validation and test episodes."""
+        from lcmodels.policy.config import PolicyConfig
+
+        config = PolicyConfig(scenario=self.preset.scenario, obs="pure").scenario_config()
+        return self.evaluation(key, self.out / key, key, {}, scenario=config)
+
+    # -- recipes -------------------------------------------------------------------------------------
+    def _policy_stage(self, recipe: Recipe, stage: str, seed: int, predictor: StageResult | None,
+                      demos: StageResult | None, previous: StageResult | None) -> StageResult:  # fmt: skip
+        """One ``clone`` or ``train`` stage of ``recipe``: an ``lcmodels.policy.train`` run directory."""
         from lcmodels.policy.obs import needs_predictor
         from lcmodels.policy.train import stored_config, train_policy
 
-        path = policy_dir(self.out, method.key, seed)
-        cfg = policy_config(self.preset, method, seed, demos.path if demos else None)
+        path = policy_dir(self.out, recipe.name, seed) / stage
+        init = str(previous_policy(previous)) if previous is not None and stage == "train" else ""
+        cfg = recipe.policy_config(stage, scenario=self.preset.scenario, seed=seed,
+                                   warm_start=str(demos.path.resolve()) if demos is not None else "",
+                                   init_policy=init, eval_episodes=0, caps=self.preset.cap_dict)  # fmt: skip
         inputs: dict[str, str] = {}
         pred_path = None
-        if needs_predictor(method.obs):
+        if needs_predictor(cfg.obs):
             assert predictor is not None
             inputs["predictor"] = predictor.digest
             pred_path = predictor.path / "predictor.pt"
-        if method.warm_start:
+        if cfg.warm_start:
             assert demos is not None
             inputs["demos"] = demos.digest
-        name = f"{method.key}/seed{seed}"
-
+        if cfg.init_policy:
+            assert previous is not None
+            inputs["init_policy"] = previous.digest
+        name = f"{recipe.name}/seed{seed}/{stage}"
         shown = [0]
 
         def show(row: dict[str, Any]) -> None:
@@ -351,9 +392,8 @@ class Experiment:
             if t < cfg.timesteps and t - shown[0] < cfg.timesteps / 8:
                 return
             shown[0] = t
-            self.emit(f"[{name}] step {int(row['timesteps'])}/{cfg.timesteps} "
-                      f"success {row['success_rate']:.2f} collision {row['collision_rate']:.2f} "
-                      f"return {row['mean_return']:.1f} safe forward {row['mean_safe_forward_m']:.1f} m")  # fmt: skip
+            self.emit(f"[{name}] step {t}/{cfg.timesteps} success {row['success_rate']:.2f} "
+                      f"collision {row['collision_rate']:.2f} return {row['mean_return']:.1f}")
 
         def work(keep: bool) -> float:
             try:
@@ -364,18 +404,76 @@ class Experiment:
                 shutil.rmtree(path)
                 path.mkdir(parents=True)
                 res = train_policy(cfg, path, predictor=pred_path, progress=show)
-            ev = res.metrics.get("eval", {})
-            self.emit(f"[{name}] held-out: success {100 * ev.get('success_rate', float('nan')):.1f}% "
-                      f"collision {100 * ev.get('collision_rate', float('nan')):.1f}% "
-                      f"timeout {100 * ev.get('timeout_rate', float('nan')):.1f}%")  # fmt: skip
-            # training time summed over every resumed part (the checkpoints carry it), plus the evaluation
-            return res.wall_s + float(ev.get("wall_s", 0.0))
+            return res.wall_s
 
-        stage_cfg = cfg.to_dict()
-        if method.warm_start:
-            stage_cfg["warm_start"] = "demos"  # the demos' content is an input; the path may move
-        return self._stage(name, path, stage_cfg, inputs, lambda: [POLICY_FILE, "metrics.json", "progress.csv"],
-                           work, resumable=_resumable_policy_change, upgrade=stored_config)  # fmt: skip
+        stage_cfg = cfg.to_dict() | {"warm_start": "demos" if cfg.warm_start else "",
+                                     "init_policy": "previous" if cfg.init_policy else ""}  # fmt: skip
+        outputs = [POLICY_FILE, "metrics.json"] + (["progress.csv"] if cfg.timesteps > 0 else [])
+        return self._stage(name, path, stage_cfg, inputs, lambda: outputs, work,
+                           resumable=_resumable_policy_change, upgrade=stored_config)  # fmt: skip
+
+    def _dagger_stage(self, recipe: Recipe, seed: int, clone: StageResult) -> StageResult:
+        from lcmodels.policy.dagger import dagger
+
+        spec = recipe.dagger
+        path = policy_dir(self.out, recipe.name, seed) / "dagger"
+        name = f"{recipe.name}/seed{seed}/dagger"
+
+        def work(keep: bool) -> None:
+            dagger(clone.path, path, rounds=spec.rounds, episodes=spec.episodes, epochs=spec.epochs,
+                   seed=spec.seed + 10_000 * seed, workers=1, eval_episodes=0, labels=spec.labels,
+                   expert=spec.expert, resume=keep and (path / "dagger.json").exists(),
+                   progress=lambda m: self.emit(f"[{name}] {m}"))  # fmt: skip
+
+        cfg = dataclasses.asdict(spec) | {"training_seed": seed}
+        return self._stage(name, path, cfg, {"clone": clone.digest},
+                           lambda: [f"round{spec.rounds}/{POLICY_FILE}", "dagger.json"], work)
+
+    def recipe_stages(self, recipe: Recipe, seed: int, predictor: StageResult | None,
+                      demos: StageResult | None) -> list[StageResult]:  # fmt: skip
+        """Every stage of ``recipe`` with training seed ``seed``, then its evaluation."""
+        from lcmodels.policy.obs import needs_predictor
+
+        done: list[StageResult] = []
+        previous: StageResult | None = None
+        for stage in recipe.stages:
+            if stage == "dagger":
+                assert previous is not None
+                previous = self._dagger_stage(recipe, seed, previous)
+            else:
+                previous = self._policy_stage(recipe, stage, seed, predictor, demos if stage == "clone" else None,
+                                              previous)  # fmt: skip
+            done.append(previous)
+        assert previous is not None
+        obs = recipe.policy_config(recipe.final_stage, scenario=self.preset.scenario, seed=seed,
+                                   init_policy="x" if len(recipe.stages) > 1 else "",
+                                   warm_start="x" if recipe.final_stage == "clone" else "").obs  # fmt: skip
+        uses_predictor = needs_predictor(obs)
+        if self.dry_run and "pending" in previous.outputs:
+            return done
+        done.append(self.evaluation(
+            f"{recipe.name}/seed{seed}/eval", policy_dir(self.out, recipe.name, seed) / "eval",
+            str(previous_policy(previous)), {"policy": previous.digest}, label="policy",
+            predictor=predictor.path / "predictor.pt" if uses_predictor and predictor else None))  # fmt: skip
+        return done
+
+    def safety(self, recipe: Recipe, seed: int, final: StageResult, follow: StageResult | None,
+               predictor: StageResult | None) -> StageResult:  # fmt: skip
+        """``recipe``'s final policy behind the lookahead planner (its ``[safety]`` table), evaluated."""
+        from lcmodels.policy.obs import needs_predictor
+
+        assert recipe.safety is not None
+        s = recipe.capped(self.preset.cap_dict).safety
+        assert s is not None
+        look = {"horizon_decisions": s.horizon, "samples": s.samples, "perceived": s.perceived}
+        inputs = {"policy": final.digest} | ({"follow": follow.digest} if follow is not None else {})
+        obs = recipe.stage_settings(recipe.final_stage).get("obs", "hybrid")
+        return self.evaluation(
+            f"{recipe.name}/seed{seed}/safety", policy_dir(self.out, recipe.name, seed) / "safety",
+            f"lookahead-blind:{previous_policy(final)}", inputs,
+            predictor=predictor.path / "predictor.pt" if predictor and needs_predictor(obs) else None,
+            follow=str(previous_policy(follow)) if follow is not None else None, lookahead=look,
+            label="lookahead-blind:policy")  # fmt: skip
 
     # -- the whole run -------------------------------------------------------------------------------
     def plan(self) -> list[StageResult]:
@@ -430,7 +528,7 @@ class Experiment:
                 self._invocation_t0 = None
             wall = time.perf_counter() - t0
             report = write_report(ReportInput(self.out, self.preset, self.seeds, list(self.stages), self.invocations,
-                                              self.command), wall_s=wall)
+                                              self.command, self.recipes()), wall_s=wall)
         self.emit(f"[report] wrote {report}")
         return ExperimentResult(self.out, self.preset, self.seeds, list(self.stages), wall, report)
 
@@ -464,49 +562,124 @@ class Experiment:
                 fh.truncate()
                 fcntl.flock(fh, fcntl.LOCK_UN)
 
+    def recipes(self) -> list[Recipe]:
+        """The preset's recipes (capped), and any recipe a safety layer follows that the preset leaves out."""
+        names = list(self.preset.recipes)
+        out = [load_recipe(n) for n in names]
+        for r in list(out):
+            if r.safety is not None and r.safety.follow and r.safety.follow not in {x.name for x in out}:
+                out.append(load_recipe(r.safety.follow))
+        return [r.capped(self.preset.cap_dict) for r in out]
+
     def _stages(self, *, skip_train: bool, jobs: int = 1) -> None:
         from lcmodels.policy.obs import needs_predictor
 
         self.stages = []
+        recipes = self.recipes()
         corpus = self.corpus()
         predictor = self.predictor(corpus)
-        demos = self.demos()
-        self.rule()
+        demos: dict[str, StageResult] = {}
+        for r in recipes:
+            if "clone" in r.stages and demos_key(r.demos) not in demos:
+                demos[demos_key(r.demos)] = self.demos(r.demos)
         tasks = []
         for seed in range(self.seeds):
-            for m in METHODS:
-                task = (m, seed, predictor if needs_predictor(m.obs) else None, demos if m.warm_start else None)
+            for r in recipes:
+                obs = r.stage_settings(r.stages[0]).get("obs", "hybrid")
+                task = (r, seed, predictor if needs_predictor(obs) else None,
+                        demos[demos_key(r.demos)] if "clone" in r.stages else None)  # fmt: skip
                 if skip_train:  # a complete stage is reported as such (with its recorded time); the rest not run
                     dry, self.dry_run = self.dry_run, True
+                    n = len(self.stages)
                     try:
-                        res = self.policy(*task)
+                        self.recipe_stages(*task)
                     finally:
                         self.dry_run = dry
-                    if res.status != "skipped":
-                        self.stages[-1] = StageResult(res.name, "not run", res.path, 0.0)
+                    self.stages[n:] = [s if s.status == "skipped" else StageResult(s.name, "not run", s.path, 0.0)
+                                       for s in self.stages[n:]]  # fmt: skip
                     continue
                 tasks.append(task)
         if self.executor == "ray" and not self.dry_run and tasks:
-            self.stages.extend(self._ray_policies(tasks))
+            results = self._ray_policies(tasks)
         elif jobs == 1 or self.dry_run or len(tasks) < 2:
-            for task in tasks:
-                self.policy(*task)
+            results = [self.recipe_stages(*task) for task in tasks]  # their stages are in self.stages already
         else:
-            self.stages.extend(self._parallel_policies(tasks, jobs))
+            results = self._parallel_policies(tasks, jobs)
+        if self.executor == "ray" or (jobs > 1 and not self.dry_run and len(tasks) >= 2):
+            for res in results:
+                self.stages.extend(res)
+        self.reference(RULE_KEY)  # after the recipes: the oracle's search is slower than some training runs
+        if self.preset.oracle:
+            self.reference(ORACLE_KEY)
+        if skip_train or self.dry_run:
+            return
+        finals = {(t[0].name, t[1]): res[-2] for t, res in zip(tasks, results, strict=True)}
+        for r, seed, _pred, _ in tasks:
+            if r.safety is None:
+                continue
+            follow = finals.get((r.safety.follow, seed)) if r.safety.follow else None
+            self.safety(r, seed, finals[(r.name, seed)], follow, predictor)
+        if self.preset.zoo:
+            self.zoo_stages(predictor)
 
-    def _ray_policies(self, tasks: list[tuple[Any, ...]]) -> list[StageResult]:
+    def zoo_stages(self, predictor: StageResult) -> None:
+        """Every zoo policy on the test episodes (with the zoo's predictor), then a few recorded episodes of the
+        best one and a Rerun ``.rrd`` of the first (``make demo``)."""
+        from lcmodels.zoo import zoo_entries
+
+        results = []
+        for entry in zoo_entries():
+            res = self.evaluation(f"zoo/{entry.name}", self.out / "zoo" / entry.name, str(entry.policy),
+                                  {"policy": entry.sha256}, predictor=entry.predictor, label=f"zoo:{entry.name}")
+            results.append((entry, res))
+        if not results or self.preset.showcase_episodes < 1 or self.dry_run:
+            return
+        best_success = -1.0
+        for entry, res in results:
+            success = float((read_json(res.path / "metrics.json") or {}).get("test", {}).get("success_rate", -1.0))
+            if success > best_success:
+                best, best_success = (entry, res), success
+        self.showcase(*best)
+
+    def showcase(self, entry: Any, evaluated: StageResult) -> StageResult:
+        """``showcase_episodes`` test episodes of zoo policy ``entry`` recorded (MCAP) in ``DIR/showcase``, and
+        the first as a Rerun file ``DIR/showcase/<episode>.rrd`` (``lc-view`` opens either)."""
+        path = self.out / "showcase"
+        p = self.preset
+
+        def work(keep: bool) -> None:
+            from lcdata.viewer.app import convert
+            from lcmodels.policy.evaluate import driver_for, evaluate
+
+            for old in path.glob("*"):
+                old.unlink()
+            driver, config = driver_for(str(entry.policy), predictor=str(entry.predictor) if entry.predictor else None)
+            evaluate(driver, config, episodes=p.showcase_episodes, seed=p.test_seed, out_dir=path,
+                     scenario=f"zoo-{entry.name}", overwrite=True)  # fmt: skip
+            first = sorted(path.glob("*.mcap"))[0]
+            convert([first], first.with_suffix(".rrd"))
+            self.emit(f"[showcase] {p.showcase_episodes} episodes of zoo:{entry.name} in {path}; open one with "
+                      f"lc-view {first.with_suffix('.rrd')}")  # fmt: skip
+
+        def outputs() -> list[str]:
+            return sorted(q.name for q in path.glob("*") if q.suffix in (".mcap", ".rrd"))
+
+        cfg = {"zoo": entry.name, "episodes": p.showcase_episodes, "seed": p.test_seed}
+        return self._stage("showcase", path, cfg, {"policy": entry.sha256, "eval": evaluated.digest}, outputs, work)
+
+    def _ray_policies(self, tasks: list[tuple[Any, ...]]) -> list[list[StageResult]]:
         """The policy stages ``tasks`` as Ray tasks of ``threads`` CPUs each; results in task order. A stage
         records, resumes and skips as it does locally: each task runs :meth:`policy` in this directory."""
         from lcdata.executors import ray_map
 
         calls = [(i, self.preset, self.out, self.seeds, self.threads, *task) for i, task in enumerate(tasks)]
-        done: dict[int, StageResult] = {}
+        done: dict[int, list[StageResult]] = {}
         for i, result in ray_map(_ray_policy_task, calls, num_cpus=self.threads):
             done[i] = result
-            self.emit(f"[{result.name}] {result.status} on Ray ({len(done)}/{len(tasks)} policy stages)")
+            self.emit(f"[{tasks[i][0].name}/seed{tasks[i][1]}] on Ray ({len(done)}/{len(tasks)} recipes)")
         return [done[i] for i in range(len(tasks))]
 
-    def _parallel_policies(self, tasks: list[tuple[Any, ...]], jobs: int) -> list[StageResult]:
+    def _parallel_policies(self, tasks: list[tuple[Any, ...]], jobs: int) -> list[list[StageResult]]:
         """The policy stages ``tasks`` in ``jobs`` spawned processes; results in task order.
 
         Progress lines come back through a queue. The first failure stops every worker and is raised; the
@@ -552,8 +725,8 @@ RAY_SHARDS = 4
 """Ray tasks an evaluation stage is cut into."""
 
 
-def _ray_policy_task(index: int, preset: Preset, out: Path, seeds: int, threads: int, method: Method, seed: int,
-                     predictor: StageResult | None, demos: StageResult | None) -> tuple[int, StageResult]:
+def _ray_policy_task(index: int, preset: Preset, out: Path, seeds: int, threads: int, recipe: Recipe, seed: int,
+                     predictor: StageResult | None, demos: StageResult | None) -> tuple[int, list[StageResult]]:
     """One policy stage as a Ray task of :meth:`Experiment._ray_policies` (its progress lines go to the task's
     log, which Ray forwards to the driver)."""
     import torch
@@ -561,7 +734,7 @@ def _ray_policy_task(index: int, preset: Preset, out: Path, seeds: int, threads:
     logging.basicConfig(level=logging.INFO, format="%(message)s")  # a fresh worker: its log goes to the driver
     torch.set_num_threads(threads)
     exp = Experiment(preset, out, seeds=seeds, threads=threads, progress=log.info)
-    return index, exp.policy(method, seed, predictor, demos)
+    return index, exp.recipe_stages(recipe, seed, predictor, demos)
 
 
 def _policy_worker_init(queue: Any, threads: int, parent: int | None = None) -> None:
@@ -575,11 +748,11 @@ def _policy_worker_init(queue: Any, threads: int, parent: int | None = None) -> 
     _WORKER["queue"], _WORKER["threads"] = queue, threads
 
 
-def _policy_worker(preset: Preset, out: Path, seeds: int, method: Method, seed: int, predictor: StageResult | None,
-                   demos: StageResult | None) -> StageResult:  # fmt: skip
+def _policy_worker(preset: Preset, out: Path, seeds: int, recipe: Recipe, seed: int, predictor: StageResult | None,
+                   demos: StageResult | None) -> list[StageResult]:  # fmt: skip
     """One policy stage in a worker process of :meth:`Experiment._parallel_policies`."""
     exp = Experiment(preset, out, seeds=seeds, threads=_WORKER["threads"], progress=_WORKER["queue"].put)
-    return exp.policy(method, seed, predictor, demos)
+    return exp.recipe_stages(recipe, seed, predictor, demos)
 
 
 def run_experiment(preset: Preset | str, out: str | Path, *, seeds: int = 1, command: str = "", threads: int = 1,
@@ -601,13 +774,13 @@ __all__ = [
     "INVOCATIONS",
     "LOCK_NAME",
     "MARKER",
-    "METHODS",
-    "METHOD_BY_KEY",
+    "ORACLE_KEY",
     "PAPER_TABLE2",
     "PAPER_TABLE3",
     "PAPER_TABLE4",
     "PRESETS",
     "REPORT_NAME",
+    "ROWS",
     "RULE_KEY",
     "RULE_LABEL",
     "STAGES_DIR",
@@ -615,12 +788,11 @@ __all__ = [
     "TABLE4_ROWS",
     "Experiment",
     "ExperimentResult",
-    "Method",
     "Preset",
     "StageResult",
-    "method_timesteps",
+    "demos_key",
     "outputs_digest",
-    "policy_config",
     "policy_dir",
+    "previous_policy",
     "run_experiment",
 ]

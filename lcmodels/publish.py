@@ -2,7 +2,7 @@
 
 :func:`publish` copies ``REPORT.md``, the figures, ``experiment.json``, ``invocations.json``, the complete
 stage records (``stages/*.json``) and, per stage, ``metrics.json`` / ``run.json`` / ``progress.csv`` /
-``warm_start.json``: every file the report's *Files* table names, and nothing large (no checkpoints,
+``warm_start.json`` / ``dagger.json``: every figure the report shows, and nothing large (no checkpoints,
 TensorBoard logs or MCAP episodes). It refuses a run without a report or with unfinished stages, and a
 destination that exists unless ``overwrite``; then it replaces only files of that layout (and removes
 those of it the run no longer has), keeping anything else there (a note written by hand).
@@ -13,11 +13,11 @@ from __future__ import annotations
 import shutil
 from pathlib import Path
 
-from lcmodels.presets import INVOCATIONS, MARKER, REPORT_NAME, RULE_KEY, STAGES_DIR
+from lcmodels.presets import INVOCATIONS, MARKER, ORACLE_KEY, REPORT_NAME, RULE_KEY, STAGES_DIR
 
 TOP = (REPORT_NAME, MARKER)
 OPTIONAL_TOP = (INVOCATIONS,)  # runs of lc-toolkit versions before it have none
-PER_STAGE = ("metrics.json", "run.json", "progress.csv", "warm_start.json")
+PER_STAGE = ("metrics.json", "run.json", "progress.csv", "warm_start.json", "dagger.json")
 
 
 def published_files(run: Path) -> list[Path]:
@@ -25,7 +25,8 @@ def published_files(run: Path) -> list[Path]:
     files = [Path(n) for n in TOP] + [Path(n) for n in OPTIONAL_TOP if (run / n).is_file()]
     files += sorted(p.relative_to(run) for p in run.glob("*.png"))
     files += sorted(p.relative_to(run) for p in (run / STAGES_DIR).glob("*.json") if not p.name.endswith(".pending.json"))
-    stage_dirs = [run / "predictor", run / RULE_KEY, *sorted(run.glob("policies/*/seed*"))]
+    stage_dirs = [run / "predictor", run / RULE_KEY, run / ORACLE_KEY, *sorted(run.glob("policies/*/seed*/*")),
+                  *sorted(run.glob("policies/*/seed*/dagger/round*")), *sorted(run.glob("zoo/*"))]
     for d in stage_dirs:
         files += [(d / n).relative_to(run) for n in PER_STAGE if (d / n).is_file()]
     return files

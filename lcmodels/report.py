@@ -22,19 +22,20 @@ from lcmodels.presets import (
     FIG5_NAME,
     FIG6_NAME,
     INVOCATIONS,
-    METHOD_BY_KEY,
-    METHODS,
+    ORACLE_KEY,
+    ORACLE_LABEL,
     PAPER_TABLE2,
     PAPER_TABLE3,
     PAPER_TABLE4,
     REPORT_NAME,
+    ROWS,
     RULE_KEY,
     RULE_LABEL,
+    STAGES_DIR,
     TABLE3_ROWS,
     TABLE4_ROWS,
     Preset,
     StageResult,
-    method_timesteps,
     policy_dir,
 )
 
@@ -45,14 +46,24 @@ MIN_WINDOW = 20
 
 @dataclass
 class MethodRuns:
-    """The evaluation and learning curves of one method over its seeds (missing runs left out)."""
+    """The evaluations (test and validation) and learning curves of one recipe over its seeds, or of a
+    reference driver (missing runs left out)."""
 
     key: str
     label: str
+    kind: str = ""
+    row: str = ""
     evals: list[dict[str, Any]] = field(default_factory=list)
+    """Test-set summaries, one per seed."""
+    vals: list[dict[str, dict[str, Any]]] = field(default_factory=list)
+    """Per seed: validation summaries by evaluation seed."""
     trains: list[dict[str, Any]] = field(default_factory=list)
     curves: list[dict[str, np.ndarray]] = field(default_factory=list)
     seeds: list[int] = field(default_factory=list)
+    wall_s: list[float] = field(default_factory=list)
+    """Per seed: the recorded compute time of every stage of the recipe (evaluation excluded)."""
+    note: str = ""
+    """Shown after the key in the tables (a shipped checkpoint's commit)."""
 
 
 def read_progress(path: Path) -> dict[str, np.ndarray]:
@@ -66,27 +77,53 @@ def read_progress(path: Path) -> dict[str, np.ndarray]:
     return {k: np.array([float(r[k]) if r[k] not in ("", None) else math.nan for r in rows]) for k in rows[0]}
 
 
-def collect(out: Path, seeds: int) -> dict[str, MethodRuns]:
-    """Metrics of the rule-based reference and of every (method, seed) run found in ``out``."""
+def _add_eval(mr: MethodRuns, m: dict[str, Any] | None, seed: int) -> bool:
+    if not m or "test" not in m:
+        return False
+    mr.seeds.append(seed)
+    mr.evals.append(m["test"])
+    mr.vals.append(m.get("val", {}))
+    return True
+
+
+def _stage_wall(out: Path, name: str) -> float:
+    rec = read_json(out / STAGES_DIR / (name.replace("/", "__") + ".json")) or {}
+    return float(rec.get("wall_s", 0.0))
+
+
+def collect(out: Path, seeds: int, recipes: list[Any]) -> dict[str, MethodRuns]:
+    """Metrics of the references (rule, oracle), of every (recipe, seed) run found in ``out``, of the safety
+    layer behind each recipe that has one (``<recipe>+safety``) and of the zoo's policies (``zoo:<name>``)."""
     runs: dict[str, MethodRuns] = {}
-    rule = MethodRuns(RULE_KEY, RULE_LABEL)
-    m = read_json(out / RULE_KEY / "metrics.json")
-    if m and "eval" in m:
-        rule.evals.append(m["eval"])
-        rule.seeds.append(0)
-    runs[RULE_KEY] = rule
-    for method in METHODS:
-        mr = MethodRuns(method.key, method.label)
+    for key, label in ((RULE_KEY, RULE_LABEL), (ORACLE_KEY, ORACLE_LABEL)):
+        ref = MethodRuns(key, label)
+        _add_eval(ref, read_json(out / key / "metrics.json"), 0)
+        runs[key] = ref
+    for r in recipes:
+        mr = MethodRuns(r.name, r.label or ROWS[r.row], r.kind, r.row)
+        safe = MethodRuns(f"{r.name}+safety", f"{r.label or ROWS[r.row]} behind the safety layer", r.kind, r.row)
         for s in range(seeds):
-            d = policy_dir(out, method.key, s)
-            m = read_json(d / "metrics.json")
-            if not m or "eval" not in m:
+            d = policy_dir(out, r.name, s)
+            if not _add_eval(mr, read_json(d / "eval" / "metrics.json"), s):
                 continue
-            mr.seeds.append(s)
-            mr.evals.append(m["eval"])
-            mr.trains.append(m.get("train", {}))
-            mr.curves.append(read_progress(d / "progress.csv"))
-        runs[method.key] = mr
+            train = read_json(d / r.final_stage / "metrics.json") or {}
+            mr.trains.append(train.get("train", {}))
+            mr.curves.append(read_progress(d / "train" / "progress.csv"))
+            mr.wall_s.append(sum(_stage_wall(out, f"{r.name}/seed{s}/{st}") for st in r.stages))
+            _add_eval(safe, read_json(d / "safety" / "metrics.json"), s)
+        runs[r.name] = mr
+        if safe.evals:
+            runs[safe.key] = safe
+    zoo = out / "zoo"
+    if zoo.is_dir():
+        from lcmodels.zoo import zoo_dir
+
+        for d in sorted(zoo.iterdir()):
+            card = read_json(zoo_dir() / d.name / "zoo.json") or {}
+            commit = f" @ {card['commit']}" if card.get("commit") else ""
+            z = MethodRuns(f"zoo:{d.name}", f"shipped checkpoint{commit}", "zoo", str(card.get("row", "")), note=commit)
+            if _add_eval(z, read_json(d / "metrics.json"), 0):
+                runs[z.key] = z
     return runs
 
 
@@ -109,20 +146,68 @@ def _paper(v: float | None) -> str:
     return "—" if v is None else f"{v:.1f}"
 
 
+def rate_cell(evals: list[dict[str, Any]], rate: str) -> str:
+    """A rate in percent: ``value [95% CI]`` for one evaluation, ``mean ± std`` over several, ``—`` for none."""
+    if len(evals) == 1:
+        e = evals[0]
+        ci = e.get(f"{rate}_rate_ci95")
+        v = 100 * e[f"{rate}_rate"]
+        return f"{v:.1f} [{100 * ci[0]:.1f}, {100 * ci[1]:.1f}]" if ci else f"{v:.1f}"
+    return fmt_cell([e[f"{rate}_rate"] for e in evals], 100.0)
+
+
+def _best_of_kind(runs: dict[str, MethodRuns], row: str, kind: str) -> MethodRuns | None:
+    """The recipe of ``kind`` for ``row`` with the highest mean validation success (the choice is never made on
+    the test episodes)."""
+    found = [r for r in runs.values() if r.row == row and r.kind == kind and r.evals and "+" not in r.key]
+
+    def validation(r: MethodRuns) -> float:
+        v = [x["success_rate"] for per_seed in r.vals for x in per_seed.values()]
+        return float(np.mean(v)) if v else -1.0
+
+    return max(found, key=validation) if found else None
+
+
 def outcome_table(runs: dict[str, MethodRuns], rows: tuple[str, ...], paper: dict[str, tuple[float, ...]]) -> str:
-    head = ("| Method | seeds | Success % (ours) | Success % (paper) | Collision % (ours) | Collision % (paper) "
-            "| Timeout % (ours) | Timeout % (paper) | Off-road % (ours) | Safe forward m (ours) | Return (ours) |")
-    lines = [head, "|" + "---|" * 11]
+    """Per row: the paper's figures, the paper-faithful recipe's and the project's best recipe's (test set), and
+    the shipped checkpoint's (zoo) when the experiment evaluated the zoo."""
+    kinds = [("paper", "paper-faithful recipe"), ("best", "best recipe")]
+    if any(r.kind == "zoo" for r in runs.values()):
+        kinds.append(("zoo", "shipped checkpoint (zoo)"))
+    if any(r.kind == "demo" and r.row in rows for r in runs.values()):
+        kinds.append(("demo", "quick recipe (trained now)"))
+    lines = ["| Method | paper: success / collision % | "
+             + " | ".join(f"{title}: success % | collision %" for _, title in kinds) + " |",
+             "|" + "---|" * (2 + 2 * len(kinds))]
     for key in rows:
-        r = runs[key]
-        p = paper.get(key, (None, None, None))
-        cells = [r.label, str(len(r.evals))]
-        for i, rate in enumerate(("success", "collision", "timeout")):
-            cells += [fmt_cell([e[f"{rate}_rate"] for e in r.evals], 100.0), _paper(p[i])]
-        cells.append(fmt_cell([e["off_road_rate"] for e in r.evals], 100.0))
-        cells.append(fmt_cell([e["mean_safe_forward_m"] for e in r.evals]))
-        cells.append(fmt_cell([e["mean_return"] for e in r.evals]))
+        p = paper.get(key)
+        cells = [ROWS[key], "—" if p is None else f"{p[0]:.1f} / {p[1]:.1f}"]
+        for kind, _ in kinds:
+            r = _best_of_kind(runs, key, kind)
+            if r is None:
+                cells += ["—", "—"]
+            else:
+                cells += [f"{rate_cell(r.evals, 'success')} (`{r.key}`{r.note})", rate_cell(r.evals, "collision")]
         lines.append("| " + " | ".join(cells) + " |")
+    return "\n".join(lines)
+
+
+def all_runs_table(runs: dict[str, MethodRuns]) -> str:
+    """Every row of the experiment: test figures, validation success per evaluation seed, training time."""
+    lines = ["| row | kind | seeds | test success % | collision % | timeout % | validation success % (eval seed) "
+             "| training min | safety layer overrides |", "|" + "---|" * 9]
+    for r in runs.values():
+        if not r.evals:
+            continue
+        vals = []
+        for per_seed in r.vals:
+            vals += [f"{100 * v['success_rate']:.1f} ({k})" for k, v in per_seed.items()]
+        overrides = [e.get("planner_overrides") for e in r.evals if e.get("planner_choices")]
+        over = "—" if not overrides else ", ".join(
+            f"{e['planner_overrides']} / {e['planner_choices']}" for e in r.evals if e.get("planner_choices"))
+        lines.append(f"| {r.label} (`{r.key}`) | {r.kind or '—'} | {len(r.evals)} | {rate_cell(r.evals, 'success')} "
+                     f"| {rate_cell(r.evals, 'collision')} | {rate_cell(r.evals, 'timeout')} | {'; '.join(vals) or '—'} "
+                     f"| {fmt_cell([w / 60 for w in r.wall_s]) if r.wall_s else '—'} | {over} |")  # fmt: skip
     return "\n".join(lines)
 
 
@@ -151,7 +236,9 @@ def first_reach(curve: dict[str, np.ndarray], target: float, min_window: int) ->
 
 def warm_start_rows(runs: dict[str, MethodRuns]) -> list[dict[str, Any]]:
     """Per seed: the scratch run's final rolling success and the first step each run reaches it."""
-    scratch, warm = runs["ppo-hybrid"], runs["ppo-hybrid-warm"]
+    if "paper-hybrid-ppo" not in runs or "paper-hybrid-ppo-warm" not in runs:
+        return []
+    scratch, warm = runs["paper-hybrid-ppo"], runs["paper-hybrid-ppo-warm"]
     by_seed = dict(zip(warm.seeds, warm.curves, strict=True))
     out = []
     for seed, curve in zip(scratch.seeds, scratch.curves, strict=True):
@@ -200,19 +287,19 @@ def plot_curves(runs: dict[str, MethodRuns], key: str, ylabel: str, title: str, 
 
     fig, ax = plt.subplots(figsize=(8, 5), dpi=110)
     colors = plt.get_cmap("tab10")
-    for i, m in enumerate(METHODS):
-        x, mean, lo, hi = band(runs[m.key].curves, key)
+    for i, m in enumerate(r for r in runs.values() if any(r.curves)):
+        x, mean, lo, hi = band(m.curves, key)
         if len(x) == 0:
             continue
-        n = len(runs[m.key].curves)
-        ax.plot(x, mean, color=colors(i), lw=1.8, marker="o" if len(x) < 4 else None, ms=3,
-                label=f"{m.label} (n={n})")  # fmt: skip
+        n = len(m.curves)
+        ax.plot(x, mean, color=colors(i % 10), lw=1.8, ls="-" if m.kind == "paper" else "--",
+                marker="o" if len(x) < 4 else None, ms=3, label=f"{m.key} (n={n})")  # fmt: skip
         if n > 1 and len(x) > 1:
-            ax.fill_between(x, lo, hi, color=colors(i), alpha=0.18, lw=0)
+            ax.fill_between(x, lo, hi, color=colors(i % 10), alpha=0.18, lw=0)
         elif n > 1:  # one logged point: the band as an error bar
-            ax.errorbar(x, mean, yerr=[mean - lo, hi - mean], color=colors(i), capsize=3, lw=1)
+            ax.errorbar(x, mean, yerr=[mean - lo, hi - mean], color=colors(i % 10), capsize=3, lw=1)
     if reference is not None and math.isfinite(reference):
-        ax.axhline(reference, color="black", ls="--", lw=1, label=f"{RULE_LABEL}, held-out")
+        ax.axhline(reference, color="black", ls=":", lw=1, label=f"{RULE_LABEL}, test episodes")
     ax.set_xlabel("training timesteps (decisions over all environments)")
     ax.set_ylabel(ylabel)
     ax.set_title(title)
@@ -234,6 +321,8 @@ class ReportInput:
     stages: list[StageResult]
     invocations: list[dict[str, Any]]
     command: str
+    recipes: list[Any] = field(default_factory=list)
+    """The :class:`lcmodels.recipe.Recipe` objects the experiment ran."""
 
 
 def write_report(exp: ReportInput, *, wall_s: float) -> Path:
@@ -241,7 +330,7 @@ def write_report(exp: ReportInput, *, wall_s: float) -> Path:
     from lcmodels.policy.train import versions
 
     out = exp.out
-    runs = collect(out, exp.seeds)
+    runs = collect(out, exp.seeds, exp.recipes)
     pred = read_json(out / "predictor" / "metrics.json")
     rule_eval = runs[RULE_KEY].evals[0] if runs[RULE_KEY].evals else {}
     plot_curves(runs, "mean_safe_forward_m", "safe forward distance, m (mean of last 100 episodes)",
@@ -253,18 +342,21 @@ def write_report(exp: ReportInput, *, wall_s: float) -> Path:
     L: list[str] = []
     add = L.append
     add(f"# lc-experiment report: preset `{p.name}`\n")
-    add(f"- seeds per method: **{exp.seeds}** (training seeds 0..{exp.seeds - 1}); held-out evaluation: "
-        f"{p.eval_episodes} episodes of evaluation seed {p.eval_seed} (the same episodes for every method)")
+    add(f"- recipes: {', '.join(f'`{r.name}`' for r in exp.recipes)}; training seeds per recipe: **{exp.seeds}** "
+        f"(0..{exp.seeds - 1})")
+    add(f"- **test**: {p.test_episodes} held-out episodes of evaluation seed {p.test_seed}, never used for any "
+        f"choice: every figure of the tables. **Validation**: {p.val_episodes} episodes of evaluation seed(s) "
+        f"{', '.join(str(v) for v in p.val_seeds)}, the episodes the recipes were chosen on (last table).")
     parts = exp.invocations or [{"wall_s": wall_s}]
     total = sum(float(inv.get("wall_s", 0.0)) for inv in parts)
     add(f"- scenario: `{p.scenario}`; wall time: **{total / 60:.1f} min** over {len(parts)} invocation(s) "
         f"(`{INVOCATIONS}`; this one {wall_s / 60:.1f} min); compute time of all results (sum of the stages' "
         f"recorded wall times, every resumed part counted): **{sum(s.wall_s for s in exp.stages) / 60:.1f} min**")
-    add(f"- written {_now()}; every number below is read from the `metrics.json` / `progress.csv` files named in "
-        "*Files*.\n")
+    add(f"- written {_now()}; every number below is read from the `metrics.json` / `progress.csv` files of the "
+        "stage directories (`policies/<recipe>/seed<k>/`).\n")
     if p.name != "paper":
-        add(f"> The `{p.name}` preset uses budgets far below convergence: it shows the pipeline, not the "
-            "paper's results. Use `--preset paper` for those.\n")
+        add(f"> The `{p.name}` preset caps the recipes' budgets: it shows the pipeline; the `paper` preset gives "
+            "the results.\n")
 
     add("## Table II: trajectory prediction (test split)\n")
     add(table2(pred))
@@ -276,12 +368,17 @@ def write_report(exp: ReportInput, *, wall_s: float) -> Path:
             f"held-out episode(s) of {c.get('all', {}).get('episodes', '?')}. Ours are metres on our simulator "
             "(constant velocity is a strong baseline there); the paper's MAD/FAD come from CARLA.\n")
 
-    add("## Table III: methods (held-out evaluation, %)\n")
+    add("## Table III: methods (test episodes, %)\n")
     add(outcome_table(runs, TABLE3_ROWS, PAPER_TABLE3))
-    add("\n## Table IV: observation ablation of PPO (held-out evaluation, %)\n")
+    add("\n## Table IV: observation ablation (test episodes, %)\n")
     add(outcome_table(runs, TABLE4_ROWS, PAPER_TABLE4))
-    add("\nCells are mean ± sample standard deviation over seeds (a single value for one seed). "
-        "The rule-based driver is deterministic: one evaluation.\n")
+    add("\nOne training seed: the value and its 95% Wilson interval; several: mean ± sample standard deviation "
+        "over seeds. *Paper-faithful*: the method trained from scratch on the paper's observation and budget; "
+        "*best*: the project's recipe for the method (`lcmodels/recipes/<name>.toml`).\n")
+    add("## Every row (test and validation)\n")
+    add(all_runs_table(runs))
+    add("\nSafety layer: the final policy proposes each decision, the lookahead planner (imagining from what "
+        "the ego's sensors show) vetoes a proposal it foresees crashing; overrides / decisions with a choice.\n")
 
     add("## Warm start: steps to reach the same success\n")
     rows = warm_start_rows(runs)
@@ -293,44 +390,22 @@ def write_report(exp: ReportInput, *, wall_s: float) -> Path:
         add("|---|---|---|---|")
         for r in rows:
             add(f"| {r['seed']} | {100 * r['target']:.1f} | {_steps(r['scratch'])} | {_steps(r['warm'])} |")
-        wst = [t.get("warm_start") for t in runs["ppo-hybrid-warm"].trains if t.get("warm_start")]
-        if wst:
-            w = wst[0]
-            add(f"\nBehaviour cloning on {w.get('decisions', '?')} decisions of {w.get('episodes', '?')} rule-based "
-                f"episodes: NLL {w.get('nll_before', math.nan):.3f} -> {w.get('nll_after', math.nan):.3f}.")
     else:
-        add("No completed Hybrid-PPO / warm-start pair yet.")
+        add("No completed `paper-hybrid-ppo` / `paper-hybrid-ppo-warm` pair.")
 
     add("\n## Learning curves\n")
     add(f"![Fig. 5: safe forward distance]({FIG5_NAME})\n")
     add(f"![Fig. 6: total reward]({FIG6_NAME})\n")
-    add("One curve per method: the mean over seeds of the rolling value over the last 100 training episodes, "
-        "with a min–max band over seeds; the dashed line is the rule-based driver on the held-out episodes.\n")
+    add("One curve per recipe with an online training stage (solid: paper-faithful, from scratch; dashed: the "
+        "project's recipes, from a clone): the mean over seeds of the rolling value over the last 100 training "
+        "episodes, with a min–max band over seeds; the dotted line is the rule-based driver on the test "
+        "episodes.\n")
 
-    add("## Training budget\n")
-    add("| Method | timesteps per seed | training episodes (mean) | training wall min (mean) | eval wall s (mean) |")
-    add("|---|---|---|---|---|")
-    for m in METHODS:
-        r = runs[m.key]
-        steps = sorted({int(t.get("timesteps", 0)) for t in r.trains}) or [method_timesteps(p, METHOD_BY_KEY[m.key])]
-        add(f"| {m.label} | {', '.join(str(s) for s in steps)} | "
-            f"{fmt_cell([t.get('episodes', math.nan) for t in r.trains], digits=0)} | "
-            f"{fmt_cell([t.get('wall_s', math.nan) / 60 for t in r.trains], digits=1)} | "
-            f"{fmt_cell([e.get('wall_s', math.nan) for e in r.evals], digits=1)} |")
-
-    add("\n## Stages\n")
+    add("## Stages\n")
     add("| stage | this run | recorded wall s | directory |")
     add("|---|---|---|---|")
-    for s in exp.stages:
-        add(f"| {s.name} | {s.status} | {s.wall_s:.1f} | `{_rel(s.path, out)}` |")
-
-    add("\n## Files\n")
-    add("| row | seed | metrics |")
-    add("|---|---|---|")
-    add(f"| Table II | — | `predictor/metrics.json` |\n| {RULE_LABEL} | — | `{RULE_KEY}/metrics.json` |")
-    for m in METHODS:
-        for s in runs[m.key].seeds:
-            add(f"| {m.label} | {s} | `{_rel(policy_dir(out, m.key, s), out)}/metrics.json` |")
+    for st in exp.stages:
+        add(f"| {st.name} | {st.status} | {st.wall_s:.1f} | `{_rel(st.path, out)}` |")
 
     add("\n## Reproduce\n")
     add("```bash")

@@ -64,7 +64,14 @@ def _toml_table(data: dict[str, object], path: list[str], lines: list[str]) -> N
             _toml_table(v, [*path, k], lines)
 
 
-def _parse_value(text: str, like: object, what: str, declared: str = "") -> object:
+def toml_text(data: dict[str, object]) -> str:
+    """A table (nested tables as TOML tables) as TOML text that ``tomllib`` reads back equal."""
+    lines: list[str] = []
+    _toml_table(data, [], lines)
+    return "\n".join(lines).strip() + "\n"
+
+
+def parse_value(text: str, like: object, what: str, declared: str = "") -> object:
     """``text`` read as the field's declared type (else as the type of its current value ``like``)."""
     if declared in ("float", "int", "bool", "str"):
         like = {"float": 0.0, "int": 0, "bool": False, "str": ""}[declared]
@@ -215,7 +222,7 @@ class JsonConfig:
                 raise ValueError(f"--set {text}: {owner} has no field {name!r} (fields: {', '.join(sorted(node))})")
             if isinstance(node[name], dict):
                 raise ValueError(f"--set {text}: {name} is a nested config; set its fields ({name}.field=value)")
-            node[name] = _parse_value(value.strip(), node[name], f"--set {text}", field_type(obj, name))
+            node[name] = parse_value(value.strip(), node[name], f"--set {text}", field_type(obj, name))
         try:
             return type(self).from_dict(data)
         except ValueError as exc:

@@ -15,33 +15,33 @@ from lcmodels.experiment import (
     FIG5_NAME,
     FIG6_NAME,
     INVOCATIONS,
-    METHOD_BY_KEY,
-    METHODS,
+    ORACLE_KEY,
     PAPER_TABLE3,
     PAPER_TABLE4,
     PRESETS,
     REPORT_NAME,
+    ROWS,
     RULE_KEY,
-    RULE_LABEL,
     Experiment,
     Preset,
-    policy_config,
     policy_dir,
 )
-from lcmodels.policy.train import check_run_dir
+from lcmodels.recipe import load_recipe
 
 SEEDS = 2
+RECIPES = PRESETS["tiny"].recipes
 
 
 @pytest.mark.slow
 def test_tiny_preset_end_to_end(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
-    """One pipeline run (under pytest-xdist a shared fixture would run once per worker)."""
+    """One pipeline run of every packaged recipe (under pytest-xdist a shared fixture would run once per worker)."""
     run_dir = tmp_path / "tiny"
     assert experiment_main(["--preset", "tiny", "--seeds", str(SEEDS), "--out", str(run_dir), "-q"]) == 0
+    check_every_recipe_kind_ran(run_dir)
     check_report_holds_the_numbers_of_the_metrics_files(run_dir)
     check_parallel_policies_equal_sequential_ones(run_dir)
-    check_rerun_skips_everything_and_a_changed_preset_value_is_stale(run_dir, capsys)
-    check_publish_copies_the_report_and_every_metrics_file_it_names(run_dir, tmp_path / "published", capsys)
+    check_rerun_skips_everything_and_a_changed_recipe_is_stale(run_dir, capsys)
+    check_publish_copies_the_report_and_every_metrics_file(run_dir, tmp_path / "published", capsys)
     check_the_report_states_the_wall_time_of_every_invocation(run_dir)
     check_skip_train_reports_complete_policies_with_their_time_and_keeps_the_command(run_dir)
 
@@ -72,10 +72,9 @@ def parse_cell(cell: str) -> tuple[float, float | None]:
     return float(m.group(1)), (float(m.group(2)) if m.group(2) else None)
 
 
-def evals(out: Path, key: str) -> list[dict]:
-    if key == RULE_KEY:
-        return [json.loads((out / RULE_KEY / "metrics.json").read_text())["eval"]]
-    return [json.loads((policy_dir(out, key, s) / "metrics.json").read_text())["eval"] for s in range(SEEDS)]
+def stage_metrics(out: Path, key: str, seed: int = 0, part: str = "eval") -> dict:
+    path = out / key / "metrics.json" if key in (RULE_KEY, ORACLE_KEY) else policy_dir(out, key, seed) / part / "metrics.json"
+    return json.loads(path.read_text())
 
 
 def check_cell(cell: str, values: list[float]) -> None:
@@ -89,6 +88,26 @@ def check_cell(cell: str, values: list[float]) -> None:
 
 
 # ------------------------------------------------------------------------------------------------ checks
+def check_every_recipe_kind_ran(run_dir: Path) -> None:
+    """Clone, DAgger and train stages, paper / best / demo recipes, the safety layer and both references."""
+    kinds, stages = set(), set()
+    for name in RECIPES:
+        r = load_recipe(name)
+        kinds.add(r.kind)
+        for s in range(SEEDS):
+            for st in r.stages:
+                stages.add(st)
+                assert (policy_dir(run_dir, name, s) / st).is_dir(), (name, st)
+            m = stage_metrics(run_dir, name, s)
+            assert m["test"]["episodes"] == PRESETS["tiny"].test_episodes
+            assert set(m["val"]) == {str(v) for v in PRESETS["tiny"].val_seeds}
+    assert kinds == {"paper", "best", "demo"} and stages == {"clone", "dagger", "train"}
+    safety = stage_metrics(run_dir, "hybrid-ppo", 0, "safety")
+    assert safety["test"]["planner_choices"] > 0 and safety["config"]["follow"]
+    for ref in (RULE_KEY, ORACLE_KEY):
+        assert stage_metrics(run_dir, ref)["test"]["episodes"] == PRESETS["tiny"].test_episodes
+
+
 def check_report_holds_the_numbers_of_the_metrics_files(run_dir: Path) -> None:
     report = (run_dir / REPORT_NAME).read_text()
     for name in (FIG5_NAME, FIG6_NAME):
@@ -105,53 +124,66 @@ def check_report_holds_the_numbers_of_the_metrics_files(run_dir: Path) -> None:
         assert float(t2[label]["FDE / FAD"]) == pytest.approx(pred[key]["fde"], abs=5e-5)
     assert t2["Paper (Hybrid-PPO), units as reported"]["ADE / MAD"] == "0.382"
 
-    labels = {m.label: m.key for m in METHODS} | {RULE_LABEL: RULE_KEY}
-    for heading, paper, n_rows in (("## Table III", PAPER_TABLE3, 5), ("## Table IV", PAPER_TABLE4, 4)):
+    labels = {v: k for k, v in ROWS.items()}
+    recipes = [load_recipe(n) for n in RECIPES]
+    for heading, paper, n_rows in (("## Table III", PAPER_TABLE3, 4), ("## Table IV", PAPER_TABLE4, 4)):
         rows = md_table(report, heading)
         assert len(rows) == n_rows
         for row in rows:
             key = labels[row["Method"]]
-            ev = evals(run_dir, key)
-            assert int(row["seeds"]) == len(ev)
-            for rate in ("success", "collision", "timeout"):
-                check_cell(row[f"{rate.capitalize()} % (ours)"], [100 * e[f"{rate}_rate"] for e in ev])
-                want = f"{paper[key][('success', 'collision', 'timeout').index(rate)]:.1f}" if key in paper else "—"
-                assert row[f"{rate.capitalize()} % (paper)"] == want
-            check_cell(row["Off-road % (ours)"], [100 * e["off_road_rate"] for e in ev])
-            check_cell(row["Safe forward m (ours)"], [e["mean_safe_forward_m"] for e in ev])
-            check_cell(row["Return (ours)"], [e["mean_return"] for e in ev])
+            want = f"{paper[key][0]:.1f} / {paper[key][1]:.1f}" if key in paper else "—"
+            assert row["paper: success / collision %"] == want
+            for kind, col in (("paper", "paper-faithful recipe: success %"), ("best", "best recipe: success %")):
+                cands = [r.name for r in recipes if r.row == key and r.kind == kind]
+                if not cands:
+                    assert row[col] == "—"
+                    continue
+                chosen = re.search(r"\(`([a-z0-9-]+)`\)", row[col]).group(1)
+                assert chosen in cands
+
+                def val(name: str) -> float:
+                    return float(np.mean([v["success_rate"] for s in range(SEEDS)
+                                          for v in stage_metrics(run_dir, name, s)["val"].values()]))
+
+                assert val(chosen) == max(val(c) for c in cands)  # chosen on validation, never on test
+                check_cell(row[col].split(" (`")[0], [100 * stage_metrics(run_dir, chosen, s)["test"]["success_rate"]
+                                                      for s in range(SEEDS)])  # fmt: skip
+    every = {re.search(r"\(`([^`]+)`\)$", r["row"]).group(1): r for r in md_table(report, "## Every row")}
+    assert set(every) == {RULE_KEY, ORACLE_KEY, *RECIPES, "hybrid-ppo+safety"}
+    rule = stage_metrics(run_dir, RULE_KEY)["test"]
+    assert every[RULE_KEY]["test success %"].startswith(f"{100 * rule['success_rate']:.1f} [")
     warm = md_table(report, "## Warm start")
     assert [int(r["seed"]) for r in warm] == list(range(SEEDS))
-    # A policy stage records the compute behind its outputs: training summed over every resumed part
-    # (what its metrics.json says) plus the evaluation, not only the last invocation.
-    for m in METHODS:
+    # A training stage records the compute behind its outputs: training summed over every resumed part.
+    for name in RECIPES:
+        r = load_recipe(name)
         for s in range(SEEDS):
-            name = f"{m.key}__seed{s}.json"
-            record = json.loads((run_dir / "stages" / name).read_text())
-            metrics = json.loads((policy_dir(run_dir, m.key, s) / "metrics.json").read_text())
-            assert record["wall_s"] == pytest.approx(metrics["train"]["wall_s"] + metrics["eval"]["wall_s"])
+            for st in (x for x in r.stages if x != "dagger"):
+                record = json.loads((run_dir / "stages" / f"{name}__seed{s}__{st}.json").read_text())
+                metrics = stage_metrics(run_dir, name, s, st)
+                assert record["wall_s"] == pytest.approx(metrics["train"]["wall_s"])
 
 
 def without_wall_times(metrics: dict) -> dict:
-    """The results of a run, without what differs between two runs of it: wall times (the policy file that
-    was evaluated is the same bytes, so its hash stays in)."""
-    return {part: {k: v for k, v in metrics[part].items() if k != "wall_s"}
-            for part in ("config", "eval", "train")}
+    """The results of an evaluation, without what differs between two runs of it: wall times."""
+    return {part: ({k: v for k, v in metrics[part].items() if k != "wall_s"} if part == "test" else
+                   {s: {k: v for k, v in e.items() if k != "wall_s"} for s, e in metrics[part].items()})
+            for part in ("test", "val")}  # fmt: skip
 
 
 def check_parallel_policies_equal_sequential_ones(run_dir: Path) -> None:
-    """Two policy stages redone by ``--jobs 2`` worker processes give the same metrics as the first run."""
-    redo = [("ppo-pure", 0), ("a2c-hybrid", 1)]
+    """Two recipes redone by ``--jobs 2`` worker processes give the same policies and figures as the first run."""
+    redo = [("paper-ppo-pure", 0), ("a2c-hybrid", 1)]
     before = {}
     for key, seed in redo:
-        path = policy_dir(run_dir, key, seed)
-        before[key] = without_wall_times(json.loads((path / "metrics.json").read_text()))
-        (path / "policy.safetensors").unlink()  # outputs changed: the stage is redone from scratch
+        d = policy_dir(run_dir, key, seed)
+        before[key] = (without_wall_times(stage_metrics(run_dir, key, seed)), (d / "train" / "policy.safetensors").read_bytes())
+        (d / "train" / "policy.safetensors").unlink()  # outputs changed: the stage is redone from scratch
     assert experiment_main(["--preset", "tiny", "--seeds", str(SEEDS), "--out", str(run_dir), "--jobs", "2", "-q"]) == 0
     for key, seed in redo:
-        after = json.loads((policy_dir(run_dir, key, seed) / "metrics.json").read_text())
-        assert after["eval"]["episodes"] == PRESETS["tiny"].eval_episodes
-        assert without_wall_times(after) == before[key]
+        d = policy_dir(run_dir, key, seed)
+        after = (without_wall_times(stage_metrics(run_dir, key, seed)), (d / "train" / "policy.safetensors").read_bytes())
+        assert after == before[key]
 
 
 def test_a_second_run_in_a_directory_in_use_is_refused(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
@@ -170,46 +202,28 @@ def test_a_second_run_in_a_directory_in_use_is_refused(tmp_path: Path, capsys: p
     assert not (run_dir / "corpus").exists()
 
 
-def check_rerun_skips_everything_and_a_changed_preset_value_is_stale(
-    run_dir: Path, capsys: pytest.CaptureFixture[str]
-) -> None:
-    zips = sorted(run_dir.glob("policies/*/seed*/policy.safetensors"))
-    assert len(zips) == len(METHODS) * SEEDS
-    before = {p: p.stat().st_mtime_ns for p in zips}
+def check_rerun_skips_everything_and_a_changed_recipe_is_stale(run_dir: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    policies = sorted(run_dir.glob("policies/*/seed*/*/policy.safetensors"))
+    before = {p: p.stat().st_mtime_ns for p in policies}
     capsys.readouterr()
     assert experiment_main(["--preset", "tiny", "--seeds", str(SEEDS), "--out", str(run_dir)]) == 0
     out = capsys.readouterr().out
-    n_stages = 4 + len(METHODS) * SEEDS
+    n_stages = len(list((run_dir / "stages").glob("*.json")))
     assert f"0 stages computed, {n_stages} complete and skipped" in out
     assert out.count("complete, skipped") == n_stages
-    assert {p: p.stat().st_mtime_ns for p in zips} == before
+    assert {p: p.stat().st_mtime_ns for p in policies} == before
 
-    # Records and runs written before PolicyConfig had `slots` stand for 8 slots: still complete, resumable.
-    for path in (run_dir / "stages").glob("*seed*.json"):
-        record = json.loads(path.read_text())
-        del record["config"]["slots"]
-        path.write_text(json.dumps(record))
-    run_json = policy_dir(run_dir, "ppo-pure", 0) / "run.json"
-    stored = json.loads(run_json.read_text())
-    del stored["config"]["slots"]
-    run_json.write_text(json.dumps(stored))
-    assert {s.status for s in Experiment(PRESETS["tiny"], run_dir, seeds=SEEDS).plan()} == {"skipped"}
-    check_run_dir(policy_config(PRESETS["tiny"], METHOD_BY_KEY["ppo-pure"], 0, None), run_json.parent, None)
-
-    # One more demo episode: the demos and the warm-started runs are stale, nothing else.
-    changed = Experiment(dataclasses.replace(PRESETS["tiny"], demo_episodes=3), run_dir, seeds=SEEDS)
-    plan = {s.name: s.status for s in changed.plan()}
-    warm = {f"ppo-hybrid-warm/seed{s}" for s in range(SEEDS)}
-    assert {n for n, st in plan.items() if st != "skipped"} == {"demos"} | warm
-    assert plan["demos"].startswith("would run (stale: config changed")
-    # Redo the demos for real: the warm-started runs now see other inputs; the rest stays complete.
-    assert changed.demos().status == "done"
-    assert len(list((run_dir / "demos").glob("*.mcap"))) == 3
-    plan = {s.name: s.status for s in changed.plan()}
-    assert plan["demos"] == "skipped"
-    assert {n for n, st in plan.items() if st != "skipped"} == warm
-    assert all("inputs changed" in plan[n] for n in warm)
-    assert {p: p.stat().st_mtime_ns for p in zips} == before
+    # A recipe file with other demonstration episodes: its demos, clone, train and evaluation are stale; the
+    # packaged recipe sharing the old demonstrations and every other recipe stay complete.
+    changed = load_recipe("pure-ppo").with_settings(["demos.seed=6000"])
+    path = run_dir.parent / "pure-ppo.toml"
+    path.write_text(changed.to_toml())
+    recipes = tuple(str(path) if n == "pure-ppo" else n for n in RECIPES)
+    exp = Experiment(dataclasses.replace(PRESETS["tiny"], recipes=recipes), run_dir, seeds=SEEDS)
+    plan = {s.name: s.status for s in exp.plan()}
+    stale = {n for n, st in plan.items() if st != "skipped"}
+    assert stale == {"demos/oracle-s6000-n2"} | {f"pure-ppo/seed{s}/{st}" for s in range(SEEDS) for st in ("clone", "train")}
+    assert {p: p.stat().st_mtime_ns for p in policies} == before
 
 
 def test_an_interrupted_recording_stage_keeps_the_time_of_its_first_part(tmp_path: Path) -> None:
@@ -253,15 +267,17 @@ def test_an_interrupted_invocation_keeps_its_wall_time_until_its_last_progress_l
     assert not inv["finished"] and inv["wall_s"] > 0 and len(lines) >= 4
 
 
-def test_policy_stage_config_follows_the_preset() -> None:
+def test_policy_stage_config_follows_the_recipe_and_the_preset() -> None:
     tiny = PRESETS["tiny"]
-    from lcmodels.experiment import policy_config
-
-    a2c = policy_config(tiny, METHOD_BY_KEY["a2c-hybrid"], 1, None)
-    assert (a2c.algo, a2c.obs, a2c.seed, a2c.learning_rate, a2c.n_steps) == ("a2c", "hybrid", 1, 7e-4, 8)
-    assert policy_config(tiny, METHOD_BY_KEY["dqn-hybrid"], 0, None).learning_rate == 1e-4
-    warm = policy_config(tiny, METHOD_BY_KEY["ppo-hybrid-warm"], 0, Path("demos"))
-    assert warm.warm_start == str(Path("demos").resolve())
+    a2c = load_recipe("paper-a2c").policy_config("train", scenario="tiny", seed=1, caps=tiny.cap_dict)
+    assert (a2c.algo, a2c.obs, a2c.seed, a2c.learning_rate, a2c.n_steps, a2c.timesteps) == ("a2c", "hybrid", 1, 7e-4, 8, 128)
+    assert load_recipe("paper-dqn").policy_config("train", scenario="paper", seed=0).learning_rate == 1e-4
+    best = load_recipe("hybrid-ppo")
+    clone = best.policy_config("clone", scenario="paper", seed=0, warm_start="/d")
+    train = best.policy_config("train", scenario="paper", seed=0, init_policy="/p.safetensors")
+    assert (clone.timesteps, clone.warm_start, clone.warm_start_epochs, clone.window_features) == (0, "/d", 20, True)
+    assert (train.timesteps, train.learning_rate, train.freeze_image, train.init_policy) == (1_200_000, 3e-5, True,
+                                                                                           "/p.safetensors")
     with pytest.raises(ValueError, match="corpus_episodes"):
         Preset(name="x", corpus_episodes=2)
 
@@ -286,24 +302,25 @@ def test_cli_bad_input(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> No
         experiment_main(["--help"])
     assert exc.value.code == 0
     assert "REPORT.md" in capsys.readouterr().out
+    assert experiment_main(["--preset", "tiny", "--recipe", "no-such-recipe", "--out", str(tmp_path / "y")]) == 2
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1 and "unknown recipe 'no-such-recipe'" in err and not (tmp_path / "y").exists()
 
 
-
-def check_publish_copies_the_report_and_every_metrics_file_it_names(
-    run_dir: Path, dest: Path, capsys: pytest.CaptureFixture[str]
-) -> None:
+def check_publish_copies_the_report_and_every_metrics_file(run_dir: Path, dest: Path,
+                                                         capsys: pytest.CaptureFixture[str]) -> None:  # fmt: skip
     from lcmodels.publish import publish
 
     publish(run_dir, dest)
     report = (dest / REPORT_NAME).read_text()
     assert report == (run_dir / REPORT_NAME).read_text()
-    named = re.findall(r"`([^`]+/metrics\.json)`", report)
-    assert len(named) == 2 + len(METHODS) * SEEDS
-    for rel in named:
+    metrics = sorted(p.relative_to(run_dir) for p in run_dir.rglob("metrics.json"))
+    assert len(metrics) > 3 * len(RECIPES)
+    for rel in metrics:
         assert (dest / rel).read_bytes() == (run_dir / rel).read_bytes()
     assert (dest / FIG5_NAME).is_file() and (dest / FIG6_NAME).is_file()
-    big = [p for p in dest.rglob("*") if p.suffix in (".zip", ".safetensors", ".pt", ".mcap", ".npy")]
-    assert not big and sum(p.stat().st_size for p in dest.rglob("*") if p.is_file()) < 2_000_000
+    big = [p for p in dest.rglob("*") if p.suffix in (".zip", ".safetensors", ".pt", ".mcap", ".npy", ".npz")]
+    assert not big and sum(p.stat().st_size for p in dest.rglob("*") if p.is_file()) < 4_000_000
     with pytest.raises(ValueError, match="exists"):
         publish(run_dir, dest)  # nothing is overwritten silently
     (dest / "NOTE.md").write_text("written by hand")
@@ -327,12 +344,36 @@ def check_skip_train_reports_complete_policies_with_their_time_and_keeps_the_com
     assert experiment_main(["--preset", "tiny", "--seeds", str(SEEDS), "--out", str(run_dir), "--skip-train", "-q"]) == 0
     report = (run_dir / REPORT_NAME).read_text()
     stages = {r["stage"]: r for r in md_table(report, "## Stages")}
-    for m in METHODS:
+    for name in RECIPES:
         for s in range(SEEDS):
-            row = stages[f"{m.key}/seed{s}"]
-            # The demos, redone with the first episode count again, are the same bytes as at first (start times
-            # derive from the seeds), so the warm-started runs are complete again too.
-            record = json.loads((run_dir / "stages" / f"{m.key}__seed{s}.json").read_text())
-            assert row["this run"] == "skipped" and float(row["recorded wall s"]) == pytest.approx(record["wall_s"], abs=0.051)
+            for st in (*load_recipe(name).stages, "eval"):
+                row = stages[f"{name}/seed{s}/{st}"]
+                record = json.loads((run_dir / "stages" / f"{name}__seed{s}__{st}.json").read_text())
+                assert row["this run"] == "skipped"
+                assert float(row["recorded wall s"]) == pytest.approx(record["wall_s"], abs=0.051)
     for heading in ("## Reproduce", "## Table III", "## Table IV"):
         assert report.split(heading)[1].split("##")[0] == before.split(heading)[1].split("##")[0]
+
+
+def test_an_interrupted_evaluation_keeps_the_splits_it_finished(tmp_path: Path) -> None:
+    """The rule-based driver's evaluation stopped after its validation split: the rerun evaluates only the test split."""
+
+    class Stop(Exception):
+        pass
+
+    def stop_after_validation(msg: str) -> None:
+        if "] val (seed" in msg:
+            raise Stop
+
+    preset = dataclasses.replace(PRESETS["tiny"], recipes=())
+    with pytest.raises(Stop):
+        Experiment(preset, tmp_path / "run", progress=stop_after_validation).reference(RULE_KEY)
+    first = tmp_path / "run" / RULE_KEY / "val-seed0.json"
+    stamp = first.stat().st_mtime_ns
+    assert not (tmp_path / "run" / RULE_KEY / "metrics.json").exists()
+    lines: list[str] = []
+    res = Experiment(preset, tmp_path / "run", progress=lines.append).reference(RULE_KEY)
+    assert res.status == "done" and first.stat().st_mtime_ns == stamp
+    assert not any("] val (seed" in line for line in lines) and any("] test (seed" in line for line in lines)
+    m = json.loads((tmp_path / "run" / RULE_KEY / "metrics.json").read_text())
+    assert m["val"]["0"] == json.loads(first.read_text()) and m["test"]["episodes"] == preset.test_episodes

@@ -12,12 +12,13 @@ import argparse
 import dataclasses
 
 from lcmodels.experiment import PRESETS, run_experiment
+from lcmodels.presets import PAPER_RECIPES
 
 if __name__ == "__main__":  # the corpus stage records with worker processes (spawn)
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--out", default="runs/paper-50k")
     args = ap.parse_args()
-    preset = dataclasses.replace(PRESETS["paper"], name="paper-50k", ppo_timesteps=50_000, a2c_timesteps=50_000,
-                                 dqn_timesteps=50_000, predictor_time_limit_s=300.0, record_eval=False)
+    preset = dataclasses.replace(PRESETS["paper"], name="paper-50k", recipes=PAPER_RECIPES,
+                                 caps=(("timesteps", 50_000),), predictor_time_limit_s=300.0)
     run_experiment(preset, args.out, seeds=1, command=f"python -m experiments.paper_50k.run --out {args.out}", threads=1,
                    progress=lambda m: print(m, flush=True))

@@ -267,6 +267,7 @@ def load_policy(path: str | os.PathLike[str], *, obs_mode: str | None = None,
     """
     from lcmodels.policy.obs import needs_predictor
 
+    path = Path(path)
     meta = read_meta(path)
     if meta.get("legacy_pickle") and not trust_pickle:
         raise ValueError(f"{path} refused: {TRUST_PICKLE_HINT}")
@@ -280,6 +281,8 @@ def load_policy(path: str | os.PathLike[str], *, obs_mode: str | None = None,
     pred_path: Path | None = None
     if needs_predictor(str(meta.get("obs_mode"))):
         stored = (meta.get("predictor") or {}).get("path")
+        if stored and not Path(stored).is_absolute():  # a zoo entry's predictor: relative to the policy file
+            stored = str(path.parent / stored)
         pred_path = Path(predictor) if predictor is not None else (Path(stored) if stored else None)
         if pred_path is None or not pred_path.is_file():
             raise ValueError(

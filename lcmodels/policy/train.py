@@ -549,7 +549,8 @@ def _frozen_image_encoder(cfg: PolicyConfig, run: _Run, config: ScenarioConfig,
                              f"{type(exc).__name__})") from None
     else:
         assert initial is not None, "a first start has the initial policy"
-        extractor = initial.model.policy.features_extractor
+        policy = initial.model.policy
+        extractor = policy.q_net.features_extractor if hasattr(policy, "q_net") else policy.features_extractor
         if not isinstance(extractor, HybridExtractor) or "image" not in extractor.branches:
             raise ValueError(f"init_policy {cfg.init_policy} has no image branch to freeze")
         state = {k: v.detach().cpu() for k, v in extractor.branches["image"].state_dict().items()}

@@ -1,0 +1,358 @@
+"""Recipes: how a policy of a table row is made, as data.
+
+A recipe is a TOML file (``lcmodels/recipes/<name>.toml``, or any path) naming its stages in order and the
+settings of each; ``lc-experiment`` runs it stage by stage, resumably, with the preset's scenario,
+evaluation and budget caps::
+
+    name = "hybrid-ppo"            # the file's stem
+    version = 1                    # raised when a change alters what the recipe reaches
+    row = "ppo-hybrid"             # the table row it fills (lcmodels.presets.ROWS)
+    kind = "best"                  # paper (faithful to the paper), best (the project's best), demo
+    stages = ["clone", "train"]    # in order, from: clone, dagger, train
+
+    [policy]                       # PolicyConfig fields of every stage (not seed, scenario, paths, evaluation)
+    algo = "ppo"
+    obs = "hybrid"
+    window_features = true
+
+    [demos]                        # the demonstrations a clone learns from (recorded once per experiment)
+    driver = "oracle"
+    episodes = 400
+
+    [clone]                        # behaviour cloning: PolicyConfig fields for this stage
+    warm_start_epochs = 20
+
+    [dagger]                       # DAgger rounds from the clone
+    rounds = 6
+
+    [train]                        # online RL, from the previous stage's policy when there is one
+    timesteps = 1200000
+    learning_rate = 3e-5
+    freeze_image = true
+
+    [safety]                       # optional: also evaluate the final policy behind the lookahead planner
+    follow = "pure-ppo"            # the recipe whose policy the imagined futures follow
+    horizon = 32
+    perceived = true
+
+The stage tables override ``[policy]`` for their stage. ``--set policy.learning_rate=1e-4`` (or
+``train.timesteps=...``, ``demos.episodes=...``) overrides a value on the command line. Whatever a recipe
+reached is recorded next to it (``<name>.reached.json``) by ``tools/publish_results.py``.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import os
+import re
+from collections.abc import Sequence
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+from lcsim.config import parse_value, read_data_file
+
+RECIPES_DIR = Path(__file__).parent / "recipes"
+STAGE_KINDS: tuple[str, ...] = ("clone", "dagger", "train")
+RECIPE_KINDS: tuple[str, ...] = ("paper", "best", "demo")
+EXPERIMENT_FIELDS: tuple[str, ...] = ("seed", "scenario", "warm_start", "init_policy", "eval_episodes", "eval_seed",
+                                      "record_eval")  # fmt: skip
+"""PolicyConfig fields the experiment sets (the training seed, the preset's scenario and evaluation, the paths
+of the previous stages): a recipe that sets one is refused."""
+_NAME = re.compile(r"^[a-z0-9][a-z0-9-]*$")
+
+
+def _policy_fields() -> dict[str, str]:
+    from lcmodels.policy.config import PolicyConfig
+
+    return {f.name: str(f.type) for f in dataclasses.fields(PolicyConfig)}
+
+
+def _check_table(table: dict[str, Any], where: str) -> None:
+    fields = _policy_fields()
+    for key, value in table.items():
+        if key not in fields:
+            raise ValueError(f"{where}: unknown PolicyConfig field {key!r}")
+        if key in EXPERIMENT_FIELDS:
+            raise ValueError(f"{where}: {key!r} is set by the experiment, not by a recipe")
+        if isinstance(value, dict | list):
+            raise ValueError(f"{where}.{key}: expected a single value, got {value!r}")
+
+
+@dataclass(frozen=True, slots=True, kw_only=True)
+class DemoSpec:
+    driver: str = "oracle"
+    """Who drives the demonstrations (an lcsim driver name)."""
+    episodes: int = 400
+    seed: int = 5000
+    """First user seed (the demonstrations' seeds are kept apart from training's and evaluation's)."""
+
+
+@dataclass(frozen=True, slots=True, kw_only=True)
+class DaggerSpec:
+    rounds: int = 2
+    episodes: int = 100
+    """Episodes the policy drives per round."""
+    epochs: int = 10
+    seed: int = 100_000
+    expert: str = "oracle"
+    labels: str = "plan"
+
+
+@dataclass(frozen=True, slots=True, kw_only=True)
+class SafetySpec:
+    follow: str = ""
+    """The recipe whose final policy (same training seed) the planner's imagined futures follow: one that
+    does not read the image. '' with a policy that does not read the image: the policy itself."""
+    horizon: int = 16
+    """Decisions imagined after each candidate (16: 8 s)."""
+    samples: int = 1
+    perceived: bool = True
+    """Imagine from what the ego's sensors show (no privileged state)."""
+
+
+_SPECS: dict[str, type] = {"demos": DemoSpec, "dagger": DaggerSpec, "safety": SafetySpec}
+_STAGE_TABLES = ("clone", "train")
+
+
+@dataclass(frozen=True, slots=True, kw_only=True)
+class Recipe:
+    name: str
+    version: int = 1
+    row: str
+    kind: str = "best"
+    label: str = ""
+    """What the report calls it (default: the row's label)."""
+    description: str = ""
+    stages: tuple[str, ...] = ("train",)
+    policy: dict[str, Any] = field(default_factory=dict)
+    clone: dict[str, Any] = field(default_factory=dict)
+    train: dict[str, Any] = field(default_factory=dict)
+    demos: DemoSpec = DemoSpec()
+    dagger: DaggerSpec = DaggerSpec()
+    safety: SafetySpec | None = None
+
+    def __post_init__(self) -> None:
+        from lcmodels.presets import ROWS
+
+        where = f"recipe {self.name!r}"
+        if not isinstance(self.name, str) or not _NAME.match(self.name):
+            raise ValueError(f"recipe name must be lower-case letters, digits and '-', got {self.name!r}")
+        if self.row not in ROWS:
+            raise ValueError(f"{where}: row must be one of {', '.join(ROWS)}, got {self.row!r}")
+        if self.kind not in RECIPE_KINDS:
+            raise ValueError(f"{where}: kind must be one of {', '.join(RECIPE_KINDS)}, got {self.kind!r}")
+        if not isinstance(self.version, int) or isinstance(self.version, bool) or self.version < 1:
+            raise ValueError(f"{where}: version must be an integer >= 1, got {self.version!r}")
+        stages = tuple(self.stages)
+        if not stages or any(s not in STAGE_KINDS for s in stages) or list(stages) != sorted(
+                set(stages), key=STAGE_KINDS.index):
+            raise ValueError(f"{where}: stages must be some of {', '.join(STAGE_KINDS)}, each once and in that "
+                             f"order, got {list(self.stages)!r}")  # fmt: skip
+        if "dagger" in stages and "clone" not in stages:
+            raise ValueError(f"{where}: a dagger stage needs a clone stage before it")
+        for name in ("policy", *_STAGE_TABLES):
+            table = getattr(self, name)
+            if not isinstance(table, dict):
+                raise ValueError(f"{where}: [{name}] must be a table, got {table!r}")
+            _check_table(table, f"{where} [{name}]")
+        for name, cls in _SPECS.items():
+            spec = getattr(self, name)
+            if spec is not None:
+                for f in dataclasses.fields(cls):
+                    v = getattr(spec, f.name)
+                    want = {"int": int, "str": str, "bool": bool}[str(f.type)]
+                    if not isinstance(v, want) or (want is int and isinstance(v, bool)):
+                        raise ValueError(f"{where}: {name}.{f.name} must be of type {f.type}, got {v!r}")
+                    if want is int and v < (0 if f.name == "seed" else 1):
+                        raise ValueError(f"{where}: {name}.{f.name} must be >= 1, got {v!r}")
+        from lcsim.registry import DRIVER_NAMES
+
+        if "clone" in stages and self.demos.driver not in DRIVER_NAMES:
+            raise ValueError(f"{where}: demos.driver must be one of {', '.join(DRIVER_NAMES)}, "
+                             f"got {self.demos.driver!r}")  # fmt: skip
+        if self.dagger.labels not in ("plan", "winning"):
+            raise ValueError(f"{where}: dagger.labels must be plan or winning, got {self.dagger.labels!r}")
+        if self.safety is not None and self.safety.follow and not _NAME.match(self.safety.follow):
+            raise ValueError(f"{where}: safety.follow must name a recipe, got {self.safety.follow!r}")
+        for stage in (s for s in stages if s != "dagger"):  # each training stage's PolicyConfig, paths stood in for
+            try:
+                self.policy_config(stage, scenario="paper", seed=0, warm_start="demos" if stage == "clone" else "",
+                                   init_policy="previous.safetensors" if stage != stages[0] else "")  # fmt: skip
+            except ValueError as exc:
+                raise ValueError(f"{where}, stage {stage}: {exc}") from None
+        object.__setattr__(self, "stages", stages)
+
+    @property
+    def final_stage(self) -> str:
+        return self.stages[-1]
+
+    def stage_settings(self, stage: str) -> dict[str, Any]:
+        """The PolicyConfig fields this recipe gives stage ``stage`` (``[policy]`` then the stage's table)."""
+        return {**self.policy, **(getattr(self, stage) if stage in _STAGE_TABLES else {})}
+
+    def policy_config(self, stage: str, *, scenario: str, seed: int, warm_start: str = "", init_policy: str = "",
+                      eval_episodes: int = 200, eval_seed: int = 0, record_eval: bool = False,
+                      caps: dict[str, int] | None = None) -> Any:  # fmt: skip
+        """The :class:`~lcmodels.policy.config.PolicyConfig` of stage ``clone`` or ``train`` (a dagger stage
+        trains with its clone's); ``caps`` lower integer fields to at most the given values (the tiny and
+        quick presets' budgets)."""
+        from lcmodels.policy.config import PolicyConfig, default_learning_rate
+
+        settings = self.stage_settings(stage)
+        if stage in ("clone", "dagger"):
+            settings["timesteps"] = 0
+        elif "learning_rate" not in settings:  # fine-tuning from a previous stage learns at the slower rate
+            settings["learning_rate"] = default_learning_rate(settings.get("algo", "ppo"), fine_tune=bool(init_policy))
+        data = {**settings, "seed": seed, "scenario": scenario, "warm_start": warm_start if stage == "clone" else "",
+                "init_policy": init_policy if stage == "train" else "", "eval_episodes": eval_episodes,
+                "eval_seed": eval_seed, "record_eval": record_eval}  # fmt: skip
+        if caps:
+            defaults = PolicyConfig()
+            for key, cap in caps.items():
+                if key in data or hasattr(defaults, key):
+                    current = data.get(key, getattr(defaults, key, None))
+                    if isinstance(current, int) and not isinstance(current, bool) and current > cap:
+                        data[key] = cap
+        return PolicyConfig.from_dict(data, stored=False)
+
+    def capped(self, caps: dict[str, int] | None) -> Recipe:
+        """This recipe with its demonstrations, DAgger and safety budgets lowered to ``caps`` (policy fields
+        are capped by :meth:`policy_config`)."""
+        if not caps:
+            return self
+        changes: dict[str, Any] = {}
+        for name in _SPECS:
+            spec = getattr(self, name)
+            if spec is None:
+                continue
+            lowered = {f.name: min(getattr(spec, f.name), caps[f.name]) for f in dataclasses.fields(spec)
+                       if f.name in caps and f.name != "seed" and isinstance(getattr(spec, f.name), int)
+                       and not isinstance(getattr(spec, f.name), bool)}  # fmt: skip
+            if lowered:
+                changes[name] = dataclasses.replace(spec, **lowered)
+        return dataclasses.replace(self, **changes) if changes else self
+
+    # -- files ----------------------------------------------------------------------------------------
+    def to_dict(self) -> dict[str, Any]:
+        out: dict[str, Any] = {"name": self.name, "version": self.version, "row": self.row, "kind": self.kind,
+                               "label": self.label, "description": self.description, "stages": list(self.stages),
+                               "policy": dict(self.policy)}  # fmt: skip
+        for name in _STAGE_TABLES:
+            out[name] = dict(getattr(self, name))
+        for name in _SPECS:
+            spec = getattr(self, name)
+            if spec is not None:
+                out[name] = dataclasses.asdict(spec)
+        return out
+
+    @classmethod
+    def from_dict(cls, data: dict[str, Any], where: str = "recipe") -> Recipe:
+        if not isinstance(data, dict):
+            raise ValueError(f"{where}: expected a table")
+        known = {f.name for f in dataclasses.fields(cls)}
+        unknown = sorted(set(data) - known)
+        if unknown:
+            raise ValueError(f"{where}: unknown key(s) {unknown} (keys: {', '.join(sorted(known))})")
+        if "name" not in data or "row" not in data:
+            raise ValueError(f"{where}: needs 'name' and 'row'")
+        kwargs = dict(data)
+        for name, spec_cls in _SPECS.items():
+            if name in kwargs:
+                table = kwargs[name]
+                if not isinstance(table, dict):
+                    raise ValueError(f"{where}: [{name}] must be a table")
+                names = {f.name for f in dataclasses.fields(spec_cls)}
+                bad = sorted(set(table) - names)
+                if bad:
+                    raise ValueError(f"{where}: [{name}] has no key(s) {bad} (keys: {', '.join(sorted(names))})")
+                kwargs[name] = spec_cls(**table)
+        if "stages" in kwargs:
+            if not isinstance(kwargs["stages"], list | tuple):
+                raise ValueError(f"{where}: stages must be a list, got {kwargs['stages']!r}")
+            kwargs["stages"] = tuple(kwargs["stages"])
+        for key in ("name", "label", "description", "row", "kind"):
+            if key in kwargs and not isinstance(kwargs[key], str):
+                raise ValueError(f"{where}: {key} must be a string, got {kwargs[key]!r}")
+        try:
+            return cls(**kwargs)
+        except ValueError as exc:
+            msg = str(exc)  # "recipe 'NAME'..." from the checks: name the file instead
+            msg = re.sub(r"^recipe '[^']*'", where, msg) if msg.startswith("recipe '") else f"{where}: {msg}"
+            raise ValueError(msg) from None
+
+    def to_toml(self) -> str:
+        from lcsim.config import toml_text
+
+        return toml_text(self.to_dict())
+
+    def with_settings(self, settings: Sequence[str]) -> Recipe:
+        """This recipe with ``TABLE.KEY=VALUE`` settings (``policy.learning_rate=1e-4``, ``train.timesteps=300000``,
+        ``demos.episodes=100``, ``safety.horizon=32``); values read as the field's type. ``ValueError`` naming
+        the setting for an unknown table or key or a bad value."""
+        if not settings:
+            return self
+        data = self.to_dict()
+        fields = _policy_fields()
+        for text in settings:
+            key, sep, value = text.partition("=")
+            table, dot, name = key.strip().partition(".")
+            if not sep or not dot or not name:
+                raise ValueError(f"--set {text!r}: expected TABLE.KEY=VALUE (policy.learning_rate=1e-4)")
+            value = value.strip()
+            if table in ("policy", *_STAGE_TABLES):
+                if name not in fields:
+                    raise ValueError(f"--set {text}: PolicyConfig has no field {name!r}")
+                data[table][name] = parse_value(value, None, f"--set {text}", fields[name])
+            elif table in _SPECS:
+                spec_cls = _SPECS[table]
+                spec = getattr(self, table) or spec_cls()
+                names = {f.name: str(f.type) for f in dataclasses.fields(spec_cls)}
+                if name not in names:
+                    raise ValueError(f"--set {text}: [{table}] has no key {name!r} (keys: {', '.join(sorted(names))})")
+                data.setdefault(table, dataclasses.asdict(spec))[name] = parse_value(
+                    value, getattr(spec, name), f"--set {text}", names[name])
+            else:
+                raise ValueError(f"--set {text}: no table {table!r} (tables: policy, clone, train, demos, dagger, "
+                                 "safety)")  # fmt: skip
+        return Recipe.from_dict(data, where=f"recipe {self.name!r} with --set {', '.join(settings)}")
+
+
+def recipe_names() -> list[str]:
+    """The recipes that come with the package."""
+    return sorted(p.stem for p in RECIPES_DIR.glob("*.toml"))
+
+
+def recipe_path(name_or_path: str | os.PathLike[str]) -> Path:
+    text = os.fspath(name_or_path)
+    if Path(text).suffix in (".toml", ".json"):
+        return Path(text)
+    path = RECIPES_DIR / f"{text}.toml"
+    if not path.is_file():
+        raise ValueError(f"unknown recipe {text!r}; choose one of {', '.join(recipe_names())} or a .toml file")
+    return path
+
+
+def load_recipe(name_or_path: str | os.PathLike[str]) -> Recipe:
+    """A packaged recipe by name, or a recipe file. ``ValueError`` in one line naming the file and problem."""
+    path = recipe_path(name_or_path)
+    data = read_data_file(path, "recipe")
+    recipe = Recipe.from_dict(data, where=f"recipe {path}")
+    if recipe.name != path.stem:
+        raise ValueError(f"recipe {path}: name {recipe.name!r} differs from the file's name {path.stem!r}")
+    return recipe
+
+
+__all__ = [
+    "EXPERIMENT_FIELDS",
+    "RECIPES_DIR",
+    "RECIPE_KINDS",
+    "STAGE_KINDS",
+    "DaggerSpec",
+    "DemoSpec",
+    "Recipe",
+    "SafetySpec",
+    "load_recipe",
+    "recipe_names",
+    "recipe_path",
+]

@@ -1,0 +1,186 @@
+"""The model zoo: trained policies and the predictor they read, shipped in the repository (``zoo/``).
+
+Each entry is a directory ``zoo/<name>/`` holding ``policy.safetensors`` (weights and the policy's card,
+nothing that runs when loaded), ``policy.card.json`` and ``zoo.json`` (the recipe and commit it was trained
+with, its training time and its held-out figures); ``zoo/predictor/predictor.pt`` is the predictor the
+prediction and hybrid policies were trained with. ``zoo:NAME`` names an entry wherever a policy path is taken
+(``lc-eval zoo:hybrid-ppo``, ``lc-record --driver zoo:hybrid-ppo``, ``lc-view``). ``LC_ZOO`` points elsewhere.
+"""
+
+from __future__ import annotations
+
+import os
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+from lcmodels.fileio import POLICY_FILE, file_sha256, read_json
+
+ZOO_PREFIX = "zoo:"
+ENTRY_CARD = "zoo.json"
+PREDICTOR_DIR = "predictor"
+
+
+def zoo_dir() -> Path:
+    """``$LC_ZOO``, else ``zoo/`` beside the package (a source checkout)."""
+    return Path(os.environ.get("LC_ZOO") or Path(__file__).resolve().parents[1] / "zoo")
+
+
+@dataclass(frozen=True)
+class ZooEntry:
+    name: str
+    policy: Path
+    predictor: Path | None
+    """The zoo's predictor when the policy reads predictions, else None."""
+    card: dict[str, Any]
+
+    @property
+    def sha256(self) -> str:
+        return file_sha256(self.policy)
+
+
+def zoo_entries() -> list[ZooEntry]:
+    """Every entry of the zoo, by name (none when there is no zoo)."""
+    root = zoo_dir()
+    if not root.is_dir():
+        return []
+    return [zoo_entry(p.name) for p in sorted(root.iterdir()) if (p / POLICY_FILE).is_file()]
+
+
+def zoo_entry(name: str) -> ZooEntry:
+    """The entry ``name`` (``zoo:`` prefix optional). ``ValueError`` naming the entries there are."""
+    name = name.removeprefix(ZOO_PREFIX)
+    root = zoo_dir()
+    path = root / name / POLICY_FILE
+    if not name or "/" in name or not path.is_file():
+        have = sorted(p.name for p in root.iterdir() if (p / POLICY_FILE).is_file()) if root.is_dir() else []
+        raise ValueError(f"no zoo policy {name!r} in {root}; the zoo has: {', '.join(have) or 'nothing'}")
+    card = read_json(root / name / ENTRY_CARD) or {}
+    meta = read_json(root / name / "policy.card.json") or {}
+    predictor = root / PREDICTOR_DIR / "predictor.pt"
+    needs = str(meta.get("obs_mode", "")) in ("prediction", "hybrid")
+    return ZooEntry(name, path, predictor if needs and predictor.is_file() else None, card)
+
+
+def publish_entry(policy: str | os.PathLike[str], name: str, *, predictor: str | os.PathLike[str] | None,
+                  card: dict[str, Any], root: str | os.PathLike[str] | None = None,
+                  overwrite: bool = False) -> ZooEntry:  # fmt: skip
+    """Copy a trained ``policy.safetensors`` into the zoo as entry ``name`` with the zoo card ``card`` (recipe,
+    commit, training time, held-out figures), and ``predictor`` (the one it reads, if any) as the zoo's
+    predictor. The policy's own card then names the predictor relative to itself. ``ValueError`` for an entry
+    that exists (unless ``overwrite``) or a predictor other than the one the zoo holds already."""
+    import json
+    import shutil
+
+    from safetensors import safe_open
+    from safetensors.torch import save_file
+
+    from lcmodels.fileio import write_json
+    from lcmodels.policy.checkpoint import CARD_KEY, card_path
+
+    root = Path(root) if root is not None else zoo_dir()
+    if not name or "/" in name or name == PREDICTOR_DIR:
+        raise ValueError(f"zoo entry name {name!r} is not allowed")
+    dest = root / name
+    if (dest / POLICY_FILE).exists() and not overwrite:
+        raise ValueError(f"{dest / POLICY_FILE} exists; pass --overwrite to replace it")
+    with safe_open(str(policy), framework="pt") as f:
+        meta = json.loads((f.metadata() or {})[CARD_KEY])
+        tensors = {k: f.get_tensor(k) for k in f.keys()}
+    if predictor is not None:
+        pred_dest = root / PREDICTOR_DIR / "predictor.pt"
+        sha = file_sha256(predictor)
+        if pred_dest.is_file() and file_sha256(pred_dest) != sha and not overwrite:
+            raise ValueError(f"the zoo's predictor {pred_dest} differs from {predictor}; the zoo holds one predictor")
+        if (meta.get("predictor") or {}).get("sha256") != sha:
+            raise ValueError(f"{policy} was not trained with {predictor}")
+        pred_dest.parent.mkdir(parents=True, exist_ok=True)
+        if not pred_dest.is_file() or file_sha256(pred_dest) != sha:
+            shutil.copyfile(predictor, pred_dest)
+        meta["predictor"] = {**meta["predictor"], "path": f"../{PREDICTOR_DIR}/predictor.pt"}
+    dest.mkdir(parents=True, exist_ok=True)
+    tmp = dest / (POLICY_FILE + ".partial")
+    save_file(tensors, str(tmp), metadata={CARD_KEY: json.dumps(meta, sort_keys=True)})
+    tmp.replace(dest / POLICY_FILE)
+    write_json(card_path(dest / POLICY_FILE), meta)
+    write_json(dest / ENTRY_CARD, {"name": name, **card})
+    return ZooEntry(name, dest / POLICY_FILE, root / PREDICTOR_DIR / "predictor.pt" if predictor else None, card)
+
+
+CHECK_EPISODES = 8
+"""Held-out episodes whose outcomes a zoo card lists, so that anyone can check the entry reproduces them."""
+
+
+def check_episodes(policy: str | os.PathLike[str], *, seed: int, episodes: int = CHECK_EPISODES) -> list[dict[str, Any]]:
+    """The first ``episodes`` held-out episodes of evaluation seed ``seed`` driven by ``policy``: user seed,
+    outcome and return of each (what a zoo card lists and a test re-derives)."""
+    from lcmodels.policy.evaluate import driver_for, evaluate
+
+    driver, config = driver_for(str(policy))
+    _, stats = evaluate(driver, config, episodes=episodes, seed=seed, images=True)
+    return [{"seed": int(e.seed), "outcome": e.outcome, "return": round(float(e.ret), 6)} for e in stats]
+
+
+def publish_from_experiment(run: str | os.PathLike[str], recipe_name: str, *, seed: int = 0, name: str | None = None,
+                            root: str | os.PathLike[str] | None = None, commit: str = "",
+                            overwrite: bool = False) -> ZooEntry:  # fmt: skip
+    """Publish the final policy of ``recipe_name`` (training seed ``seed``) of the ``lc-experiment`` directory
+    ``run`` as zoo entry ``name`` (default: the recipe's name), with a card of its recipe, commit, training
+    time, validation and test figures (and the safety layer's, when run), the experiment's command, and the
+    outcomes of :data:`CHECK_EPISODES` test episodes re-run now."""
+    from lcmodels.presets import STAGES_DIR, StageResult, policy_dir, previous_policy
+    from lcmodels.recipe import load_recipe
+
+    run = Path(run)
+    recipe = load_recipe(recipe_name)
+    d = policy_dir(run, recipe.name, seed)
+    ev = read_json(d / "eval" / "metrics.json")
+    if not ev or "test" not in ev:
+        raise ValueError(f"{d / 'eval'} holds no evaluation: finish the experiment first")
+    final = d / recipe.final_stage
+    rec = read_json(run / STAGES_DIR / f"{recipe.name}__seed{seed}__{recipe.final_stage}.json") or {}
+    policy = previous_policy(StageResult("final", "skipped", final, 0.0, outputs=rec.get("outputs", {})))
+    if not policy.is_file():
+        raise ValueError(f"{policy} does not exist")
+    walls = [float((read_json(run / STAGES_DIR / f"{recipe.name}__seed{seed}__{st}.json") or {}).get("wall_s", 0.0))
+             for st in recipe.stages]  # fmt: skip
+    meta = read_json(policy.parent / "policy.card.json") or {}
+    needs = str(meta.get("obs_mode", "")) in ("prediction", "hybrid")
+    experiment = read_json(run / "experiment.json") or {}
+
+    def figures(summary: dict[str, Any]) -> dict[str, Any]:
+        keep = ("episodes", "eval_seed", "success_rate", "success_rate_ci95", "collision_rate", "collision_rate_ci95",
+                "timeout_rate", "mean_return", "planner_overrides", "planner_choices")
+        return {k: summary[k] for k in keep if k in summary}
+
+    safety = read_json(d / "safety" / "metrics.json")
+    test_seed = int(ev["test"].get("eval_seed", 0))
+    card = {
+        "recipe": recipe.name, "recipe_version": recipe.version, "row": recipe.row, "kind": recipe.kind,
+        "description": recipe.description, "training_seed": seed, "commit": commit,
+        "training_wall_s": round(sum(walls), 1), "stages_wall_s": dict(zip(recipe.stages, walls, strict=True)),
+        "test": figures(ev["test"]), "validation": {k: figures(v) for k, v in ev.get("val", {}).items()},
+        "safety_layer": ({"test": figures(safety["test"]), "config": safety.get("config", {})}
+                         if safety and "test" in safety else None),
+        "experiment_command": experiment.get("command", ""), "preset": (experiment.get("preset") or {}).get("name"),
+        "check": {"eval_seed": test_seed, "episodes": check_episodes(policy, seed=test_seed)},
+    }  # fmt: skip
+    return publish_entry(policy, name or recipe.name, predictor=run / "predictor" / "predictor.pt" if needs else None,
+                         card=card, root=root, overwrite=overwrite)  # fmt: skip
+
+
+def resolve_policy_spec(spec: str) -> tuple[str, str | None]:
+    """``(spec, predictor)`` with a ``zoo:NAME`` part (also after ``lookahead:``-style prefixes) replaced by the
+    entry's policy file, and the zoo's predictor when that policy reads predictions (else None)."""
+    prefix, sep, rest = spec.partition(":")
+    if spec.startswith(ZOO_PREFIX):
+        entry = zoo_entry(spec)
+        return f"policy:{entry.policy}", str(entry.predictor) if entry.predictor else None
+    if sep and rest.startswith(ZOO_PREFIX):
+        entry = zoo_entry(rest)
+        return f"{prefix}:{entry.policy}", str(entry.predictor) if entry.predictor else None
+    return spec, None
+
+
+__all__ = ["CHECK_EPISODES", "ENTRY_CARD", "ZOO_PREFIX", "ZooEntry", "check_episodes", "publish_entry",
+           "publish_from_experiment", "resolve_policy_spec", "zoo_dir", "zoo_entries", "zoo_entry"]

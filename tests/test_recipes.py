@@ -1,0 +1,117 @@
+"""Recipes as data: every packaged recipe reads, round-trips and builds valid stage configs; bad files and
+settings are one-line errors naming the problem."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import pytest
+
+from lcmodels.presets import PRESETS, ROWS
+from lcmodels.recipe import Recipe, load_recipe, recipe_names
+
+
+def test_every_packaged_recipe_round_trips_file_config_file(tmp_path: Path) -> None:
+    names = recipe_names()
+    assert {"hybrid-ppo", "pure-ppo", "paper-hybrid-ppo", "quick-pure"} <= set(names)
+    for name in names:
+        r = load_recipe(name)
+        text = r.to_toml()
+        path = tmp_path / f"{name}.toml"
+        path.write_text(text)
+        again = load_recipe(path)
+        assert again == r and again.to_toml() == text
+    # every row of the paper's tables has a paper-faithful and a best recipe, and the paper preset runs them all
+    recipes = [load_recipe(n) for n in names]
+    for row in ROWS:
+        assert any(r.row == row and r.kind == "paper" for r in recipes), row
+    for row in ("ppo-hybrid", "a2c-hybrid", "dqn-hybrid", "ppo-pure", "ppo-image", "ppo-prediction"):
+        assert any(r.row == row and r.kind == "best" for r in recipes), row
+    assert set(PRESETS["paper"].recipes) == {r.name for r in recipes if r.kind != "demo"}
+
+
+def write(tmp_path: Path, text: str, name: str = "mine") -> Path:
+    path = tmp_path / f"{name}.toml"
+    path.write_text(f'name = "{name}"\nrow = "ppo-pure"\n' + text)
+    return path
+
+
+@pytest.mark.parametrize(
+    ("text", "message"),
+    [
+        ("colour = 3\n", "unknown key(s) ['colour']"),
+        ('stages = ["train"]\n[train]\ntimestep = 5\n', "unknown PolicyConfig field 'timestep'"),
+        ('[policy]\ngamma = "high"\n', "PolicyConfig.gamma must be of type float"),
+        ('[policy]\nseed = 3\n', "'seed' is set by the experiment"),
+        ('stages = ["train", "clone"]\n', "each once and in that order"),
+        ('stages = ["dagger", "train"]\n', "a dagger stage needs a clone stage"),
+        ('stages = ["clone"]\n[demos]\ndriver = "nobody"\n', "demos.driver must be one of"),
+        ('[demos]\nepisodes = 0\n', "demos.episodes must be >= 1"),
+        ('[dagger]\nround = 2\n', "[dagger] has no key(s) ['round']"),
+        ('[policy]\nfreeze_image = true\nobs = "hybrid"\n', "freeze_image needs init_policy"),
+        ('kind = "fast"\n', "kind must be one of"),
+        ("version = 0\n", "version must be an integer >= 1"),
+        ("[policy\n", "is not valid TOML"),
+    ],
+)
+def test_a_bad_recipe_is_one_line_naming_the_file_and_the_problem(tmp_path: Path, text: str, message: str) -> None:
+    path = write(tmp_path, text)
+    with pytest.raises(ValueError) as exc:
+        load_recipe(path)
+    msg = str(exc.value)
+    assert message in msg and str(path) in msg and "\n" not in msg
+
+
+def test_the_file_name_is_the_recipe_name_and_an_unknown_name_lists_the_recipes(tmp_path: Path) -> None:
+    path = tmp_path / "other.toml"
+    path.write_text('name = "mine"\nrow = "ppo-pure"\n')
+    with pytest.raises(ValueError, match="differs from the file's name"):
+        load_recipe(path)
+    with pytest.raises(ValueError, match=r"unknown recipe 'nope'; choose one of .*hybrid-ppo"):
+        load_recipe("nope")
+
+
+def test_settings_override_a_recipe_as_the_fields_type_and_refuse_what_it_does_not_have() -> None:
+    r = load_recipe("pure-ppo").with_settings(["train.learning_rate=1e-4", "demos.episodes=50",
+                                               "policy.window_features=false", "clone.warm_start_epochs=3"])
+    assert r.train["learning_rate"] == 1e-4 and r.demos.episodes == 50 and r.policy["window_features"] is False
+    cfg = r.policy_config("clone", scenario="paper", seed=0, warm_start="/d")
+    assert cfg.warm_start_epochs == 3 and not cfg.window_features
+    for bad, message in (("train.learning_rat=1", "PolicyConfig has no field 'learning_rat'"),
+                         ("train.timesteps=many", "expected a value of type int"),
+                         ("demos.episodes=-1", "demos.episodes must be >= 1"),
+                         ("colour.x=1", "no table 'colour'"),
+                         ("timesteps=5", "expected TABLE.KEY=VALUE")):  # fmt: skip
+        with pytest.raises(ValueError) as exc:
+            load_recipe("pure-ppo").with_settings([bad])
+        assert message in str(exc.value) and "\n" not in str(exc.value)
+
+
+def test_caps_lower_every_budget_but_seeds() -> None:
+    caps = PRESETS["tiny"].cap_dict
+    r = load_recipe("pure-ppo-dagger").capped(caps)
+    assert (r.demos.episodes, r.demos.seed, r.dagger.rounds, r.dagger.episodes) == (2, 5000, 1, 2)
+    cfg = r.policy_config("train", scenario="tiny", seed=0, init_policy="/p", caps=caps)
+    assert (cfg.timesteps, cfg.n_envs, cfg.learning_rate) == (128, 4, 3e-5)
+
+
+def test_a_recipe_file_configures_lc_train_policy(tmp_path: Path) -> None:
+    """lc-train-policy --config reads a recipe's [policy] table (the stage tables are the experiment's)."""
+    from lcmodels.policy.config import PolicyConfig
+    from lcmodels.recipe import recipe_path
+
+    cfg = PolicyConfig.from_file(recipe_path("hybrid-ppo"), table="policy")
+    assert (cfg.algo, cfg.obs, cfg.window_features) == ("ppo", "hybrid", True)
+    assert isinstance(load_recipe("hybrid-ppo"), Recipe)
+
+
+def test_what_a_recipe_reached_is_recorded_next_to_it_for_its_version() -> None:
+    import json
+
+    from lcmodels.recipe import RECIPES_DIR
+
+    for path in RECIPES_DIR.glob("*.reached.json"):
+        reached = json.loads(path.read_text())
+        recipe = load_recipe(path.name.removesuffix(".reached.json"))
+        assert reached["recipe"] == recipe.name and reached["recipe_version"] == recipe.version
+        assert reached["experiment_command"].startswith("lc-experiment ") and reached["test"]["episodes"] >= 200

@@ -1,0 +1,103 @@
+"""The model zoo: entries published from an experiment, ``zoo:NAME`` in lc-eval / lc-record / lc-view, and the
+shipped entries reproducing the episodes their cards list."""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+import shutil
+from pathlib import Path
+
+import pytest
+
+from lccli.evaluate import eval_main
+from lccli.experiment import experiment_main
+from lccli.record import record_main
+from lccli.view import main as view_main
+from lcmodels.experiment import PRESETS, Experiment
+from lcmodels.zoo import check_episodes, publish_from_experiment, zoo_dir, zoo_entries, zoo_entry
+
+
+@pytest.fixture(scope="module")
+def tiny_run(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    run = tmp_path_factory.mktemp("zoo") / "run"
+    assert experiment_main(["--preset", "tiny", "--recipe", "hybrid-ppo", "--recipe", "pure-ppo", "--out", str(run),
+                            "-q"]) == 0  # fmt: skip
+    return run
+
+
+def test_an_entry_published_from_an_experiment_works_wherever_a_policy_does(
+    tiny_run: Path, tmp_path: Path, monkeypatch: pytest.MonkeyPatch, capsys: pytest.CaptureFixture[str]
+) -> None:
+    root = tmp_path / "zoo"
+    entry = publish_from_experiment(tiny_run, "hybrid-ppo", root=root, commit="abc1234")
+    assert entry.policy == root / "hybrid-ppo" / "policy.safetensors" and entry.predictor == root / "predictor" / "predictor.pt"
+    publish_from_experiment(tiny_run, "pure-ppo", root=root)
+    card = json.loads((root / "hybrid-ppo" / "zoo.json").read_text())
+    metrics = json.loads((tiny_run / "policies" / "hybrid-ppo" / "seed0" / "eval" / "metrics.json").read_text())
+    assert card["test"]["success_rate"] == metrics["test"]["success_rate"] and card["commit"] == "abc1234"
+    assert card["recipe"] == "hybrid-ppo" and card["training_wall_s"] > 0 and card["safety_layer"]["test"]
+    with pytest.raises(ValueError, match="exists"):
+        publish_from_experiment(tiny_run, "hybrid-ppo", root=root)  # nothing is replaced silently
+
+    # The zoo moves as a folder: the hybrid policy finds the zoo's predictor relative to itself.
+    moved = tmp_path / "elsewhere"
+    shutil.copytree(root, moved)
+    shutil.rmtree(root)
+    monkeypatch.setenv("LC_ZOO", str(moved))
+    assert zoo_dir() == moved and [e.name for e in zoo_entries()] == ["hybrid-ppo", "pure-ppo"]
+    assert zoo_entry("zoo:hybrid-ppo").predictor == moved / "predictor" / "predictor.pt"
+    assert zoo_entry("pure-ppo").predictor is None
+    assert check_episodes(moved / "hybrid-ppo" / "policy.safetensors", seed=card["check"]["eval_seed"]) == \
+        card["check"]["episodes"]  # fmt: skip
+
+    out = tmp_path / "eval.json"
+    assert eval_main(["zoo:hybrid-ppo", "--episodes", "4", "--seed", "9", "--no-record", "--json-out", str(out)]) == 0
+    assert json.loads(out.read_text())["success_rate"] == metrics["test"]["success_rate"]  # the same 4 test episodes
+    assert record_main(["--driver", "zoo:pure-ppo", "--episodes", "2", "--out", str(tmp_path / "rec")]) == 0
+    assert len(list((tmp_path / "rec").glob("*.mcap"))) == 2
+    assert view_main(["zoo:hybrid-ppo", "--save", str(tmp_path / "one.rrd")]) == 0
+    assert (tmp_path / "one.rrd").stat().st_size > 10_000
+    capsys.readouterr()
+    with pytest.raises(SystemExit):
+        eval_main(["zoo:nope", "--episodes", "2"])
+    err = capsys.readouterr().err
+    assert "no zoo policy 'nope'" in err and "hybrid-ppo, pure-ppo" in err
+    assert view_main(["zoo:nope", "--save", str(tmp_path / "two.rrd")]) == 2
+    assert "no zoo policy 'nope'" in capsys.readouterr().err
+
+    # make demo's shape: the zoo evaluated on the test episodes, a quick recipe trained, the best entry showcased.
+    demo = dataclasses.replace(PRESETS["tiny"], name="tiny-demo", recipes=("quick-pure",), zoo=True, showcase_episodes=2)
+    res = Experiment(demo, tmp_path / "demo").run()
+    report = res.report.read_text()
+    for name, note in (("hybrid-ppo", " @ abc1234"), ("pure-ppo", "")):
+        z = json.loads((tmp_path / "demo" / "zoo" / name / "metrics.json").read_text())["test"]
+        assert z["episodes"] == demo.test_episodes
+        ci = z["success_rate_ci95"]
+        cell = f"{100 * z['success_rate']:.1f} [{100 * ci[0]:.1f}, {100 * ci[1]:.1f}] (`zoo:{name}`{note})"
+        assert cell in report, cell
+    assert "shipped checkpoint (zoo): success %" in report and "quick recipe (trained now): success %" in report
+    shown = sorted(p.suffix for p in (tmp_path / "demo" / "showcase").iterdir())
+    assert shown == [".mcap", ".mcap", ".rrd"]
+
+
+SHIPPED = [e.name for e in zoo_entries()] if zoo_dir().is_dir() else []
+
+
+@pytest.mark.parametrize("name", SHIPPED)
+def test_a_shipped_entry_reproduces_the_episodes_its_card_lists(name: str) -> None:
+    """The committed zoo: each card's listed test episodes come out the same from the shipped weights."""
+    entry = zoo_entry(name)
+    check = entry.card["check"]
+    assert check_episodes(entry.policy, seed=check["eval_seed"], episodes=len(check["episodes"])) == check["episodes"]
+    t = entry.card["test"]
+    assert t["episodes"] >= 200 and 0.0 <= t["success_rate"] <= 1.0
+
+
+def test_the_shipped_zoo_is_small_and_holds_no_pickle() -> None:
+    if not zoo_dir().is_dir():
+        pytest.skip("no zoo in this checkout")
+    files = [p for p in zoo_dir().rglob("*") if p.is_file()]
+    assert sum(p.stat().st_size for p in files) <= 25 * 2**20
+    assert {p.suffix for p in files} <= {".safetensors", ".json", ".pt", ".md"}
+    assert all(p.name == "predictor.pt" for p in files if p.suffix == ".pt")  # loaded with weights_only=True

@@ -1,0 +1,58 @@
+#!/usr/bin/env python
+"""Publish a recipe's trained policy from an lc-experiment directory into the zoo (zoo/NAME/), with its card.
+
+    python tools/publish_zoo.py runs/paper hybrid-ppo pure-ppo [--seed 0] [--overwrite]
+
+Each entry: policy.safetensors (weights and the policy's card), policy.card.json, zoo.json (recipe, commit,
+training time, validation / test / safety-layer figures, the experiment's command, and the outcomes of a few
+test episodes re-run now); the predictor the prediction and hybrid policies read goes to zoo/predictor/. A packaged
+recipe also gets lcmodels/recipes/<name>.reached.json: what it reached, with which command and commit.
+"""
+
+from __future__ import annotations
+
+import argparse
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+
+def main(argv: list[str] | None = None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0], epilog=__doc__.split("\n\n", 1)[1],
+                                 formatter_class=argparse.RawDescriptionHelpFormatter)  # fmt: skip
+    ap.add_argument("run", type=Path, help="lc-experiment directory")
+    ap.add_argument("recipes", nargs="+", help="recipe names whose final policies to publish")
+    ap.add_argument("--seed", type=int, default=0, help="training seed of the runs to publish (default 0)")
+    ap.add_argument("--zoo", type=Path, default=None, help="zoo directory (default: zoo/ of this checkout)")
+    ap.add_argument("--overwrite", action="store_true", help="replace entries that exist")
+    args = ap.parse_args(argv)
+    from lcmodels.fileio import write_json
+    from lcmodels.recipe import RECIPES_DIR, recipe_path
+    from lcmodels.zoo import publish_from_experiment
+
+    try:
+        commit = subprocess.run(["git", "rev-parse", "--short", "HEAD"], capture_output=True, text=True,
+                                check=True, cwd=Path(__file__).parent).stdout.strip()  # fmt: skip
+    except (OSError, subprocess.CalledProcessError):
+        commit = ""
+    for name in args.recipes:
+        try:
+            entry = publish_from_experiment(args.run, name, seed=args.seed, root=args.zoo, commit=commit,
+                                            overwrite=args.overwrite)  # fmt: skip
+        except ValueError as exc:
+            print(f"publish_zoo: error: {str(exc).splitlines()[0]}", file=sys.stderr)
+            return 2
+        t = entry.card["test"]
+        reached = recipe_path(name).with_suffix(".reached.json")
+        if reached.parent == RECIPES_DIR:  # a packaged recipe records what it reached, next to it
+            keep = ("recipe_version", "preset", "experiment_command", "commit", "training_seed", "training_wall_s",
+                    "test", "validation", "safety_layer")
+            write_json(reached, {"recipe": name, "published": time.strftime("%Y-%m-%d"),
+                                 **{k: entry.card.get(k) for k in keep}})  # fmt: skip
+        print(f"zoo:{entry.name}: {entry.policy} (test success {100 * t['success_rate']:.1f}% of {t['episodes']})")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
