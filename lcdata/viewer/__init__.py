@@ -6,7 +6,7 @@
 =============================  ==============================================================
 entity                         content
 =============================  ==============================================================
-``world/road/*``               lane edges, broken markings, shoulders, lane centres (static)
+``world/road/*``               lane edges, broken markings, shoulders, lane centres (static; none without a road in the config)
 ``world/vehicles/boxes``       every traffic vehicle as an oriented box (closed line strip)
 ``world/vehicles/trails``      the last 2 s of every vehicle, the ego's included
 ``world/ego``                  the ego frame (translation per step), followed by the scene view

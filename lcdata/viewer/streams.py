@@ -71,8 +71,11 @@ def _series(rec: rr.RecordingStream, entity: str, steps: np.ndarray, t: np.ndarr
 
 # -- world ------------------------------------------------------------------------------------------
 def log_road(rec: rr.RecordingStream, episode: Episode, prefix: str, x_range: tuple[float, float]) -> None:
-    """Static road: solid edges, broken lane markings (dash by dash), shoulders, faint lane centres."""
-    road = episode.metadata["config"].get("road", {})
+    """Static road: solid edges, broken lane markings (dash by dash), shoulders, faint lane centres. None for an
+    episode whose config describes no road (traffic imported from a SUMO network, which has any shape)."""
+    if "road" not in episode.metadata["config"]:
+        return
+    road = episode.metadata["config"]["road"]
     num_lanes = int(road.get("num_lanes", 4))
     w = float(road.get("lane_width_m", 3.5))
     shoulder = float(road.get("shoulder_width_m", 2.5))

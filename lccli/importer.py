@@ -1,0 +1,161 @@
+"""``lc-import``: bring traffic recorded elsewhere (SUMO FCD, highD tracks) into the trajectory corpus."""
+
+from __future__ import annotations
+
+import argparse
+import functools
+import math
+import pathlib
+import sys
+from collections.abc import Sequence
+
+from lccli.common import fail, int_at_least, setup_logging
+
+PROG = "lc-import"
+EXAMPLES = """\
+examples:
+  sumo -c highway.sumocfg --fcd-output fcd.xml --step-length 0.1
+  lc-import sumo-fcd fcd.xml --out data/sumo
+  lc-import highd highD/data/01_tracks.csv --out data/highd      # 01_tracksMeta.csv is read beside it
+  lc-train-predictor --data data/highd --out runs/predictor-highd
+
+The episodes are the corpus's: 20 Hz (source samples interpolated linearly), 2000 steps (100 s) per
+file, each vehicle's centre in a frame with x forward, y to the left and lane 0 the rightmost lane.
+Files: OUT/sumo_<stem>_<i>.mcap, OUT/highd_<XX>_dir<1|2>_<i>.mcap (highD's two driving directions are
+separate episodes, each turned to drive +x). The same input gives the same bytes. Files of an earlier
+import of the same source are kept unless --overwrite; a failed import writes nothing.
+See docs/INTERFACES.md (Importers) for the conventions and what is dropped.
+"""
+
+
+class UsageError(Exception):
+    """Bad command-line input: one line on stderr, exit code 2."""
+
+
+class _Parser(argparse.ArgumentParser):
+    def error(self, message: str) -> None:  # type: ignore[override]
+        raise UsageError(f"{message} (see {self.prog} --help)")
+
+
+def _positive_float(text: str) -> float:
+    try:
+        value = float(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected a number, got {text!r}") from None
+    if not (math.isfinite(value) and value > 0):
+        raise argparse.ArgumentTypeError(f"must be > 0, got {text}")
+    return value
+
+
+def _common(p: argparse.ArgumentParser) -> None:
+    from lcdata.importers import CORPUS_DT_S, CORPUS_EPISODE_STEPS
+
+    p.add_argument("--out", type=pathlib.Path, required=True, help="output directory (created if missing)")
+    p.add_argument("--overwrite", action="store_true",
+                   help="replace the episodes of an earlier import of the same source in --out")
+    p.add_argument("--dt", type=_positive_float, default=CORPUS_DT_S, metavar="SECONDS",
+                   help=f"step of the written episodes (default {CORPUS_DT_S:g}: the corpus's 20 Hz)")
+    p.add_argument("--episode-steps", type=int_at_least(1), default=CORPUS_EPISODE_STEPS, metavar="N",
+                   help=f"steps per episode file; a longer recording is cut (default {CORPUS_EPISODE_STEPS})")
+    p.add_argument("--min-episode-steps", type=int_at_least(1), default=20, metavar="N",
+                   help="skip an episode whose traffic spans fewer steps (default 20: 1 s)")
+    p.add_argument("-q", "--quiet", action="store_true", help="no progress bar")
+    p.add_argument("-v", "--verbose", action="store_true", help="log what was read")
+
+
+def build_parser() -> argparse.ArgumentParser:
+    p = _Parser(
+        prog=PROG,
+        description="Import traffic recorded elsewhere into the trajectory corpus: one MCAP episode file per\n"
+        "100 s, as lc-record --scenario corpus writes them, for lc-train-predictor and lc-view.\n"
+        "lc-import FORMAT --help describes a format.",
+        epilog=EXAMPLES,
+        formatter_class=argparse.RawDescriptionHelpFormatter,
+    )
+    sub = p.add_subparsers(dest="format", metavar="FORMAT", required=True, parser_class=_Parser)
+    sumo = sub.add_parser(
+        "sumo-fcd", help="SUMO floating car data (sumo --fcd-output FILE.xml)",
+        description="Import the XML of sumo --fcd-output (read as a stream: any size). Positions are SUMO's\n"
+        "front bumper moved half a vehicle length back; angle is SUMO's heading (degrees clockwise from\n"
+        "north); lane <edge>_<i> keeps SUMO's index (0 = rightmost), internal (junction) lanes are -1.",
+        epilog="example:\n  lc-import sumo-fcd fcd.xml --out data/sumo",
+        formatter_class=argparse.RawDescriptionHelpFormatter,
+    )  # fmt: skip
+    sumo.add_argument("file", type=pathlib.Path, metavar="FILE.xml", help="the FCD output file")
+    _common(sumo)
+    sumo.add_argument("--vehicle-length", type=_positive_float, default=5.0, metavar="M",
+                      help="length of a vehicle whose element has no length attribute (default 5.0, SUMO's car)")
+    sumo.add_argument("--vehicle-width", type=_positive_float, default=1.8, metavar="M",
+                      help="width of a vehicle whose element has no width attribute (default 1.8)")
+    highd = sub.add_parser(
+        "highd", help="highD-layout drone tracks (XX_tracks.csv and XX_tracksMeta.csv)",
+        description="Import a highD recording: XX_tracks.csv with XX_tracksMeta.csv beside it. Bounding-box\n"
+        "corners become centres; the two driving directions become separate episodes, each turned (not\n"
+        "mirrored) to drive +x with lane 0 the rightmost.",
+        epilog="example:\n  lc-import highd highD/data/01_tracks.csv --out data/highd",
+        formatter_class=argparse.RawDescriptionHelpFormatter,
+    )  # fmt: skip
+    highd.add_argument("file", type=pathlib.Path, metavar="TRACKS.csv", help="the XX_tracks.csv file")
+    highd.add_argument("--meta", type=pathlib.Path, default=None, metavar="META.csv",
+                       help="the tracks meta file (default: XX_tracksMeta.csv beside TRACKS.csv)")
+    _common(highd)
+    highd.add_argument("--frame-rate", type=_positive_float, default=25.0, metavar="HZ",
+                       help="video frame rate of the recording (default 25, highD's)")
+    return p
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    """Entry point of ``lc-import``; returns the exit code (2 for bad input, one line on stderr)."""
+    error = functools.partial(fail, PROG)
+    try:
+        args = build_parser().parse_args(argv)
+    except UsageError as exc:
+        return error(str(exc))
+    except SystemExit as exc:  # --help
+        return int(exc.code or 0)
+    setup_logging(PROG, verbose=args.verbose)
+    from tqdm import tqdm
+
+    from lcdata.importers import HighdOptions, ImportOptions, SumoOptions, import_highd, import_sumo_fcd
+
+    bar: tqdm | None = None
+
+    def progress(done: int, total: int) -> None:
+        nonlocal bar
+        if args.quiet:
+            return
+        if bar is None:
+            unit = ("B", True) if args.format == "sumo-fcd" else ("frame", False)
+            bar = tqdm(total=total, unit=unit[0], unit_scale=unit[1], desc=args.file.name, disable=None)
+        bar.update(done - bar.n)
+
+    if args.format == "highd" and args.meta is None and not args.file.name.endswith("_tracks.csv"):
+        return error(f"{args.file}: a highD tracks file is named XX_tracks.csv, its meta file XX_tracksMeta.csv "
+                     "beside it; name the meta file with --meta")
+    try:
+        options = ImportOptions(dt_s=args.dt, episode_steps=args.episode_steps,
+                                min_episode_steps=args.min_episode_steps)  # fmt: skip
+        if args.format == "sumo-fcd":
+            sumo = SumoOptions(vehicle_length_m=args.vehicle_length, vehicle_width_m=args.vehicle_width)
+            written = import_sumo_fcd(args.file, args.out, options, sumo, overwrite=args.overwrite, progress=progress)
+        else:
+            written = import_highd(args.file, args.out, options, HighdOptions(frame_rate_hz=args.frame_rate),
+                                   meta=args.meta, overwrite=args.overwrite, progress=progress)  # fmt: skip
+    except FileExistsError as exc:
+        return error(str(exc).replace("overwrite=True", "--overwrite"))
+    except (ValueError, OSError) as exc:
+        return error(str(exc))
+    except KeyboardInterrupt:
+        print(f"{PROG}: interrupted; nothing was written", file=sys.stderr)
+        return 130
+    finally:
+        if bar is not None:
+            bar.close()
+    steps = sum(e.steps for e in written)
+    print(f"imported {len(written)} episode{'s' * (len(written) != 1)} ({steps} steps, {steps * args.dt:.1f} s of "
+          f"traffic, {sum(e.rows for e in written)} vehicle-steps) from {args.file} to {args.out}")  # fmt: skip
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())

@@ -1,0 +1,185 @@
+"""Resampled frames -> corpus episode files, written all together or not at all.
+
+:func:`write_episodes` cuts the grid frames of :func:`~lcdata.importers.resample.resample` into episodes
+of ``episode_steps`` steps and writes each with :class:`~lcdata.writer.EpisodeWriter` (``/vehicles`` at
+every step, the metadata record ``lc``), as ``lc-record --scenario corpus`` does, so every reader of
+recorded episodes reads them. The files go to a staging folder inside the output folder first and are
+moved into place when the whole source has been read: a bad line near the end of a big file leaves the
+output folder as it was.
+"""
+
+from __future__ import annotations
+
+import logging
+import os
+import pathlib
+import re
+import shutil
+from collections.abc import Callable, Iterable, Mapping
+from dataclasses import dataclass
+from typing import Any
+
+import numpy as np
+
+from lcdata.importers.resample import Frame
+from lcdata.record import SEED_EPOCH_NS
+from lcdata.writer import EpisodeWriter
+from lcsim.config import corpus_scenario
+
+log = logging.getLogger(__name__)
+
+_CORPUS = corpus_scenario()
+CORPUS_DT_S: float = _CORPUS.dt_s
+"""The corpus step (``lc-record --scenario corpus``): 0.05 s, 20 Hz."""
+CORPUS_EPISODE_STEPS: int = _CORPUS.max_steps
+"""Steps of one corpus episode: 2000 (100 s)."""
+
+Progress = Callable[[int, int], None]
+"""``progress(done, total)``: how far an import is (units are the importer's: bytes read, frames)."""
+
+
+@dataclass(frozen=True, slots=True, kw_only=True)
+class ImportOptions:
+    """How recorded traffic becomes corpus episodes (every format)."""
+
+    dt_s: float = CORPUS_DT_S
+    """Step of the written episodes, s (the corpus's 0.05 s unless a predictor is trained at another rate)."""
+    episode_steps: int = CORPUS_EPISODE_STEPS
+    """Steps per episode file: a longer recording is cut into consecutive episodes of this length."""
+    min_episode_steps: int = 20
+    """An episode (the last piece of a recording, or a stretch with little traffic) whose vehicles span
+    fewer steps than this is not written."""
+
+    def __post_init__(self) -> None:
+        if not (isinstance(self.dt_s, int | float) and self.dt_s > 0):
+            raise ValueError(f"dt_s must be > 0, got {self.dt_s!r}")
+        for name in ("episode_steps", "min_episode_steps"):
+            value = getattr(self, name)
+            if not isinstance(value, int) or isinstance(value, bool) or value < 1:
+                raise ValueError(f"{name} must be an integer >= 1, got {value!r}")
+        if self.min_episode_steps > self.episode_steps:
+            raise ValueError(f"min_episode_steps ({self.min_episode_steps}) must be <= episode_steps "
+                             f"({self.episode_steps})")  # fmt: skip
+
+
+@dataclass(frozen=True, slots=True)
+class ImportedEpisode:
+    """One episode file an import wrote."""
+
+    path: pathlib.Path
+    steps: int
+    """Steps written (the first and last hold at least one vehicle)."""
+    vehicles: int
+    rows: int
+    """Vehicle-steps (rows of ``Episode.tracks``)."""
+
+
+class EpisodeFiles:
+    """The episode files of one source in ``out``, named ``<stem><part>_<index:04d>.mcap`` where ``part``
+    matches the regular expression ``parts`` (e.g. ``_dir[12]``; :attr:`pattern` matches every name).
+
+    A context: the files are written to :meth:`staged` paths and moved into ``out`` when the block ends
+    normally (the files of an earlier import of the source that this one did not rewrite are removed then);
+    when it raises, nothing in ``out`` changes.
+    """
+
+    STAGING_SUFFIX = ".import-staging"
+    STAGED_SUFFIX = ".staged"
+
+    def __init__(self, out: str | os.PathLike[str], stem: str, *, overwrite: bool, parts: str = "") -> None:
+        self.out = pathlib.Path(out)
+        self.stem = stem
+        self.pattern = re.compile(rf"{re.escape(stem)}{parts}_\d{{4,}}\.mcap")
+        self.overwrite = overwrite
+        if self.out.exists() and not self.out.is_dir():
+            raise NotADirectoryError(f"output {self.out} exists and is not a directory")
+        self.existing = sorted(p for p in self.out.glob("*.mcap") if self.pattern.fullmatch(p.name)) \
+            if self.out.is_dir() else []  # fmt: skip
+        if self.existing and not overwrite:
+            raise FileExistsError(f"{len(self.existing)} episode file(s) of this source already exist in {self.out} "
+                                  f"(e.g. {self.existing[0].name}); pass overwrite=True to replace them")  # fmt: skip
+        self.staging = self.out / f".{stem}{self.STAGING_SUFFIX}"
+
+    def __enter__(self) -> EpisodeFiles:
+        self.out.mkdir(parents=True, exist_ok=True)
+        if self.staging.exists():  # left by an import that was killed
+            shutil.rmtree(self.staging)
+        self.staging.mkdir()
+        return self
+
+    def __exit__(self, exc_type: type[BaseException] | None, *_: object) -> None:
+        try:
+            if exc_type is None:
+                self._publish()
+        finally:
+            shutil.rmtree(self.staging, ignore_errors=True)
+
+    def staged(self, name: str) -> pathlib.Path:
+        """Where the episode file ``name`` is written until the import succeeds (not ``*.mcap``: a reader of
+        the output folder, which looks into subfolders too, does not see it)."""
+        return self.staging / f"{name}{self.STAGED_SUFFIX}"
+
+    def _publish(self) -> None:
+        written = sorted(self.staging.glob(f"*{self.STAGED_SUFFIX}"))
+        names = {p.name.removesuffix(self.STAGED_SUFFIX) for p in written}
+        for path in written:
+            os.replace(path, self.out / path.name.removesuffix(self.STAGED_SUFFIX))
+        stale = [p for p in self.existing if p.name not in names]
+        for path in stale:  # an earlier import of the same source cut into more episodes
+            path.unlink()
+        if stale:
+            log.info("removed %d episode files of an earlier import of this source", len(stale))
+
+
+def write_episodes(grid: Iterable[tuple[int, Frame]], files: EpisodeFiles, prefix: str,
+                   metadata: Mapping[str, Any], options: ImportOptions,
+                   vehicle_info: Callable[[np.ndarray], dict[str, Any]]) -> list[ImportedEpisode]:  # fmt: skip
+    """Write the grid frames ``(k, frame)`` (ascending ``k``) as episodes ``<prefix>_<k // E:04d>.mcap``.
+
+    Episode ``i`` holds the grid steps ``i * E .. (i + 1) * E - 1`` (``E = options.episode_steps``), renumbered
+    from 0, without the empty steps before its first vehicle and after its last; it is written when that span
+    is at least ``options.min_episode_steps``. The metadata record holds ``metadata`` and, per episode,
+    ``episode_index``, ``source_start_s`` (source time of step 0) and ``vehicles`` (``vehicle_info(ids)``:
+    where each vehicle id comes from). ``t = 0`` of the file is 2024-01-01T00:00:00Z plus ``source_start_s``,
+    so the same input gives the same bytes.
+    """
+    e = options.episode_steps
+    written: list[ImportedEpisode] = []
+    pending: list[tuple[int, Frame]] = []
+    episode = -1
+
+    def flush() -> None:
+        rows = [(k, f) for k, f in pending if len(f.ids)]
+        if not rows or rows[-1][0] - rows[0][0] + 1 < options.min_episode_steps:
+            return
+        first, last = rows[0][0], rows[-1][0]
+        start = episode * e
+        start_s = pending[0][1].t_s - (pending[0][0] - start) * options.dt_s
+        ids = np.unique(np.concatenate([f.ids for _, f in rows]))
+        name = f"{prefix}_{episode:04d}.mcap"
+        path = files.staged(name)
+        meta = {**metadata, "episode_id": name.removesuffix(".mcap"), "episode_index": episode,
+                "source_start_s": round(start_s, 9), "vehicles": vehicle_info(ids)}  # fmt: skip
+        with EpisodeWriter(path, metadata=meta, start_time_ns=SEED_EPOCH_NS + round(start_s * 1e9)) as writer:
+            for k, f in pending:
+                if first <= k <= last:
+                    step = k - start
+                    writer.write_vehicles(step, step * options.dt_s, f.ids, f.x, f.y, f.yaw, f.speed, f.accel,
+                                          f.lane, f.lane, f.length, f.width)  # fmt: skip
+        written.append(ImportedEpisode(files.out / name, last - first + 1, len(ids),
+                                       sum(len(f.ids) for _, f in rows)))  # fmt: skip
+
+    for k, frame in grid:
+        if k // e != episode:
+            flush()
+            pending, episode = [], k // e
+        pending.append((k, frame))
+    flush()
+    return written
+
+
+def check_written(source: pathlib.Path, written: list[ImportedEpisode], options: ImportOptions) -> None:
+    """``ValueError`` when an import with vehicles wrote no episode (every stretch shorter than the minimum)."""
+    if not written:
+        raise ValueError(f"{source}: no stretch of traffic lasts {options.min_episode_steps} steps "
+                         f"({options.min_episode_steps * options.dt_s:g} s); nothing written")  # fmt: skip
