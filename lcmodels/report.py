@@ -192,6 +192,15 @@ def outcome_table(runs: dict[str, MethodRuns], rows: tuple[str, ...], paper: dic
     return "\n".join(lines)
 
 
+def reference_table(runs: dict[str, MethodRuns]) -> str:
+    """The rule-based driver, the oracle and every policy behind the safety layer, on the test episodes."""
+    lines = ["| driver | success % | collision % |", "|---|---|---|"]
+    for r in runs.values():
+        if r.evals and (r.key in (RULE_KEY, ORACLE_KEY) or r.key.endswith("+safety")):
+            lines.append(f"| {r.label} (`{r.key}`) | {rate_cell(r.evals, 'success')} | {rate_cell(r.evals, 'collision')} |")
+    return "\n".join(lines) if len(lines) > 2 else "None evaluated."
+
+
 def all_runs_table(runs: dict[str, MethodRuns]) -> str:
     """Every row of the experiment: test figures, validation success per evaluation seed, training time."""
     lines = ["| row | kind | seeds | test success % | collision % | timeout % | validation success % (eval seed) "
@@ -375,6 +384,9 @@ def write_report(exp: ReportInput, *, wall_s: float) -> Path:
     add("\nOne training seed: the value and its 95% Wilson interval; several: mean ± sample standard deviation "
         "over seeds. *Paper-faithful*: the method trained from scratch on the paper's observation and budget; "
         "*best*: the project's recipe for the method (`lcmodels/recipes/<name>.toml`).\n")
+    add("## References and the safety layer (test episodes, %)\n")
+    add(reference_table(runs))
+    add("")
     add("## Every row (test and validation)\n")
     add(all_runs_table(runs))
     add("\nSafety layer: the final policy proposes each decision, the lookahead planner (imagining from what "
