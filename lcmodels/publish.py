@@ -18,6 +18,8 @@ from lcmodels.presets import INVOCATIONS, MARKER, ORACLE_KEY, REPORT_NAME, RULE_
 TOP = (REPORT_NAME, MARKER)
 OPTIONAL_TOP = (INVOCATIONS,)  # runs of lc-toolkit versions before it have none
 PER_STAGE = ("metrics.json", "run.json", "progress.csv", "warm_start.json", "dagger.json")
+SPLIT_FILES = "*-seed*.json"
+"""An evaluation stage's finished splits (``val-seed0.json``, ``test-seed9.json``): an interrupted one's too."""
 
 
 def published_files(run: Path) -> list[Path]:
@@ -29,21 +31,27 @@ def published_files(run: Path) -> list[Path]:
                   *sorted(run.glob("policies/*/seed*/dagger/round*")), *sorted(run.glob("zoo/*"))]
     for d in stage_dirs:
         files += [(d / n).relative_to(run) for n in PER_STAGE if (d / n).is_file()]
+        files += sorted(p.relative_to(run) for p in d.glob(SPLIT_FILES))  # an evaluation's finished splits
     return files
 
 
-def publish(run: Path, dest: Path, *, overwrite: bool = False) -> list[Path]:
+def publish(run: Path, dest: Path, *, overwrite: bool = False, allow_pending: bool = False) -> list[Path]:
     """Copy the published files of ``run`` to ``dest``; returns their paths relative to both.
 
+    ``allow_pending``: publish a run with unfinished stages (their pending records stay behind; what they
+    finished, such as an evaluation's completed splits, is copied), for a run stopped on purpose.
+
     Raises:
-        ValueError: ``run`` is no finished experiment, or ``dest`` exists and not ``overwrite``.
+        ValueError: ``run`` is no finished experiment (unless ``allow_pending``), or ``dest`` exists and not
+            ``overwrite``.
     """
     run, dest = Path(run), Path(dest)
     if not all((run / n).is_file() for n in TOP):
         raise ValueError(f"{run} is not an lc-experiment directory with a {REPORT_NAME}")
     pending = sorted(p.name for p in (run / STAGES_DIR).glob("*.pending.json"))
-    if pending:
-        raise ValueError(f"{run} has {len(pending)} unfinished stage(s) ({pending[0]}); finish the run first")
+    if pending and not allow_pending:
+        raise ValueError(f"{run} has {len(pending)} unfinished stage(s) ({pending[0]}); finish the run first, "
+                         "or publish it as it is with --allow-pending")
     if dest.exists() and not overwrite:
         raise ValueError(f"{dest} exists; pass --overwrite to replace the published files in it")
     files = published_files(run)

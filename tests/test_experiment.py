@@ -331,6 +331,18 @@ def check_publish_copies_the_report_and_every_metrics_file(run_dir: Path, dest: 
     publish(run_dir, dest, overwrite=True)
     assert (dest / "NOTE.md").read_text() == "written by hand" and not (dest / "stages" / "gone__seed9.json").exists()
     assert (dest / REPORT_NAME).read_text() == report
+    # A run stopped on purpose: refused, unless asked; then what its stages finished is copied, splits included.
+    pending = run_dir / "stages" / "stopped.pending.json"
+    pending.write_text("{}")
+    try:
+        with pytest.raises(ValueError, match="unfinished stage"):
+            publish(run_dir, dest.with_name("partial"))
+        publish(run_dir, dest.with_name("partial"), allow_pending=True)
+    finally:
+        pending.unlink()
+    split = Path("policies") / "pure-ppo" / "seed0" / "eval" / "val-seed0.json"
+    assert (dest.with_name("partial") / split).read_bytes() == (run_dir / split).read_bytes()
+    assert not (dest.with_name("partial") / "stages" / "stopped.pending.json").exists()
 
 
 def check_the_report_states_the_wall_time_of_every_invocation(run_dir: Path) -> None:

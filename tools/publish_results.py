@@ -19,9 +19,11 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("run", type=Path, help="an lc-experiment --out directory")
     ap.add_argument("dest", type=Path, help="destination folder (created)")
     ap.add_argument("--overwrite", action="store_true", help="replace the published files in an existing destination")
+    ap.add_argument("--allow-pending", action="store_true",
+                    help="publish a run stopped on purpose with unfinished stages (their finished parts are copied)")
     args = ap.parse_args(argv)
     try:
-        files = publish(args.run, args.dest, overwrite=args.overwrite)
+        files = publish(args.run, args.dest, overwrite=args.overwrite, allow_pending=args.allow_pending)
     except (ValueError, OSError) as exc:
         print(f"publish_results.py: error: {exc}", file=sys.stderr)
         return 2
