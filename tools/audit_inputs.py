@@ -37,6 +37,7 @@ ENTRY = {
     "lc-eval": "lccli.evaluate:eval_main",
     "lc-experiment": "lccli.experiment:experiment_main",
     "lc-view": "lccli.view:main",
+    "lc-import": "lccli.importer:main",
 }
 
 
@@ -149,6 +150,9 @@ def build_cases(root: Path) -> list[Case]:
     (root / "a_file").write_text("not a directory")
     (root / "existing.json").write_text("{}")
     (root / "bad_config.toml").write_text("[policy]\ngama = 0.9\n")
+    (root / "bad_recipe.toml").write_text('name = "bad_recipe"\nrow = "ppo-pure"\n[train]\ntimestep = 5\n')
+    (root / "x_tracks.csv").write_text("frame,id,x\n1,1,0.5\n")
+    (root / "fcd.xml").write_text("<fcd-export><timestep time='0.00'><vehicle id='a' x='1'")
     (root / "existing.rrd").write_text("a viewer file somebody made")
     foreign = root / "foreign"
     foreign.mkdir()
@@ -292,6 +296,21 @@ def build_cases(root: Path) -> list[Case]:
         Case("lc-experiment: zero seeds", ["lc-experiment", "--seeds", "0", "--out", f"{r}/x1"]),
         Case("lc-experiment: unknown preset", ["lc-experiment", "--preset", "bogus", "--out", f"{r}/x1"]),
         Case("lc-experiment: --out is a file", ["lc-experiment", "--preset", "tiny", "--out", f"{r}/a_file"]),
+        Case("lc-experiment: unknown recipe", ["lc-experiment", "--recipe", "bogus", "--out", f"{r}/x2"],
+             check=not_written(root / "x2")),
+        Case("lc-experiment: recipe with an unknown field", ["lc-experiment", "--recipe", f"{r}/bad_recipe.toml",
+                                                             "--out", f"{r}/x2"], check=not_written(root / "x2")),
+        # the zoo
+        Case("lc-eval: unknown zoo policy", ["lc-eval", "zoo:bogus", "--episodes", "2", "--no-record"]),
+        Case("lc-record: unknown zoo policy", ["lc-record", "--driver", "zoo:bogus", "--out", f"{r}/z1"],
+             check=not_written(root / "z1")),
+        Case("lc-view: unknown zoo policy", ["lc-view", "zoo:bogus", "--headless"]),
+        # lc-import
+        Case("lc-import: highD tracks without columns or meta", ["lc-import", "highd", f"{r}/x_tracks.csv",
+                                                                 "--out", f"{r}/i1"], check=not_written(root / "i1")),
+        Case("lc-import: truncated SUMO FCD", ["lc-import", "sumo-fcd", f"{r}/fcd.xml", "--out", f"{r}/i2"],
+             check=not_written(root / "i2")),
+        Case("lc-import: missing file", ["lc-import", "sumo-fcd", f"{r}/missing.xml", "--out", f"{r}/i3"]),
     ]
 
 

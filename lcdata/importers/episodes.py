@@ -101,6 +101,7 @@ class EpisodeFiles:
         self.staging = self.out / f".{stem}{self.STAGING_SUFFIX}"
 
     def __enter__(self) -> EpisodeFiles:
+        self.created = not self.out.exists()  # a failed import removes an output folder it made
         self.out.mkdir(parents=True, exist_ok=True)
         if self.staging.exists():  # left by an import that was killed
             shutil.rmtree(self.staging)
@@ -113,6 +114,8 @@ class EpisodeFiles:
                 self._publish()
         finally:
             shutil.rmtree(self.staging, ignore_errors=True)
+            if exc_type is not None and self.created and not any(self.out.iterdir()):
+                self.out.rmdir()
 
     def staged(self, name: str) -> pathlib.Path:
         """Where the episode file ``name`` is written until the import succeeds (not ``*.mcap``: a reader of
