@@ -133,6 +133,7 @@ class Experiment:
         self._invocation_t0: float | None = None
         self._invocation_lock = threading.Lock()
         self.stages: list[StageResult] = []
+        self._recipes: list[Recipe] | None = None
 
     # -- helpers -------------------------------------------------------------------------------------
     def emit(self, msg: str) -> None:
@@ -317,37 +318,37 @@ class Experiment:
         splits = [("val", s, p.val_episodes) for s in p.val_seeds] + [("test", p.test_seed, p.test_episodes)]
 
         def work(keep: bool) -> float:
-            from lcmodels.policy.evaluate import evaluate_sharded
-
             result: dict[str, Any] = {"config": cfg, "val": {}}
             total = 0.0
             for split, seed, episodes in splits:
                 done = path / f"{split}-seed{seed}.json"  # a split finished before an interruption is kept
                 summary = read_json(done) if keep else None
-                if summary is not None and summary.get("episodes") == episodes:
-                    total += float(summary.get("wall_s", 0.0))
-                    result["val" if split == "val" else "test"] = (
-                        result["val"] | {str(seed): summary} if split == "val" else summary)
-                    continue
-                t0 = time.perf_counter()
-                rec = p.record_eval and split == "test"
-                summary, _ = evaluate_sharded(
-                    spec, scenario, episodes=episodes, seed=seed,
-                    shards=1 if self.executor == "local" else RAY_SHARDS, executor=self.executor,
-                    predictor=str(predictor) if predictor else None, follow=follow, lookahead=lookahead,
-                    out_dir=path / "episodes" if rec else None, scenario=p.scenario, overwrite=True)  # fmt: skip
-                summary["wall_s"] = time.perf_counter() - t0
-                write_json(done, summary)
-                total += summary["wall_s"]
+                if summary is None or summary.get("episodes") != episodes:
+                    summary = run_split(split, seed, episodes, done)
+                total += float(summary["wall_s"])
                 if split == "val":
                     result["val"][str(seed)] = summary
                 else:
                     result["test"] = summary
-                self._save_wall()
-                self.emit(f"[{name}] {split} (seed {seed}, {episodes} episodes): success "
-                          f"{100 * summary['success_rate']:.1f}% collision {100 * summary['collision_rate']:.1f}%")
             write_json(path / "metrics.json", result)
             return total
+
+        def run_split(split: str, seed: int, episodes: int, done: Path) -> dict[str, Any]:
+            from lcmodels.policy.evaluate import evaluate_sharded
+
+            t0 = time.perf_counter()
+            rec = p.record_eval and split == "test"
+            summary, _ = evaluate_sharded(
+                spec, scenario, episodes=episodes, seed=seed,
+                shards=1 if self.executor == "local" else RAY_SHARDS, executor=self.executor,
+                predictor=str(predictor) if predictor else None, follow=follow, lookahead=lookahead,
+                out_dir=path / "episodes" if rec else None, scenario=p.scenario, overwrite=True)  # fmt: skip
+            summary["wall_s"] = time.perf_counter() - t0
+            write_json(done, summary)  # kept before anything else can interrupt the stage
+            self._save_wall()
+            self.emit(f"[{name}] {split} (seed {seed}, {episodes} episodes): success "
+                      f"{100 * summary['success_rate']:.1f}% collision {100 * summary['collision_rate']:.1f}%")
+            return summary
 
         cfg = {"driver": label or spec, "splits": splits, "follow": bool(follow), "lookahead": lookahead or {},
                "record": p.record_eval, "scenario": p.scenario}  # fmt: skip
@@ -445,10 +446,7 @@ class Experiment:
                                               previous)  # fmt: skip
             done.append(previous)
         assert previous is not None
-        obs = recipe.policy_config(recipe.final_stage, scenario=self.preset.scenario, seed=seed,
-                                   init_policy="x" if len(recipe.stages) > 1 else "",
-                                   warm_start="x" if recipe.final_stage == "clone" else "").obs  # fmt: skip
-        uses_predictor = needs_predictor(obs)
+        uses_predictor = needs_predictor(recipe.obs)
         if self.dry_run and "pending" in previous.outputs:
             return done
         done.append(self.evaluation(
@@ -462,16 +460,14 @@ class Experiment:
         """``recipe``'s final policy behind the lookahead planner (its ``[safety]`` table), evaluated."""
         from lcmodels.policy.obs import needs_predictor
 
-        assert recipe.safety is not None
-        s = recipe.capped(self.preset.cap_dict).safety
+        s = recipe.safety  # capped with the recipe (Experiment.recipes)
         assert s is not None
         look = {"horizon_decisions": s.horizon, "samples": s.samples, "perceived": s.perceived}
         inputs = {"policy": final.digest} | ({"follow": follow.digest} if follow is not None else {})
-        obs = recipe.stage_settings(recipe.final_stage).get("obs", "hybrid")
         return self.evaluation(
             f"{recipe.name}/seed{seed}/safety", policy_dir(self.out, recipe.name, seed) / "safety",
             f"lookahead-blind:{previous_policy(final)}", inputs,
-            predictor=predictor.path / "predictor.pt" if predictor and needs_predictor(obs) else None,
+            predictor=predictor.path / "predictor.pt" if predictor and needs_predictor(recipe.obs) else None,
             follow=str(previous_policy(follow)) if follow is not None else None, lookahead=look,
             label="lookahead-blind:policy")  # fmt: skip
 
@@ -564,12 +560,14 @@ class Experiment:
 
     def recipes(self) -> list[Recipe]:
         """The preset's recipes (capped), and any recipe a safety layer follows that the preset leaves out."""
-        names = list(self.preset.recipes)
-        out = [load_recipe(n) for n in names]
+        if self._recipes is not None:  # read once per experiment (the stages and the report use them)
+            return self._recipes
+        out = [load_recipe(n) for n in self.preset.recipes]
         for r in list(out):
             if r.safety is not None and r.safety.follow and r.safety.follow not in {x.name for x in out}:
                 out.append(load_recipe(r.safety.follow))
-        return [r.capped(self.preset.cap_dict) for r in out]
+        self._recipes = [r.capped(self.preset.cap_dict) for r in out]
+        return self._recipes
 
     def _stages(self, *, skip_train: bool, jobs: int = 1) -> None:
         from lcmodels.policy.obs import needs_predictor
@@ -585,8 +583,7 @@ class Experiment:
         tasks = []
         for seed in range(self.seeds):
             for r in recipes:
-                obs = r.stage_settings(r.stages[0]).get("obs", "hybrid")
-                task = (r, seed, predictor if needs_predictor(obs) else None,
+                task = (r, seed, predictor if needs_predictor(r.obs) else None,
                         demos[demos_key(r.demos)] if "clone" in r.stages else None)  # fmt: skip
                 if skip_train:  # a complete stage is reported as such (with its recorded time); the rest not run
                     dry, self.dry_run = self.dry_run, True

@@ -187,6 +187,13 @@ class Recipe:
     def final_stage(self) -> str:
         return self.stages[-1]
 
+    @property
+    def obs(self) -> str:
+        """The observation mode of the recipe's policy (PolicyConfig's default when the recipe sets none)."""
+        from lcmodels.policy.config import PolicyConfig
+
+        return str(self.stage_settings(self.final_stage).get("obs", PolicyConfig().obs))
+
     def stage_settings(self, stage: str) -> dict[str, Any]:
         """The PolicyConfig fields this recipe gives stage ``stage`` (``[policy]`` then the stage's table)."""
         return {**self.policy, **(getattr(self, stage) if stage in _STAGE_TABLES else {})}
@@ -207,13 +214,11 @@ class Recipe:
         data = {**settings, "seed": seed, "scenario": scenario, "warm_start": warm_start if stage == "clone" else "",
                 "init_policy": init_policy if stage == "train" else "", "eval_episodes": eval_episodes,
                 "eval_seed": eval_seed, "record_eval": record_eval}  # fmt: skip
-        if caps:
-            defaults = PolicyConfig()
-            for key, cap in caps.items():
-                if key in data or hasattr(defaults, key):
-                    current = data.get(key, getattr(defaults, key, None))
-                    if isinstance(current, int) and not isinstance(current, bool) and current > cap:
-                        data[key] = cap
+        defaults = PolicyConfig()
+        for key, cap in (caps or {}).items():
+            current = data.get(key, getattr(defaults, key, None))
+            if isinstance(current, int) and not isinstance(current, bool) and current > cap:
+                data[key] = cap
         return PolicyConfig.from_dict(data, stored=False)
 
     def capped(self, caps: dict[str, int] | None) -> Recipe:
