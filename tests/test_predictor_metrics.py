@@ -7,7 +7,16 @@ import pytest
 import torch
 
 from lcmodels.predictor.baselines import constant_acceleration, constant_velocity, last_velocity
-from lcmodels.predictor.metrics import ade, displacement_errors, error_curve, fde, miss_rate, summary
+from lcmodels.predictor.metrics import (
+    ade,
+    at_horizon,
+    displacement_errors,
+    error_curve,
+    fde,
+    horizons,
+    miss_rate,
+    summary,
+)
 from lcmodels.predictor.model import cv_extrapolate
 
 
@@ -31,6 +40,42 @@ def test_metric_input_checks() -> None:
         ade(np.zeros((2, 3, 2)), np.zeros((2, 4, 2)))
     with pytest.raises(ValueError, match="threshold_m"):
         miss_rate(np.zeros((1, 1, 2)), np.zeros((1, 1, 2)), 0.0)
+
+
+def test_metrics_at_horizons_hand_made() -> None:
+    # Two trajectories, 60 steps at 20 Hz: errors grow by 0.1 m and 0.3 m per step along y.
+    k = np.arange(1, 61, dtype=np.float64)
+    target = np.zeros((2, 60, 2))
+    pred = np.zeros((2, 60, 2))
+    pred[0, :, 1] = 0.1 * k
+    pred[1, :, 1] = 0.3 * k
+    h = horizons(pred, target)
+    assert list(h) == ["0.5s", "1s", "3s"]
+    assert [h[key]["step"] for key in h] == [10, 20, 60]
+    assert h["0.5s"]["fde"] == pytest.approx((1.0 + 3.0) / 2)
+    assert h["0.5s"]["ade"] == pytest.approx(0.2 * 5.5)  # mean of 0.2 k over k = 1..10
+    assert h["1s"]["rmse"] == pytest.approx(np.sqrt((2.0**2 + 6.0**2) / 2))
+    assert h["3s"]["fde"] == pytest.approx(fde(pred, target)) and h["3s"]["ade"] == pytest.approx(
+        ade(pred, target)
+    )
+    # RMSE weighs the larger error more: never below the FDE.
+    assert all(h[key]["rmse"] >= h[key]["fde"] for key in h)
+    # Only the horizons the future reaches; another step length moves the steps.
+    assert list(horizons(pred[:, :10], target[:, :10])) == ["0.5s"]
+    assert list(horizons(pred[:, :19], target[:, :19])) == ["0.5s"]
+    assert horizons(pred, target, dt_s=0.1)["3s"]["step"] == 30
+    assert summary(pred, target, miss_threshold_m=1.0)["horizons"] == h
+    assert np.isnan(at_horizon(pred[:0], target[:0], 0.5)["fde"])
+
+
+def test_horizon_input_checks() -> None:
+    z = np.zeros((1, 20, 2))
+    with pytest.raises(ValueError, match="beyond the 20 future steps"):
+        at_horizon(z, z, 3.0)
+    with pytest.raises(ValueError, match="whole number"):
+        at_horizon(z, z, 0.52)
+    with pytest.raises(ValueError, match="> 0"):
+        at_horizon(z, z, 0.0)
 
 
 def _track(h: int, f: int, v: np.ndarray, a: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
