@@ -2,14 +2,17 @@
 
 from __future__ import annotations
 
+import dataclasses
+import itertools
 import json
+from pathlib import Path
 
 import numpy as np
 import pytest
 import torch
 
 from lcdata.corpus import Corpus, WindowOptions, from_frame, to_frame
-from lcmodels.predictor import Predictor, PredictorConfig, TrajectoryTransformer
+from lcmodels.predictor import Predictor, PredictorConfig, TrajectoryTransformer, load_model
 from lcmodels.predictor.baselines import constant_velocity
 from lcmodels.predictor.synthetic import synthetic_tracks
 
@@ -117,3 +120,101 @@ def test_forward_ignores_garbage_behind_the_mask() -> None:
     dirty[~mask] = float("nan")
     with torch.no_grad():
         torch.testing.assert_close(model(dirty, mask), model(clean, mask))
+
+
+def _window_tokens(h: int = 10, f: int = 10) -> tuple[torch.Tensor, torch.Tensor]:
+    corpus = Corpus.from_tracks(synthetic_tracks(episode="c", seed=7, num_vehicles=8, num_steps=80),
+                                WindowOptions(history_steps=h, future_steps=f, stride=3))  # fmt: skip
+    pos, mask = corpus.gather().tokens()
+    return torch.from_numpy(pos), torch.from_numpy(mask)
+
+
+def test_correction_config_and_stored_configs_without_it() -> None:
+    with pytest.raises(ValueError, match="correction must be one of"):
+        PredictorConfig(correction="clipped")
+    with pytest.raises(ValueError, match="correction_accel_mps2"):
+        PredictorConfig(correction_accel_mps2=0.0)
+    # A config stored before the choice existed is the plain residual, whatever today's default is.
+    old = {k: v for k, v in PredictorConfig().to_dict().items() if not k.startswith(("correction", "dt_s"))}
+    assert PredictorConfig.from_dict(old).correction == "plain"
+    assert PredictorConfig.from_dict({**old, "correction": "gated"}).correction == "gated"
+    cfg = PredictorConfig(future_steps=60, correction="bounded")
+    bound = cfg.correction_bound_m()
+    assert len(bound) == 60 and bound[-1] == pytest.approx(1.0 * 3.0 + 0.5 * 3.0 * 9.0)
+    assert all(b1 < b2 for b1, b2 in itertools.pairwise(bound))
+
+
+def test_plain_model_keeps_the_checkpoint_layout() -> None:
+    plain = TrajectoryTransformer(PredictorConfig(correction="plain"))
+    gated = TrajectoryTransformer(PredictorConfig(correction="bounded-gated"))
+    assert not any(k.startswith("gate") for k in plain.state_dict())
+    assert set(gated.state_dict()) - set(plain.state_dict()) == {"gate.weight", "gate.bias", "familiar_limit"}
+
+
+def test_shipped_checkpoint_loads_as_the_plain_model() -> None:
+    model, _ = load_model(Path(__file__).resolve().parent.parent / "zoo" / "predictor" / "predictor.pt")
+    assert model.config.correction == "plain" and model.gate is None
+    # The same weights in a model built with an explicit plain config: the very same outputs.
+    twin = TrajectoryTransformer(model.config)
+    twin.load_state_dict(model.state_dict())
+    twin.eval()
+    pos, mask = _window_tokens()
+    with torch.no_grad():
+        assert torch.equal(model(pos, mask), twin(pos, mask))
+
+
+def test_bounded_correction_stays_within_its_bound() -> None:
+    torch.manual_seed(0)
+    cfg = PredictorConfig(d_model=32, ff_dim=64, correction="bounded")
+    model = TrajectoryTransformer(cfg).eval()
+    torch.nn.init.constant_(model.head[-1].bias, 1e4)  # a wild correction
+    pos, mask = _window_tokens()
+    with torch.no_grad():
+        pred = model(pos, mask)
+    cv = torch.from_numpy(constant_velocity(pos[:, 0].double().numpy(), cfg.future_steps)).float()
+    bound = torch.tensor(cfg.correction_bound_m()).view(1, -1, 1)
+    dev = (pred - cv).abs()
+    assert (dev <= bound * (1 + 1e-5)).all() and (dev >= bound * 0.99).all()  # saturated, not beyond
+
+
+@pytest.mark.parametrize("correction", ["gated", "bounded-gated"])
+def test_gate_moves_between_cv_and_the_full_correction(correction: str) -> None:
+    torch.manual_seed(0)
+    cfg = PredictorConfig(d_model=32, ff_dim=64, correction=correction)
+    model = TrajectoryTransformer(cfg).eval()
+    torch.nn.init.normal_(model.head[-1].weight, std=0.3)
+    pos, mask = _window_tokens()
+    cv = torch.from_numpy(constant_velocity(pos[:, 0].double().numpy(), cfg.future_steps)).float()
+    ungated = TrajectoryTransformer(dataclasses.replace(cfg, correction=correction.replace("gated", "plain")
+                                                        .replace("bounded-plain", "bounded"))).eval()  # fmt: skip
+    ungated.load_state_dict({k: v for k, v in model.state_dict().items() if not k.startswith(("gate", "familiar"))})
+    with torch.no_grad():
+        _pred, gate = model.predict_with_gate(pos, mask)
+        assert gate is not None and gate.shape == (len(pos), cfg.future_steps)
+        assert torch.allclose(gate, torch.full_like(gate, 0.5))  # starts half open
+        torch.nn.init.constant_(model.gate.bias, -40.0)
+        torch.testing.assert_close(model(pos, mask), cv, atol=1e-5, rtol=0)  # closed: constant velocity
+        torch.nn.init.constant_(model.gate.bias, 40.0)
+        torch.testing.assert_close(model(pos, mask), ungated(pos, mask))  # open: the full correction
+
+
+def test_gate_closes_on_motion_unlike_the_training_windows() -> None:
+    """Familiarity: fitted on smooth synthetic traffic, the gate stays open on more of it and falls back
+    to constant velocity where centimetre jitter makes the accelerations unlike anything seen."""
+    torch.manual_seed(0)
+    cfg = PredictorConfig(d_model=32, ff_dim=64, correction="gated")
+    model = TrajectoryTransformer(cfg).eval()
+    torch.nn.init.normal_(model.head[-1].weight, std=0.3)
+    pos, mask = _window_tokens()
+    corpus = Corpus.from_tracks(synthetic_tracks(episode="c", seed=7, num_vehicles=8, num_steps=80),
+                                WindowOptions(stride=3))  # fmt: skip
+    model.fit_normalisation(pos, mask, torch.from_numpy(corpus.gather().future))
+    assert torch.isfinite(model.familiar_limit)
+    familiar = model.familiarity(pos, mask)
+    assert (familiar == 1.0).float().mean() > 0.99
+    noisy = pos + 0.01 * torch.randn(pos.shape, generator=torch.Generator().manual_seed(1))
+    assert model.familiarity(noisy, mask).max() == 0.0
+    with torch.no_grad():
+        pred = model(noisy, mask)
+    cv = torch.from_numpy(constant_velocity(noisy[:, 0].double().numpy(), cfg.future_steps)).float()
+    torch.testing.assert_close(pred, cv, atol=1e-5, rtol=0)

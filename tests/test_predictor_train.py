@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import dataclasses
 import json
 from pathlib import Path
 from typing import Any
@@ -105,3 +106,23 @@ def test_train_config_validation_and_too_few_episodes(tmp_path: Path) -> None:
     assert TrainConfig.from_dict(json.loads(json.dumps(cfg.to_dict()))) == cfg
     with pytest.raises(ValueError, match="at least 3 episodes"):
         train_predictor(_tracks()[:2], SMALL, tmp_path)
+
+
+def test_gated_training_with_input_noise_round_trips(tmp_path: Path) -> None:
+    """A gated model trained on jittered positions: finite, its familiarity limit fitted, and the
+    checkpoint gives the very same predictions and gates after loading."""
+    cfg = dataclasses.replace(SMALL, model=dataclasses.replace(SMALL.model, correction="bounded-gated"),
+                              input_noise_m=0.003, gate_cost=0.1, tensorboard=False)  # fmt: skip
+    metrics = train_predictor(_tracks(), cfg, tmp_path)
+    assert np.isfinite(metrics["model"]["ade"]) and metrics["config"]["input_noise_m"] == 0.003
+    model, _ = load_model(tmp_path / CHECKPOINT_NAME)
+    assert model.config.correction == "bounded-gated" and torch.isfinite(model.familiar_limit)
+    corpus = Corpus.from_tracks(synthetic_tracks(episode="x", seed=42, num_vehicles=8, num_steps=60), WindowOptions())
+    pos, mask = (torch.from_numpy(a) for a in corpus.gather().tokens())
+    with torch.no_grad():
+        pred, gate = model.predict_with_gate(pos, mask)
+        again, gate_again = load_model(tmp_path / CHECKPOINT_NAME)[0].predict_with_gate(pos, mask)
+    assert gate is not None and ((gate >= 0) & (gate <= 1)).all()
+    assert torch.equal(pred, again) and torch.equal(gate, gate_again)
+    with pytest.raises(ValueError, match="input_noise_m"):
+        TrainConfig(input_noise_m=-0.1)

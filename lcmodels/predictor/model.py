@@ -12,6 +12,24 @@ as a standardised residual over the agent's constant-velocity extrapolation. Wit
 layer at zero the model *is* the baseline (plus the training-set mean residual), so training starts
 from it.
 
+How the correction to constant velocity is shaped (:attr:`PredictorConfig.correction`), so that on traffic
+unlike the training data the model can fall back towards the baseline instead of adding a confident
+but wrong correction:
+
+- ``plain``: ``CV + residual``, unbounded (every checkpoint written before the choice existed);
+- ``bounded``: each coordinate of the residual through ``b_k tanh(residual / b_k)``, with ``b_k`` the
+  largest deviation from constant velocity a vehicle can build up by step ``k``: a speed error of
+  ``correction_speed_mps`` plus an acceleration of ``correction_accel_mps2`` held for ``t = k dt_s``
+  (``b_k = v t + a t² / 2``);
+- ``gated``: ``CV + g * residual`` with a confidence gate ``g`` in [0, 1] per future step: a learned
+  gate from the agent token (training charges for an open gate, ``TrainConfig.gate_cost``, so it opens
+  only where the correction pays) times the *familiarity* of the agent's motion, which no training can
+  teach: the RMS of its standardised velocities and accelerations over the history, fully trusted up to
+  the 99.9th percentile of the training windows (``familiar_limit``) and closing linearly to 0 at twice
+  that. Motion unlike anything in training (a jitter of the positions that the training data never had,
+  say) thus falls back to constant velocity instead of being read as real acceleration;
+- ``bounded-gated``: both.
+
 Normalisation statistics are buffers computed from the training split only
 (:meth:`TrajectoryTransformer.fit_normalisation`), so they travel with the weights.
 """
@@ -20,6 +38,7 @@ from __future__ import annotations
 
 import dataclasses
 import json
+import math
 from dataclasses import dataclass
 from typing import Any
 
@@ -42,6 +61,12 @@ FEATURES_PER_STEP = 6
 MIN_STD = 1e-6
 #: Standardised inputs are clipped to this magnitude (robustness to out-of-distribution inputs).
 CLIP = 50.0
+#: The ways to shape the correction to constant velocity (see the module docstring).
+CORRECTIONS = ("plain", "bounded", "gated", "bounded-gated")
+#: Share of training windows whose motion counts as familiar to a gated model (the gate's full-trust limit).
+FAMILIAR_QUANTILE = 0.999
+#: Values of fields a stored config may lack: what a checkpoint from before the field existed was.
+LEGACY_VALUES: dict[str, Any] = {"correction": "plain"}
 
 
 @dataclass(frozen=True, slots=True, kw_only=True)
@@ -66,6 +91,14 @@ class PredictorConfig:
     """Feed-forward width inside each layer."""
     dropout: float = 0.0
     """Dropout inside the encoder (0 keeps training deterministic and fast)."""
+    correction: str = "gated"
+    """How the correction to constant velocity is shaped: plain, bounded, gated, bounded-gated (module doc)."""
+    correction_speed_mps: float = 1.0
+    """bounded: speed error the correction may make up, m/s (the linear part of the bound)."""
+    correction_accel_mps2: float = 3.0
+    """bounded: acceleration the correction may add, m/s², along each axis (the quadratic part)."""
+    dt_s: float = 0.05
+    """Step of the data, seconds (the corpus's 20 Hz); only the bound uses it."""
 
     def __post_init__(self) -> None:
         ints = (
@@ -95,6 +128,27 @@ class PredictorConfig:
             raise ValueError(f"num_heads ({self.num_heads}) must divide d_model ({self.d_model})")
         if not 0.0 <= self.dropout < 1.0:
             raise ValueError(f"dropout must be in [0, 1), got {self.dropout}")
+        if self.correction not in CORRECTIONS:
+            raise ValueError(f"correction must be one of {', '.join(CORRECTIONS)}; got {self.correction!r}")
+        for name in ("correction_speed_mps", "correction_accel_mps2", "dt_s"):
+            value = getattr(self, name)
+            if not (isinstance(value, int | float) and not isinstance(value, bool) and math.isfinite(value) and value > 0):
+                raise ValueError(f"{name} must be a number > 0, got {value!r}")
+
+    @property
+    def bounded(self) -> bool:
+        """Whether the residual is tanh-bounded."""
+        return self.correction in ("bounded", "bounded-gated")
+
+    @property
+    def gated(self) -> bool:
+        """Whether a confidence gate scales the residual."""
+        return self.correction in ("gated", "bounded-gated")
+
+    def correction_bound_m(self) -> list[float]:
+        """``b_k`` of the bounded correction for ``k = 1..F``, metres (module doc)."""
+        t = [k * self.dt_s for k in range(1, self.future_steps + 1)]
+        return [self.correction_speed_mps * ti + 0.5 * self.correction_accel_mps2 * ti * ti for ti in t]
 
     def to_dict(self) -> dict[str, Any]:
         return dataclasses.asdict(self)
@@ -104,11 +158,13 @@ class PredictorConfig:
 
     @classmethod
     def from_dict(cls, data: dict[str, Any]) -> PredictorConfig:
+        """A stored config: a field it lacks gets the value it had before the field existed
+        (:data:`LEGACY_VALUES`, so an old checkpoint computes what it always did), else the default."""
         names = {f.name for f in dataclasses.fields(cls)}
         unknown = set(data) - names
         if unknown:
             raise ValueError(f"unknown PredictorConfig fields: {sorted(unknown)}")
-        return cls(**data)
+        return cls(**{**{k: v for k, v in LEGACY_VALUES.items() if k not in data}, **data})
 
 
 def token_features(pos: torch.Tensor, mask: torch.Tensor) -> torch.Tensor:
@@ -237,6 +293,17 @@ class TrajectoryTransformer(nn.Module):
         self.head = nn.Sequential(nn.LayerNorm(d), nn.Linear(d, d), nn.GELU(), nn.Linear(d, f * 2))
         nn.init.zeros_(self.head[-1].weight)
         nn.init.zeros_(self.head[-1].bias)
+        # Confidence gate, one logit per future step; it starts half open (sigmoid(0)).
+        self.gate: nn.Linear | None = None
+        if config.gated:
+            self.gate = nn.Linear(d, f)
+            nn.init.zeros_(self.gate.weight)
+            nn.init.zeros_(self.gate.bias)
+            self.register_buffer("familiar_limit", torch.tensor(float("inf")))  # set by fit_normalisation
+        if config.bounded:
+            self.register_buffer(
+                "correction_bound", torch.tensor(config.correction_bound_m()).unsqueeze(-1), persistent=False
+            )
         # Normalisation statistics (training split only), see fit_normalisation.
         self.register_buffer("agent_mean", torch.zeros(h, FEATURES_PER_STEP))
         self.register_buffer("agent_std", torch.ones(h, FEATURES_PER_STEP))
@@ -274,6 +341,28 @@ class TrajectoryTransformer(nn.Module):
         self.neighbour_std.copy_(nsd)
         self.residual_mean.copy_(residual.mean(0))
         self.residual_std.copy_(residual.std(0).clamp_min(MIN_STD))
+        if self.gate is not None:
+            z = ((feats[:, 0] - am) / asd).clamp(-CLIP, CLIP) * m[:, 0]
+            motion = self._motion_rms(z.transpose(1, 2))
+            self.familiar_limit.copy_(torch.quantile(motion, FAMILIAR_QUANTILE).clamp_min(MIN_STD))
+
+    @staticmethod
+    def _motion_rms(z: torch.Tensor) -> torch.Tensor:
+        """RMS of the standardised velocities and accelerations ``z[:, 2:6, 2:]`` of ``(N, 6+, H)`` features."""
+        return z[:, 2:6, 2:].pow(2).mean((1, 2)).sqrt()
+
+    def familiarity(self, pos: torch.Tensor, mask: torch.Tensor) -> torch.Tensor:
+        """``(N,)`` in [0, 1]: 1 for agent motion like the training windows', 0 for motion far outside them
+        (module doc); all ones for a model without a gate."""
+        x, _ = self._standardised_inputs(pos, mask)
+        return self._familiarity(x)
+
+    def _familiarity(self, x: torch.Tensor) -> torch.Tensor:
+        n, _, width = x.shape
+        if self.gate is None:
+            return x.new_ones(n)
+        z = x[:, 0].view(n, FEATURES_PER_STEP + 1, width // (FEATURES_PER_STEP + 1))
+        return (2.0 - self._motion_rms(z) / self.familiar_limit).clamp(0.0, 1.0)
 
     def forward(self, pos: torch.Tensor, mask: torch.Tensor) -> torch.Tensor:
         """Predict the agent's (token 0) future.
@@ -285,7 +374,26 @@ class TrajectoryTransformer(nn.Module):
         Returns:
             ``(N, F, 2)`` future positions in the agent frame.
         """
-        n, t, h, _ = pos.shape
+        return self.predict_with_gate(pos, mask)[0]
+
+    def predict_with_gate(self, pos: torch.Tensor, mask: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor | None]:
+        """:meth:`forward` and the confidence gate ``(N, F)`` in [0, 1] behind it (None when not gated)."""
+        agent, agent_pos, x = self._encode(pos, mask)
+        n, f = agent.shape[0], self.config.future_steps
+        out = self.head(agent).view(n, f, 2)
+        residual = out * self.residual_std + self.residual_mean
+        if self.config.bounded:
+            residual = self.correction_bound * torch.tanh(residual / self.correction_bound)
+        gate = None
+        if self.gate is not None:
+            gate = torch.sigmoid(self.gate(agent)) * self._familiarity(x).unsqueeze(-1)
+            residual = residual * gate.unsqueeze(-1)
+        return cv_extrapolate(agent_pos, mask[:, 0], f) + residual, gate
+
+    def _encode(self, pos: torch.Tensor, mask: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+        """The agent's output token ``(N, d)``, its masked history positions ``(N, H, 2)`` and the token
+        inputs ``(N, T, 7 * H)`` (:meth:`_standardised_inputs`)."""
+        _n, t, h, _ = pos.shape
         if h != self.config.history_steps:
             raise ValueError(f"expected {self.config.history_steps} history steps, got {h}")
         x, agent_pos = self._standardised_inputs(pos, mask)  # x: (N, T, 7 * H), step-minor layout
@@ -305,9 +413,7 @@ class TrajectoryTransformer(nn.Module):
             if eps not in normed:
                 normed[eps] = F.layer_norm(tok, tok.shape[-1:], eps=eps)
             agent = layer.attend(agent, normed[eps], keep)
-        out = self.head(agent).view(n, self.config.future_steps, 2)
-        residual = out * self.residual_std + self.residual_mean
-        return cv_extrapolate(agent_pos, mask[:, 0], self.config.future_steps) + residual
+        return agent, agent_pos, x
 
     def _input_order(self, h: int) -> torch.Tensor:
         """Columns of ``embed[0].weight`` in the order of :meth:`_standardised_inputs`' layout

@@ -66,6 +66,14 @@ class TrainConfig:
     """Deterministic subsample of validation windows per epoch (None: all); test always uses all."""
     miss_threshold_m: float = 0.5
     """Final-step error above which a prediction counts as a miss, metres."""
+    input_noise_m: float = 0.0
+    """Standard deviation of Gaussian noise added to every observed position of a training batch (drawn
+    afresh per batch; targets stay clean), metres: recorded traffic elsewhere is measured with noise and
+    rounding that a simulator's exact positions lack, and a model that never saw any reads the jitter of
+    a difference as real acceleration. 0 trains on the positions as recorded."""
+    gate_cost: float = 0.05
+    """Gated models: loss charged for the mean gate opening, in units of the typical residual (the loss's
+    unit), so that the gate stays closed (constant velocity) unless the correction gains more than that."""
     seed: int = 0
     """Seeds the split, subsampling, initialisation and batch order."""
     num_threads: int = 2
@@ -95,6 +103,10 @@ class TrainConfig:
                 raise ValueError(f"{name} must be in (0, 1), got {getattr(self, name)}")
         if self.val_fraction + self.test_fraction >= 1.0:
             raise ValueError("val_fraction + test_fraction must be < 1")
+        for name in ("gate_cost", "input_noise_m"):
+            value = getattr(self, name)
+            if not (isinstance(value, int | float) and math.isfinite(value) and value >= 0):
+                raise ValueError(f"{name} must be a number >= 0, got {value!r}")
         for name in ("learning_rate", "grad_clip_norm", "miss_threshold_m"):
             if not getattr(self, name) > 0:
                 raise ValueError(f"{name} must be > 0, got {getattr(self, name)}")
@@ -249,7 +261,11 @@ def _train(
     model = TrajectoryTransformer(config.model)
     pos, mask, fut = _tensors(train_b)
     vpos, vmask, vfut = _tensors(val_b)
-    model.fit_normalisation(pos, mask, fut)
+    if config.input_noise_m > 0:  # the statistics of the inputs the model will be trained on
+        noise_gen = torch.Generator().manual_seed(config.seed + 1)
+        model.fit_normalisation(pos + config.input_noise_m * torch.randn(pos.shape, generator=noise_gen), mask, fut)
+    else:
+        model.fit_normalisation(pos, mask, fut)
 
     opt = torch.optim.AdamW(model.parameters(), lr=config.learning_rate, weight_decay=config.weight_decay)
     steps_per_epoch = math.ceil(len(pos) / config.batch_size)
@@ -278,15 +294,22 @@ def _train(
         total = 0.0
         for i in range(0, len(pos), config.batch_size):
             idx = perm[i : i + config.batch_size]
-            loss = _ade_loss(model(pos[idx], mask[idx]), fut[idx]) / scale
+            p = pos[idx]
+            if config.input_noise_m > 0:
+                p = p + config.input_noise_m * torch.randn(p.shape, generator=gen, dtype=p.dtype)
+            pred, gate = model.predict_with_gate(p, mask[idx])
+            ade = _ade_loss(pred, fut[idx])
+            loss = ade / scale
+            if gate is not None:
+                loss = loss + config.gate_cost * gate.mean()
             opt.zero_grad(set_to_none=True)
             loss.backward()
             torch.nn.utils.clip_grad_norm_(model.parameters(), config.grad_clip_norm)
             opt.step()
             sched.step()
-            total += loss.item() * len(idx)
+            total += ade.item() * len(idx)
             global_step += 1
-        train_ade = total / len(pos) * scale
+        train_ade = total / len(pos)
         v = val_ade()
         history.append({"epoch": epoch, "train_ade": train_ade, "val_ade": v})
         if writer is not None:
