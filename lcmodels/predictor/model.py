@@ -22,8 +22,8 @@ but wrong correction:
   ``correction_speed_mps`` plus an acceleration of ``correction_accel_mps2`` held for ``t = k dt_s``
   (``b_k = v t + a t² / 2``);
 - ``gated``: ``CV + g * residual`` with a confidence gate ``g`` in [0, 1] per future step: a learned
-  gate from the agent token (training charges for an open gate, ``TrainConfig.gate_cost``, so it opens
-  only where the correction pays) times the *familiarity* of the agent's motion, which no training can
+  gate from the agent token (trained on the correction as it stands, which itself learns ungated, and
+  charged for opening, ``TrainConfig.gate_cost``, so it opens only where the correction pays) times the *familiarity* of the agent's motion, which no training can
   teach: the RMS of its standardised velocities and accelerations over the history, fully trusted up to
   the 99.9th percentile of the training windows (``familiar_limit``) and closing linearly to 0 at twice
   that. Motion unlike anything in training (a jitter of the positions that the training data never had,
@@ -378,6 +378,16 @@ class TrajectoryTransformer(nn.Module):
 
     def predict_with_gate(self, pos: torch.Tensor, mask: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor | None]:
         """:meth:`forward` and the confidence gate ``(N, F)`` in [0, 1] behind it (None when not gated)."""
+        cv, residual, gate = self.prediction_parts(pos, mask)
+        if gate is None:
+            return cv + residual, None
+        return cv + residual * gate.unsqueeze(-1), gate
+
+    def prediction_parts(
+        self, pos: torch.Tensor, mask: torch.Tensor
+    ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor | None]:
+        """The parts of a prediction: the constant-velocity extrapolation ``(N, F, 2)``, the (bounded)
+        correction ``(N, F, 2)`` before the gate, and the gate ``(N, F)`` (None when not gated)."""
         agent, agent_pos, x = self._encode(pos, mask)
         n, f = agent.shape[0], self.config.future_steps
         out = self.head(agent).view(n, f, 2)
@@ -387,8 +397,7 @@ class TrajectoryTransformer(nn.Module):
         gate = None
         if self.gate is not None:
             gate = torch.sigmoid(self.gate(agent)) * self._familiarity(x).unsqueeze(-1)
-            residual = residual * gate.unsqueeze(-1)
-        return cv_extrapolate(agent_pos, mask[:, 0], f) + residual, gate
+        return cv_extrapolate(agent_pos, mask[:, 0], f), residual, gate
 
     def _encode(self, pos: torch.Tensor, mask: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
         """The agent's output token ``(N, d)``, its masked history positions ``(N, H, 2)`` and the token

@@ -297,11 +297,15 @@ def _train(
             p = pos[idx]
             if config.input_noise_m > 0:
                 p = p + config.input_noise_m * torch.randn(p.shape, generator=gen, dtype=p.dtype)
-            pred, gate = model.predict_with_gate(p, mask[idx])
-            ade = _ade_loss(pred, fut[idx])
+            cv, residual, gate = model.prediction_parts(p, mask[idx])
+            ade = _ade_loss(cv + residual, fut[idx])
             loss = ade / scale
             if gate is not None:
-                loss = loss + config.gate_cost * gate.mean()
+                # The correction learns as if ungated (a gate that closed early would starve it of gradient);
+                # the gate learns how far to trust the correction as it stands, and pays for opening.
+                gated = cv + residual.detach() * gate.unsqueeze(-1)
+                ade = _ade_loss(gated, fut[idx])  # the model's output: what the training ADE reports
+                loss = loss + ade / scale + config.gate_cost * gate.mean()
             opt.zero_grad(set_to_none=True)
             loss.backward()
             torch.nn.utils.clip_grad_norm_(model.parameters(), config.grad_clip_norm)
