@@ -284,7 +284,9 @@ class TrafficConfig(JsonConfig):
     idm_delta: float = 4.0
     max_decel_mps2: float = 8.0
     lane_changes: bool = True
-    lane_change_duration_s: float = 3.0
+    lane_change_duration_s: float = 5.0
+    """Duration of a traffic lane change (the median across drivers when ``human_like``): naturalistic
+    highway lane changes take 5 to 6 s on average (docs/simulator.md)."""
     lane_change_check_period_s: float = 0.5
     blocked_gap_min_m: float = 0.0
     blocked_gap_max_m: float = 50.0
@@ -295,10 +297,43 @@ class TrafficConfig(JsonConfig):
     lane_change_rear_headway_s: float = 1.0
     random_lane_change_rate_per_min: float = 0.3
     """Rate of spontaneous lane changes (when the side lane is free), for variety in the corpus."""
+    human_like: bool = True
+    """Human-like drivers, as the fields below describe (docs/simulator.md gives their sources and the
+    statistics they produce). False: every vehicle follows IDM exactly with the parameters above, no
+    noise and no delay, and changes lanes in exactly ``lane_change_duration_s`` (with a duration of 3 s, the
+    traffic of earlier versions, which configs stored before this field existed keep)."""
+    driver_spread: float = 0.25
+    """Per-driver spread of the car-following parameters: each driver's desired time gap, maximum
+    acceleration and comfortable deceleration are lognormal with the medians above and this log-sd."""
+    accel_noise_mps2: float = 0.2
+    """Standard deviation of the stochastic acceleration each driver adds to IDM's (an Ornstein-Uhlenbeck
+    process sampled every lane-change check and interpolated linearly in between)."""
+    accel_noise_time_s: float = 2.0
+    """Correlation time of that acceleration noise."""
+    reaction_time_s: float = 0.5
+    """Median per-driver reaction time: the applied acceleration follows the commanded one with this first
+    order lag (lognormal across drivers with log-sd ``driver_spread``)."""
+    lane_wander_m: float = 0.15
+    """Standard deviation of each driver's lateral offset from the lane centre (an Ornstein-Uhlenbeck
+    process like the acceleration noise, clipped at 2.5 standard deviations)."""
+    lane_wander_time_s: float = 4.0
+    """Correlation time of the lateral offset."""
+    lane_change_spread: float = 0.25
+    """Per-driver log-sd of the lane-change duration (lognormal, median ``lane_change_duration_s``)."""
+    lane_change_eagerness_min: float = 0.3
+    """Per-driver probability of acting on a blocked leader at a check, uniform in [this, 1] (1: always)."""
+
+    LEGACY_DEFAULTS: ClassVar[dict[str, Any]] = {"human_like": False}
 
     def __post_init__(self) -> None:
         check_field(isinstance(self.num_vehicles, int) and self.num_vehicles >= 0, self, "num_vehicles",
                "must be an integer >= 0", self.num_vehicles)
+        check_field(isinstance(self.human_like, bool), self, "human_like", "must be true or false", self.human_like)
+        require_positive(self, "accel_noise_time_s", "lane_wander_time_s")
+        require_non_negative(self, "driver_spread", "accel_noise_mps2", "reaction_time_s", "lane_wander_m",
+                             "lane_change_spread")
+        check_field(0.0 <= self.lane_change_eagerness_min <= 1.0, self, "lane_change_eagerness_min",
+                    "must be in [0, 1]", self.lane_change_eagerness_min)
         require_positive(self, "speed_kmh", "length_m", "width_m", "idm_time_headway_s", "idm_max_accel_mps2",
                   "idm_comfort_decel_mps2", "idm_delta", "max_decel_mps2", "lane_change_duration_s",
                   "lane_change_check_period_s")

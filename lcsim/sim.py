@@ -25,7 +25,7 @@ from lcsim.control import (
 )
 from lcsim.neighbours import LaneIndex
 from lcsim.road import StraightRoad
-from lcsim.traffic import idm_accel, smoothstep5
+from lcsim.traffic import WANDER_CLIP_SIGMAS, DriverParams, idm_accel, smoothstep5
 
 # Per-vehicle state arrays (E, N) and per-environment arrays (E,) frozen together when an episode ends.
 _VEHICLE_STATE = ("x", "y", "yaw", "speed", "accel", "lane", "target_lane", "lc_active", "lc_t0", "lc_y0",
@@ -33,6 +33,10 @@ _VEHICLE_STATE = ("x", "y", "yaw", "speed", "accel", "lane", "target_lane", "lc_
 _ENV_STATE = ("step", "t_s", "ego_accel", "path_x0", "path_len", "path_y0", "path_y1", "ego_lc_active", "steer",
               "throttle", "brake", "collision_with", "lane_invasion", "off_road")
 _SENSOR_STATE = ("collision_with", "lane_invasion", "off_road")
+# The state of human-like traffic (TrafficConfig.human_like), frozen with the rest: each driver's acceleration
+# noise (held between two lane-change checks) and lateral wander (its value at the last check, at the next,
+# and the change per step between them).
+_HUMAN_STATE = ("noise", "wander_base", "wander_next", "wander_step")
 # Up to this many vehicles changing lanes, their lateral update runs on Python floats (fewer calls).
 _SCALAR_LANE_CHANGES = 6
 # Up to this many environments the neighbour index is updated rather than rebuilt when nothing but the
@@ -41,6 +45,7 @@ _INCREMENTAL_INDEX_MAX_ENVS = 8
 _NONE = np.zeros(0, dtype=np.int64)  # no environment, no vehicle
 _LANE_CHANGE_STREAM = 1  # the random-number stream of the traffic's spontaneous lane changes
 _REDRAW_STREAM = 2  # mixes the salt of rekey into the keys
+_NOISE_STREAM = 3  # the knots of human-like drivers' acceleration noise and lateral wander
 _ALL_ONE_ENV = np.ones(1, dtype=bool)
 
 SubstepHook = Callable[["HighwaySim"], None]
@@ -76,6 +81,7 @@ class HighwaySim:
         self.is_traffic[:, 0] = autopilot_ego
         self.check_every = max(1, round(tc.lane_change_check_period_s / self.dt))
         self.p_spontaneous = tc.random_lane_change_rate_per_min * tc.lane_change_check_period_s / 60.0
+        self.human = tc.human_like
 
         f64 = lambda shape: np.zeros(shape)  # noqa: E731
         self.x, self.y, self.yaw, self.speed, self.accel = (f64((e, n)) for _ in range(5))
@@ -84,6 +90,17 @@ class HighwaySim:
         self.v0 = f64((e, n))
         self.lc_active = np.zeros((e, n), dtype=bool)
         self.lc_t0, self.lc_y0, self.lc_y1 = f64((e, n)), f64((e, n)), f64((e, n))
+        # Human-like drivers: per-driver parameters (set at reset) and the state of their random processes.
+        self.drivers = DriverParams.nominal(tc, (e, n), self.dt)
+        if self.human:
+            if 2 * WANDER_CLIP_SIGMAS * tc.lane_wander_m + tc.width_m + 0.2 > config.road.lane_width_m:
+                raise ValueError(f"TrafficConfig.lane_wander_m={tc.lane_wander_m!r} lets a {tc.width_m} m wide vehicle "
+                                 f"leave its {config.road.lane_width_m} m lane; lower it")
+            for name in _HUMAN_STATE:
+                setattr(self, name, f64((e, n)))
+            period = self.check_every * self.dt
+            self._noise_rho = math.exp(-period / tc.accel_noise_time_s)
+            self._wander_rho = math.exp(-period / tc.lane_wander_time_s)
         # Ego planner (BasicAgent-style lane-change path) and controller state, per environment.
         self.path_x0, self.path_len, self.path_y0, self.path_y1 = (f64(e) for _ in range(4))
         self.ego_lc_active = np.zeros(e, dtype=bool)
@@ -95,6 +112,7 @@ class HighwaySim:
         self.t_s = f64(e)
         self.key = np.zeros(e, dtype=np.uint64)
         self.lane_change_base = rng.stream_base(self.key, _LANE_CHANGE_STREAM)  # (kept with key by reset)
+        self.noise_base = rng.stream_base(self.key, _NOISE_STREAM)
         self.collision_with = np.full(e, -1, dtype=np.int64)
         self.lane_invasion = np.full(e, -1, dtype=np.int64)
         self.off_road = np.zeros(e, dtype=bool)
@@ -127,12 +145,14 @@ class HighwaySim:
         self.hist[env_ids] = np.stack([self.x[env_ids], self.y[env_ids]], axis=-1)[:, None]
         self.hist_count[env_ids] = 1
         self.lane_change_base = rng.stream_base(self.key, _LANE_CHANGE_STREAM)
+        self.noise_base = rng.stream_base(self.key, _NOISE_STREAM)
 
     def rekey(self, salt: int) -> None:
         """Mix ``salt`` into every environment's key of the counter-based random streams: from now on the
         traffic draws other random numbers (:func:`lcsim.planning.redraw_future` is the planner's use)."""
         self.key = self.key ^ rng.stream_base(np.array([salt], dtype=np.uint64), _REDRAW_STREAM)[0]
         self.lane_change_base = rng.stream_base(self.key, _LANE_CHANGE_STREAM)
+        self.noise_base = rng.stream_base(self.key, _NOISE_STREAM)
 
     def _spawn(self, e: int, gen: np.random.Generator) -> None:
         _cfg, tc, ec, road = self.config, self.config.traffic, self.config.ego, self.road
@@ -185,6 +205,20 @@ class HighwaySim:
         self.key[e] = np.uint64(gen.integers(0, 2**63 - 1))
         self.collision_with[e], self.lane_invasion[e], self.off_road[e] = -1, -1, False
         self.traffic_collisions[e] = 0
+        if self.human:  # (drawn after everything else: the rest of the episode is as without them)
+            self._spawn_drivers(e, gen)
+
+    def _spawn_drivers(self, e: int, gen: np.random.Generator) -> None:
+        """Human-like drivers for environment ``e``: their parameters, and their random processes started
+        from their stationary distributions (the ego, unless on autopilot, neither wanders nor has noise)."""
+        tc, n = self.config.traffic, self.num_vehicles
+        self.drivers.draw(e, gen, tc, self.dt, n)
+        traffic = self.is_traffic[e]
+        self.noise[e] = tc.accel_noise_mps2 * gen.standard_normal(n) * traffic
+        self.wander_base[e] = self.wander_next[e] = np.clip(gen.standard_normal(n), -WANDER_CLIP_SIGMAS,
+                                                           WANDER_CLIP_SIGMAS) * tc.lane_wander_m * traffic
+        self.wander_step[e] = 0.0
+        self.y[e] = self.y[e] + self.wander_base[e]
 
     # --------------------------------------------------------------- decisions
     def start_lane_change(self, env_mask: np.ndarray, direction: np.ndarray) -> None:
@@ -219,10 +253,23 @@ class HighwaySim:
         tc, dt = self.config.traffic, self.dt
         index = self.index if self.index is not None else self._build_index()
         speed = self.speed
-        acc = idm_accel(speed, self.v0, index.gap, speed - index.lead_speed, tc)
+        human = self.human
+        check_now = self.step.item(0) % self.check_every == 0 if single else None  # (one env: known once)
+        if human:
+            if check_now or not single:
+                self._next_knots(single)
+            acc = idm_accel(speed, self.v0, index.gap, speed - index.lead_speed, tc, self.drivers)
+            # The driver's own noise on top, then the reaction lag: the applied acceleration closes a share
+            # of its distance to the commanded one each step.
+            acc += self.noise
+            acc -= self.accel
+            acc *= self.drivers.lag
+            acc += self.accel
+        else:
+            acc = idm_accel(speed, self.v0, index.gap, speed - index.lead_speed, tc)
         if tc.lane_changes:
             if single:
-                if self.step.item(0) % self.check_every == 0:
+                if check_now:
                     self._traffic_lane_changes(index, _ALL_ONE_ENV)
             else:
                 due = (self.step % self.check_every) == 0
@@ -237,12 +284,13 @@ class HighwaySim:
         new_x = speed + new_speed
         new_x *= 0.5 * dt  # (= 0.5 * (v + v') * dt bit for bit: halving is exact)
         new_x += self.x
-        new_y, new_yaw = self.y.copy(), np.zeros(self.yaw.shape)
+        # Lane keepers move sideways by their wander only (one step of it; zero without human-like drivers).
+        new_y, new_yaw = (self.y + self.wander_step) if human else self.y.copy(), np.zeros(self.yaw.shape)
         changing = self.lc_active.ravel().nonzero()[0]
         if 0 < changing.size <= _SCALAR_LANE_CHANGES:
             self._lateral_few(changing.tolist(), new_speed, new_y, new_yaw)
         elif changing.size:
-            inv_dur = 1.0 / tc.lane_change_duration_s
+            inv_dur = self.drivers.lc_inv_duration.take(changing) if human else 1.0 / tc.lane_change_duration_s
             tau = (self.t_s.take(changing // self.num_vehicles) + (dt - self.lc_t0.take(changing))) * inv_dur
             prof, dprof = smoothstep5(tau)
             y0 = self.lc_y0.take(changing)
@@ -251,6 +299,8 @@ class HighwaySim:
             new_yaw.put(changing, np.arctan2(dy * dprof * inv_dur, np.maximum(new_speed.take(changing), 1e-3)))
             self.lc_active.put(changing, tau < 1.0)
 
+        if human and changing.size > _SCALAR_LANE_CHANGES:  # lane changers: their path plus their wander
+            new_y.put(changing, new_y.take(changing) + self._wander_at(changing, 1))  # (_lateral_few adds it too)
         ego_y_prev = self.y[:, 0].copy()
         ego_target = self.target_lane.item(0) if single else self.target_lane[:, 0].copy()
         if not self.autopilot_ego:
@@ -286,6 +336,44 @@ class HighwaySim:
         for hook in self.hooks:
             hook(self)
 
+    def _next_knots(self, single: bool) -> None:
+        """Human-like drivers, at each lane-change check: every driver's acceleration noise for the coming
+        period and the next knot of its lateral wander (Ornstein-Uhlenbeck steps over one period, from
+        counter-based uniform draws), towards which the wander moves in equal steps; the wander (a lateral offset
+        of the position; its heading, under half a degree, is left out) is clipped within the lane."""
+        c = self.check_every
+        if single:  # (called at the checks only)
+            rows = slice(None)
+        else:
+            rows = ((self.step % c) == 0).nonzero()[0]
+            if not rows.size:
+                return
+        tc, n = self.config.traffic, self.num_vehicles
+        # Innovations: uniform draws of unit variance (the processes, sums of many, are nearly normal; no
+        # transcendental function per draw)
+        u = rng.uniform(self.key[rows], self.step[rows], 2 * n, stream=_NOISE_STREAM, base=self.noise_base[rows])
+        u -= 0.5
+        u *= math.sqrt(12.0)
+        z_noise, z_wander = u[:, :n], u[:, n:]
+        traffic = self.is_traffic[rows]
+        rho, rho_w = self._noise_rho, self._wander_rho
+        noise = self.noise[rows] * rho + (tc.accel_noise_mps2 * math.sqrt(1.0 - rho * rho)) * z_noise
+        base = self.wander_next[rows].copy()  # (a view when rows is a slice)
+        nxt = base * rho_w + (tc.lane_wander_m * math.sqrt(1.0 - rho_w * rho_w)) * z_wander
+        limit = WANDER_CLIP_SIGMAS * tc.lane_wander_m
+        nxt = np.minimum(np.maximum(nxt, -limit), limit) * traffic
+        # (in place: these arrays are the simulator's own; an imagined copy has copies of them)
+        self.noise[rows] = noise * traffic
+        self.wander_base[rows] = base
+        self.wander_next[rows] = nxt
+        self.wander_step[rows] = (nxt - base) * (1.0 / c)
+
+    def _wander_at(self, flat: np.ndarray, ahead: int) -> np.ndarray:
+        """The lateral wander of vehicles ``flat`` (flat indices into E x N) ``ahead`` steps after the current
+        one (0: now), within the current check period."""
+        phase = self.step.take(flat // self.num_vehicles) % self.check_every + ahead
+        return self.wander_base.take(flat) + self.wander_step.take(flat) * phase
+
     def _relane_one(self, changing: np.ndarray, ego_target: int) -> None:
         """``lane`` and ``target_lane`` after a substep of a single environment, for the vehicles that can
         have moved sideways only: the lane changers (``changing``, whose ``lc_active`` may also have
@@ -320,17 +408,23 @@ class HighwaySim:
                 target[0, v] = k
 
     def _lateral_few(self, changing: list[int], new_speed: np.ndarray, new_y: np.ndarray, new_yaw: np.ndarray) -> None:
-        """The minimum-jerk lateral update of :meth:`substep` for a few vehicles, on Python floats.
+        """The minimum-jerk lateral update of :meth:`substep` for a few vehicles, on Python floats (with
+        human-like drivers, plus their wander).
 
         The same operations in the same order as the array version (traffic.smoothstep5), so the result
         does not depend on which of the two ran; arctan2 still comes from numpy.
         """
         tc, dt, n = self.config.traffic, self.dt, self.num_vehicles
         inv_dur = 1.0 / tc.lane_change_duration_s
+        inv_durs = self.drivers.lc_inv_duration if self.human else None
         t_s, t0, y0s, y1s, active = self.t_s, self.lc_t0, self.lc_y0, self.lc_y1, self.lc_active
         rates, speeds = [], []
         for i in changing:
             e, v = divmod(i, n)
+            if inv_durs is not None:
+                inv_dur = inv_durs.item(i)
+                wander = self.wander_base.item(i) + self.wander_step.item(i) * float(
+                    self.step.item(e) % self.check_every + 1)  # (as _wander_at, on floats)
             tau = (t_s.item(e) + (dt - t0.item(i))) * inv_dur
             t = min(max(tau, 0.0), 1.0)
             t2 = t * t
@@ -339,7 +433,7 @@ class HighwaySim:
             dprof = 30.0 * t2 * (u * u)
             y0 = y0s.item(i)
             dy = y1s.item(i) - y0
-            new_y[e, v] = y0 + dy * prof
+            new_y[e, v] = y0 + dy * prof if inv_durs is None else (y0 + dy * prof) + wander
             rates.append(dy * dprof * inv_dur)
             speeds.append(max(new_speed.item(i), 1e-3))
             active[e, v] = tau < 1.0
@@ -392,8 +486,11 @@ class HighwaySim:
         # A leader exists exactly where the gap is finite.
         blocked = (gap < np.inf) & (gap >= tc.blocked_gap_min_m) & (gap <= tc.blocked_gap_max_m) & (
             index.lead_speed < self.v0 - tc.blocked_speed_margin_kmh / 3.6)
-        spontaneous = rng.uniform(self.key, self.step, n, stream=_LANE_CHANGE_STREAM,
-                                  base=self.lane_change_base) < self.p_spontaneous
+        u = rng.uniform(self.key, self.step, n, stream=_LANE_CHANGE_STREAM, base=self.lane_change_base)
+        spontaneous = u < self.p_spontaneous
+        if self.human:  # whether the driver acts on a blocked leader now (the same draw serves: a driver who
+            # changes spontaneously would have acted on a blocked leader too, as p_spontaneous < eagerness)
+            blocked &= u < self.drivers.eagerness
         want = (cand & (blocked | spontaneous)).ravel().nonzero()[0]  # flat (E * N) indices of the few that want to
         if not want.size:
             return
@@ -419,7 +516,8 @@ class HighwaySim:
         go, tl = want[ok], tl[ok]
         self.lc_active.put(go, True)
         self.lc_t0.put(go, self.t_s.take(env[ok]))
-        self.lc_y0.put(go, self.y.take(go))
+        y0 = self.y.take(go)
+        self.lc_y0.put(go, y0 - self._wander_at(go, 0) if self.human else y0)  # from the lane-keeping position
         self.lc_y1.put(go, self.road.lane_center(tl))
         self.target_lane = self.target_lane.copy()  # the previous step's array may be held by a hook
         self.target_lane.put(go, tl)
@@ -492,15 +590,18 @@ class HighwaySim:
         self.off_road = (ego_y < 0.0) | (ego_y > self.road.width)  # not road.on_road, inlined
 
     # ------------------------------------------------------------- freezing
+    def _state_names(self) -> tuple[str, ...]:
+        return _VEHICLE_STATE + _ENV_STATE + (_HUMAN_STATE if self.human else ())
+
     def _save(self, idx: np.ndarray) -> dict[str, np.ndarray]:
-        out = {name: getattr(self, name)[idx].copy() for name in _VEHICLE_STATE + _ENV_STATE}
+        out = {name: getattr(self, name)[idx].copy() for name in self._state_names()}
         out["pid"] = self.pid.errors[idx].copy()
         out["pid_count"] = self.pid.count[idx].copy()
         return out
 
     def _restore(self, idx: np.ndarray, saved: dict[str, np.ndarray] | None) -> None:
         assert saved is not None
-        for name in _VEHICLE_STATE + _ENV_STATE:
+        for name in self._state_names():
             getattr(self, name)[idx] = saved[name]
         self.pid.errors[idx] = saved["pid"]
         self.pid.count[idx] = saved["pid_count"]

@@ -1,29 +1,90 @@
-"""Autopilot behaviour: IDM car following with a Traffic-Manager-like gap, and smooth lane changes."""
+"""Autopilot behaviour: IDM car following with a Traffic-Manager-like gap, smooth lane changes, and the
+per-driver parameters and random processes that make the traffic human-like (``TrafficConfig.human_like``)."""
 
 from __future__ import annotations
 
 import math
+from dataclasses import dataclass
 
 import numpy as np
 
 from lcsim.config import TrafficConfig
 
+WANDER_CLIP_SIGMAS = 2.5
+"""The lateral offset of a driver from the lane centre is clipped at this many standard deviations."""
 
-def idm_accel(v: np.ndarray, v0: np.ndarray, gap: np.ndarray, dv: np.ndarray, cfg: TrafficConfig) -> np.ndarray:
+
+@dataclass(slots=True)
+class DriverParams:
+    """Per-driver car-following parameters, arrays shaped like the vehicles (``(E, N)`` in the simulator).
+
+    ``time_headway`` (s), ``max_accel`` (m/s^2), ``inv_2sqrt_ab`` (``1 / (2 sqrt(a b))``, s^2/m), the reaction
+    lag factor ``lag`` (``dt / reaction time``, at most 1: the share of the gap between commanded and applied
+    acceleration closed per step), ``lc_inv_duration`` (1/s), ``eagerness`` (probability of acting on a
+    blocked leader at a check).
+    """
+
+    time_headway: np.ndarray
+    max_accel: np.ndarray
+    inv_2sqrt_ab: np.ndarray
+    lag: np.ndarray
+    lc_inv_duration: np.ndarray
+    eagerness: np.ndarray
+
+    @classmethod
+    def nominal(cls, cfg: TrafficConfig, shape: tuple[int, ...], dt: float) -> DriverParams:
+        """Every driver at the medians of the configured distributions."""
+        a, b = cfg.idm_max_accel_mps2, cfg.idm_comfort_decel_mps2
+        lag = min(1.0, dt / cfg.reaction_time_s) if cfg.human_like and cfg.reaction_time_s > 0 else 1.0
+        return cls(np.full(shape, cfg.idm_time_headway_s), np.full(shape, a), np.full(shape, 0.5 / math.sqrt(a * b)),
+                   np.full(shape, lag), np.full(shape, 1.0 / cfg.lane_change_duration_s), np.ones(shape))
+
+    def draw(self, rows: tuple[int, slice] | int, gen: np.random.Generator, cfg: TrafficConfig, dt: float,
+             n: int) -> None:
+        """Draw ``n`` drivers into ``rows`` of the arrays (an episode's reset), from ``gen``."""
+        z = np.clip(gen.standard_normal((5, n)), -2.5, 2.5) * cfg.driver_spread
+        a = cfg.idm_max_accel_mps2 * np.exp(z[1])
+        b = cfg.idm_comfort_decel_mps2 * np.exp(z[2])
+        self.time_headway[rows] = cfg.idm_time_headway_s * np.exp(z[0])
+        self.max_accel[rows] = a
+        self.inv_2sqrt_ab[rows] = 0.5 / np.sqrt(a * b)
+        reaction = cfg.reaction_time_s * np.exp(z[3])
+        self.lag[rows] = np.minimum(1.0, dt / np.maximum(reaction, 1e-9)) if cfg.reaction_time_s > 0 else 1.0
+        duration = cfg.lane_change_duration_s * np.exp(np.clip(gen.standard_normal(n), -2.5, 2.5)
+                                                      * cfg.lane_change_spread)
+        self.lc_inv_duration[rows] = 1.0 / duration
+        self.eagerness[rows] = gen.uniform(cfg.lane_change_eagerness_min, 1.0, n)
+
+    def set_nominal(self, mask: np.ndarray, cfg: TrafficConfig, dt: float) -> None:
+        """Put the drivers where ``mask`` is set at the medians (what a planner that cannot see them assumes)."""
+        nominal = DriverParams.nominal(cfg, (1,), dt)
+        for name in self.__slots__:
+            setattr(self, name, np.where(mask, getattr(nominal, name)[0], getattr(self, name)))
+
+
+def idm_accel(v: np.ndarray, v0: np.ndarray, gap: np.ndarray, dv: np.ndarray, cfg: TrafficConfig,
+              drivers: DriverParams | None = None) -> np.ndarray:
     """Intelligent Driver Model acceleration (m/s^2), clipped to [-max_decel, max_accel].
 
     Args:
         v: own speed (m/s); v0: desired speed; gap: bumper-to-bumper gap to the leader (m, inf when
             none); dv: approach rate v - v_leader (m/s). All broadcastable.
+        drivers: per-driver time gap, acceleration and deceleration (shaped like ``v``); None: the
+            configured values for every vehicle.
 
     ``s* = s0 + v T + v dv / (2 sqrt(a b))`` with s0 = idm_min_gap_m and T = idm_time_headway_s, so
     in steady following the gap is about ``2 s * v + 2 m`` as Traffic Manager keeps it.
     """
-    a, b = cfg.idm_max_accel_mps2, cfg.idm_comfort_decel_mps2
+    b = cfg.idm_comfort_decel_mps2
     # In-place steps where the operand is a fresh array (a numpy scalar when the inputs are 0-d).
     s_star = v * dv
-    s_star /= 2.0 * math.sqrt(a * b)  # (IEEE sqrt either way; math's costs no numpy call)
-    s_star += v * cfg.idm_time_headway_s
+    if drivers is None:
+        a, headway = cfg.idm_max_accel_mps2, cfg.idm_time_headway_s
+        s_star /= 2.0 * math.sqrt(a * b)  # (IEEE sqrt either way; math's costs no numpy call)
+    else:
+        a, headway = drivers.max_accel, drivers.time_headway
+        s_star *= drivers.inv_2sqrt_ab
+    s_star += v * headway
     s_star = np.maximum(s_star, 0.0)
     s_star += cfg.idm_min_gap_m
     ratio = v / np.maximum(v0, 0.1)

@@ -37,9 +37,9 @@ def _outcomes(driver_name: str, cfg: ScenarioConfig, n: int, seed: int) -> colle
     return collections.Counter(outcome)
 
 
-def test_rule_driver_completes_most_episodes():
+def test_rule_driver_completes_a_good_share_of_episodes():
     res = _outcomes("rule", ScenarioConfig(render_image=False), 24, seed=500)
-    assert res["success"] >= 14, res  # measured 75% over 48 seeds; "most" with margin for 24
+    assert res["success"] >= 7, res  # measured 46% over 96 episodes of human-like traffic (49% of exact IDM)
 
 
 def test_adaptive_cruise_lane_keeper_cannot_make_the_time_limit():
@@ -121,10 +121,10 @@ def test_redraw_future_keeps_the_present_and_redraws_the_traffics_coming_choices
         redraw_future(blind.sim, 0)
 
 
-def _dense_core() -> LaneChangeCore:
+def _dense_core(human_like: bool = True) -> LaneChangeCore:
     """Four unrendered environments in dense traffic on a short route, so that some decisions are traps."""
     cfg = small_config(render_image=False, traffic=TrafficConfig(num_vehicles=24, spawn_behind_m=40.0,
-                                                                 spawn_ahead_m=140.0))
+                                                                 spawn_ahead_m=140.0, human_like=human_like))
     core = LaneChangeCore(cfg, 4)
     core.reset(range(4), [11, 12, 13, 14])
     return core
@@ -233,7 +233,9 @@ def test_perceive_keeps_what_the_sensors_show_and_parks_the_rest():
 
 
 def test_desired_speeds_are_recovered_from_the_motion_they_cause():
-    core = _dense_core()
+    """Exactly where every driver follows IDM with the configured parameters (human-like drivers add noise,
+    a reaction lag and their own parameters, which the estimate cannot see: it stays within the spread)."""
+    core = _dense_core(human_like=False)
     for _ in range(6):
         core.step(np.full(4, KEEP))
     sim = core.sim

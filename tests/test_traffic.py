@@ -120,3 +120,68 @@ def test_lanes_follow_the_positions_after_every_substep(num_envs, autopilot_ego)
         np.testing.assert_array_equal(sim.target_lane[~changing], lane[~changing], err_msg=f"step {step}")
         changes += int((sim.target_lane != sim.lane).sum())
     assert changes > 50, changes  # lane changes were under way
+
+
+def _traffic(human_like: bool, **fields) -> ScenarioConfig:
+    return ScenarioConfig(render_image=False, traffic=TrafficConfig(human_like=human_like, **fields))
+
+
+def test_human_like_drivers_differ_wander_within_their_lane_and_vary_their_acceleration():
+    """Per-driver parameters, a lateral wander that never leaves the lane, noisier acceleration than exact IDM,
+    lane changes of varying duration; exact IDM has none of it. Statistics of 8 x 40 s of the paper's traffic."""
+    from lcsim.stats import traffic_statistics
+
+    human = traffic_statistics(_traffic(True), 8, 40.0)
+    exact = traffic_statistics(_traffic(False), 8, 40.0)
+    tc = TrafficConfig()
+    assert 0.6 * tc.lane_wander_m < human["lateral_offset_sd_m"] < 1.2 * tc.lane_wander_m
+    assert human["lateral_offset_max_m"] <= 2.5 * tc.lane_wander_m + 1e-9
+    assert exact["lateral_offset_sd_m"] == exact["lateral_offset_max_m"] == 0.0
+    assert human["accel_sd_mps2"] > 2.0 * exact["accel_sd_mps2"]
+    assert human["lane_change_duration_sd_s"] > 0.5 > exact["lane_change_duration_sd_s"]
+    assert human["lane_changes"] > 20 and human["traffic_collisions"] == exact["traffic_collisions"] == 0
+    sim = LaneChangeCore(_traffic(True), 2).sim
+    sim.reset([0, 1], [3, 4])
+    for name in ("time_headway", "max_accel", "lag", "lc_inv_duration", "eagerness"):
+        values = getattr(sim.drivers, name)[:, 1:]
+        assert values.std() > 0.0 and np.isfinite(values).all(), name
+    assert (sim.drivers.lag > 0).all() and (sim.drivers.lag <= 1).all()
+
+
+def test_human_like_traffic_is_a_function_of_the_seed():
+    """Same seed, same bits (the random processes draw from counter-based streams keyed by the seed); another
+    seed, other drivers."""
+    runs = []
+    for seed in (7, 7, 8):
+        core = LaneChangeCore(_traffic(True), 1, autopilot_ego=True)
+        core.reset([0], [seed])
+        for _ in range(60):
+            core.step(np.full(1, KEEP))
+        runs.append((core.sim.x.copy(), core.sim.y.copy(), core.sim.speed.copy(), core.sim.drivers.time_headway.copy()))
+    assert all(np.array_equal(a, b) for a, b in zip(runs[0], runs[1], strict=True))
+    assert not np.array_equal(runs[0][1], runs[2][1]) and not np.array_equal(runs[0][3], runs[2][3])
+
+
+def test_configs_stored_before_human_like_drivers_keep_the_exact_traffic():
+    stored = TrafficConfig(human_like=False).to_dict()
+    del stored["human_like"]
+    assert TrafficConfig.from_dict(stored).human_like is False  # a recording or a run of an earlier version
+    assert TrafficConfig.from_dict(stored, stored=False).human_like is True  # a file a person writes
+    with pytest.raises(ValueError, match="lane_wander_m"):
+        LaneChangeCore(_traffic(True, lane_wander_m=0.5), 1)
+    with pytest.raises(ValueError, match="lane_change_eagerness_min"):
+        TrafficConfig(lane_change_eagerness_min=1.5)
+
+
+def test_a_perceived_copy_sees_the_median_driver():
+    """The planner's perceived copy cannot see a driver's own parameters: it gets the median driver's."""
+    from lcsim.planning.perception import imagined_copy, perceive
+
+    core = LaneChangeCore(_traffic(True), 2)
+    core.reset([0, 1], [5, 6])
+    copy_ = imagined_copy(core)
+    perceive(copy_.sim, 60.0)
+    tc = core.config.traffic
+    assert (copy_.sim.drivers.time_headway[:, 1:] == tc.idm_time_headway_s).all()
+    assert (copy_.sim.drivers.max_accel[:, 1:] == tc.idm_max_accel_mps2).all()
+    assert core.sim.drivers.time_headway[:, 1:].std() > 0  # the original keeps its drivers

@@ -45,7 +45,8 @@ def perceive(sim: HighwaySim, range_m: float) -> None:
     it, spaced apart, where they take no part in anything near the ego. Each vehicle left keeps its
     position, speed, acceleration and any lane change under way (all observable), but its desired
     speed, which no sensor shows, becomes what its motion tells (:func:`estimated_desired_speeds`,
-    after the parking, so from the leaders the ego can see). A planner that imagines futures in a copy
+    after the parking, so from the leaders the ego can see); with human-like traffic, its own car-following
+    parameters, reaction time and lane-change habits become the median driver's. A planner that imagines futures in a copy
     so reduced, and redrawn (:func:`redraw_future`), knows the traffic's rules but nothing a sensor of
     that range would not show it.
     """
@@ -57,6 +58,8 @@ def perceive(sim: HighwaySim, range_m: float) -> None:
     far &= traffic
     sim.x = np.where(far, sim.x[:, :1] - 1.0e5 - 50.0 * sim.ids[None, :], sim.x)  # parked, spaced apart
     sim.rebuild_index()
+    if sim.human:  # each driver's own parameters show in no sensor: the copy's drivers are the median ones
+        sim.drivers.set_nominal(traffic, sim.config.traffic, sim.dt)
     sim.v0 = np.where(traffic, estimated_desired_speeds(sim), sim.v0)
 
 
