@@ -50,7 +50,8 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--correction-weight", type=float, default=1.0,
                     help="weight in training of a state whose label differs from the policy's own decision, "
                     "against 1 for one where they agree (1)")
-    ap.add_argument("--threads", type=positive_int, default=2, help="torch threads for training (2)")
+    ap.add_argument("--threads", type=positive_int, default=1,
+                    help="torch threads for training (default 1: more collapse when another process shares the cores)")
     ap.add_argument("--resume", action="store_true",
                     help="continue the rounds already in --out (same run, --episodes, --seed, --labels) up to "
                     "--rounds in all")

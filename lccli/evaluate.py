@@ -128,7 +128,8 @@ def eval_parser() -> argparse.ArgumentParser:
     p.add_argument("--no-record", action="store_true", help="do not record episodes")
     p.add_argument("--overwrite", action="store_true", help="replace existing episode files")
     p.add_argument("--json-out", type=Path, default=None, help="write the summary as JSON here")
-    p.add_argument("--threads", type=positive_int, default=2, help="torch threads (default 2)")
+    p.add_argument("--threads", type=positive_int, default=1,
+                   help="torch threads (default 1: more collapse when another process shares the cores)")
     p.add_argument("-q", "--quiet", action="store_true", help="no progress lines")
     why = p.add_argument_group("why it crashes (--breakdown)")
     why.add_argument("--breakdown", action="store_true",

@@ -70,7 +70,8 @@ def train_policy_parser() -> argparse.ArgumentParser:
     p.add_argument("--overwrite", action="store_true",
                    help="replace a run of another configuration in --out: only the files a training run writes are "
                    "removed, after every other check has passed; anything else there stays")
-    p.add_argument("--threads", type=positive_int, default=2, help="torch threads (default 2)")
+    p.add_argument("--threads", type=positive_int, default=1,
+                   help="torch threads (default 1: more collapse when another process shares the cores)")
     p.add_argument("--device", default="cpu", help="torch device (default cpu; cuda for the GPU)")
     add_trust_pickle_argument(p, "initial policies")
     p.add_argument("-q", "--quiet", action="store_true", help="no progress lines")
