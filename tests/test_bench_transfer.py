@@ -125,3 +125,11 @@ def test_sumo_highway_bad_input(tmp_path, capsys) -> None:
         assert sumo_highway.main(argv) == 2
         err = capsys.readouterr().err
         assert err.startswith("sumo_highway.py: error:") and err.count("\n") == 1 and words in err, err
+
+
+def test_recording_keeps_stdout_for_the_figures(tmp_path, capsys) -> None:
+    """--json prints the figures on stdout: the recording's summary goes to stderr."""
+    out = bench_transfer.record_lcsim(tmp_path / "rec", 3, 1, quiet=True)
+    assert len(list(out.glob("*.mcap"))) == 3
+    captured = capsys.readouterr()
+    assert captured.out == "" and "recorded 3 episodes" in captured.err

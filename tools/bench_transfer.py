@@ -23,6 +23,7 @@ The figures go to OUT/transfer.json; the table to stdout (or the JSON with --jso
 from __future__ import annotations
 
 import argparse
+import contextlib
 import json
 import logging
 import math
@@ -112,8 +113,9 @@ def record_lcsim(out: pathlib.Path, episodes: int, seed: int, quiet: bool) -> pa
         return out
     from lccli.record import record_main
 
-    rc = record_main(["--scenario", "corpus", "--episodes", str(episodes), "--seed", str(seed), "--out", str(out),
-                      "--overwrite"])  # fmt: skip
+    with contextlib.redirect_stdout(sys.stderr):  # stdout carries only the table or the JSON
+        rc = record_main(["--scenario", "corpus", "--episodes", str(episodes), "--seed", str(seed),
+                          "--out", str(out), "--overwrite"])  # fmt: skip
     if rc != 0:
         raise RuntimeError(f"lc-record failed (exit {rc}) writing {out}")
     return out
