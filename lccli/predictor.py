@@ -57,6 +57,11 @@ def train_predictor_parser() -> argparse.ArgumentParser:
         "PredictorConfig's)",
     )
     p.add_argument(
+        "--velocity-window", type=positive_int, default=None,
+        help="steps of history the constant-velocity base fits its velocity to (least squares; 1: the last "
+        "step's difference; default PredictorConfig's, 10 = 0.5 s, robust to positions measured with noise)",
+    )
+    p.add_argument(
         "--input-noise",
         type=float,
         default=None,
@@ -77,7 +82,8 @@ def train_predictor_parser() -> argparse.ArgumentParser:
     p.add_argument(
         "--seed", type=int, default=0, help="seed for the split, initialisation and batches (default 0)"
     )
-    p.add_argument("--threads", type=positive_int, default=2, help="torch threads (default 2)")
+    p.add_argument("--threads", type=positive_int, default=1,
+                   help="torch threads (default 1: more collapse when another process shares the cores)")
     p.add_argument(
         "--overwrite", action="store_true", help="replace an existing predictor.pt / metrics.json in --out"
     )
@@ -110,6 +116,7 @@ def train_predictor_main(argv: list[str] | None = None) -> int:
                 history_steps=args.history,
                 future_steps=args.future,
                 **({"correction": args.correction} if args.correction else {}),
+                **({"velocity_window": args.velocity_window} if args.velocity_window else {}),
             ),
             stride=args.stride,
             batch_size=args.batch_size,

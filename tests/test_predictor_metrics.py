@@ -6,7 +6,12 @@ import numpy as np
 import pytest
 import torch
 
-from lcmodels.predictor.baselines import constant_acceleration, constant_velocity, last_velocity
+from lcmodels.predictor.baselines import (
+    constant_acceleration,
+    constant_velocity,
+    constant_velocity_fit,
+    last_velocity,
+)
 from lcmodels.predictor.metrics import (
     ade,
     at_horizon,
@@ -106,3 +111,31 @@ def test_last_velocity_with_gaps_and_torch_twin() -> None:
     m = rng.random((50, 8)) > 0.4
     ours = cv_extrapolate(torch.from_numpy(h), torch.from_numpy(m), 5).numpy()
     np.testing.assert_allclose(ours, constant_velocity(h, 5, m), atol=1e-12)
+
+
+def test_fitted_velocity_is_exact_on_straight_motion_robust_to_measurement_noise_and_has_a_torch_twin() -> None:
+    hist, fut = _track(20, 60, np.array([0.33, 0.05]), np.zeros(2))
+    np.testing.assert_allclose(constant_velocity_fit(hist, 60, window=10), fut, atol=1e-10)
+    np.testing.assert_array_equal(constant_velocity_fit(hist, 60, window=1), constant_velocity(hist, 60))
+    # positions rounded to the centimetre, as SUMO writes them: the one-step velocity jitters, the fit does not
+    rng = np.random.default_rng(1)
+    v = rng.uniform(5.0, 8.0, size=(200, 1)) * 0.05 * np.array([[1.0, 0.0]])  # 5-8 m/s along x, per step
+    x0 = rng.uniform(0.0, 1.0, size=(200, 1, 2))
+    steps = np.arange(80, dtype=np.float64)[None, :, None]
+    track = x0 + steps * v[:, None, :]
+    noisy = np.round(track * 100.0) / 100.0
+    truth = track[:, 20:]
+    err = {w: np.linalg.norm(constant_velocity_fit(noisy[:, :20], 60, window=w)[:, -1] - truth[:, -1], axis=-1).mean()
+           for w in (1, 10)}
+    assert err[10] < 0.3 * err[1], err
+    with pytest.raises(ValueError, match="window"):
+        constant_velocity_fit(hist, 5, window=21)
+    # the torch twin, with gaps: where fewer than 3 of the window are valid, the one-step velocity
+    h = rng.normal(size=(80, 12, 2))
+    m = rng.random((80, 12)) > 0.4
+    m[:5, :-1] = False  # the last step alone
+    m[5:10, :-2] = False  # the last two steps
+    for w in (1, 4, 10):
+        ours = cv_extrapolate(torch.from_numpy(h), torch.from_numpy(m), 7, w).numpy()
+        np.testing.assert_allclose(ours, constant_velocity_fit(h, 7, m, window=w), atol=1e-10)
+    np.testing.assert_allclose(constant_velocity_fit(h, 7, m, window=10)[5:10], constant_velocity(h, 7, m)[5:10])

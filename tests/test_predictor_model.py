@@ -13,7 +13,7 @@ import torch
 
 from lcdata.corpus import Corpus, WindowOptions, from_frame, to_frame
 from lcmodels.predictor import Predictor, PredictorConfig, TrajectoryTransformer, load_model
-from lcmodels.predictor.baselines import constant_velocity
+from lcmodels.predictor.baselines import constant_velocity, constant_velocity_fit
 from lcmodels.predictor.synthetic import synthetic_tracks
 
 
@@ -137,6 +137,10 @@ def test_correction_config_and_stored_configs_without_it() -> None:
     # A config stored before the choice existed is the plain residual, whatever today's default is.
     old = {k: v for k, v in PredictorConfig().to_dict().items() if not k.startswith(("correction", "dt_s"))}
     assert PredictorConfig.from_dict(old).correction == "plain"
+    stored = {k: v for k, v in old.items() if k != "velocity_window"}  # nor the fitted velocity: the last step's
+    assert PredictorConfig.from_dict(stored).velocity_window == 1 and PredictorConfig().velocity_window == 10
+    with pytest.raises(ValueError, match="velocity_window"):
+        PredictorConfig(velocity_window=0)
     assert PredictorConfig.from_dict({**old, "correction": "gated"}).correction == "gated"
     cfg = PredictorConfig(future_steps=60, correction="bounded")
     bound = cfg.correction_bound_m()
@@ -153,7 +157,7 @@ def test_plain_model_keeps_the_checkpoint_layout() -> None:
 
 def test_shipped_checkpoint_loads_as_the_plain_model() -> None:
     model, _ = load_model(Path(__file__).resolve().parent.parent / "zoo" / "predictor" / "predictor.pt")
-    assert model.config.correction == "plain" and model.gate is None
+    assert model.config.correction == "plain" and model.gate is None and model.config.velocity_window == 1
     # The same weights in a model built with an explicit plain config: the very same outputs.
     twin = TrajectoryTransformer(model.config)
     twin.load_state_dict(model.state_dict())
@@ -171,7 +175,8 @@ def test_bounded_correction_stays_within_its_bound() -> None:
     pos, mask = _window_tokens()
     with torch.no_grad():
         pred = model(pos, mask)
-    cv = torch.from_numpy(constant_velocity(pos[:, 0].double().numpy(), cfg.future_steps)).float()
+    cv = torch.from_numpy(constant_velocity_fit(pos[:, 0].double().numpy(), cfg.future_steps,
+                                              window=cfg.velocity_window)).float()  # the base
     bound = torch.tensor(cfg.correction_bound_m()).view(1, -1, 1)
     dev = (pred - cv).abs()
     assert (dev <= bound * (1 + 1e-5)).all() and (dev >= bound * 0.99).all()  # saturated, not beyond
@@ -184,7 +189,8 @@ def test_gate_moves_between_cv_and_the_full_correction(correction: str) -> None:
     model = TrajectoryTransformer(cfg).eval()
     torch.nn.init.normal_(model.head[-1].weight, std=0.3)
     pos, mask = _window_tokens()
-    cv = torch.from_numpy(constant_velocity(pos[:, 0].double().numpy(), cfg.future_steps)).float()
+    cv = torch.from_numpy(constant_velocity_fit(pos[:, 0].double().numpy(), cfg.future_steps,
+                                              window=cfg.velocity_window)).float()  # the base
     ungated = TrajectoryTransformer(dataclasses.replace(cfg, correction=correction.replace("gated", "plain")
                                                         .replace("bounded-plain", "bounded"))).eval()  # fmt: skip
     ungated.load_state_dict({k: v for k, v in model.state_dict().items() if not k.startswith(("gate", "familiar"))})
@@ -216,5 +222,6 @@ def test_gate_closes_on_motion_unlike_the_training_windows() -> None:
     assert model.familiarity(noisy, mask).max() == 0.0
     with torch.no_grad():
         pred = model(noisy, mask)
-    cv = torch.from_numpy(constant_velocity(noisy[:, 0].double().numpy(), cfg.future_steps)).float()
+    cv = torch.from_numpy(constant_velocity_fit(noisy[:, 0].double().numpy(), cfg.future_steps,
+                                              window=cfg.velocity_window)).float()  # the base
     torch.testing.assert_close(pred, cv, atol=1e-5, rtol=0)

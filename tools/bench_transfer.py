@@ -50,9 +50,17 @@ log = logging.getLogger("bench_transfer")
 CORRECTIONS = ("plain", "bounded", "gated", "bounded-gated")
 
 
-def parse_variant(text: str) -> tuple[str, float]:
-    """``"gated"`` -> ``("gated", 0.0)``; ``"gated:0.003"`` -> trained with 3 mm of input noise."""
-    correction, _, noise_text = text.partition(":")
+def parse_variant(text: str) -> tuple[str, float, int | None]:
+    """``"gated"`` -> ``("gated", 0.0, None)``; ``"gated:0.003"`` -> trained with 3 mm of input noise;
+    ``"gated:0:1"`` -> no noise, the constant-velocity base from the last step's difference (``velocity_window``
+    1; None: PredictorConfig's default)."""
+    correction, _, rest = text.partition(":")
+    noise_text, _, window_text = rest.partition(":")
+    window: int | None = None
+    if window_text:
+        if not window_text.isdigit() or int(window_text) < 1:
+            raise ValueError(f"variant {text!r}: the velocity window after the second ':' must be an integer >= 1")
+        window = int(window_text)
     if correction not in CORRECTIONS:
         raise ValueError(f"unknown correction {correction!r} in variant {text!r} (choose from {', '.join(CORRECTIONS)})")
     try:
@@ -61,7 +69,7 @@ def parse_variant(text: str) -> tuple[str, float]:
         noise = -1.0
     if not (math.isfinite(noise) and noise >= 0):
         raise ValueError(f"variant {text!r}: the input noise after ':' must be a number of metres >= 0")
-    return correction, noise
+    return correction, noise, window
 
 
 def parse_config(text: str) -> tuple[int, int, int]:
@@ -86,7 +94,7 @@ class Setup:
     """Sizes of one run (the command's flags)."""
 
     configs: tuple[str, ...] = ("10+10", "20+60/5")
-    variants: tuple[str, ...] = ("plain", "gated", "gated:0.003")
+    variants: tuple[str, ...] = ("gated:0:1", "gated", "gated:0.003")
     lcsim_episodes: int = 16
     lcsim_test_episodes: int = 4
     lcsim_seed: int = 100
@@ -141,8 +149,9 @@ def train_one(data: pathlib.Path, out: pathlib.Path, config: str, variant: str, 
     from lcmodels.predictor import PredictorConfig, TrainConfig, train_predictor
 
     h, f, stride = parse_config(config)
-    correction, noise = parse_variant(variant)
-    cfg = TrainConfig(model=PredictorConfig(history_steps=h, future_steps=f, correction=correction), stride=stride,
+    correction, noise, window = parse_variant(variant)
+    extra = {} if window is None else {"velocity_window": window}
+    cfg = TrainConfig(model=PredictorConfig(history_steps=h, future_steps=f, correction=correction, **extra), stride=stride,
                       max_train_windows=setup.max_train_windows, max_epochs=setup.max_epochs,
                       time_limit_s=setup.train_time_limit_s, input_noise_m=noise,
                       num_threads=setup.threads, seed=setup.seed, progress=setup.progress, tensorboard=False)  # fmt: skip
@@ -220,8 +229,9 @@ def run(out: pathlib.Path, setup: Setup, checkpoints: Sequence[pathlib.Path] = (
         for config in setup.configs:
             for variant in setup.variants:
                 h, f, _ = parse_config(config)
-                correction, noise = parse_variant(variant)
-                name = f"{h}+{f}-{correction}" + (f"-noise{noise * 1000:g}mm" if noise else "")
+                correction, noise, window = parse_variant(variant)
+                name = f"{h}+{f}-{correction}" + (f"-noise{noise * 1000:g}mm" if noise else "") + (
+                    f"-window{window}" if window is not None else "")
                 _stage(f"training {name}", quiet)
                 models[name] = train_one(train_data, out / "models" / name, config, variant, setup)
     if lcsim_test is None:
@@ -265,7 +275,8 @@ def format_table(result: dict[str, Any]) -> str:
             rows = [(name, e["model"])]
             if key not in seen:
                 seen.add(key)
-                rows = [("CV", e["constant_velocity"]), ("CA", e["constant_acceleration"]), *rows]
+                fit = [("CV, velocity fitted to 0.5 s", e["constant_velocity_fit"])] if "constant_velocity_fit" in e else []
+                rows = [("CV", e["constant_velocity"]), *fit, ("CA", e["constant_acceleration"]), *rows]
             last = labels[-1]
             cv_fde = e["constant_velocity"]["horizons"][last]["fde"]
             for label, m in rows:
@@ -322,9 +333,10 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--configs", type=_csv("configurations", parse_config), default=d.configs,
                    help=f"HISTORY+FUTURE[/STRIDE] steps to train, comma-separated (default {','.join(d.configs)})")
     p.add_argument("--variants", type=_csv("variants", parse_variant), default=d.variants,
-                   help="predictors to train for each configuration, comma-separated: CORRECTION[:NOISE_M], the "
-                   f"correction one of {', '.join(CORRECTIONS)}, NOISE_M the std of the noise added to observed "
-                   f"positions in training, metres (default {','.join(d.variants)})")
+                   help="predictors to train for each configuration, comma-separated: CORRECTION[:NOISE_M[:WINDOW]], "
+                   f"the correction one of {', '.join(CORRECTIONS)}, NOISE_M the std of the noise added to observed "
+                   "positions in training, metres, WINDOW the steps the constant-velocity base fits its velocity "
+                   f"to (1: the last step's difference; default PredictorConfig's) (default {','.join(d.variants)})")
     p.add_argument("--lcsim-episodes", type=_positive(int), default=d.lcsim_episodes,
                    help=f"lcsim training episodes, 100 s each (default {d.lcsim_episodes})")
     p.add_argument("--lcsim-test-episodes", type=_positive(int), default=d.lcsim_test_episodes,

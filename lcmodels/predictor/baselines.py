@@ -8,7 +8,7 @@ from __future__ import annotations
 
 import numpy as np
 
-__all__ = ["constant_acceleration", "constant_velocity", "last_velocity"]
+__all__ = ["constant_acceleration", "constant_velocity", "constant_velocity_fit", "last_velocity"]
 
 
 def last_velocity(history: np.ndarray, mask: np.ndarray | None = None) -> np.ndarray:
@@ -82,3 +82,40 @@ def constant_acceleration(
         a = np.where(ok[..., None], a, 0.0)
     k = np.arange(1, future_steps + 1, dtype=np.float64)[:, None]
     return cv + (k * (k + 1) / 2) * a[..., None, :]
+
+
+def constant_velocity_fit(history: np.ndarray, future_steps: int, mask: np.ndarray | None = None,
+                          window: int = 10) -> np.ndarray:
+    """Constant velocity from the last position with the least-squares velocity of the last ``window`` steps.
+
+    Robust to positions measured with noise, where a one-step difference jitters; the one-step velocity
+    where fewer than 3 of those steps are valid, zero velocity where the last one is not.
+
+    Args:
+        history: ``(N, H, 2)``.
+        future_steps: F.
+        mask: ``(N, H)`` bool or None.
+        window: W, 1 <= W <= H (1: :func:`constant_velocity`).
+
+    Returns:
+        ``(N, F, 2)``.
+    """
+    history = np.asarray(history, dtype=np.float64)
+    h = history.shape[-2]
+    if not 1 <= window <= h:
+        raise ValueError(f"window must be in [1, {h}], got {window}")
+    m = np.ones(history.shape[:-1], dtype=bool) if mask is None else np.asarray(mask, dtype=bool)
+    v = last_velocity(history, mask)
+    if window > 1:
+        w = m[:, -window:, None].astype(np.float64)
+        t = np.arange(window, dtype=np.float64)[None, :, None]
+        cnt = w.sum(axis=1, keepdims=True)
+        t_mean = (w * t).sum(axis=1, keepdims=True) / np.maximum(cnt, 1.0)
+        p = history[:, -window:]
+        p_mean = (w * p).sum(axis=1, keepdims=True) / np.maximum(cnt, 1.0)
+        dt = (t - t_mean) * w
+        slope = (dt * (p - p_mean)).sum(axis=1) / np.maximum((dt * (t - t_mean)).sum(axis=1), 1e-12)
+        fit = (cnt[:, 0] >= 3) & m[:, -1:]
+        v = np.where(fit, slope, v)
+    k = np.arange(1, future_steps + 1, dtype=np.float64)[:, None]
+    return history[..., -1:, :] + k * v[..., None, :]

@@ -66,7 +66,7 @@ CORRECTIONS = ("plain", "bounded", "gated", "bounded-gated")
 #: Share of training windows whose motion counts as familiar to a gated model (the gate's full-trust limit).
 FAMILIAR_QUANTILE = 0.999
 #: Values of fields a stored config may lack: what a checkpoint from before the field existed was.
-LEGACY_VALUES: dict[str, Any] = {"correction": "plain"}
+LEGACY_VALUES: dict[str, Any] = {"correction": "plain", "velocity_window": 1}
 
 
 @dataclass(frozen=True, slots=True, kw_only=True)
@@ -99,6 +99,11 @@ class PredictorConfig:
     """bounded: acceleration the correction may add, m/s², along each axis (the quadratic part)."""
     dt_s: float = 0.05
     """Step of the data, seconds (the corpus's 20 Hz); only the bound uses it."""
+    velocity_window: int = 10
+    """Steps of the agent's history the constant-velocity base fits its velocity to (least squares; 1: the
+    last step's difference, as checkpoints from before this field). Positions measured with noise (SUMO
+    writes centimetres, a dataset its tracker's error) make a one-step velocity jitter; a fit over 0.5 s
+    does not, and the correction learns what the fit lags. At most the history is used."""
 
     def __post_init__(self) -> None:
         ints = (
@@ -128,6 +133,8 @@ class PredictorConfig:
             raise ValueError(f"num_heads ({self.num_heads}) must divide d_model ({self.d_model})")
         if not 0.0 <= self.dropout < 1.0:
             raise ValueError(f"dropout must be in [0, 1), got {self.dropout}")
+        if not isinstance(self.velocity_window, int) or isinstance(self.velocity_window, bool) or self.velocity_window < 1:
+            raise ValueError(f"velocity_window must be an int >= 1, got {self.velocity_window!r}")
         if self.correction not in CORRECTIONS:
             raise ValueError(f"correction must be one of {', '.join(CORRECTIONS)}; got {self.correction!r}")
         for name in ("correction_speed_mps", "correction_accel_mps2", "dt_s"):
@@ -189,17 +196,38 @@ def token_features(pos: torch.Tensor, mask: torch.Tensor) -> torch.Tensor:
     return torch.cat((p, v, a), dim=-1)
 
 
-def cv_extrapolate(hist: torch.Tensor, mask: torch.Tensor, future_steps: int) -> torch.Tensor:
-    """Constant-velocity extrapolation (torch twin of ``baselines.constant_velocity``).
+def cv_extrapolate(hist: torch.Tensor, mask: torch.Tensor, future_steps: int, window: int = 1) -> torch.Tensor:
+    """Constant-velocity extrapolation from the last position (torch twin of ``baselines.constant_velocity``,
+    and of ``baselines.constant_velocity_fit`` for ``window`` > 1).
 
     Args:
         hist: ``(N, H, 2)``.
         mask: ``(N, H)`` bool.
         future_steps: F.
+        window: 1, the velocity of the last step's difference; W > 1, the least-squares slope of the valid
+            positions among the last W (the one-step velocity where fewer than 3 are valid).
 
     Returns:
         ``(N, F, 2)``; for an invalid last step the velocity is 0.
     """
+    v = _last_velocity(hist, mask)
+    if window > 1:
+        w = mask[:, -window:].to(hist.dtype).unsqueeze(-1)  # (N, W, 1)
+        t = torch.arange(window, dtype=hist.dtype, device=hist.device).view(1, -1, 1)
+        cnt = w.sum(1, keepdim=True)
+        t_mean = (w * t).sum(1, keepdim=True) / cnt.clamp_min(1.0)
+        p = hist[:, -window:]
+        p_mean = (w * p).sum(1, keepdim=True) / cnt.clamp_min(1.0)
+        dt = (t - t_mean) * w
+        slope = (dt * (p - p_mean)).sum(1) / (dt * (t - t_mean)).sum(1).clamp_min(1e-12)
+        fit = (cnt[:, 0] >= 3) & mask[:, -1:]
+        v = torch.where(fit, slope, v)
+    k = torch.arange(1, future_steps + 1, dtype=hist.dtype, device=hist.device).view(1, -1, 1)
+    return hist[:, -1:, :] + k * v.unsqueeze(1)
+
+
+def _last_velocity(hist: torch.Tensor, mask: torch.Tensor) -> torch.Tensor:
+    """``(N, 2)`` the backward-difference velocity at the last step, per step (0 when it is not known)."""
     h = hist.shape[-2]
     earlier = mask[:, :-1].flip(-1)  # index 0 is step H-2
     back = earlier.to(torch.int64).argmax(-1) + 1  # (N,)
@@ -207,9 +235,7 @@ def cv_extrapolate(hist: torch.Tensor, mask: torch.Tensor, future_steps: int) ->
     j = (h - 1 - back).view(-1, 1, 1).expand(-1, 1, 2)
     pj = hist.gather(1, j)[:, 0]
     v = (hist[:, -1] - pj) / back.unsqueeze(-1).to(hist.dtype)
-    v = torch.where(ok.unsqueeze(-1), v, torch.zeros_like(v))
-    k = torch.arange(1, future_steps + 1, dtype=hist.dtype, device=hist.device).view(1, -1, 1)
-    return hist[:, -1:, :] + k * v.unsqueeze(1)
+    return torch.where(ok.unsqueeze(-1), v, torch.zeros_like(v))
 
 
 class AgentAttentionLayer(nn.Module):
@@ -334,7 +360,8 @@ class TrajectoryTransformer(nn.Module):
 
         am, asd = masked_stats(feats[:, 0], m[:, 0])
         nm, nsd = masked_stats(feats[:, 1:], m[:, 1:]) if pos.shape[1] > 1 else (am, asd)
-        residual = future.double() - cv_extrapolate(pos[:, 0].double(), mask[:, 0], self.config.future_steps)
+        residual = future.double() - cv_extrapolate(pos[:, 0].double(), mask[:, 0], self.config.future_steps,
+                                                    min(self.config.velocity_window, pos.shape[2]))
         self.agent_mean.copy_(am)
         self.agent_std.copy_(asd)
         self.neighbour_mean.copy_(nm)
@@ -397,7 +424,8 @@ class TrajectoryTransformer(nn.Module):
         gate = None
         if self.gate is not None:
             gate = torch.sigmoid(self.gate(agent)) * self._familiarity(x).unsqueeze(-1)
-        return cv_extrapolate(agent_pos, mask[:, 0], f), residual, gate
+        window = min(self.config.velocity_window, agent_pos.shape[1])
+        return cv_extrapolate(agent_pos, mask[:, 0], f, window), residual, gate
 
     def _encode(self, pos: torch.Tensor, mask: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
         """The agent's output token ``(N, d)``, its masked history positions ``(N, H, 2)`` and the token

@@ -24,11 +24,14 @@ from tqdm.auto import tqdm
 
 from lcdata.corpus import Corpus, WindowBatch, WindowOptions, split_episodes
 from lcmodels.predictor import metrics as M
-from lcmodels.predictor.baselines import constant_acceleration, constant_velocity
+from lcmodels.predictor.baselines import constant_acceleration, constant_velocity, constant_velocity_fit
 from lcmodels.predictor.checkpoint import save_model
 from lcmodels.predictor.model import PredictorConfig, TrajectoryTransformer
 
 __all__ = ["CHECKPOINT_NAME", "METRICS_NAME", "TrainConfig", "evaluate", "train_predictor"]
+
+FIT_WINDOW = 10
+"""Steps of the fitted-velocity baseline (``constant_velocity_fit``) in every evaluation: 0.5 s at 20 Hz."""
 
 logger = logging.getLogger(__name__)
 
@@ -162,13 +165,16 @@ def evaluate(
     """Model (if given) and baseline metrics on windows, metres.
 
     Returns:
-        ``{"model"?: summary, "constant_velocity": summary, "constant_acceleration": summary}``,
+        ``{"model"?: summary, "constant_velocity": summary, "constant_velocity_fit": summary (the velocity
+        fitted to the last FIT_WINDOW steps, where the history is that long), "constant_acceleration": summary}``,
         each summary as :func:`lcmodels.predictor.metrics.summary`, plus ``"lane_change"`` with
         the same three on the windows whose future contains a lane change (when there are any).
     """
     f = batch.future.shape[1]
     preds = {
         "constant_velocity": constant_velocity(batch.history, f),
+        **({"constant_velocity_fit": constant_velocity_fit(batch.history, f, window=FIT_WINDOW)}
+           if batch.history.shape[1] >= FIT_WINDOW else {}),
         "constant_acceleration": constant_acceleration(batch.history, f),
     }
     if model is not None:
