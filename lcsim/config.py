@@ -114,6 +114,10 @@ def field_type(obj: object, name: str) -> str:
     return str(next(f.type for f in dataclasses.fields(obj) if f.name == name))  # type: ignore[arg-type]
 
 
+WANDER_CLIP_SIGMAS = 2.5
+"""A human-like driver's lateral offset from the lane centre is clipped at this many standard deviations."""
+
+
 def check_field(cond: bool, cls: object, name: str, msg: str, value: object) -> None:
     """``ValueError`` naming ``Class.name``, the rule ``msg`` and the ``value``, unless ``cond``."""
     if not cond:
@@ -522,6 +526,12 @@ class ScenarioConfig(JsonConfig):
 
     def __post_init__(self) -> None:
         require_positive(self, "dt_s", "decision_period_s", "route_length_m", "time_limit_s", "sensing_range_m")
+        tc = self.traffic
+        if tc.human_like:  # the wander (clipped) must keep a car, and the neighbour index's margin, in its lane
+            check_field(2 * WANDER_CLIP_SIGMAS * tc.lane_wander_m + tc.width_m + 0.2 <= self.road.lane_width_m, tc,
+                        "lane_wander_m",
+                        f"lets a {tc.width_m} m wide vehicle leave its {self.road.lane_width_m} m lane; lower it",
+                        tc.lane_wander_m)
         ratio = self.decision_period_s / self.dt_s
         check_field(abs(ratio - round(ratio)) < 1e-9, self, "decision_period_s", "must be a multiple of dt_s",
                self.decision_period_s)

@@ -93,9 +93,6 @@ class HighwaySim:
         # Human-like drivers: per-driver parameters (set at reset) and the state of their random processes.
         self.drivers = DriverParams.nominal(tc, (e, n), self.dt)
         if self.human:
-            if 2 * WANDER_CLIP_SIGMAS * tc.lane_wander_m + tc.width_m + 0.2 > config.road.lane_width_m:
-                raise ValueError(f"TrafficConfig.lane_wander_m={tc.lane_wander_m!r} lets a {tc.width_m} m wide vehicle "
-                                 f"leave its {config.road.lane_width_m} m lane; lower it")
             for name in _HUMAN_STATE:
                 setattr(self, name, f64((e, n)))
             period = self.check_every * self.dt
@@ -417,14 +414,15 @@ class HighwaySim:
         tc, dt, n = self.config.traffic, self.dt, self.num_vehicles
         inv_dur = 1.0 / tc.lane_change_duration_s
         inv_durs = self.drivers.lc_inv_duration if self.human else None
+        if inv_durs is not None:
+            w_base, w_step, steps, c = self.wander_base, self.wander_step, self.step, self.check_every
         t_s, t0, y0s, y1s, active = self.t_s, self.lc_t0, self.lc_y0, self.lc_y1, self.lc_active
         rates, speeds = [], []
         for i in changing:
             e, v = divmod(i, n)
             if inv_durs is not None:
                 inv_dur = inv_durs.item(i)
-                wander = self.wander_base.item(i) + self.wander_step.item(i) * float(
-                    self.step.item(e) % self.check_every + 1)  # (as _wander_at, on floats)
+                wander = w_base.item(i) + w_step.item(i) * float(steps.item(e) % c + 1)  # (as _wander_at, on floats)
             tau = (t_s.item(e) + (dt - t0.item(i))) * inv_dur
             t = min(max(tau, 0.0), 1.0)
             t2 = t * t

@@ -8,10 +8,9 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from lcsim.config import TrafficConfig
+from lcsim.config import WANDER_CLIP_SIGMAS, TrafficConfig
 
-WANDER_CLIP_SIGMAS = 2.5
-"""The lateral offset of a driver from the lane centre is clipped at this many standard deviations."""
+__all__ = ["WANDER_CLIP_SIGMAS", "DriverParams", "idm_accel", "smoothstep5"]
 
 
 @dataclass(slots=True)

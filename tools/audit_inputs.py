@@ -150,6 +150,7 @@ def build_cases(root: Path) -> list[Case]:
     (root / "a_file").write_text("not a directory")
     (root / "existing.json").write_text("{}")
     (root / "bad_config.toml").write_text("[policy]\ngama = 0.9\n")
+    (root / "wide_wander.toml").write_text("[traffic]\nnum_vehicles = 8\nlane_wander_m = 0.6\n")
     (root / "bad_recipe.toml").write_text('name = "bad_recipe"\nrow = "ppo-pure"\n[train]\ntimestep = 5\n')
     (root / "x_tracks.csv").write_text("frame,id,x\n1,1,0.5\n")
     (root / "fcd.xml").write_text("<fcd-export><timestep time='0.00'><vehicle id='a' x='1'")
@@ -292,6 +293,10 @@ def build_cases(root: Path) -> list[Case]:
                                                   "--out", f"{r}/p1"]),
         Case("lc-train-predictor: negative time limit", ["lc-train-predictor", "--data", f"{r}/ep", "--time-limit",
                                                          "-1", "--out", f"{r}/p1"]),
+        Case("lc-train-predictor: zero velocity window", ["lc-train-predictor", "--data", f"{r}/ep",
+                                                          "--velocity-window", "0", "--out", f"{r}/p1"]),
+        Case("lc-record: traffic whose wander leaves the lane", [*rec, "--scenario", f"{r}/wide_wander.toml",
+                                                                  "--out", f"{r}/r1"], check=not_written(root / "r1")),
         # lc-experiment
         Case("lc-experiment: zero seeds", ["lc-experiment", "--seeds", "0", "--out", f"{r}/x1"]),
         Case("lc-experiment: unknown preset", ["lc-experiment", "--preset", "bogus", "--out", f"{r}/x1"]),
