@@ -166,6 +166,10 @@ class JsonConfig:
             raise ValueError(f"{cls.__name__}: unknown field(s) {sorted(unknown)}")
         legacy = cls.LEGACY_DEFAULTS if stored else {}
         kwargs: dict[str, Any] = {name: value for name, value in legacy.items() if name not in data}
+        if stored:  # a nested table a stored config lacks is that table's legacy values too, not today's defaults
+            for (owner, name), sub in _NESTED.items():
+                if owner == cls.__name__ and name not in data and sub.LEGACY_DEFAULTS:
+                    kwargs[name] = sub.from_dict({}, stored=True)
         for name, value in data.items():
             sub = _NESTED.get((cls.__name__, name))
             if sub is not None:
@@ -527,10 +531,12 @@ class ScenarioConfig(JsonConfig):
     def __post_init__(self) -> None:
         require_positive(self, "dt_s", "decision_period_s", "route_length_m", "time_limit_s", "sensing_range_m")
         tc = self.traffic
-        if tc.human_like:  # the wander (clipped) must keep a car, and the neighbour index's margin, in its lane
-            check_field(2 * WANDER_CLIP_SIGMAS * tc.lane_wander_m + tc.width_m + 0.2 <= self.road.lane_width_m, tc,
+        if tc.human_like:  # the wander (clipped) must keep a car (the ego too, on autopilot) and the neighbour
+            # index's margin strictly inside its lane
+            width = max(tc.width_m, self.ego.width_m)
+            check_field(2 * WANDER_CLIP_SIGMAS * tc.lane_wander_m + width + 0.2 < self.road.lane_width_m - 1e-6, tc,
                         "lane_wander_m",
-                        f"lets a {tc.width_m} m wide vehicle leave its {self.road.lane_width_m} m lane; lower it",
+                        f"lets a {width} m wide vehicle leave its {self.road.lane_width_m} m lane; lower it",
                         tc.lane_wander_m)
         ratio = self.decision_period_s / self.dt_s
         check_field(abs(ratio - round(ratio)) < 1e-9, self, "decision_period_s", "must be a multiple of dt_s",

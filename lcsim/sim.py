@@ -321,7 +321,8 @@ class HighwaySim:
         if saved is not None:  # frozen environments get their state back before the index is built
             self._restore(frozen, saved)
             self.index = self._build_index()
-        else:  # only the lane changers and the egos moved sideways
+        else:  # only the lane changers and the egos can have changed lanes (a lane keeper's wander is bounded
+            # inside its lane: ScenarioConfig checks it)
             self.index = self._build_index(changing)
         self._sensors(ego_y_prev, frozen if saved is not None else None)
         if saved is not None:

@@ -35,7 +35,7 @@ def traffic_statistics(config: ScenarioConfig, episodes: int, seconds: float, se
             continue
         starts[started] = k
         done = ended & (starts >= 0)
-        durations.extend(((k - starts[done]) * dt).tolist())
+        durations.extend(((k + 1 - starts[done]) * dt).tolist())  # (steps k_start .. k: the change's own steps)
         starts[ended] = -1
         changes += int(started.sum())
         distance_m += float((sim.x - x_before).sum())

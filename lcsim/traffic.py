@@ -35,8 +35,9 @@ class DriverParams:
         """Every driver at the medians of the configured distributions."""
         a, b = cfg.idm_max_accel_mps2, cfg.idm_comfort_decel_mps2
         lag = min(1.0, dt / cfg.reaction_time_s) if cfg.human_like and cfg.reaction_time_s > 0 else 1.0
+        eagerness = 0.5 * (cfg.lane_change_eagerness_min + 1.0) if cfg.human_like else 1.0
         return cls(np.full(shape, cfg.idm_time_headway_s), np.full(shape, a), np.full(shape, 0.5 / math.sqrt(a * b)),
-                   np.full(shape, lag), np.full(shape, 1.0 / cfg.lane_change_duration_s), np.ones(shape))
+                   np.full(shape, lag), np.full(shape, 1.0 / cfg.lane_change_duration_s), np.full(shape, eagerness))
 
     def draw(self, rows: tuple[int, slice] | int, gen: np.random.Generator, cfg: TrafficConfig, dt: float,
              n: int) -> None:

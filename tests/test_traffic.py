@@ -185,3 +185,31 @@ def test_a_perceived_copy_sees_the_median_driver():
     assert (copy_.sim.drivers.time_headway[:, 1:] == tc.idm_time_headway_s).all()
     assert (copy_.sim.drivers.max_accel[:, 1:] == tc.idm_max_accel_mps2).all()
     assert core.sim.drivers.time_headway[:, 1:].std() > 0  # the original keeps its drivers
+
+
+def test_a_perceived_copy_keeps_the_pace_of_lane_changes_under_way():
+    """A change under way shows: the copy's changers go on at their own pace (no sideways jump)."""
+    from lcsim.planning.perception import imagined_copy, perceive
+
+    core = LaneChangeCore(_traffic(True, random_lane_change_rate_per_min=6.0), 2)
+    core.reset([0, 1], [9, 10])
+    for _ in range(20):
+        core.step(np.full(2, KEEP))
+        if core.sim.lc_active[:, 1:].sum() >= 2:
+            break
+    sim = core.sim
+    assert sim.lc_active[:, 1:].any()
+    copy_ = imagined_copy(core)
+    perceive(copy_.sim, 1000.0)
+    changing = copy_.sim.lc_active.copy()
+    assert np.array_equal(copy_.sim.drivers.lc_inv_duration[changing], sim.drivers.lc_inv_duration[changing])
+    y_before = copy_.sim.y.copy()
+    copy_.sim.substep()
+    assert np.abs(copy_.sim.y - y_before)[changing].max() < 0.05  # metres in one 50 ms step
+
+
+def test_a_stored_config_without_a_traffic_table_keeps_the_exact_traffic():
+    """Imported episodes store no traffic table: they read as the traffic of their time, not today's default."""
+    cfg = ScenarioConfig.from_dict({"dt_s": 0.1})
+    assert cfg.traffic.human_like is False
+    assert ScenarioConfig.from_dict({"dt_s": 0.1}, stored=False).traffic.human_like is True

@@ -53,13 +53,16 @@ def perceive(sim: HighwaySim, range_m: float) -> None:
     if not range_m > 0:
         raise ValueError(f"range_m must be > 0, got {range_m!r}")
     far = np.hypot(sim.x - sim.x[:, :1], sim.y - sim.y[:, :1]) > range_m
+    original_durations = sim.drivers.lc_inv_duration
     traffic = sim.is_traffic.copy()
     traffic[:, 0] = False  # the ego knows itself, autopilot or not
     far &= traffic
     sim.x = np.where(far, sim.x[:, :1] - 1.0e5 - 50.0 * sim.ids[None, :], sim.x)  # parked, spaced apart
     sim.rebuild_index()
-    if sim.human:  # each driver's own parameters show in no sensor: the copy's drivers are the median ones
+    if sim.human:  # each driver's own parameters show in no sensor: the copy's drivers are the median ones,
+        # but a lane change under way keeps its pace (its progress shows)
         sim.drivers.set_nominal(traffic, sim.config.traffic, sim.dt)
+        sim.drivers.lc_inv_duration = np.where(sim.lc_active, original_durations, sim.drivers.lc_inv_duration)
     sim.v0 = np.where(traffic, estimated_desired_speeds(sim), sim.v0)
 
 
