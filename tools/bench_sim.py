@@ -6,9 +6,15 @@ every 0.5 s) through the gymnasium API, for one environment (``LaneChangeEnv``) 
 (``LaneChangeVectorEnv``), with autoreset. Actions: keep lane, with a valid lane change 15% of the time.
 When highway-env is installed, measures its ``highway-v0`` with 100 vehicles on the same machine.
 
+With ``--full``, also: batches of 8 and 256, every size without the image, the lookahead planner's cost per
+decision (perceived, as the safety layer runs it), and, when numba is installed, the floor a compiled
+simulator could reach: a bare IDM sub-step (per-lane leaders from a sort, no lane changes, controller,
+sensors or observation) compiled with numba, for one environment and for 64.
+
     python tools/bench_sim.py            # human-readable
     python tools/bench_sim.py --json     # one JSON object
     python tools/bench_sim.py --repeat 5 # median of 5 measurements each (for a busy machine)
+    python tools/bench_sim.py --full --seconds 5   # every size, with and without the image, planner, floor
 """
 
 from __future__ import annotations
@@ -62,6 +68,71 @@ def bench_batch(seconds: float, config: ScenarioConfig, num_envs: int = 64) -> f
     return steps * num_envs * config.decision_period_s / (time.perf_counter() - t0)
 
 
+def bench_planner(seconds: float) -> float:
+    """Milliseconds per decision of the perceived lookahead planner (blind, perceived, horizon 16) in one env."""
+    from lcsim.planning import LookaheadConfig, LookaheadDriver
+
+    env = LaneChangeEnv(ScenarioConfig(render_image=False))
+    driver = LookaheadDriver(LookaheadConfig(blind=True, perceived=True))
+    obs, info = env.reset(seed=0)
+    decisions, t0 = 0, time.perf_counter()
+    while time.perf_counter() - t0 < seconds or decisions < 3:
+        action = driver({k: v[None] for k, v in obs.items()}, info["action_mask"][None], env.core)[0]
+        obs, _, term, trunc, info = env.step(int(action))
+        decisions += 1
+        if term or trunc:
+            obs, info = env.reset()
+    return 1000.0 * (time.perf_counter() - t0) / decisions
+
+
+def bench_numba_floor(seconds: float, num_envs: int) -> float | None:
+    """Simulated s per wall s of a bare IDM sub-step compiled with numba (None without numba): the limit."""
+    try:
+        import numba
+    except ImportError:
+        return None
+
+    @numba.njit(cache=True)
+    def substeps(x, v, v0, lane, length, steps, dt, lanes):  # pragma: no cover - compiled
+        e_count, n = x.shape
+        lead = np.empty(lanes, dtype=np.int64)
+        acc = np.empty(n)
+        for _ in range(steps):
+            for e in range(e_count):
+                order = np.argsort(x[e])
+                lead[:] = -1
+                for k in range(n - 1, -1, -1):  # front to back: the last vehicle seen in a lane leads
+                    i = order[k]
+                    j = lead[lane[e, i]]
+                    gap, dv = 1e9, 0.0
+                    if j >= 0:
+                        gap = x[e, j] - x[e, i] - 0.5 * (length[e, i] + length[e, j])
+                        dv = v[e, i] - v[e, j]
+                    s_star = 2.0 + v[e, i] * 2.0 + v[e, i] * dv / (2.0 * np.sqrt(1.5 * 2.0))
+                    r = v[e, i] / v0[e, i]
+                    a = 1.5 * (1.0 - r ** 4 - (max(s_star, 2.0) / max(gap, 0.1)) ** 2)
+                    acc[i] = min(max(a, -8.0), 1.5)
+                    lead[lane[e, i]] = i
+                for i in range(n):
+                    nv = max(v[e, i] + acc[i] * dt, 0.0)
+                    x[e, i] += 0.5 * (v[e, i] + nv) * dt
+                    v[e, i] = nv
+
+    rng = np.random.default_rng(0)
+    n = 101
+    x = np.sort(rng.uniform(-300.0, 1300.0, (num_envs, n)), axis=1)
+    v = np.full((num_envs, n), 24.0 / 3.6)
+    v0 = v + rng.normal(0.0, 0.5, (num_envs, n))
+    lane = rng.integers(0, 4, (num_envs, n)).astype(np.int64)
+    length = np.full((num_envs, n), 5.37)
+    substeps(x, v, v0, lane, length, 1, 0.05, 4)  # compile (or load the cache)
+    steps, t0 = 0, time.perf_counter()
+    while time.perf_counter() - t0 < seconds:
+        substeps(x, v, v0, lane, length, 100, 0.05, 4)
+        steps += 100
+    return steps * num_envs * 0.05 / (time.perf_counter() - t0)
+
+
 def bench_highway_env(seconds: float) -> float | None:
     try:
         import gymnasium as gym
@@ -87,6 +158,9 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--no-highway-env", action="store_true", help="skip the highway-env comparison")
     parser.add_argument("--repeat", type=int, default=1,
                         help="measure each lcsim figure this many times, interleaved, and report the median (default 1)")
+    parser.add_argument("--full", action="store_true",
+                        help="also batches of 8 and 256, every size without the image, the planner's cost per "
+                        "decision and the numba floor (pip install numba)")
     args = parser.parse_args(argv)
     if args.seconds <= 0:
         parser.error("--seconds must be > 0")
@@ -105,6 +179,22 @@ def main(argv: list[str] | None = None) -> int:
         "highway_env_sim_s_per_s": None if hwy is None else round(hwy, 2),
         "ratio_batch64_vs_highway_env": None if hwy is None else round(batch / hwy, 1),
     }
+    if args.full:
+        for images in (True, False):
+            cfg = ScenarioConfig(render_image=images)
+            for size in (1, 8, 64, 256):
+                key = f"{'image' if images else 'no_image'}_envs{size}_sim_s_per_s"
+                if images and size == 1:
+                    result[key] = result["single_env_sim_s_per_s"]
+                elif images and size == 64:
+                    result[key] = result["batch64_sim_s_per_s"]
+                else:
+                    fig = bench_single(args.seconds, cfg) if size == 1 else bench_batch(args.seconds, cfg, size)
+                    result[key] = round(fig, 1)
+        result["planner_perceived_ms_per_decision"] = round(bench_planner(args.seconds), 1)
+        for size in (1, 64):
+            floor = bench_numba_floor(args.seconds, size)
+            result[f"numba_floor_envs{size}_sim_s_per_s"] = None if floor is None else round(floor, 1)
     if args.json:
         print(json.dumps(result))
     else:
@@ -115,6 +205,10 @@ def main(argv: list[str] | None = None) -> int:
         else:
             print(f"highway-env highway-v0, 100 vehicles             : {hwy:8.2f} simulated s per wall s")
             print(f"batch 64 vs highway-v0: x{batch / hwy:.0f}")
+        if args.full:
+            for key, value in result.items():
+                if key.startswith(("image_", "no_image_", "numba_", "planner_")):
+                    print(f"{key:42s}: {'numba not installed' if value is None else value}")
     return 0
 
 
