@@ -133,3 +133,17 @@ def test_recording_keeps_stdout_for_the_figures(tmp_path, capsys) -> None:
     assert len(list(out.glob("*.mcap"))) == 3
     captured = capsys.readouterr()
     assert captured.out == "" and "recorded 3 episodes" in captured.err
+
+
+def test_the_training_corpus_can_mix_two_driving_styles(tmp_path) -> None:
+    """exact_episodes more episodes with exact-IDM traffic: their configs say so; a rerun records nothing."""
+    from lcdata.offline import episode_config
+    from lcdata.reader import read_episode
+
+    out = bench_transfer.record_lcsim(tmp_path / "rec", 2, 1, quiet=True, exact_episodes=2)
+    files = sorted(out.glob("*.mcap"))
+    styles = sorted(episode_config(read_episode(f)).traffic.human_like for f in files)
+    assert styles == [False, False, True, True]
+    mtimes = [f.stat().st_mtime_ns for f in files]
+    bench_transfer.record_lcsim(tmp_path / "rec", 2, 1, quiet=True, exact_episodes=2)
+    assert [f.stat().st_mtime_ns for f in sorted(out.glob("*.mcap"))] == mtimes

@@ -24,6 +24,7 @@ from __future__ import annotations
 
 import argparse
 import contextlib
+import dataclasses
 import json
 import logging
 import math
@@ -96,6 +97,7 @@ class Setup:
     configs: tuple[str, ...] = ("10+10", "20+60/5")
     variants: tuple[str, ...] = ("gated:0:1", "gated", "gated:0.003")
     lcsim_episodes: int = 16
+    lcsim_exact_episodes: int = 16
     lcsim_test_episodes: int = 4
     lcsim_seed: int = 100
     lcsim_test_seed: int = 50_000
@@ -115,17 +117,29 @@ def _stage(msg: str, quiet: bool) -> None:
         print(f"[{time.strftime('%H:%M:%S')}] {msg}", file=sys.stderr, flush=True)
 
 
-def record_lcsim(out: pathlib.Path, episodes: int, seed: int, quiet: bool) -> pathlib.Path:
-    """``lc-record --scenario corpus`` into ``out`` unless it holds that many episodes already."""
-    if len(list(out.glob("*.mcap"))) >= episodes:
+def record_lcsim(out: pathlib.Path, episodes: int, seed: int, quiet: bool, exact_episodes: int = 0) -> pathlib.Path:
+    """``lc-record --scenario corpus`` into ``out`` unless it holds that many episodes already; with
+    ``exact_episodes``, that many more of the same scenario with exact-IDM traffic (``traffic.human_like =
+    false``, seeds from ``seed + 100000``), so that the corpus mixes two driving styles."""
+    if len(list(out.glob("*.mcap"))) >= episodes + exact_episodes:
         return out
     from lccli.record import record_main
+    from lcsim.config import corpus_scenario
 
-    with contextlib.redirect_stdout(sys.stderr):  # stdout carries only the table or the JSON
-        rc = record_main(["--scenario", "corpus", "--episodes", str(episodes), "--seed", str(seed),
-                          "--out", str(out), "--overwrite"])  # fmt: skip
-    if rc != 0:
-        raise RuntimeError(f"lc-record failed (exit {rc}) writing {out}")
+    runs = [("corpus", episodes, seed)]
+    if exact_episodes:
+        exact = corpus_scenario()
+        exact = dataclasses.replace(exact, traffic=dataclasses.replace(exact.traffic, human_like=False))
+        out.parent.mkdir(parents=True, exist_ok=True)
+        path = out.parent / "corpus-exact-idm.toml"
+        path.write_text(exact.to_toml())
+        runs.append((str(path), exact_episodes, seed + 100_000))
+    for scenario, count, first in runs:
+        with contextlib.redirect_stdout(sys.stderr):  # stdout carries only the table or the JSON
+            rc = record_main(["--scenario", scenario, "--driver", "autopilot", "--episodes", str(count), "--seed",
+                              str(first), "--out", str(out), "--overwrite"])  # fmt: skip
+        if rc != 0:
+            raise RuntimeError(f"lc-record failed (exit {rc}) writing {out}")
     return out
 
 
@@ -224,8 +238,10 @@ def run(out: pathlib.Path, setup: Setup, checkpoints: Sequence[pathlib.Path] = (
     else:
         train_data = lcsim_train
         if train_data is None:
-            _stage(f"recording the lcsim training corpus ({setup.lcsim_episodes} episodes)", quiet)
-            train_data = record_lcsim(out / "lcsim-train", setup.lcsim_episodes, setup.lcsim_seed, quiet)
+            _stage(f"recording the lcsim training corpus ({setup.lcsim_episodes} episodes of the default traffic, "
+                   f"{setup.lcsim_exact_episodes} of exact IDM)", quiet)
+            train_data = record_lcsim(out / "lcsim-train", setup.lcsim_episodes, setup.lcsim_seed, quiet,
+                                      setup.lcsim_exact_episodes)
         for config in setup.configs:
             for variant in setup.variants:
                 h, f, _ = parse_config(config)
@@ -339,6 +355,9 @@ def build_parser() -> argparse.ArgumentParser:
                    f"to (1: the last step's difference; default PredictorConfig's) (default {','.join(d.variants)})")
     p.add_argument("--lcsim-episodes", type=_positive(int), default=d.lcsim_episodes,
                    help=f"lcsim training episodes, 100 s each (default {d.lcsim_episodes})")
+    p.add_argument("--lcsim-exact-episodes", type=int, default=d.lcsim_exact_episodes,
+                   help="more training episodes with exact-IDM traffic, so that the corpus mixes two driving "
+                   f"styles (0: the default traffic only; default {d.lcsim_exact_episodes})")
     p.add_argument("--lcsim-test-episodes", type=_positive(int), default=d.lcsim_test_episodes,
                    help=f"lcsim test episodes, seeds of their own (default {d.lcsim_test_episodes})")
     p.add_argument("--lcsim-train", type=pathlib.Path, default=None,
@@ -383,7 +402,10 @@ def main(argv: Sequence[str] | None = None) -> int:
     if args.lcsim_episodes < 3 and not args.checkpoint:
         return error(f"--lcsim-episodes must be >= 3 (train/validation/test split by episode), got {args.lcsim_episodes}")
     logging.basicConfig(level=logging.WARNING, format=f"{PROG}: %(message)s")
+    if args.lcsim_exact_episodes < 0:
+        return error(f"--lcsim-exact-episodes must be >= 0, got {args.lcsim_exact_episodes}")
     setup = Setup(configs=args.configs, variants=args.variants, lcsim_episodes=args.lcsim_episodes,
+                  lcsim_exact_episodes=args.lcsim_exact_episodes,
                   lcsim_test_episodes=args.lcsim_test_episodes, sumo_episodes=args.sumo_episodes,
                   max_train_windows=args.max_train_windows, max_epochs=args.epochs,
                   train_time_limit_s=args.train_time_limit,
