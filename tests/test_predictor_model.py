@@ -14,6 +14,7 @@ import torch
 from lcdata.corpus import Corpus, WindowOptions, from_frame, to_frame
 from lcmodels.predictor import Predictor, PredictorConfig, TrajectoryTransformer, load_model
 from lcmodels.predictor.baselines import constant_velocity, constant_velocity_fit
+from lcmodels.predictor.checkpoint import save_model
 from lcmodels.predictor.synthetic import synthetic_tracks
 
 
@@ -155,16 +156,30 @@ def test_plain_model_keeps_the_checkpoint_layout() -> None:
     assert set(gated.state_dict()) - set(plain.state_dict()) == {"gate.weight", "gate.bias", "familiar_limit"}
 
 
-def test_shipped_checkpoint_loads_as_the_plain_model() -> None:
-    model, _ = load_model(Path(__file__).resolve().parent.parent / "zoo" / "predictor" / "predictor.pt")
+def test_a_checkpoint_from_before_the_choices_loads_as_the_plain_one_step_model(tmp_path: Path) -> None:
+    """A checkpoint whose stored config predates the correction and velocity-window fields (the zoo's first
+    predictor was one) loads as the plain residual over one-step constant velocity, and computes what the
+    same weights compute in a model built with that config explicitly."""
+    torch.manual_seed(0)
+    old_style = TrajectoryTransformer(PredictorConfig(d_model=32, ff_dim=64, correction="plain", velocity_window=1))
+    torch.nn.init.normal_(old_style.head[-1].weight, std=0.3)
+    path = save_model(old_style, tmp_path / "old.pt")
+    payload = torch.load(path, weights_only=True)
+    config = json.loads(payload["config"])
+    for name in ("correction", "correction_speed_mps", "correction_accel_mps2", "dt_s", "velocity_window"):
+        del config[name]
+    payload["config"] = json.dumps(config)
+    torch.save(payload, path)
+    model, _ = load_model(path)
     assert model.config.correction == "plain" and model.gate is None and model.config.velocity_window == 1
-    # The same weights in a model built with an explicit plain config: the very same outputs.
     twin = TrajectoryTransformer(model.config)
     twin.load_state_dict(model.state_dict())
     twin.eval()
+    model.eval()
     pos, mask = _window_tokens()
     with torch.no_grad():
         assert torch.equal(model(pos, mask), twin(pos, mask))
+        assert torch.equal(model(pos, mask), old_style.eval()(pos, mask))
 
 
 def test_bounded_correction_stays_within_its_bound() -> None:
