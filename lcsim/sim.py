@@ -38,7 +38,7 @@ _SENSOR_STATE = ("collision_with", "lane_invasion", "off_road")
 # and the change per step between them).
 _HUMAN_STATE = ("noise", "wander_base", "wander_next", "wander_step")
 # Up to this many vehicles changing lanes, their lateral update runs on Python floats (fewer calls).
-_SCALAR_LANE_CHANGES = 6
+_SCALAR_LANE_CHANGES = 12
 # Up to this many environments the neighbour index is updated rather than rebuilt when nothing but the
 # gaps changed (all environments must qualify, which becomes rare on large batches).
 _INCREMENTAL_INDEX_MAX_ENVS = 8
