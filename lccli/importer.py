@@ -4,12 +4,11 @@ from __future__ import annotations
 
 import argparse
 import functools
-import math
 import pathlib
 import sys
 from collections.abc import Sequence
 
-from lccli.common import fail, int_at_least, setup_logging
+from lccli.common import fail, int_at_least, positive_float, setup_logging
 
 PROG = "lc-import"
 EXAMPLES = """\
@@ -37,23 +36,13 @@ class _Parser(argparse.ArgumentParser):
         raise UsageError(f"{message} (see {self.prog} --help)")
 
 
-def _positive_float(text: str) -> float:
-    try:
-        value = float(text)
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"expected a number, got {text!r}") from None
-    if not (math.isfinite(value) and value > 0):
-        raise argparse.ArgumentTypeError(f"must be > 0, got {text}")
-    return value
-
-
 def _common(p: argparse.ArgumentParser) -> None:
     from lcdata.importers import CORPUS_DT_S, CORPUS_EPISODE_STEPS
 
     p.add_argument("--out", type=pathlib.Path, required=True, help="output directory (created if missing)")
     p.add_argument("--overwrite", action="store_true",
                    help="replace the episodes of an earlier import of the same source in --out")
-    p.add_argument("--dt", type=_positive_float, default=CORPUS_DT_S, metavar="SECONDS",
+    p.add_argument("--dt", type=positive_float, default=CORPUS_DT_S, metavar="SECONDS",
                    help=f"step of the written episodes (default {CORPUS_DT_S:g}: the corpus's 20 Hz)")
     p.add_argument("--episode-steps", type=int_at_least(1), default=CORPUS_EPISODE_STEPS, metavar="N",
                    help=f"steps per episode file; a longer recording is cut (default {CORPUS_EPISODE_STEPS})")
@@ -83,9 +72,9 @@ def build_parser() -> argparse.ArgumentParser:
     )  # fmt: skip
     sumo.add_argument("file", type=pathlib.Path, metavar="FILE.xml", help="the FCD output file")
     _common(sumo)
-    sumo.add_argument("--vehicle-length", type=_positive_float, default=5.0, metavar="M",
+    sumo.add_argument("--vehicle-length", type=positive_float, default=5.0, metavar="M",
                       help="length of a vehicle whose element has no length attribute (default 5.0, SUMO's car)")
-    sumo.add_argument("--vehicle-width", type=_positive_float, default=1.8, metavar="M",
+    sumo.add_argument("--vehicle-width", type=positive_float, default=1.8, metavar="M",
                       help="width of a vehicle whose element has no width attribute (default 1.8)")
     highd = sub.add_parser(
         "highd", help="highD-layout drone tracks (XX_tracks.csv and XX_tracksMeta.csv)",
@@ -99,7 +88,7 @@ def build_parser() -> argparse.ArgumentParser:
     highd.add_argument("--meta", type=pathlib.Path, default=None, metavar="META.csv",
                        help="the tracks meta file (default: XX_tracksMeta.csv beside TRACKS.csv)")
     _common(highd)
-    highd.add_argument("--frame-rate", type=_positive_float, default=25.0, metavar="HZ",
+    highd.add_argument("--frame-rate", type=positive_float, default=25.0, metavar="HZ",
                        help="video frame rate of the recording (default 25, highD's)")
     return p
 

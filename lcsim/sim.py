@@ -108,8 +108,7 @@ class HighwaySim:
         self.step = np.zeros(e, dtype=np.int64)
         self.t_s = f64(e)
         self.key = np.zeros(e, dtype=np.uint64)
-        self.lane_change_base = rng.stream_base(self.key, _LANE_CHANGE_STREAM)  # (kept with key by reset)
-        self.noise_base = rng.stream_base(self.key, _NOISE_STREAM)
+        self._derive_stream_bases()  # (kept with key by reset and rekey)
         self.collision_with = np.full(e, -1, dtype=np.int64)
         self.lane_invasion = np.full(e, -1, dtype=np.int64)
         self.off_road = np.zeros(e, dtype=bool)
@@ -141,6 +140,10 @@ class HighwaySim:
         self.index = self._build_index()
         self.hist[env_ids] = np.stack([self.x[env_ids], self.y[env_ids]], axis=-1)[:, None]
         self.hist_count[env_ids] = 1
+        self._derive_stream_bases()
+
+    def _derive_stream_bases(self) -> None:
+        """The per-environment bases of the random streams drawn every step, from the current keys."""
         self.lane_change_base = rng.stream_base(self.key, _LANE_CHANGE_STREAM)
         self.noise_base = rng.stream_base(self.key, _NOISE_STREAM)
 
@@ -148,8 +151,7 @@ class HighwaySim:
         """Mix ``salt`` into every environment's key of the counter-based random streams: from now on the
         traffic draws other random numbers (:func:`lcsim.planning.redraw_future` is the planner's use)."""
         self.key = self.key ^ rng.stream_base(np.array([salt], dtype=np.uint64), _REDRAW_STREAM)[0]
-        self.lane_change_base = rng.stream_base(self.key, _LANE_CHANGE_STREAM)
-        self.noise_base = rng.stream_base(self.key, _NOISE_STREAM)
+        self._derive_stream_bases()
 
     def _spawn(self, e: int, gen: np.random.Generator) -> None:
         _cfg, tc, ec, road = self.config, self.config.traffic, self.config.ego, self.road

@@ -38,7 +38,7 @@ def test_configs_and_bad_input_give_one_line_errors(tmp_path, capsys) -> None:
         (["--out", str(tmp_path), "--variants", "gated:-1"], "noise"),
         (["--out", str(tmp_path), "--checkpoint", str(tmp_path / "none.pt")], "does not exist"),
         (["--out", str(tmp_path), "--sumo", str(tmp_path)], "not a folder of .mcap"),
-        (["--out", str(tmp_path), "--lcsim-episodes", "0"], "must be > 0"),
+        (["--out", str(tmp_path), "--lcsim-episodes", "0"], "must be >= 1"),
     ):
         assert bench_transfer.main(argv) == 2
         err = capsys.readouterr().err

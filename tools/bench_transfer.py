@@ -44,6 +44,8 @@ if str(TOOLS) not in sys.path:  # sumo_highway.py beside this file, also when im
 
 import sumo_highway  # noqa: E402
 
+from lccli.common import non_negative_int, positive_float, positive_int  # noqa: E402
+
 __all__ = ["Setup", "evaluate_checkpoint", "format_table", "main", "parse_config", "parse_variant", "run", "source_state"]
 
 log = logging.getLogger("bench_transfer")
@@ -321,19 +323,6 @@ def _csv(kind: str, check: Callable[[str], Any]) -> Callable[[str], tuple[str, .
     return parse
 
 
-def _positive(kind: type) -> Callable[[str], Any]:
-    def parse(text: str) -> Any:
-        try:
-            value = kind(text)
-        except ValueError:
-            raise argparse.ArgumentTypeError(f"expected a {kind.__name__}, got {text!r}") from None
-        if not value > 0:
-            raise argparse.ArgumentTypeError(f"must be > 0, got {text}")
-        return value
-
-    return parse
-
-
 class _Parser(argparse.ArgumentParser):
     def error(self, message: str) -> None:  # type: ignore[override]
         print(f"{PROG}: error: {message} (see --help)", file=sys.stderr)
@@ -353,27 +342,27 @@ def build_parser() -> argparse.ArgumentParser:
                    f"the correction one of {', '.join(CORRECTIONS)}, NOISE_M the std of the noise added to observed "
                    "positions in training, metres, WINDOW the steps the constant-velocity base fits its velocity "
                    f"to (1: the last step's difference; default PredictorConfig's) (default {','.join(d.variants)})")
-    p.add_argument("--lcsim-episodes", type=_positive(int), default=d.lcsim_episodes,
+    p.add_argument("--lcsim-episodes", type=positive_int, default=d.lcsim_episodes,
                    help=f"lcsim training episodes, 100 s each (default {d.lcsim_episodes})")
-    p.add_argument("--lcsim-exact-episodes", type=int, default=d.lcsim_exact_episodes,
+    p.add_argument("--lcsim-exact-episodes", type=non_negative_int, default=d.lcsim_exact_episodes,
                    help="more training episodes with exact-IDM traffic, so that the corpus mixes two driving "
                    f"styles (0: the default traffic only; default {d.lcsim_exact_episodes})")
-    p.add_argument("--lcsim-test-episodes", type=_positive(int), default=d.lcsim_test_episodes,
+    p.add_argument("--lcsim-test-episodes", type=positive_int, default=d.lcsim_test_episodes,
                    help=f"lcsim test episodes, seeds of their own (default {d.lcsim_test_episodes})")
     p.add_argument("--lcsim-train", type=pathlib.Path, default=None,
                    help="an existing lcsim training corpus folder (instead of recording one)")
     p.add_argument("--lcsim-test", type=pathlib.Path, default=None, help="an existing lcsim test corpus folder")
-    p.add_argument("--sumo-episodes", type=_positive(int), default=d.sumo_episodes,
+    p.add_argument("--sumo-episodes", type=positive_int, default=d.sumo_episodes,
                    help=f"SUMO episodes, 100 s each (default {d.sumo_episodes})")
     p.add_argument("--sumo", type=pathlib.Path, default=None, help="an existing imported SUMO corpus folder")
-    p.add_argument("--max-train-windows", type=_positive(int), default=d.max_train_windows,
+    p.add_argument("--max-train-windows", type=positive_int, default=d.max_train_windows,
                    help=f"training windows per model (default {d.max_train_windows})")
-    p.add_argument("--epochs", type=_positive(int), default=d.max_epochs, help=f"maximum epochs (default {d.max_epochs})")
-    p.add_argument("--train-time-limit", type=_positive(float), default=d.train_time_limit_s, metavar="S",
+    p.add_argument("--epochs", type=positive_int, default=d.max_epochs, help=f"maximum epochs (default {d.max_epochs})")
+    p.add_argument("--train-time-limit", type=positive_float, default=d.train_time_limit_s, metavar="S",
                    help=f"stop a model's training after the epoch past this (default {d.train_time_limit_s:g} s)")
-    p.add_argument("--max-eval-windows", type=_positive(int), default=d.max_eval_windows,
+    p.add_argument("--max-eval-windows", type=positive_int, default=d.max_eval_windows,
                    help=f"windows per evaluation, a deterministic subsample (default {d.max_eval_windows})")
-    p.add_argument("--threads", type=_positive(int), default=d.threads, help=f"torch threads (default {d.threads})")
+    p.add_argument("--threads", type=positive_int, default=d.threads, help=f"torch threads (default {d.threads})")
     p.add_argument("--seed", type=int, default=d.seed, help="training and subsampling seed (default 0)")
     p.add_argument("--json", action="store_true", help="print the figures as JSON instead of the table")
     p.add_argument("-q", "--quiet", action="store_true", help="no progress")
@@ -402,8 +391,6 @@ def main(argv: Sequence[str] | None = None) -> int:
     if args.lcsim_episodes < 3 and not args.checkpoint:
         return error(f"--lcsim-episodes must be >= 3 (train/validation/test split by episode), got {args.lcsim_episodes}")
     logging.basicConfig(level=logging.WARNING, format=f"{PROG}: %(message)s")
-    if args.lcsim_exact_episodes < 0:
-        return error(f"--lcsim-exact-episodes must be >= 0, got {args.lcsim_exact_episodes}")
     setup = Setup(configs=args.configs, variants=args.variants, lcsim_episodes=args.lcsim_episodes,
                   lcsim_exact_episodes=args.lcsim_exact_episodes,
                   lcsim_test_episodes=args.lcsim_test_episodes, sumo_episodes=args.sumo_episodes,
