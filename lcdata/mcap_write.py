@@ -24,6 +24,7 @@ import zlib
 from collections.abc import Callable, Sequence
 from typing import BinaryIO
 
+import numpy as np
 import zstandard
 
 log = logging.getLogger(__name__)
@@ -62,6 +63,12 @@ def _string_map(mapping: dict[str, str]) -> bytes:
 
 
 
+COMPRESSION_LEVEL = -3
+"""Default zstd level of the chunks. Measured on recorded episodes (one core of the development machine):
+level 1 compresses the lane-change episode 3.86x at about 1 GB/s, -3 3.63x at about 2 GB/s (the corpus
+episode: 2.72x and 2.51x), lz4 3.46x at the speed of -3. The half of the compression time is worth more
+than 6-9 % of the file size."""
+
 MESSAGE_HEADER_BYTES = _MESSAGE_HEADER.size
 """Bytes of a message record before its data (:func:`message_header`)."""
 
@@ -70,6 +77,35 @@ def message_header(channel_id: int, log_time: int, data_size: int) -> bytes:
     """A message record header (sequence 0, publish time = log time) for ``data_size`` bytes of message
     data, for :meth:`McapStreamWriter.add_message_records`."""
     return _MESSAGE_HEADER.pack(OP_MESSAGE, 22 + data_size, channel_id, 0, log_time, log_time)
+
+
+def _batch_counts(batches: list[tuple[np.ndarray, np.ndarray, np.ndarray]]) -> dict[int, int]:
+    """Messages per channel id in :meth:`McapStreamWriter.add_message_records`' batches."""
+    if not batches:
+        return {}
+    ids, counts = np.unique(np.concatenate([b[0] for b in batches]), return_counts=True)
+    return dict(zip(ids.tolist(), counts.tolist(), strict=True))
+
+
+def _merge_index(singles: dict[int, list[int]], batches: list[tuple[np.ndarray, np.ndarray, np.ndarray]]
+                 ) -> dict[int, np.ndarray]:  # fmt: skip
+    """The message index of a chunk: (M, 2) (log time, offset) entries per channel id, in offset order, the
+    channels in the order of their first message (what adding the messages one at a time gives)."""
+    if not batches:
+        return {c: np.array(flat, dtype=np.int64).reshape(-1, 2) for c, flat in singles.items()}
+    ids = [np.concatenate([b[0] for b in batches])]
+    times = [np.concatenate([b[1] for b in batches])]
+    offsets = [np.concatenate([b[2] for b in batches])]
+    for channel_id, flat in singles.items():
+        pairs = np.array(flat, dtype=np.int64).reshape(-1, 2)
+        ids.append(np.full(len(pairs), channel_id))
+        times.append(pairs[:, 0])
+        offsets.append(pairs[:, 1])
+    channel, time, offset = (np.concatenate(parts) for parts in (ids, times, offsets))
+    order = np.argsort(offset, kind="stable")
+    channel, time, offset = channel[order], time[order], offset[order]
+    firsts = np.unique(channel, return_index=True)[1]
+    return {int(c): np.stack((time[channel == c], offset[channel == c]), axis=1) for c in channel[np.sort(firsts)]}
 
 
 def _record(opcode: int, body: bytes) -> bytes:
@@ -82,7 +118,11 @@ class McapStreamWriter:
     Args:
         stream: a binary file opened for writing (the writer closes it in :meth:`finish`).
         chunk_size: uncompressed bytes after which a chunk is closed.
-        compression_level: zstd level (1 is fast and compresses simulator data about as well as 3).
+        compression_level: zstd level (:data:`COMPRESSION_LEVEL` by default).
+        chunk_crc: store the CRC-32 of each chunk's records. Without it (the default) the chunk CRC is 0
+            ("not computed", as the MCAP specification allows) and each chunk's zstd frame carries its
+            own content checksum (XXH64), which decompression checks: the same protection against a
+            damaged chunk for a twentieth of the CPU time.
         background: compress and write chunks on a worker thread.
         profile, library: header fields.
     """
@@ -92,21 +132,24 @@ class McapStreamWriter:
         stream: BinaryIO,
         *,
         chunk_size: int = 1 << 20,
-        compression_level: int = 1,
+        compression_level: int = COMPRESSION_LEVEL,
+        chunk_crc: bool = False,
         background: bool = True,
         profile: str = "",
         library: str = "lc-toolkit",
     ) -> None:
         self._stream = stream
         self._chunk_size = chunk_size
-        self._compressor = zstandard.ZstdCompressor(level=compression_level)
+        self._compressor = zstandard.ZstdCompressor(level=compression_level, write_checksum=not chunk_crc)
+        self._chunk_crc = chunk_crc
         self._pos = 0  # file offset; touched only by the I/O side
         self._chunk: list[bytes | memoryview] = []  # records of the chunk in progress
         self._chunk_bytes = 0
         self._chunk_start = 0
         self._chunk_end = 0
         self._chunk_messages = 0
-        self._message_index: dict[int, list[int]] = {}
+        self._message_index: dict[int, list[int]] = {}  # (log time, offset) pairs per channel, add_message's
+        self._batches: list[tuple[np.ndarray, np.ndarray, np.ndarray]] = []  # add_message_records' (channels, times, offsets)
         self._schemas: list[bytes] = []
         self._channels: list[bytes] = []
         self._counts: dict[int, int] = {}
@@ -153,44 +196,69 @@ class McapStreamWriter:
     ) -> None:
         """Append one message record (times in ns) to the current chunk."""
         header = _MESSAGE_HEADER.pack(OP_MESSAGE, 22 + len(data), channel_id, sequence, log_time, publish_time)
-        self.add_message_records(b"".join((header, data)), (channel_id,), (log_time,), (len(header) + len(data),))
+        offset = self._chunk_bytes
+        index = self._message_index.get(channel_id)
+        if index is None:
+            index = self._message_index[channel_id] = []
+        index += (log_time, offset)
+        self._counts[channel_id] += 1
+        if self._chunk_messages == 0:
+            self._chunk_start = self._chunk_end = log_time
+        elif log_time < self._chunk_start:
+            self._chunk_start = log_time
+        elif log_time > self._chunk_end:
+            self._chunk_end = log_time
+        self._chunk_messages += 1
+        self._chunk += (header, data)
+        self._chunk_bytes = offset + len(header) + len(data)
+        if self._chunk_bytes >= self._chunk_size:
+            self.flush_chunk()
 
-    def add_message_records(self, records: bytes, channel_ids: Sequence[int], log_times: Sequence[int],
-                            sizes: Sequence[int]) -> None:  # fmt: skip
+    def add_message_records(self, records: bytes, channel_ids: Sequence[int] | np.ndarray,
+                            log_times: Sequence[int] | np.ndarray, sizes: Sequence[int] | np.ndarray) -> None:  # fmt: skip
         """Append consecutive complete message records (each :func:`message_header` + data) given as one
         bytes object: the file is the one :meth:`add_message` would make for each record in turn.
 
         ``channel_ids``, ``log_times`` and ``sizes`` (record bytes, header included) describe the
-        records in order and must match their headers. For callers that encode many messages at once.
+        records in order and must match their headers. For callers that encode many messages at once:
+        a few array operations per call, not per record (their message index entries are sorted out
+        when the chunk is written).
         """
+        channel_ids = np.asarray(channel_ids, dtype=np.int64)
+        log_times = np.asarray(log_times, dtype=np.int64)
+        sizes = np.asarray(sizes, dtype=np.int64)
+        if not len(channel_ids) == len(log_times) == len(sizes):
+            raise ValueError("channel_ids, log_times and sizes must have one entry per record")
         view = memoryview(records)
-        at = pos = 0  # records[at:pos] are counted in the chunk in progress but not yet appended to it
-        offset, limit, counts = self._chunk_bytes, self._chunk_size, self._counts
-        indexes, messages = self._message_index, self._chunk_messages
-        first, last = self._chunk_start, self._chunk_end
-        for channel_id, log_time, size in zip(channel_ids, log_times, sizes, strict=True):
-            index = indexes.get(channel_id)
-            if index is None:
-                index = indexes[channel_id] = []
-            index += (log_time, offset)
-            counts[channel_id] += 1
-            if messages == 0:
-                first = last = log_time
-            elif log_time < first:
-                first = log_time
-            elif log_time > last:
-                last = log_time
-            messages += 1
-            offset += size
-            pos += size
-            if offset >= limit:
-                self._chunk.append(view[at:pos])
-                self._chunk_bytes, self._chunk_messages, self._chunk_start, self._chunk_end = offset, messages, first, last
+        pos = 0  # of the first record not yet in a chunk
+        while len(sizes):
+            ends = np.cumsum(sizes)
+            ends += self._chunk_bytes
+            m = len(sizes)
+            if ends[-1] >= self._chunk_size:  # the records up to the one that fills the chunk
+                m = int(np.argmax(ends >= self._chunk_size)) + 1
+            times = log_times[:m]
+            first, last = int(times.min()), int(times.max())
+            if self._chunk_messages == 0:
+                self._chunk_start, self._chunk_end = first, last
+            else:
+                self._chunk_start, self._chunk_end = min(self._chunk_start, first), max(self._chunk_end, last)
+            self._chunk_messages += m
+            self._batches.append((channel_ids[:m], times, ends[:m] - sizes[:m]))
+            end = pos + int(ends[m - 1]) - self._chunk_bytes
+            self._chunk.append(view[pos:end])
+            self._chunk_bytes, pos = int(ends[m - 1]), end
+            channel_ids, log_times, sizes = channel_ids[m:], log_times[m:], sizes[m:]
+            if self._chunk_bytes >= self._chunk_size:
                 self.flush_chunk()
-                at, offset, messages, indexes = pos, 0, 0, self._message_index
-        if pos > at:
-            self._chunk.append(view[at:pos])
-        self._chunk_bytes, self._chunk_messages, self._chunk_start, self._chunk_end = offset, messages, first, last
+
+    @property
+    def message_counts(self) -> dict[int, int]:
+        """Messages written so far per channel id."""
+        counts = dict(self._counts)
+        for channel_id, n in _batch_counts(self._batches).items():
+            counts[channel_id] += n
+        return counts
 
     def add_metadata(self, name: str, data: dict[str, str]) -> None:
         """Write a metadata record (outside chunks) after the chunks written so far."""
@@ -209,7 +277,9 @@ class McapStreamWriter:
         if not self._chunk:
             return
         records = b"".join(self._chunk)
-        indexes = self._message_index
+        indexes = _merge_index(self._message_index, self._batches)
+        for channel_id, n in _batch_counts(self._batches).items():
+            self._counts[channel_id] += n
         start, end = self._chunk_start, self._chunk_end
         if self._chunk_messages:
             first = self._message_count == 0
@@ -218,7 +288,7 @@ class McapStreamWriter:
         self._message_count += self._chunk_messages
         self._chunk = []
         self._chunk_bytes = 0
-        self._message_index = {}
+        self._message_index, self._batches = {}, []
         self._chunk_messages = 0
         self._submit(lambda: self._write_chunk(records, indexes, start, end))
 
@@ -277,14 +347,14 @@ class McapStreamWriter:
         self._pos += len(data)
         return start
 
-    def _write_chunk(self, records: bytes, indexes: dict[int, list[int]], start: int, end: int) -> None:
+    def _write_chunk(self, records: bytes, indexes: dict[int, np.ndarray], start: int, end: int) -> None:
         compressed = self._compressor.compress(records)
         body = b"".join(
             (
                 _U64.pack(start),
                 _U64.pack(end),
                 _U64.pack(len(records)),
-                _U32.pack(zlib.crc32(records)),
+                _U32.pack(zlib.crc32(records) if self._chunk_crc else 0),
                 _string("zstd"),
                 _U64.pack(len(compressed)),
                 compressed,
@@ -295,9 +365,9 @@ class McapStreamWriter:
         index_start = self._pos
         offsets = []
         parts = []
-        for channel_id, flat in indexes.items():
+        for channel_id, pairs in indexes.items():
             offsets.append(_U16.pack(channel_id) + _U64.pack(index_start + sum(map(len, parts))))
-            entries = struct.pack(f"<{len(flat)}Q", *flat)
+            entries = pairs.astype("<u8").tobytes()
             parts.append(_record(OP_MESSAGE_INDEX, _U16.pack(channel_id) + _U32.pack(len(entries)) + entries))
         self._write(b"".join(parts))
         offset_map = b"".join(offsets)

@@ -48,8 +48,9 @@ from google.protobuf.message import Message
 from mcap_protobuf.schema import build_file_descriptor_set
 
 from lcdata import encode, topics
-from lcdata.mcap_write import MESSAGE_HEADER_BYTES, McapStreamWriter, message_header
+from lcdata.mcap_write import COMPRESSION_LEVEL, McapStreamWriter
 from lcdata.proto import lc_pb2
+from lcdata.sim_records import SimStepEncoder
 from lcdata.wire import f_double, f_packed, f_varint
 
 log = logging.getLogger(__name__)
@@ -81,6 +82,13 @@ def partial_path(path: str | os.PathLike[str]) -> pathlib.Path:
     """``episode.mcap`` -> ``episode.mcap.partial``."""
     path = pathlib.Path(path)
     return path.with_name(path.name + PARTIAL_SUFFIX)
+
+
+@cache
+def _schema(topic: str) -> tuple[str, bytes]:
+    """The schema name and serialized ``FileDescriptorSet`` of a topic (built once per process)."""
+    cls: type[Message] = topics.TOPIC_TYPES[topic]
+    return cls.DESCRIPTOR.full_name, build_file_descriptor_set(cls).SerializeToString()
 
 
 ROW_FIELDS = 7
@@ -161,7 +169,8 @@ class EpisodeWriter(EpisodeSink):
         overwrite: replace an existing ``path`` instead of raising ``FileExistsError``.
         start_time_ns: time of ``t_s = 0`` (default: wall clock now).
         chunk_size: uncompressed chunk size in bytes (about 1 MiB by default).
-        compression_level: zstd level.
+        compression_level: zstd level (:data:`lcdata.mcap_write.COMPRESSION_LEVEL` by default).
+        chunk_crc: store each chunk's CRC-32 (see :class:`~lcdata.mcap_write.McapStreamWriter`).
         background: compress and write chunks on a worker thread.
 
     If the ``with`` block raises, the file is left as ``.partial`` (still readable) and not renamed.
@@ -175,7 +184,8 @@ class EpisodeWriter(EpisodeSink):
         overwrite: bool = False,
         start_time_ns: int | None = None,
         chunk_size: int = 1 << 20,
-        compression_level: int = 1,
+        compression_level: int = COMPRESSION_LEVEL,
+        chunk_crc: bool = False,
         background: bool = True,
     ) -> None:
         self._claim(path, overwrite, start_time_ns)
@@ -184,6 +194,7 @@ class EpisodeWriter(EpisodeSink):
             open(self.partial_path, "wb"),  # closed by McapStreamWriter.finish/abort
             chunk_size=chunk_size,
             compression_level=compression_level,
+            chunk_crc=chunk_crc,
             background=background,
             library=f"lc-toolkit/{self.metadata['version']}",
         )
@@ -192,6 +203,7 @@ class EpisodeWriter(EpisodeSink):
         self._vehicle_encoder = encode.VehicleEncoder()
         self._cube_encoder = encode.CubeEncoder()
         self._image_encoder = encode.ImageEncoder()
+        self._step_encoder = SimStepEncoder()
         self._scene_ids: np.ndarray | None = None
         self._scene_ego = 0
         self._scene_rgba = np.zeros((0, 4))
@@ -216,9 +228,8 @@ class EpisodeWriter(EpisodeSink):
     def _channel(self, topic: str) -> int:
         channel_id = self._channels.get(topic)
         if channel_id is None:
-            cls: type[Message] = topics.TOPIC_TYPES[topic]
-            schema = build_file_descriptor_set(cls).SerializeToString()
-            schema_id = self._mcap.register_schema(cls.DESCRIPTOR.full_name, "protobuf", schema)
+            name, schema = _schema(topic)
+            schema_id = self._mcap.register_schema(name, "protobuf", schema)
             channel_id = self._channels[topic] = self._mcap.register_channel(topic, "protobuf", schema_id)
         return channel_id
 
@@ -298,36 +309,24 @@ class EpisodeWriter(EpisodeSink):
         """
         if self._closed:
             raise RuntimeError(f"{self.path}: writer is closed")
-        steps, ts, ego = np.asarray(steps).tolist(), np.asarray(ts).tolist(), np.asarray(ego).tolist()
+        steps = np.asarray(steps).astype(np.int64, copy=False).reshape(-1)
+        ts = np.asarray(ts, dtype=np.float64).reshape(-1)
+        ego = np.asarray(ego, dtype=np.float64)
         k = len(steps)
-        if len(ts) != k or len(ego) != k:
-            raise ValueError(f"steps, ts and ego must have one entry per step, got {k}, {len(ts)}, {len(ego)}")
+        if len(ts) != k or len(ego) != k or (k and ego.shape != (k, 8)):
+            raise ValueError(f"steps, ts and ego must have one entry per step (ego 8 numbers each), got {k}, "
+                             f"{len(ts)}, {ego.shape}")  # fmt: skip
         if not k:
             return
         columns = [np.reshape(c, (k, np.size(c[0]))) if isinstance(c, (list, tuple)) else c for c in vehicles]
-        bodies = self._vehicle_encoder.bodies(k, *columns)
-        body_size = bodies.shape[1]
-        body = bodies.reshape(-1).data  # a memoryview: row i is body[i * body_size : (i + 1) * body_size]
         channels = self._channels
         vehicles_id = channels.get(topics.VEHICLES) or self._channel(topics.VEHICLES)
         ego_id = channels.get(topics.EGO_STATE) or self._channel(topics.EGO_STATE)
-        parts: list[bytes | memoryview] = []
-        times: list[int] = []
-        sizes: list[int] = []
-        origin, head, encode_ego = self.start_time_ns, encode.vehicle_head, encode.encode_ego
-        for i, (step, t_s, (speed, lane, collision_with, invasion, off_road, steer, throttle, brake)) in enumerate(
-                zip(steps, ts, ego, strict=True)):  # fmt: skip
-            step = int(step)
-            time_ns = origin + round(t_s * 1e9)
-            message = head(step, t_s)
-            state = encode_ego(step, t_s, speed, int(lane), int(collision_with), int(invasion), bool(off_road),
-                               steer, throttle, brake)  # fmt: skip
-            size = len(message) + body_size
-            parts += (message_header(vehicles_id, time_ns, size), message, body[i * body_size : (i + 1) * body_size],
-                      message_header(ego_id, time_ns, len(state)), state)  # fmt: skip
-            times += (time_ns, time_ns)
-            sizes += (MESSAGE_HEADER_BYTES + size, MESSAGE_HEADER_BYTES + len(state))
-        self._mcap.add_message_records(b"".join(parts), [vehicles_id, ego_id] * k, times, sizes)
+        records, times, sizes = self._step_encoder.encode(steps, ts, ego, columns, self.start_time_ns, vehicles_id,
+                                                          ego_id)  # fmt: skip
+        ids = np.empty(2 * k, dtype=np.int64)
+        ids[0::2], ids[1::2] = vehicles_id, ego_id
+        self._mcap.add_message_records(records, ids, times, sizes)
 
     def write_collision(
         self,
@@ -457,7 +456,7 @@ class EpisodeWriter(EpisodeSink):
     @property
     def message_count(self) -> int:
         """Messages written so far (all topics)."""
-        return sum(self._mcap._counts.values())
+        return sum(self._mcap.message_counts.values())
 
     def close(self) -> pathlib.Path:
         """Finish the file and rename ``.partial`` to the final name; return the final path."""

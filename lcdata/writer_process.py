@@ -389,11 +389,14 @@ class ProcessEpisodeWriter(EpisodeSink):
 
 
 # -- the helper's side ------------------------------------------------------------------------------
-def _read_exact(stream: BinaryIO, size: int) -> bytes | None:
-    data = stream.read(size)
-    if data is None or len(data) < size:
-        return None
-    return data
+def _read_into(stream: BinaryIO, view: memoryview) -> bool:
+    """Fill ``view`` from ``stream``; False at the end of the input."""
+    while view:
+        n = stream.readinto(view)
+        if not n:
+            return False
+        view = view[n:]
+    return True
 
 
 def _rows(writer: EpisodeWriter, a: np.ndarray) -> None:
@@ -420,7 +423,7 @@ def _scene(writer: EpisodeWriter, a: np.ndarray) -> None:
                        ego_id=int(ego_id))  # fmt: skip
 
 
-def _image(writer: EpisodeWriter, payload: bytes) -> None:
+def _image(writer: EpisodeWriter, payload: memoryview) -> None:
     step, t, c, h, w = _IMAGE_HEAD.unpack_from(payload)
     image = np.frombuffer(payload, dtype=np.uint8, count=c * h * w, offset=_IMAGE_HEAD.size).reshape(c, h, w)
     writer.write_image(int(step), t, image)
@@ -467,12 +470,16 @@ def serve() -> None:
         if writer is not None:
             writer.abort()
 
-    while (head := _read_exact(stream, _HEADER.size)) is not None:
+    buf = bytearray(BUFFER_BYTES)  # the payload of the record at hand, read in place (the writers copy what they keep)
+    head = bytearray(_HEADER.size)
+    while _read_into(stream, memoryview(head)):
         size, op, wid = _HEADER.unpack(head)
-        payload = _read_exact(stream, (size + 7) & ~7)
-        if payload is None:
+        padded = (size + 7) & ~7
+        if padded > len(buf):
+            buf = bytearray(padded)
+        if not _read_into(stream, memoryview(buf)[:padded]):
             break
-        payload = payload[:size]
+        payload = memoryview(buf)[:size]
         if op == OP_OPEN:
             path, kwargs = pickle.loads(payload)
             failed.pop(wid, None)

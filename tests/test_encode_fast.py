@@ -10,6 +10,7 @@ from google.protobuf.timestamp_pb2 import Timestamp
 from lcdata.encode import (
     ImageEncoder,
     VehicleEncoder,
+    encode_ego,
     encode_entity,
     encode_image,
     encode_rl_step,
@@ -18,7 +19,9 @@ from lcdata.encode import (
     encode_timestamp,
     vehicle_head,
 )
+from lcdata.mcap_write import message_header
 from lcdata.proto import lc_pb2
+from lcdata.sim_records import SimStepEncoder
 from lcdata.wire import f_bytes
 
 
@@ -97,3 +100,32 @@ def test_vehicle_encoder_batches_equal_the_protobuf_runtime(n: int) -> None:
             assert encoder.encode(step, t, *(c[i] if c.ndim == 2 else c for c in cols)) == ours
     with pytest.raises(ValueError, match="expected 10 columns"):
         encoder.bodies(k, *cols[:9])
+
+
+def test_sim_step_records_equal_the_encoders_one_message_at_a_time() -> None:
+    """The compiled batch = message_header + vehicle_head + VehicleEncoder bodies, then the header and
+    encode_ego, for each step (steps across varint sizes, negative and zero fields), N changing between calls."""
+    rng = np.random.default_rng(5)
+    encoder, vehicles = SimStepEncoder(), VehicleEncoder()
+    steps = np.array([0, 1, 127, 128, 16383, 16384, 2**40, -3])
+    k = len(steps)
+    ts = np.linspace(0.0, 99.987, k)  # t = 0 too
+    ego = np.column_stack((rng.normal(size=k) * 9, [0, 1, -1, 3, 1000, 2000, -5, 2], [-1, 0, 4, -1, 99, 2**33, 0, 1],
+                           [-1, -1, 0, 2, 3, 4, 5, 6], [0, 1, 0, 0, 2, 0, 1, 0], rng.normal(size=(k, 3))))  # fmt: skip
+    origin = 1_704_067_200_000_000_000
+    for n in (5, 0, 3, 3):
+        cols = [np.arange(n) + 3] + [rng.normal(size=(k, n)) for _ in range(5)]
+        cols += [rng.integers(-1, 5, size=(k, n)), rng.integers(-1, 5, size=(k, n)), np.full(n, 4.2), np.full(n, 1.9)]
+        records, times, sizes = encoder.encode(steps, ts, ego, cols, origin, 3, 4)
+        bodies = vehicles.bodies(k, *cols)
+        want = []
+        for i, step in enumerate(steps.tolist()):
+            time_ns = origin + round(float(ts[i]) * 1e9)
+            head = vehicle_head(step, float(ts[i])) + bodies[i].tobytes()
+            speed, lane, collision, invasion, off_road, steer, throttle, brake = ego[i].tolist()
+            state = encode_ego(step, float(ts[i]), speed, int(lane), int(collision), int(invasion), bool(off_road),
+                               steer, throttle, brake)  # fmt: skip
+            want += [message_header(3, time_ns, len(head)) + head, message_header(4, time_ns, len(state)) + state]
+            assert times[2 * i] == times[2 * i + 1] == time_ns
+        assert records == b"".join(want)
+        assert sizes.tolist() == [len(r) for r in want]

@@ -314,3 +314,27 @@ def test_chunk_buffers_are_recycled_and_outsized_records_get_their_own(
     for want, got in zip(images, got_images, strict=True):
         np.testing.assert_array_equal(got, want.transpose(1, 2, 0))
     np.testing.assert_array_equal(np.stack(xs), s["x"])
+
+
+@pytest.mark.parametrize("chunk_crc", [False, True])
+def test_chunk_checksums_are_checked_by_every_reader(tmp_path: pathlib.Path, chunk_crc: bool) -> None:
+    """Chunks carry a CRC-32 (``chunk_crc``, files of earlier versions) or a zstd frame checksum (the default):
+    both files read everywhere, and a flipped byte in a chunk is caught either way."""
+    from lcdata.mcap_scan import scan_mcap
+
+    path = tmp_path / "ep.mcap"
+    s = make_state(40)
+    with EpisodeWriter(path, metadata=METADATA, chunk_crc=chunk_crc, compression_level=1, chunk_size=4096,
+                       background=False) as w:  # fmt: skip
+        for k in range(40):
+            w.write_vehicles(k, k * 0.05, *(s[name][k] if s[name].ndim == 2 else s[name] for name in s))
+    with path.open("rb") as f:
+        reader = make_reader(f, validate_crcs=True)
+        assert sum(1 for _ in reader.iter_messages()) == 40
+    assert read_episode(path).tracks.shape[0] == 40 * N_VEHICLES
+    data = bytearray(path.read_bytes())
+    chunk = data.index(b"zstd") + 4 + 8 + 40  # inside the first chunk's compressed records
+    data[chunk] ^= 0xFF
+    damaged = tmp_path / "damaged.mcap"
+    damaged.write_bytes(bytes(data))
+    assert scan_mcap(damaged).messages < 40

@@ -14,13 +14,16 @@ on the other core: its CPU time is reported separately, as a fraction of the bar
 share of CPU time the hypervisor stole during the runs is printed too: on a busy host the wall
 figures grow with it (``tools/bench_mcap_instructions.py`` counts instructions instead). Scenarios: the
 paper's lane-change scenario with the rule-based driver (100 vehicles, image at every decision) and
-the corpus scenario (20 autopilot vehicles, 2000 steps). Read throughput:
+the corpus scenario (20 autopilot vehicles, 2000 steps). The ratios move with the simulator's speed, so the
+recorder's own CPU time per simulated second (main process and helper, from replays of a captured episode
+without the simulator: ``tools/bench_mcap_recorder.py``) is printed too. Read throughput:
 ``read_episode(path).tracks`` on the recorded files, vehicle rows per second into pandas (best of
 ``--pairs``).
 
     python tools/bench_mcap.py           # human-readable
     python tools/bench_mcap.py --json    # one JSON object: overhead_lane_change, overhead_corpus (median
-                                         # wall), *_cpu (median CPU), *_spread, read_rows_per_s
+                                         # wall), *_cpu (median CPU), *_spread, read_rows_per_s,
+                                         # *_recorder_cpu_ms_per_sim_s_{main,helper,total}
 
 Targets: overhead <= 0.20 (wall), reading >= 1,000,000 rows/s.
 """
@@ -36,6 +39,8 @@ import tempfile
 import time
 
 import numpy as np
+from bench_mcap_recorder import SCENARIOS
+from bench_mcap_recorder import measure as recorder_cpu
 
 from lcdata import read_episode, record_episode
 from lcdata.record import episode_seed, resolve_driver
@@ -170,6 +175,10 @@ def main(argv: list[str] | None = None) -> int:
         result[f"{key}_spread"] = wall
         result[f"{key}_cpu_spread"] = cpu
         result[f"{key}_writer_process_cpu"] = round(float(np.median(rec[:, 2] / bare[:, 0])), 4)
+    costs = recorder_cpu(args.writer, repeats=args.pairs)
+    for key in SCENARIOS:
+        for part in ("main", "helper", "total"):
+            result[f"{key}_recorder_cpu_ms_per_sim_s_{part}"] = costs[f"{key}_recorder_cpu_ms_per_sim_s_{part}"]
     result["pairs"] = args.pairs
     result["episodes"] = args.episodes
     result["steal_fraction"] = round(steal_fraction, 4)
@@ -190,6 +199,10 @@ def main(argv: list[str] | None = None) -> int:
         if args.writer == "process":
             print(f"{label:28s} writer process CPU: {100 * result[f'{key}_writer_process_cpu']:.1f}% of the bare "
                   "CPU time, on the other core")  # fmt: skip
+    for key in SCENARIOS:
+        r = [result[f"{key}_recorder_cpu_ms_per_sim_s_{part}"] for part in ("main", "helper", "total")]
+        print(f"{key:28s} recorder CPU per simulated second: main {r[0]:.2f} ms + helper {r[1]:.2f} ms = "
+              f"{r[2]:.2f} ms (replayed, no simulation)")  # fmt: skip
     print(f"CPU time stolen by the hypervisor during the runs: {100 * steal_fraction:.1f}% (a noisy host; "
           "it inflates the wall figures)")  # fmt: skip
     print(f"read {rows} vehicle rows from {size_mb:.1f} MB: {rows_per_s / 1e6:.2f} M rows/s  (target >= 1 M rows/s)")
