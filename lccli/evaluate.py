@@ -246,7 +246,7 @@ def eval_main(argv: list[str] | None = None) -> int:
         return error(str(exc).splitlines()[0])
     if hooks:
         summary["collision_kinds"] = hooks[0].counts
-    summary["wall_s"] = round(time.perf_counter() - start, 1)
+    summary["wall_s"] = round(time.perf_counter() - start, 3)
     summary["decisions"] = sum(r.length for r in results)
     if isinstance(driver, LookaheadDriver) and args.executor != "ray":  # a planner: how often it overrode
         summary["planner_choices"], summary["planner_overrides"] = driver.choices, driver.overrides

@@ -136,35 +136,16 @@ class LaneChangeCore:
         x_before = sim.x[:, 0].copy()
         done = self.outcome != RUNNING  # environments already finished stay frozen
         sim.frozen[:] = done
-        collided = np.zeros(self.num_envs, dtype=bool)
-        left_road = np.zeros(self.num_envs, dtype=bool)
-        single, route = self.num_envs == 1, cfg.route_length_m
-        for _ in range(cfg.steps_per_decision):
-            sim.substep()
-            # Cheap test first: does any running environment see a contact, the road edge or the goal?
-            if single:
-                if done.item(0) or not (sim.collision_with.item(0) >= 0 or sim.off_road.item(0)
-                                        or sim.x.item(0) >= route):
-                    continue
-            else:
-                event = sim.collision_with >= 0
-                event |= sim.off_road
-                event |= sim.x[:, 0] >= route
-                event &= ~done
-                if not event.any():
-                    continue
-            new_col = ~done & (sim.collision_with >= 0)
-            new_off = ~done & ~new_col & sim.off_road
-            new_succ = ~done & ~new_col & ~new_off & (sim.x[:, 0] >= cfg.route_length_m)
-            ended = new_col | new_off | new_succ
-            if ended.any():
-                collided |= new_col
-                left_road |= new_off
-                self.outcome[new_col] = COLLISION
-                self.outcome[new_off] = OFF_ROAD
-                self.outcome[new_succ] = SUCCESS
-                done |= ended
-                sim.frozen[:] = done
+        # Every environment runs to the next decision or to its first event (contact, road edge, route's end),
+        # where it is frozen for the rest of the period.
+        sim.advance(cfg.steps_per_decision, stop_on_event=True)
+        collided = ~done & (sim.collision_with >= 0)
+        left_road = ~done & ~collided & sim.off_road
+        succeeded = ~done & ~collided & ~left_road & (sim.x[:, 0] >= cfg.route_length_m)
+        if collided.any() or left_road.any() or succeeded.any():
+            self.outcome[collided] = COLLISION
+            self.outcome[left_road] = OFF_ROAD
+            self.outcome[succeeded] = SUCCESS
         sim.frozen[:] = False
         progress = sim.x[:, 0] - x_before
         rc = cfg.reward

@@ -25,9 +25,9 @@ def traffic_statistics(config: ScenarioConfig, episodes: int, seconds: float, se
     changes, distance_m = 0, 0.0
     active_before = sim.lc_active.copy()
     for k in range(steps):
-        x_before = sim.x
+        x_before = sim.x.copy()
         sim.substep()
-        active = sim.lc_active
+        active = sim.lc_active.copy()
         started, ended = active & ~active_before, ~active & active_before
         active_before = active.copy()
         if k < warm:

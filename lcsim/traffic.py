@@ -8,9 +8,10 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from lcsim import kernel
 from lcsim.config import WANDER_CLIP_SIGMAS, TrafficConfig
 
-__all__ = ["WANDER_CLIP_SIGMAS", "DriverParams", "idm_accel", "smoothstep5"]
+__all__ = ["WANDER_CLIP_SIGMAS", "DriverParams", "idm_accel"]
 
 
 @dataclass(slots=True)
@@ -58,13 +59,14 @@ class DriverParams:
     def set_nominal(self, mask: np.ndarray, cfg: TrafficConfig, dt: float) -> None:
         """Put the drivers where ``mask`` is set at the medians (what a planner that cannot see them assumes)."""
         nominal = DriverParams.nominal(cfg, (1,), dt)
-        for name in self.__slots__:
-            setattr(self, name, np.where(mask, getattr(nominal, name)[0], getattr(self, name)))
+        for name in self.__slots__:  # (in place: the simulator's drivers are views of its state)
+            getattr(self, name)[...] = np.where(mask, getattr(nominal, name)[0], getattr(self, name))
 
 
 def idm_accel(v: np.ndarray, v0: np.ndarray, gap: np.ndarray, dv: np.ndarray, cfg: TrafficConfig,
               drivers: DriverParams | None = None) -> np.ndarray:
-    """Intelligent Driver Model acceleration (m/s^2), clipped to [-max_decel, max_accel].
+    """Intelligent Driver Model acceleration (m/s^2), clipped to [-max_decel, max_accel]: the simulator's own
+    (:func:`lcsim.kernel.idm`), on arrays.
 
     Args:
         v: own speed (m/s); v0: desired speed; gap: bumper-to-bumper gap to the leader (m, inf when
@@ -75,40 +77,18 @@ def idm_accel(v: np.ndarray, v0: np.ndarray, gap: np.ndarray, dv: np.ndarray, cf
     ``s* = s0 + v T + v dv / (2 sqrt(a b))`` with s0 = idm_min_gap_m and T = idm_time_headway_s, so
     in steady following the gap is about ``2 s * v + 2 m`` as Traffic Manager keeps it.
     """
-    b = cfg.idm_comfort_decel_mps2
-    # In-place steps where the operand is a fresh array (a numpy scalar when the inputs are 0-d).
-    s_star = v * dv
+    v, v0, gap, dv = np.broadcast_arrays(*(np.asarray(a, dtype=np.float64) for a in (v, v0, gap, dv)))
+    shape = v.shape
     if drivers is None:
-        a, headway = cfg.idm_max_accel_mps2, cfg.idm_time_headway_s
-        s_star /= 2.0 * math.sqrt(a * b)  # (IEEE sqrt either way; math's costs no numpy call)
+        a = np.full(shape, cfg.idm_max_accel_mps2)
+        headway = np.full(shape, cfg.idm_time_headway_s)
+        term = np.full(shape, 2.0 * math.sqrt(cfg.idm_max_accel_mps2 * cfg.idm_comfort_decel_mps2))
     else:
-        a, headway = drivers.max_accel, drivers.time_headway
-        s_star *= drivers.inv_2sqrt_ab
-    s_star += v * headway
-    s_star = np.maximum(s_star, 0.0)
-    s_star += cfg.idm_min_gap_m
-    ratio = v / np.maximum(v0, 0.1)
+        a, headway, term = (np.broadcast_to(np.asarray(arr, dtype=np.float64), shape)
+                            for arr in (drivers.max_accel, drivers.time_headway, drivers.inv_2sqrt_ab))
     delta = cfg.idm_delta
-    if delta in (2, 4):  # powers by squaring: several times faster than pow
-        free = ratio * ratio
-        if delta == 4:
-            free *= free
-    else:
-        free = ratio ** delta
-    interaction = s_star / np.maximum(gap, 0.1)
-    interaction *= interaction
-    acc = 1.0 - free
-    acc -= interaction
-    acc *= a
-    return np.minimum(np.maximum(acc, -cfg.max_decel_mps2), a)
+    out = kernel.idm_array(*(np.ascontiguousarray(arr).ravel() for arr in (v, v0, gap, dv, a, headway, term)),
+                           drivers is not None, cfg.idm_min_gap_m, int(delta) if delta in (2, 4) else 0,
+                           float(delta), cfg.max_decel_mps2)
+    return out.reshape(shape) if shape else out[0]
 
-
-def smoothstep5(tau: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Minimum-jerk profile ``10t^3 - 15t^4 + 6t^5`` on [0, 1] and its derivative."""
-    t = np.minimum(np.maximum(tau, 0.0), 1.0)
-    t2 = t * t
-    u = 1.0 - t
-    u *= u
-    d = 30.0 * t2
-    d *= u
-    return t2 * t * (10.0 - 15.0 * t + 6.0 * t2), d

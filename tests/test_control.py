@@ -3,6 +3,7 @@
 import numpy as np
 import pytest
 
+from lcsim import kernel
 from lcsim.config import (
     SWAPPED_LATERAL,
     SWAPPED_LONGITUDINAL,
@@ -11,7 +12,7 @@ from lcsim.config import (
     ScenarioConfig,
     TrafficConfig,
 )
-from lcsim.control import ArrayOps, FloatOps, PIDBank, ego_step, pid_reference
+from lcsim.control import pid_reference
 from lcsim.core import KEEP, LEFT, LaneChangeCore
 from lcsim.traffic import idm_accel
 
@@ -28,87 +29,75 @@ def test_idm_against_hand_computed_values():
     assert idm_accel(np.array(8.0), np.array(8.0), np.array(0.5), np.array(3.0), cfg) == -cfg.max_decel_mps2
 
 
-def test_pid_bank_matches_carla_law_and_hand_values():
-    gains = [PIDGains(kp=1.0, ki=0.0, kd=0.75, dt_s=0.1), PIDGains(kp=1.95, ki=0.2, kd=0.07, dt_s=0.1)]
-    bank = PIDBank(1, gains, window=10)
+def _params(ego: EgoConfig, **overrides: float) -> np.ndarray:
+    """The compiled core's parameters of a scenario with this ego, some replaced (by name)."""
+    p, _ = kernel.kernel_params(ScenarioConfig(ego=ego), autopilot_ego=False)
+    for name, value in overrides.items():
+        p[kernel.P_NAMES.index(name)] = value
+    return p
+
+
+def _law(p, window, slot, count, *, x=0.0, y=0.0, yaw=0.0, speed=8.0, lead_gap=100.0, path=(0.0, 10.0, 0.0, 0.0),
+         steer_past=0.0, accel_past=0.0, adaptive_cruise=False):
+    return dict(zip(("x", "y", "yaw", "speed", "accel", "steer", "throttle", "brake"),
+                    kernel.ego_law(p, x, y, yaw, speed, lead_gap, *path, steer_past, accel_past, adaptive_cruise,
+                                   window, slot, count), strict=True))
+
+
+def test_the_compiled_pid_is_carlas_law():
+    """Random states for 25 steps through the compiled law: its commands are CARLA's PID law (written as CARLA
+    writes it) of the errors it pushed, capped and rate-limited as VehiclePIDController.run_step does."""
+    ego = EgoConfig(longitudinal_pid=PIDGains(kp=0.3, ki=0.05, kd=0.02, dt_s=0.05),
+                    lateral_pid=PIDGains(kp=1.95, ki=0.2, kd=0.07, dt_s=0.05))
+    p = _params(ego)
+    window = np.zeros((10, 2))
     rng = np.random.default_rng(0)
     errs: list[list[float]] = [[], []]
+    gains = (ego.longitudinal_pid, ego.lateral_pid)
     for k in range(25):
-        e = rng.normal(0, 0.3, size=2)
-        out = bank.step(e[None, :])[0]
+        slot = (k + 1) % 10
+        steer_past = float(rng.uniform(-0.8, 0.8))
+        r = _law(p, window, slot, k + 1, x=float(rng.uniform(0, 50)), y=float(rng.uniform(-1, 1)),
+                 yaw=float(rng.normal(0, 0.1)), speed=float(rng.uniform(5, 12)), steer_past=steer_past)
         for c in range(2):
-            errs[c].append(float(e[c]))
-            g = gains[c]
-            assert out[c] == pytest.approx(pid_reference(errs[c], g.kp, g.ki, g.kd, g.dt_s), abs=1e-12), (k, c)
-    # Hand values: first step has no I/D; second step adds them (window of two).
-    bank = PIDBank(1, gains[1:], window=10)
-    assert bank.step(np.array([[0.1]]))[0, 0] == pytest.approx(1.95 * 0.1)
+            errs[c].append(float(window[slot, c]))
+        u_long, u_lat = (pid_reference(errs[c], g.kp, g.ki, g.kd, g.dt_s) for c, g in enumerate(gains))
+        assert r["throttle"] == pytest.approx(min(max(u_long, 0.0), 0.75), abs=1e-12), k
+        assert r["brake"] == pytest.approx(min(max(-u_long, 0.0), 0.3), abs=1e-12), k
+        lo, hi = max(steer_past - 0.1, -0.8), min(steer_past + 0.1, 0.8)
+        assert r["steer"] == pytest.approx(min(max(u_lat, lo), hi), abs=1e-12), k
+    # Hand values: the first error has no integral or derivative; the second adds them (a window of two).
+    p = _params(ego, kp_long=0.0, kp_lat=1.95, kd_dt_lat=0.07 / 0.1, ki_dt_lat=0.2 * 0.1, max_steer_change=2.0)
+    window = np.zeros((10, 2))
+    assert _law(p, window, 1, 1, yaw=-0.1)["steer"] == pytest.approx(1.95 * 0.1)
     expected = 1.95 * 0.2 + 0.07 * (0.2 - 0.1) / 0.1 + 0.2 * (0.1 + 0.2) * 0.1
-    assert bank.step(np.array([[0.2]]))[0, 0] == pytest.approx(expected)
-    assert bank.step(np.array([[5.0]]))[0, 0] == 1.0  # clipped
+    assert _law(p, window, 2, 2, yaw=-0.2)["steer"] == pytest.approx(expected)
 
 
-def test_pid_step_one_is_bit_identical_to_the_batched_step():
-    """The single-environment path on floats gives exactly what the batched array path gives, including
-    after a reset, with errors spanning many magnitudes (which would expose another summation order) and
-    small enough that the output is not clipped."""
-    gains = [PIDGains(kp=1.0, ki=0.05, kd=0.75, dt_s=0.05), PIDGains(kp=1.95, ki=0.2, kd=0.07, dt_s=0.05)]
-    one, batch = PIDBank(1, gains, window=10), PIDBank(3, gains, window=10)
+def test_the_law_is_the_same_after_a_window_wraps():
+    """Two windows that hold the same errors at other ring slots give the same commands (the sum is over all
+    slots, the derivative from the slot before)."""
+    p = _params(EgoConfig())
+    a, b = np.zeros((10, 2)), np.zeros((10, 2))
     rng = np.random.default_rng(1)
-    for k in range(60):
-        if k == 30:
-            one.reset(np.array([0]))
-            batch.reset(np.array([0]))
-        e = 0.02 * rng.standard_normal((3, 2)) * 10.0 ** rng.integers(-9, 1, size=(3, 2))
-        got = one.step_one(tuple(e[0].tolist()))
-        want = batch.step(e)[0].tolist()
-        assert got == want, k
-        assert max(abs(u) for u in got) < 1.0
-    assert one.count.item(0) == batch.count[0, 0]
-    np.testing.assert_array_equal(one.errors[0], batch.errors[0])
-
-
-def _step(ops, cfg, n, rng, pid):
-    """One ego_step on ``n`` random states (arrays for ArrayOps, the first state's floats for FloatOps)."""
-    state = dict(x=rng.uniform(0, 500, n), y=rng.uniform(0, 14, n), yaw=rng.normal(0, 0.1, n),
-                 speed=rng.uniform(0, 12, n), lead_gap=rng.uniform(0, 60, n), steer_past=rng.uniform(-0.8, 0.8, n),
-                 accel_past=rng.normal(0, 1, n))
-    path = (rng.uniform(0, 500, n), rng.uniform(2, 20, n), rng.uniform(0, 14, n), rng.uniform(0, 14, n))
-    if ops is FloatOps:
-        state = {k: float(v[0]) for k, v in state.items()}
-        path = tuple(float(v[0]) for v in path)
-    return ego_step(ops, cfg, **state, target_speed=30 / 3.6, path=path, lag_alpha=0.25, dt=0.05, pid=pid)
-
-
-@pytest.mark.parametrize("cfg", [EgoConfig(), EgoConfig(adaptive_cruise=True)], ids=["plain", "adaptive-cruise"])
-def test_the_control_law_gives_the_same_bits_on_floats_and_on_arrays(cfg):
-    """Written once, run two ways: one environment's floats and a batch's arrays agree bit for bit."""
-    def pid(e_speed, e_head):  # a stand-in controller: any function of the errors will do
-        return np.tanh(0.3 * e_speed), np.tanh(2.0 * e_head)
-
-    def pid_float(e_speed, e_head):
-        u, v = pid(np.array([e_speed]), np.array([e_head]))
-        return float(u[0]), float(v[0])
-
-    for seed in range(200):
-        batch = _step(ArrayOps, cfg, 3, np.random.default_rng(seed), pid)
-        one = _step(FloatOps, cfg, 3, np.random.default_rng(seed), pid_float)
-        for field in ("x", "y", "yaw", "speed", "accel", "steer", "throttle", "brake"):
-            assert getattr(one, field) == getattr(batch, field)[0], (seed, field)
+    for k in range(30):
+        state = dict(x=float(rng.uniform(0, 50)), yaw=float(rng.normal(0, 0.05)), speed=float(rng.uniform(5, 12)))
+        ra, rb = _law(p, a, (k + 1) % 10, k + 1, **state), _law(p, b, (k + 4) % 10, k + 1, **state)
+        assert ra == pytest.approx(rb, abs=1e-12), k
 
 
 def test_throttle_brake_and_steer_limits():
     """VehiclePIDController.run_step: throttle <= 0.75, brake <= 0.3, steering within 0.1 of the last and +-0.8."""
-    cfg = EgoConfig()
-    u_long, u_lat = np.array([0.5, 0.9, -0.1, -0.9]), np.array([0.9, -0.9, 0.05, 0.0])
-    r = ego_step(ArrayOps, cfg, x=np.zeros(4), y=np.zeros(4), yaw=np.zeros(4), speed=np.full(4, 8.0),
-                 target_speed=8.0, lead_gap=np.full(4, 100.0), path=(np.zeros(4), np.full(4, 10.0), np.zeros(4),
-                                                                      np.zeros(4)),
-                 steer_past=np.array([0.75, 0.0, 0.0, 0.0]), accel_past=np.zeros(4), lag_alpha=1.0, dt=0.05,
-                 pid=lambda e_speed, e_head: (u_long, u_lat))  # fmt: skip
-    np.testing.assert_allclose(r.throttle, [0.5, 0.75, 0.0, 0.0])
-    np.testing.assert_allclose(r.brake, [0.0, 0.0, 0.1, 0.3])
-    np.testing.assert_allclose(r.steer, [0.8, -0.1, 0.05, 0.0])
+    # A proportional law (kp 1/3.6 on the speed error in km/h: the command is the speed error in m/s; kp 1 on the
+    # heading error, which is -yaw on a straight path) makes the commands what we choose.
+    p = _params(EgoConfig(), kp_long=1 / 3.6, kd_dt_long=0.0, ki_dt_long=0.0, kp_lat=1.0, kd_dt_lat=0.0,
+                ki_dt_lat=0.0, target_speed=8.0)
+    cases = [(0.5, 0.9, 0.75), (0.9, -0.9, 0.0), (-0.1, 0.05, 0.0), (-0.9, 0.0, 0.0)]  # (u_long, u_lat, steer_past)
+    got = [_law(p, np.zeros((10, 2)), 1, 2, speed=8.0 - u_long, yaw=-u_lat, steer_past=past)
+           for u_long, u_lat, past in cases]
+    np.testing.assert_allclose([r["throttle"] for r in got], [0.5, 0.75, 0.0, 0.0], atol=1e-12)
+    np.testing.assert_allclose([r["brake"] for r in got], [0.0, 0.0, 0.1, 0.3], atol=1e-12)
+    np.testing.assert_allclose([r["steer"] for r in got], [0.8, -0.1, 0.05, 0.0], atol=1e-12)
 
 
 @pytest.mark.parametrize("ego", [EgoConfig(start_lane=1),

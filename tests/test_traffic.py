@@ -51,50 +51,77 @@ def test_traffic_stays_ahead_of_the_ego_for_the_whole_route():
     assert (ahead.sum(axis=1) >= 5).all()
 
 
+def _brute_force_index(sim, e):
+    """The neighbour index of environment ``e`` by all-pairs search: the sorted order by (x, index), each body's
+    lanes (its lateral extent plus a 0.1 m margin, and a changing traffic vehicle's target lane), each vehicle's
+    leader (the nearest vehicle ahead sharing a lane), and the nearest member of every lane ahead and behind."""
+    n, num_lanes, lw = sim.num_vehicles, sim.road.num_lanes, sim.road.lane_width
+    x, y, yaw, length, width = sim.x[e], sim.y[e], sim.yaw[e], sim.length[e], sim.width[e]
+    sy = np.abs(np.sin(yaw))
+    half = 0.5 * (sy * length + np.sqrt(1.0 - sy * sy) * width) + 0.1
+    lo, hi = np.floor((y - half) / lw), np.floor((y + half) / lw)
+    extra = np.where(sim.lc_active[e], sim.target_lane[e], -1)
+    lanes = np.arange(num_lanes)[:, None]
+    member = ((lanes >= lo) & (lanes <= hi)) | (lanes == extra)  # (L, N)
+    order = np.lexsort((np.arange(n), x))
+    rank = np.empty(n, dtype=np.int64)
+    rank[order] = np.arange(n)
+    ahead_of = rank[None, :] > rank[:, None]  # [v, u]: u is ahead of v
+    share = (member[:, :, None] & member[:, None, :]).any(axis=0)
+
+    def nearest(candidates):  # (N, N) mask -> the candidate nearest in the sorted order, -1 when none
+        r = np.where(candidates, rank[None, :], n)
+        best = r.min(axis=1)
+        return np.where(best < n, order[np.minimum(best, n - 1)], -1)
+
+    def nearest_behind(candidates):
+        r = np.where(candidates, rank[None, :], -1)
+        best = r.max(axis=1)
+        return np.where(best >= 0, order[np.maximum(best, 0)], -1)
+
+    lead = nearest(ahead_of & share)
+    in_lane = {(lane, True): nearest(ahead_of & member[lane][None, :]) for lane in range(num_lanes)}
+    in_lane |= {(lane, False): nearest_behind(~ahead_of & member[lane][None, :] & (rank[None, :] != rank[:, None]))
+                for lane in range(num_lanes)}
+    return order, lead, in_lane
+
+
 @pytest.mark.parametrize("num_envs", [1, 2])
-def test_updated_neighbour_index_equals_a_full_build(num_envs, monkeypatch):
-    """Between builds the index is updated (all shared but the gaps, or the lane membership of the vehicles
-    that moved sideways redone) while the sorted order holds, and, in one environment, when neighbours swap
-    places: check it against a full build at every step of lane-changing traffic, and that every kind of
-    step occurs."""
-    from lcsim import neighbours
-    from lcsim.neighbours import LaneIndex
-
-    swaps = []
-
-    def counted(xs):
-        perm = real_swap(xs)
-        swaps.append(perm is not None)
-        return perm
-
-    real_swap = neighbours._swap_permutation
-    monkeypatch.setattr(neighbours, "_swap_permutation", counted)
-
+def test_the_neighbour_index_equals_a_brute_force_search(num_envs):
+    """At every step of lane-changing traffic (and the ego's own lane changes): the sorted order, leaders, gaps,
+    leader speeds and lane searches of the index the compiled core keeps are those of an all-pairs search."""
     cfg = ScenarioConfig(render_image=False, traffic=TrafficConfig(random_lane_change_rate_per_min=3.0))
     core = LaneChangeCore(cfg, num_envs)
     core.reset(list(range(num_envs)), [21 + k for k in range(num_envs)])
     sim = core.sim
-    kinds = {"shared": 0, "relaned": 0, "rebuilt": 0}
-    for step in range(400):
-        before = sim.index
+    n, num_lanes = sim.num_vehicles, sim.road.num_lanes
+    changes = 0
+    for step in range(300):
         sim.substep()
-        if sim.index.order is not before.order:
-            kinds["rebuilt"] += 1
-        else:
-            kinds["shared" if sim.index.member is before.member else "relaned"] += 1
-        full = LaneIndex(sim.x, sim.y, sim.yaw, sim.speed, sim.length, sim.width,
-                         np.where(sim.lc_active, sim.target_lane, -1), sim.road.lane_width, sim.road.num_lanes)
-        for name in ("order", "member", "lohi", "extra", "gap", "lead_speed", "lead_flat", "lead", "pos_of"):
-            np.testing.assert_array_equal(getattr(sim.index, name), getattr(full, name), err_msg=f"{name}, step {step}")
-        lanes = np.tile(np.arange(-1, sim.road.num_lanes + 1), (num_envs, 1))
+        changes += int(sim.lc_active[:, 1:].sum())
+        index = sim.index
+        for e in range(num_envs):
+            order, lead, in_lane = _brute_force_index(sim, e)
+            np.testing.assert_array_equal(index.order[e], order, err_msg=f"order, step {step}")
+            np.testing.assert_array_equal(index.lead[e], lead, err_msg=f"lead, step {step}")
+            has = lead >= 0
+            gap = sim.x[e, np.maximum(lead, 0)] - sim.x[e] - 0.5 * (sim.length[e] + sim.length[e, np.maximum(lead, 0)])
+            np.testing.assert_allclose(index.gap[e][has], gap[has], rtol=0, atol=1e-9)
+            assert np.isinf(index.gap[e][~has]).all() and (index.lead_speed[e][~has] == 0).all()
+            np.testing.assert_array_equal(index.lead_speed[e][has], sim.speed[e, lead[has]])
+        lanes = np.tile(np.arange(-1, num_lanes + 1), (num_envs, 1))
         for ahead in (True, False):
-            np.testing.assert_array_equal(sim.index.neighbour_in_lane(lanes, ahead, vehicles=np.arange(lanes.shape[1])),
-                                          full.neighbour_in_lane(lanes, ahead, vehicles=np.arange(lanes.shape[1])))
+            got = index.neighbour_in_lane(np.repeat(lanes, n, axis=1).reshape(num_envs, -1), ahead,
+                                          vehicles=np.tile(np.arange(n), lanes.shape[1]))
+            got = got.reshape(num_envs, lanes.shape[1], n)
+            for e in range(num_envs):
+                _, _, in_lane = _brute_force_index(sim, e)
+                for j, lane in enumerate(lanes[e]):
+                    want = in_lane[(lane, ahead)] if 0 <= lane < num_lanes else np.full(n, -1)
+                    np.testing.assert_array_equal(got[e, j], want, err_msg=f"lane {lane}, ahead {ahead}, step {step}")
         if step % 10 == 0:
             core.step(np.array([step // 10 % 3, 2 - step // 10 % 3][:num_envs]))
-    assert kinds["shared"] > 100 and kinds["relaned"] > 10 and kinds["rebuilt"] > 10, kinds
-    if num_envs == 1:  # most reorderings are one overtaking: permuted, not rebuilt
-        assert sum(swaps) > 10 and sum(swaps) > len(swaps) / 2, (sum(swaps), len(swaps))
+    assert changes > 50  # lane changers were in the index
 
 
 @pytest.mark.parametrize(("num_envs", "autopilot_ego"), [(1, False), (1, True), (2, False)])

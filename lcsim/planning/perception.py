@@ -53,7 +53,7 @@ def perceive(sim: HighwaySim, range_m: float) -> None:
     if not range_m > 0:
         raise ValueError(f"range_m must be > 0, got {range_m!r}")
     far = np.hypot(sim.x - sim.x[:, :1], sim.y - sim.y[:, :1]) > range_m
-    original_durations = sim.drivers.lc_inv_duration
+    original_durations = sim.drivers.lc_inv_duration.copy()
     traffic = sim.is_traffic.copy()
     traffic[:, 0] = False  # the ego knows itself, autopilot or not
     far &= traffic
@@ -62,7 +62,7 @@ def perceive(sim: HighwaySim, range_m: float) -> None:
     if sim.human:  # each driver's own parameters show in no sensor: the copy's drivers are the median ones,
         # but a lane change under way keeps its pace (its progress shows)
         sim.drivers.set_nominal(traffic, sim.config.traffic, sim.dt)
-        sim.drivers.lc_inv_duration = np.where(sim.lc_active, original_durations, sim.drivers.lc_inv_duration)
+        sim.drivers.lc_inv_duration[...] = np.where(sim.lc_active, original_durations, sim.drivers.lc_inv_duration)
     sim.v0 = np.where(traffic, estimated_desired_speeds(sim), sim.v0)
 
 
