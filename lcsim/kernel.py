@@ -65,13 +65,15 @@ P_NAMES = ("dt", "lane_width", "road_width", "margin",
            "target_speed", "lag_alpha", "acc_min_gap", "acc_headway", "waypoint_spacing", "base_min_distance",
            "distance_ratio", "max_throttle", "max_brake", "max_steer_change", "max_steer", "rolling_resistance",
            "drag", "max_accel", "max_brake_decel", "steer_angle_rad", "two_over_wheelbase", "lc_tolerance",
-           "kp_long", "kp_lat", "kd_dt_long", "kd_dt_lat", "ki_dt_long", "ki_dt_lat", "route")
+           "kp_long", "kp_lat", "kd_dt_long", "kd_dt_lat", "ki_dt_long", "ki_dt_lat", "route", "same_lane_time",
+           "lane_change_time", "r_collision", "r_off_road", "r_forward", "time_limit")
 IP_NAMES = ("num_lanes", "check_every", "human", "lane_changes", "autopilot_ego", "adaptive_cruise", "idm_delta_int")
 (DT, LW, ROAD_W, MARGIN, IDM_A, IDM_T, IDM_2SQRT_AB, IDM_S0, IDM_DELTA, MAX_DECEL, LC_DUR_INV, BLK_MIN, BLK_MAX,
  BLK_MARGIN, LC_FRONT, LC_REAR, LC_REAR_HW, P_SPONT, NOISE_RHO, NOISE_SCALE, WANDER_RHO, WANDER_SCALE, WANDER_LIMIT,
  TARGET_SPEED, LAG_ALPHA, ACC_MIN_GAP, ACC_HEADWAY, WP_SPACING, BASE_MIN_DIST, DIST_RATIO, MAX_THROTTLE, MAX_BRAKE,
  MAX_STEER_CHANGE, MAX_STEER, ROLLING, DRAG, EGO_MAX_ACCEL, EGO_MAX_BRAKE_DECEL, STEER_ANGLE, TWO_OVER_WB,
- LC_TOLERANCE, KP_LONG, KP_LAT, KD_DT_LONG, KD_DT_LAT, KI_DT_LONG, KI_DT_LAT, ROUTE) = range(len(P_NAMES))
+ LC_TOLERANCE, KP_LONG, KP_LAT, KD_DT_LONG, KD_DT_LAT, KI_DT_LONG, KI_DT_LAT, ROUTE, SAME_LANE_TIME, LANE_CHANGE_TIME,
+ R_COLLISION, R_OFF_ROAD, R_FORWARD, TIME_LIMIT) = range(len(P_NAMES))
 (NUM_LANES, CHECK_EVERY, HUMAN, LANE_CHANGES, AUTOPILOT_EGO, ADAPTIVE_CRUISE, IDM_DELTA_INT) = range(len(IP_NAMES))
 
 INDEX_MARGIN_M = 0.1  # lateral margin of lane membership (m)
@@ -116,6 +118,9 @@ def kernel_params(config, autopilot_ego: bool) -> tuple[np.ndarray, np.ndarray]:
         "lc_tolerance": ec.lane_change_tolerance_m,
         "kp_long": lon.kp, "kp_lat": lat.kp, "kd_dt_long": lon.kd / lon.dt_s, "kd_dt_lat": lat.kd / lat.dt_s,
         "ki_dt_long": lon.ki * lon.dt_s, "ki_dt_lat": lat.ki * lat.dt_s, "route": config.route_length_m,
+        "same_lane_time": ec.same_lane_time_s, "lane_change_time": ec.lane_change_time_s,
+        "r_collision": config.reward.collision, "r_off_road": config.reward.off_road,
+        "r_forward": config.reward.forward_per_m, "time_limit": config.time_limit_s,
     }
     delta = tc.idm_delta
     ints = {"num_lanes": road.num_lanes, "check_every": check_every, "human": int(tc.human_like),
@@ -589,3 +594,198 @@ def advance(steps, stop_on_event, p, ip, vf, vi, vb, ef, ei, eb, keys, hist, his
                 hist[e, slot, v, 0] = vf[X, e, v]
                 hist[e, slot, v, 1] = vf[Y, e, v]
             ei[HIST_COUNT, e] += 1
+
+
+# --------------------------------------------------------------------------------------------------- observation
+@njit(cache=True)
+def _slot_neighbours(vi, vf, e, num_lanes, slots, range2, out):
+    """The vehicles of the lane slots of environment ``e`` (``slots`` rows: lane offset from the ego's target lane,
+    ahead (1) or behind (0), rank), -1 where a slot is empty or beyond the sensing range."""
+    order = vi[ORDER, e]
+    n = order.shape[0]
+    ego_lane, pos = vi[TARGET, e, 0], vi[POS_OF, e, 0]
+    x, y = vf[X, e], vf[Y, e]
+    for j in range(slots.shape[0]):
+        lane, step, rank = ego_lane + slots[j, 0], 1 if slots[j, 1] else -1, slots[j, 2]
+        found = -1
+        if 0 <= lane < num_lanes:
+            q, k = pos + step, 0
+            while 0 <= q < n:
+                u = order[q]
+                if _is_member(vi, e, u, lane):
+                    k += 1
+                    if k == rank:
+                        found = u
+                        break
+                q += step
+        if found >= 0:
+            dx, dy = x[found] - x[0], y[found] - y[0]
+            if dx * dx + dy * dy > range2:
+                found = -1
+        out[j] = found
+
+
+@njit(cache=True)
+def _nearest_neighbours(vf, e, range2, out):
+    """The ``len(out)`` vehicles nearest to the ego of environment ``e`` (by distance, then index), -1 beyond the
+    sensing range or where there are fewer."""
+    x, y = vf[X, e], vf[Y, e]
+    n, k = x.shape[0], out.shape[0]
+    d2 = np.empty(n)
+    for v in range(n):
+        d2[v] = (x[v] - x[0]) ** 2 + (y[v] - y[0]) ** 2
+    d2[0] = np.inf
+    taken = np.zeros(n, dtype=np.bool_)
+    for j in range(k):
+        best = -1
+        for v in range(1, n):
+            if not taken[v] and (best < 0 or d2[v] < d2[best]):
+                best = v
+        if best >= 0:
+            taken[best] = True
+            out[j] = best if d2[best] <= range2 else -1
+        else:
+            out[j] = -1
+
+
+@njit(cache=True)
+def observe(ids, nearest_mode, slots, range2, with_accel, num_lanes, vf, vi, hist, hist_ptr, hist_count, neighbours,
+            current, history):
+    """The ``current`` and ``history`` observations of environments ``ids`` (see
+    :meth:`lcsim.core.LaneChangeCore.observe`), written into ``current`` ``(B, 1+K, F)`` and ``history``
+    ``(B, K, H, 3)`` (float32), and the vehicles of the K slots into ``neighbours`` ``(B, K)``."""
+    h = hist.shape[1]
+    for b in range(ids.shape[0]):
+        e = ids[b]
+        nb = neighbours[b]
+        if nearest_mode:
+            _nearest_neighbours(vf, e, range2, nb)
+        else:
+            _slot_neighbours(vi, vf, e, num_lanes, slots, range2, nb)
+        ex, ey, eyaw, ev = vf[X, e, 0], vf[Y, e, 0], vf[YAW, e, 0], vf[SPEED, e, 0]
+        c, s = math.cos(eyaw), math.sin(eyaw)
+        cur = current[b]
+        for j in range(nb.shape[0] + 1):
+            v = 0 if j == 0 else nb[j - 1]
+            row = cur[j]
+            if v < 0:
+                row[:] = 0.0
+                continue
+            px, py, yaw, speed = vf[X, e, v], vf[Y, e, v], vf[YAW, e, v], vf[SPEED, e, v]
+            dx, dy = px - ex, py - ey
+            if j == 0:  # the ego row holds its own velocity and heading
+                rvx, rvy, rel_yaw = ev * c, ev * s, eyaw
+            else:
+                rvx, rvy, rel_yaw = speed * math.cos(yaw) - ev * c, speed * math.sin(yaw) - ev * s, yaw - eyaw
+            row[0] = c * dx + s * dy
+            row[1] = -s * dx + c * dy
+            row[2] = c * rvx + s * rvy
+            row[3] = -s * rvx + c * rvy
+            row[4] = rel_yaw
+            row[5] = speed
+            row[6] = vi[LANE, e, v]
+            row[7] = vi[TARGET, e, v]
+            row[8] = 1.0
+            if with_accel:
+                row[9] = vf[ACCEL, e, v]
+        # The last H positions of the same vehicles, oldest first, in the ego frame of now, with validity.
+        first_valid = h - min(hist_count[e], h)
+        hb = history[b]
+        for j in range(nb.shape[0]):
+            v = nb[j]
+            for t in range(h):
+                out = hb[j, t]
+                if v < 0 or t < first_valid:
+                    out[:] = 0.0
+                    continue
+                slot = (hist_ptr - h + 1 + t) % h
+                hdx, hdy = hist[e, slot, v, 0] - ex, hist[e, slot, v, 1] - ey
+                out[0] = c * hdx + s * hdy
+                out[1] = -s * hdx + c * hdy
+                out[2] = 1.0
+
+
+# ------------------------------------------------------------------------------------------------------ decisions
+OUT_RUNNING, OUT_SUCCESS, OUT_COLLISION, OUT_OFF_ROAD, OUT_TIMEOUT = range(5)  # outcome codes (lcsim.core names them)
+KEEP_ACTION = 1
+
+
+@njit(cache=True)
+def start_lane_changes(change, direction, p, vf, vi, ef, eb):
+    """Plan a BasicAgent-style lane change for the ego of every environment where ``change`` is set and none is
+    under way: keep the lane for ``same_lane_time * speed``, move sideways over ``lane_change_time * speed`` metres
+    (at least a waypoint spacing), then follow the target lane ``direction`` (+1 left, -1 right) of the current
+    target lane. A target beyond the edge lanes leads off the road, as in CARLA."""
+    lw = p[LW]
+    for e in range(change.shape[0]):
+        if not change[e] or eb[EGO_LC_ACTIVE, e]:
+            continue
+        v = vf[SPEED, e, 0]
+        cur = vi[TARGET, e, 0]
+        new = cur + direction[e]
+        ef[PATH_X0, e] = vf[X, e, 0] + p[SAME_LANE_TIME] * v
+        ef[PATH_LEN, e] = max(p[LANE_CHANGE_TIME] * v, p[WP_SPACING])
+        ef[PATH_Y0, e] = (cur + 0.5) * lw
+        ef[PATH_Y1, e] = (new + 0.5) * lw
+        vi[TARGET, e, 0] = new
+        eb[EGO_LC_ACTIVE, e] = True
+
+
+@njit(cache=True)
+def begin_decision(actions, refuse_invalid, code, p, ip, vf, vi, ef, eb, x_before, refused):
+    """Apply one decision per environment (0 right, 1 keep, 2 left; ignored during a change under way), refusing
+    a change towards a lane that does not exist when ``refuse_invalid`` (``refused`` is set), note the ego's ``x``
+    and freeze the environments whose episode has ended (``code`` not running)."""
+    num_envs = actions.shape[0]
+    change = np.zeros(num_envs, dtype=np.bool_)
+    direction = np.zeros(num_envs, dtype=np.int64)
+    for e in range(num_envs):
+        refused[e] = False
+        if not ip[AUTOPILOT_EGO] and actions[e] != KEEP_ACTION:
+            d = 1 if actions[e] == 2 else -1
+            target = vi[TARGET, e, 0] + d
+            if (refuse_invalid and not eb[EGO_LC_ACTIVE, e] and code[e] == OUT_RUNNING
+                    and (target < 0 or target >= ip[NUM_LANES])):
+                refused[e] = True
+            else:
+                change[e] = True
+                direction[e] = d
+        x_before[e] = vf[X, e, 0]
+        eb[FROZEN, e] = code[e] != OUT_RUNNING
+    start_lane_changes(change, direction, p, vf, vi, ef, eb)
+
+
+@njit(cache=True)
+def end_decision(code, refused, x_before, next_milestone, milestone_x, milestone_r, p, vf, ef, ei, eb, components,
+                 reward, terminated, truncated):
+    """Score a decision: the outcome of every environment that ended inside it (contact first, then the road edge,
+    then the route's end), its reward components (collision, off-road, forward, success: rows of ``components``)
+    and their sum, the milestones passed (in order, each once), and the timeout; unfreeze every environment."""
+    for e in range(code.shape[0]):
+        was_running = code[e] == OUT_RUNNING
+        collided = was_running and ei[COLLISION_WITH, e] >= 0
+        left_road = was_running and not collided and eb[OFF_ROAD, e]
+        reached = vf[X, e, 0]
+        if collided:
+            code[e] = OUT_COLLISION
+        elif left_road:
+            code[e] = OUT_OFF_ROAD
+        elif was_running and reached >= p[ROUTE]:
+            code[e] = OUT_SUCCESS
+        bonus = 0.0
+        if not (collided or left_road):
+            m = next_milestone[e]
+            while m < milestone_r.shape[0] and reached >= milestone_x[m]:
+                bonus += milestone_r[m]
+                m += 1
+            next_milestone[e] = m
+        components[0, e] = p[R_COLLISION] if collided else 0.0
+        components[1, e] = p[R_OFF_ROAD] if (left_road or refused[e]) else 0.0
+        components[2, e] = p[R_FORWARD] * (reached - x_before[e])
+        components[3, e] = bonus
+        reward[e] = components[0, e] + components[1, e] + components[2, e] + components[3, e]
+        terminated[e] = code[e] != OUT_RUNNING
+        truncated[e] = not terminated[e] and ef[T_S, e] >= p[TIME_LIMIT] - 1e-9
+        if truncated[e]:
+            code[e] = OUT_TIMEOUT
+        eb[FROZEN, e] = False

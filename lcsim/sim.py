@@ -230,22 +230,10 @@ class HighwaySim:
         ``same_lane_time_s * speed``, moves laterally over ``lane_change_time_s * speed`` metres, then
         follows the target lane. A target beyond the edge lanes leads off the road, as in CARLA.
         """
-        ec = self.config.ego
-        start = env_mask & ~self.ego_lc_active
-        if not start.any():
-            return
-        idx = np.flatnonzero(start)
-        v = self.speed[idx, 0]
-        cur = self.target_lane[idx, 0]
-        new = cur + direction[idx].astype(np.int64)
-        self.path_x0[idx] = self.x[idx, 0] + ec.same_lane_time_s * v
-        self.path_len[idx] = np.maximum(ec.lane_change_time_s * v, ec.waypoint_spacing_m)
-        self.path_y0[idx] = self.road.lane_center(cur)
-        self.path_y1[idx] = self.road.lane_center(new)
         if self.hooks:  # the previous step's arrays may be held by a hook
             self._fresh_vehicle_blocks()
-        self.target_lane[idx, 0] = new
-        self.ego_lc_active[idx] = True
+        K.start_lane_changes(np.asarray(env_mask, dtype=bool), np.asarray(direction, dtype=np.int64), self.params,
+                             self.vf, self.vi, self.ef, self.eb)
 
     # ----------------------------------------------------------------- physics
     def substep(self) -> None:
