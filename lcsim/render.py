@@ -1,21 +1,22 @@
-"""Bird's-eye semantic image, ego-centred and road-aligned, rendered in numpy for a batch at once.
+"""Bird's-eye semantic image, ego-centred and road-aligned, rendered by one compiled loop over a batch.
 
 The image is centred on the ego with rows along the road (row 0 is ahead) and columns across it
 (column 0 is the left), like an aerial camera that follows the ego on a gimbal aligned with the road.
 On a straight road this makes the background separable: a column's lateral class (road, off-road,
-solid or broken marking) times a row's dash phase, one broadcast look-up for the whole batch.
+solid or broken marking) and a row's dash phase decide a pixel, so every row of an image is one of two
+RGB row templates (broken markings off, on) and each run of rows with one phase is a single copy.
 Vehicles, the ego included, are drawn as their true oriented rectangles, each cut into a few strips
-along its length whose pixel-aligned boxes are filled through a 2-D difference array (two cumulative
-sums), so any yaw is drawn without per-vehicle Python loops. Colours follow CARLA's semantic
-(CityScapes) palette.
+along its length whose pixel-aligned boxes are filled, traffic first and the ego on top. The work is
+compiled with numba (:func:`_render_batch`, cached on disk after the first compilation). Colours follow
+CARLA's semantic (CityScapes) palette.
 """
 
 from __future__ import annotations
 
 import math
-from functools import lru_cache
 
 import numpy as np
+from numba import njit
 
 from lcsim.config import RenderConfig, RoadConfig
 
@@ -33,16 +34,7 @@ PALETTE = np.array([
 
 _LUT_RES_M = 0.01
 _STRIPS = 4
-# Up to this many boxes in a batch, vehicles are filled box by box (slices) rather than by pixel index.
-_LOOP_MAX_BOXES = 160
-_COLOUR_COLUMNS = PALETTE[:, :, None, None]  # (class, 3, 1, 1): broadcasts over a box
 _STRIP_FRAC = (np.arange(_STRIPS) + 0.5) / _STRIPS - 0.5  # strip centres, fractions of the length
-
-
-@lru_cache(maxsize=16)
-def _template_rows(e: int) -> np.ndarray:
-    """``(E, 3, 1)``: the row of each environment's and channel's "broken markings off" template."""
-    return np.arange(e)[:, None, None] * 6 + np.arange(0, 6, 2)[None, :, None]
 
 
 class BevRenderer:
@@ -70,121 +62,180 @@ class BevRenderer:
             lut[np.abs(ys - k * road.lane_width_m) <= half_line] = MARKING if k in (0, road.num_lanes) else _DASH
         self.lut = lut
         self.period = road.dash_length_m + road.dash_gap_m
-        table = np.arange(6, dtype=np.uint8)[:, None].repeat(2, axis=1)  # (class, dash_on) -> class
+        table = np.arange(_DASH + 1, dtype=np.uint8)[:, None].repeat(2, axis=1)  # (class, dash_on) -> class
         table[_DASH] = (ROAD, MARKING)
-        self.table = table
-        self.rgb_table = PALETTE[table[:5 + 1]]  # (lateral class, dash_on, channel)
+        self.rgb_table = np.ascontiguousarray(PALETTE[table])  # (lateral class, dash_on, channel)
 
     def render(self, x: np.ndarray, y: np.ndarray, yaw: np.ndarray, length: np.ndarray,
                width: np.ndarray) -> np.ndarray:
         """Render one image per environment around vehicle 0 (the ego).
 
+        The ego and its nearest ``max_vehicles_drawn`` vehicles are drawn (ties by index).
+
         Args:
-            x, y, yaw, length, width: ``(E, N)`` vehicle poses and sizes; column 0 is the ego.
+            x, y, yaw, length, width: ``(E, N)`` vehicle poses and sizes (float64); column 0 is the ego.
 
         Returns:
             ``(E, 3, S, S)`` uint8 in the palette :data:`PALETTE`; row 0 is ahead, column 0 left.
         """
-        e, s = x.shape[0], self.size
-        ex, ey = x[:, :1], y[:, :1]
-        li = ((ey + self.offsets[None, :] - self.lut_lo) * (1.0 / _LUT_RES_M)).astype(np.intp)
-        np.minimum(np.maximum(li, 0, out=li), self.lut.size - 1, out=li)  # np.clip, without its overhead
-        col_cls = self.lut[li]  # (E, S) lateral class of each column
-        dash_on = (np.mod(ex + self.offsets[None, :], self.period) < self.road.dash_length_m).astype(np.intp)
-        # Two RGB row templates per environment and channel (broken markings off / on); every image row
-        # is one of them, copied whole by a row take.
-        tmpl = self.rgb_table[col_cls]  # (E, S, 2, 3)
-        tmpl = np.ascontiguousarray(tmpl.transpose(0, 3, 2, 1)).reshape(e * 6, s)  # rows (E, 3, 2)
-        src = _template_rows(e) + dash_on[:, None, :]
-        out = tmpl.take(src.reshape(-1), axis=0).reshape(e, 3, s, s)
-        env, is_ego, r0, r1, c0, c1, ok = self._boxes(x, y, yaw, length, width)
-        if ok.size <= _LOOP_MAX_BOXES:
-            # Few boxes (a single environment): one slice assignment per box beats building pixel indices.
-            strips = range(ok.shape[1])
-            boxes = zip([k for k in env.tolist() for _ in strips], [own for own in is_ego.tolist() for _ in strips],
-                        r0.ravel().tolist(), r1.ravel().tolist(), c0.ravel().tolist(), c1.ravel().tolist(),
-                        ok.ravel().tolist(), strict=True)
-            ego_boxes = []
-            vehicle, ego = _COLOUR_COLUMNS[VEHICLE], _COLOUR_COLUMNS[EGO]
-            for k, own, a0, a1, b0, b1, show in boxes:
-                if not show:
-                    continue
-                if own:
-                    ego_boxes.append((k, a0, a1, b0, b1))
-                else:
-                    out[k, :, a0:a1 + 1, b0:b1 + 1] = vehicle
-            for k, a0, a1, b0, b1 in ego_boxes:  # the ego on top
-                out[k, :, a0:a1 + 1, b0:b1 + 1] = ego
-            return out
-        parts = []
-        for part in (ok & ~is_ego[:, None], ok & is_ego[:, None]):  # traffic, then the ego on top
-            parts.append((np.broadcast_to(env[:, None], part.shape)[part], r0[part], r1[part], c0[part], c1[part]))
-        flat = out.reshape(-1)
-        for m_env, idx, cls in self._covered(parts):
-            if m_env.size:
-                pix = (m_env * 3)[None, :] * (s * s) + idx[None, :] + (np.arange(3) * (s * s))[:, None]
-                flat[pix] = PALETTE[cls][:, None]
-        return out
+        x, y, yaw, length, width = (np.ascontiguousarray(a, dtype=np.float64) for a in (x, y, yaw, length, width))
+        extent = -1.0 if self.vehicle_extent_m is None else float(self.vehicle_extent_m)
+        return _render_batch(x, y, yaw, length, width, extent, self.size, self.res, self.half_extent,
+                             self.max_vehicles, self.offsets, self.lut, self.lut_lo, self.period,
+                             self.road.dash_length_m, self.rgb_table)
 
-    def _boxes(self, x: np.ndarray, y: np.ndarray, yaw: np.ndarray, length: np.ndarray,
-               width: np.ndarray) -> tuple[np.ndarray, ...]:
-        """Pixel boxes of the vehicles that may show, each cut into ``_STRIPS`` strips along its length.
 
-        Returns ``env`` (M,), ``is_ego`` (M,), then ``r0, r1, c0, c1`` (M, strips): inclusive row and
-        column ranges, and ``ok`` (M, strips): the box holds at least one pixel. The ego and its nearest
-        ``max_vehicles_drawn`` vehicles are drawn. Only vehicles close enough to reach the image are
-        rasterised: when no more than that many are within reach (always, at normal densities), they are
-        exactly the drawn ones that show.
-        """
-        e, n = x.shape
-        s, res = self.size, self.res
-        k = min(n, self.max_vehicles + 1)
-        ex, ey = x[:, :1], y[:, :1]
-        d2 = (x - ex) ** 2 + (y - ey) ** 2
-        extent = self.vehicle_extent_m
-        if extent is None:
-            extent = float(length.max()) + float(width.max())
-        reach = math.sqrt(2.0) * (self.half_extent + extent) + 1.0
-        near = d2 <= reach * reach
-        near[:, 0] = True
-        if n > k and (np.count_nonzero(near) if e == 1 else int(near.sum(axis=1).max())) > k:
-            # crowded: the nearest k, ties by index
-            d2[:, 0] = -1.0
-            sel = np.argsort(d2, axis=1, kind="stable")[:, :k]
-            near[:] = False
-            near[np.arange(e)[:, None], sel] = True
-        vi = near.ravel().nonzero()[0]
-        env = vi // n
-        # Along (u, metres ahead of the ego) and across (v, metres left) stacked on a leading axis of 2:
-        # the same elementwise operations as one array per axis, in half the calls.
-        px, py, yaws, lengths, widths = x.take(vi), y.take(vi), yaw.take(vi), length.take(vi), width.take(vi)
-        cs = np.array([np.cos(yaws), np.sin(yaws)])[:, :, None]  # (2, M, 1): cos, sin
-        lx = lengths[:, None] * _STRIP_FRAC  # (M, strips) strip centres along the body
-        centre = np.array([px, py])[:, :, None] + cs * lx
-        centre -= np.array([ex.take(env), ey.take(env)])[:, :, None]  # (2, M, strips)
-        hl = (lengths / (2 * _STRIPS))[:, None]
-        hw = (0.5 * widths)[:, None]
-        a = np.abs(cs)
-        half = a * hl + a[::-1] * hw  # (2, M, 1): |c| hl + |s| hw along, |s| hl + |c| hw across
-        # Pixel i has its centre at s/2 - i - 0.5 (in pixels): covered rows/cols are the centres inside.
-        first = np.maximum(np.ceil(s / 2 - 0.5 - (centre + half) / res), 0).astype(np.intp)
-        last = np.minimum(np.floor(s / 2 - 0.5 - (centre - half) / res), s - 1).astype(np.intp)
-        fits = first <= last
-        ok = fits[0] & fits[1]
-        return env, vi == env * n, first[0], last[0], first[1], last[1], ok
+@njit(cache=True)
+def _render_batch(x, y, yaw, length, width, extent, s, res, half_extent, max_vehicles, offsets, lut, lut_lo,
+                  period, dash_length, rgb_table):
+    """The images of :meth:`BevRenderer.render`: ``(E, N)`` float64 arrays in, ``(E, 3, S, S)`` uint8 out.
 
-    def _covered(self, parts: tuple[tuple[np.ndarray, ...], ...]) -> list[tuple[np.ndarray, np.ndarray, int]]:
-        """Pixels covered by the boxes of :meth:`_boxes`: ``(env, flat pixel index, class)`` per part."""
-        s = self.size
-        out = []
-        for (m_env, a0, a1, b0, b1), cls in zip(parts, (VEHICLE, EGO), strict=True):
-            if m_env.size == 0:
-                out.append((m_env, m_env, cls))
-                continue
-            nr, nc = int((a1 - a0).max()) + 1, int((b1 - b0).max()) + 1
-            rr = a0[:, None, None] + np.arange(nr)[None, :, None]
-            cc = b0[:, None, None] + np.arange(nc)[None, None, :]
-            inside = (rr <= a1[:, None, None]) & (cc <= b1[:, None, None])
-            idx = (rr * s + cc)[inside]
-            out.append((np.broadcast_to(m_env[:, None, None], inside.shape)[inside], idx, cls))
-        return out
+    ``extent`` is an upper bound of any vehicle's length + width (m), or negative to take it from the
+    arrays; ``offsets`` ``(S,)`` the pixel centres in metres from the ego (ahead for a row, left for a
+    column); ``lut`` the lateral class every ``_LUT_RES_M`` from ``lut_lo``; ``rgb_table``
+    ``(class, dash_on, 3)`` the colour of a lateral class in a row with broken markings off or on.
+    """
+    e, n = x.shape
+    out = np.empty((e, 3, s * s), dtype=np.uint8)
+    if extent < 0.0:
+        longest = 0.0
+        widest = 0.0
+        for i in range(e):
+            for j in range(n):
+                longest = max(longest, length[i, j])
+                widest = max(widest, width[i, j])
+        extent = longest + widest
+    # A vehicle whose centre is farther than this from the ego cannot reach the image.
+    reach = math.sqrt(2.0) * (half_extent + extent) + 1.0
+    reach2 = reach * reach
+    k = min(n, max_vehicles + 1)
+    centre_px = s / 2 - 0.5
+    tiles = np.empty((3, 2, s * s), dtype=np.uint8)
+    dash_on = np.empty(s, dtype=np.intp)
+    near = np.empty(n, dtype=np.intp)
+    near_d2 = np.empty(n, dtype=np.float64)
+    for i in range(e):
+        ex = x[i, 0]
+        ey = y[i, 0]
+        _background(out[i], tiles, dash_on, ex, ey, offsets, lut, lut_lo, period, dash_length, rgb_table)
+        # The ego and the vehicles within reach; when more than k, the ego and its k - 1 nearest (ties by
+        # index).
+        m = 0
+        for j in range(n):
+            dx = x[i, j] - ex
+            dy = y[i, j] - ey
+            d2 = dx * dx + dy * dy
+            if j == 0 or d2 <= reach2:
+                near[m] = j
+                near_d2[m] = -1.0 if j == 0 else d2
+                m += 1
+        drawn = near[:m]
+        if n > k and m > k:
+            drawn = drawn[np.argsort(near_d2[:m], kind="mergesort")[:k]]
+        for j in drawn:  # traffic first, the ego on top
+            if j != 0:
+                _fill_vehicle(out[i], s, res, centre_px, ex, ey, x[i, j], y[i, j], yaw[i, j], length[i, j],
+                              width[i, j], PALETTE[VEHICLE])
+        _fill_vehicle(out[i], s, res, centre_px, ex, ey, ex, ey, yaw[i, 0], length[i, 0], width[i, 0],
+                      PALETTE[EGO])
+    return out.reshape((e, 3, s, s))
+
+
+@njit(cache=True)
+def _background(out, tiles, dash_on, ex, ey, offsets, lut, lut_lo, period, dash_length, rgb_table):
+    """Write one image's road into ``out`` ``(3, S * S)``, given the ego at ``(ex, ey)``.
+
+    A column's lateral class gives two colours per channel (broken markings off, on) and a row's dash
+    phase picks one, so every row is one of two templates. ``tiles`` ``(3, 2, S * S)`` gets each template
+    repeated over as many rows as the longest run of rows with its phase, and each run is one copy.
+    ``dash_on`` ``(S,)`` is scratch.
+    """
+    s = offsets.size
+    inv_lut_res = 1.0 / _LUT_RES_M
+    lut_last = lut.size - 1
+    for c in range(s):
+        t = (ey + offsets[c] - lut_lo) * inv_lut_res
+        li = int(t) if t >= 0.0 else 0  # truncation, as a cast; a NaN lands on 0
+        cls = lut[min(li, lut_last)]
+        for d in range(2):
+            for ch in range(3):
+                tiles[ch, d, c] = rgb_table[cls, d, ch]
+    longest = np.zeros(2, dtype=np.intp)  # per phase
+    run = 0
+    for r in range(s):
+        d = dash_on[r] = _dash_on(ex + offsets[r], period, dash_length)
+        run = run + 1 if r > 0 and d == dash_on[r - 1] else 1
+        longest[d] = max(longest[d], run)
+    for d in range(2):
+        rows = 1
+        while rows < longest[d]:  # doubling the rows already there
+            more = min(rows, longest[d] - rows)
+            for ch in range(3):
+                _copy(tiles[ch, d, rows * s:(rows + more) * s], tiles[ch, d, :more * s])
+            rows += more
+    r = 0
+    while r < s:
+        end = r + 1
+        while end < s and dash_on[end] == dash_on[r]:
+            end += 1
+        for ch in range(3):
+            _copy(out[ch, r * s:end * s], tiles[ch, dash_on[r], :(end - r) * s])
+        r = end
+
+
+@njit(cache=True, inline="always")
+def _dash_on(along, period, dash_length):
+    """1 where ``along`` (m) falls on a dash of a broken marking (``along mod period < dash_length``,
+    the floored modulo of numpy and Python), else 0.
+
+    The modulo is taken through one division; only a phase within rounding error of a dash's start or
+    end is decided by the exact (and slower) modulo.
+    """
+    phase = along - np.floor(along / period) * period
+    tol = 1e-12 * (abs(along) + period)  # far above the rounding error of the phase
+    if tol < phase < dash_length - tol:
+        return 1
+    if dash_length + tol < phase < period - tol:
+        return 0
+    return 1 if along % period < dash_length else 0
+
+
+@njit(cache=True)
+def _copy(dst, src):
+    """``dst[:] = src`` for 1-D arrays, as a loop the compiler vectorises."""
+    for t in range(src.size):
+        dst[t] = src[t]
+
+
+@njit(cache=True, inline="always")
+def _fill_vehicle(out, s, res, centre_px, ex, ey, px, py, yaw, length, width, colour):
+    """Fill a vehicle's strips in ``out`` ``(3, S * S)``: each strip's pixel-aligned bounding box, the
+    pixels whose centres it holds. ``(px, py)`` the vehicle's centre, ``(ex, ey)`` the ego's (m)."""
+    cos_yaw = math.cos(yaw)
+    sin_yaw = math.sin(yaw)
+    hl = length / (2 * _STRIPS)
+    hw = 0.5 * width
+    half_u = abs(cos_yaw) * hl + abs(sin_yaw) * hw  # along the road
+    half_v = abs(sin_yaw) * hl + abs(cos_yaw) * hw  # across
+    for strip in range(_STRIPS):
+        lx = length * _STRIP_FRAC[strip]
+        u = px + cos_yaw * lx - ex
+        v = py + sin_yaw * lx - ey
+        # Pixel p has its centre at centre_px - p (in pixels): covered rows and columns are the centres inside.
+        r0 = np.ceil(centre_px - (u + half_u) / res)
+        r1 = np.floor(centre_px - (u - half_u) / res)
+        c0 = np.ceil(centre_px - (v + half_v) / res)
+        c1 = np.floor(centre_px - (v - half_v) / res)
+        if not (r0 <= r1 and c0 <= c1):  # empty (or not a number)
+            continue
+        r0, r1 = max(r0, 0.0), min(r1, s - 1.0)
+        c0, c1 = max(c0, 0.0), min(c1, s - 1.0)
+        if r0 > r1 or c0 > c1:  # outside the image
+            continue
+        first_col, cols = int(c0), int(c1 - c0) + 1
+        for r in range(int(r0), int(r1) + 1):
+            start = r * s + first_col
+            for ch in range(3):
+                value = colour[ch]
+                for c in range(cols):
+                    out[ch, start + c] = value
