@@ -90,6 +90,18 @@ class LaneChangeCore:
         self.outcome[env_ids] = RUNNING
         self.seeds[env_ids] = seeds
 
+    def replicate(self, rows: np.ndarray) -> LaneChangeCore:
+        """A core whose environments are copies of environments ``rows`` (repeats allowed) in their present state,
+        episodes and all, without hooks or renderer (:meth:`HighwaySim.replicate`): the planner imagines the
+        futures of several decisions of several environments in one batch."""
+        rows = np.asarray(rows, dtype=np.int64)
+        new = object.__new__(LaneChangeCore)
+        new.__dict__.update(self.__dict__)
+        new.sim, new.num_envs, new.renderer = self.sim.replicate(rows), len(rows), None
+        for name in ("next_milestone", "_code", "outcome", "seeds"):
+            setattr(new, name, getattr(self, name)[rows])
+        return new
+
     def action_mask(self) -> np.ndarray:
         """``(E, 3)`` bool: right / keep / left. A change in progress allows only keep; no lane, no change."""
         sim = self.sim
@@ -136,24 +148,9 @@ class LaneChangeCore:
         Returns ``front_gap``, ``rear_gap`` (m, bumper to bumper; inf when the lane is empty that way,
         -inf when the lane does not exist), ``front_speed``, ``rear_speed`` (m/s), each ``(E, 3)``.
         """
-        sim = self.sim
-        index = sim.index
-        assert index is not None
-        num_lanes = sim.road.num_lanes
-        rows = np.arange(self.num_envs)[:, None]
-        lanes = sim.target_lane[:, 0][:, None] + np.array([-1, 0, 1])[None, :]  # (E, 3)
-        valid = (lanes >= 0) & (lanes < num_lanes)
-        ego = np.zeros(3, dtype=np.int64)
-        out: dict[str, np.ndarray] = {}
-        ego_x, ego_len = sim.x[:, 0][:, None], sim.length[:, 0][:, None]
-        for name, ahead, sign in (("front", True, 1.0), ("rear", False, -1.0)):
-            veh = index.neighbour_in_lane(lanes, ahead, vehicles=ego)  # (E, 3), -1 when none or no lane
-            found = veh >= 0
-            v = np.maximum(veh, 0)
-            gap = sign * (sim.x[rows, v] - ego_x) - 0.5 * (ego_len + sim.length[rows, v])
-            out[f"{name}_gap"] = np.where(valid, np.where(found, gap, np.inf), -np.inf)
-            out[f"{name}_speed"] = np.where(found & valid, sim.speed[rows, v], 0.0)
-        return out
+        out = np.empty((4, self.num_envs, 3))
+        kernel.lane_gaps(self.sim.vf, self.sim.vi, self.sim.road.num_lanes, out)
+        return dict(zip(("front_gap", "rear_gap", "front_speed", "rear_speed"), out, strict=True))
 
     # ------------------------------------------------------------ observation
     def neighbours(self, ids: np.ndarray) -> np.ndarray:

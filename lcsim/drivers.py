@@ -16,6 +16,7 @@ from typing import Protocol
 
 import numpy as np
 
+from lcsim import kernel
 from lcsim.config import require_non_negative, require_positive
 from lcsim.core import KEEP, LaneChangeCore
 
@@ -58,36 +59,21 @@ class RuleBasedDriver:
     """Changes lane when the leader gets close and a side lane offers a safe, larger gap.
 
     Works on the exact lane gaps around the ego (:meth:`LaneChangeCore.lane_gaps`): the perception a
-    cost-function planner is usually given. It never brakes (the ego does not, by default).
+    cost-function planner is usually given. It never brakes (the ego does not, by default). Compiled
+    (:func:`lcsim.kernel.rule_actions`): the planners run it in every imagined future.
     """
 
     name = "rule"
 
     def __init__(self, config: RuleDriverConfig | None = None) -> None:
         self.config = config or RuleDriverConfig()
+        self._params = np.array([getattr(self.config, name) for name in kernel.RULE_NAMES], dtype=np.float64)
 
     def __call__(self, obs: dict[str, np.ndarray], action_mask: np.ndarray, core: LaneChangeCore) -> np.ndarray:
-        c = self.config
-        g = core.lane_gaps()
-        v = core.sim.speed[:, 0][:, None]
-        front, rear = g["front_gap"], g["rear_gap"]
-        closing = np.maximum(v - g["front_speed"], 0.05)
-        reach = np.minimum(front / closing, c.horizon_s)  # seconds until we reach each lane's leader
-        own_front, own_reach = front[:, 1], reach[:, 1]
-        pressed = (own_front < c.trigger_gap_m) | (own_reach < c.trigger_time_s)
-        rear_need = np.maximum(c.min_rear_gap_m, c.rear_time_s * np.maximum(g["rear_speed"] - v, 0.0))
-        safe = (front >= c.min_front_gap_m) & (reach >= c.min_front_time_s) & (rear >= rear_need)
-        # About to hit the leader: a tighter rear gap is acceptable (the follower brakes for us).
-        urgent = (own_reach < c.urgent_time_s)[:, None]
-        safe |= urgent & (front >= own_front[:, None] + 2.0) & (rear >= c.urgent_rear_gap_m)
-        better = reach >= own_reach[:, None] + c.gain_s
-        ok = safe & better & np.asarray(action_mask, dtype=bool)
-        ok[:, KEEP] = False
-        # Prefer the lane whose leader we reach last; overtake on the left on a tie.
-        score = np.where(ok, reach + np.array([0.0, 0.0, 0.01]), -np.inf)
-        go = pressed & np.isfinite(score.max(axis=1))
-        actions = np.full(len(front), KEEP, dtype=np.int64)
-        actions[go] = score.argmax(axis=1)[go]
+        sim = core.sim
+        mask = np.ascontiguousarray(np.asarray(action_mask, dtype=bool).reshape(-1, 3))
+        actions = np.empty(core.num_envs, dtype=np.int64)
+        kernel.rule_actions(self._params, mask, sim.vf, sim.vi, sim.road.num_lanes, actions)
         return actions
 
 

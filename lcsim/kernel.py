@@ -789,3 +789,66 @@ def end_decision(code, refused, x_before, next_milestone, milestone_x, milestone
         if truncated[e]:
             code[e] = OUT_TIMEOUT
         eb[FROZEN, e] = False
+
+
+# ------------------------------------------------------------------------------------------- the rule-based driver
+@njit(cache=True)
+def lane_gaps(vf, vi, num_lanes, out):
+    """Exact gaps around the ego of every environment in the lanes right of, at and left of its target lane, into
+    ``out`` ``(4, E, 3)``: front gap, rear gap (m, bumper to bumper; inf when the lane is empty that way, -inf when
+    it does not exist), front speed, rear speed (m/s; 0 when none)."""
+    for e in range(vf.shape[1]):
+        ego_x, ego_len, pos = vf[X, e, 0], vf[LENGTH, e, 0], vi[POS_OF, e, 0]
+        for j in range(3):
+            lane = vi[TARGET, e, 0] + j - 1
+            valid = 0 <= lane < num_lanes
+            for side in range(2):  # front, rear
+                v = nearest_in_lane(vi, num_lanes, e, pos, lane, side == 0) if valid else -1
+                if not valid:
+                    gap = -np.inf
+                elif v < 0:
+                    gap = np.inf
+                else:
+                    dx = vf[X, e, v] - ego_x
+                    gap = (dx if side == 0 else -dx) - 0.5 * (ego_len + vf[LENGTH, e, v])
+                out[side, e, j] = gap
+                out[2 + side, e, j] = vf[SPEED, e, v] if v >= 0 else 0.0
+
+
+RULE_NAMES = ("horizon_s", "trigger_time_s", "trigger_gap_m", "min_front_gap_m", "min_front_time_s",
+              "min_rear_gap_m", "rear_time_s", "gain_s", "urgent_time_s", "urgent_rear_gap_m")
+"""The rule-based driver's parameters (:class:`lcsim.drivers.RuleDriverConfig`), in the order the kernel reads."""
+
+
+@njit(cache=True)
+def rule_actions(rp, mask, vf, vi, num_lanes, actions):
+    """The rule-based driver's decisions (:class:`lcsim.drivers.RuleBasedDriver`) of every environment into
+    ``actions``: when the leader gets close (in time or distance), the side lane (allowed by ``mask``) whose leader
+    it would reach last, if safe and at least ``gain_s`` better than its own lane; the left one on a tie."""
+    num_envs = vf.shape[1]
+    g = np.empty((4, num_envs, 3))
+    lane_gaps(vf, vi, num_lanes, g)
+    horizon, trigger_t, trigger_g, min_front, min_front_t = rp[0], rp[1], rp[2], rp[3], rp[4]
+    min_rear, rear_t, gain, urgent_t, urgent_rear = rp[5], rp[6], rp[7], rp[8], rp[9]
+    reach = np.empty(3)
+    for e in range(num_envs):
+        v = vf[SPEED, e, 0]
+        for j in range(3):
+            reach[j] = min(g[0, e, j] / max(v - g[2, e, j], 0.05), horizon)
+        own_front, own_reach = g[0, e, 1], reach[1]
+        actions[e] = KEEP_ACTION
+        if not (own_front < trigger_g or own_reach < trigger_t):
+            continue
+        best, best_score = -1, -np.inf
+        for j in (0, 2):
+            front, rear = g[0, e, j], g[1, e, j]
+            rear_need = max(min_rear, rear_t * max(g[3, e, j] - v, 0.0))
+            safe = front >= min_front and reach[j] >= min_front_t and rear >= rear_need
+            if own_reach < urgent_t and front >= own_front + 2.0 and rear >= urgent_rear:
+                safe = True
+            if safe and reach[j] >= own_reach + gain and mask[e, j]:
+                score = reach[j] + (0.01 if j == 2 else 0.0)
+                if score > best_score:
+                    best, best_score = j, score
+        if best >= 0:
+            actions[e] = best

@@ -150,11 +150,31 @@ class HighwaySim:
         self.lane_change_base = rng.stream_base(self.key, _LANE_CHANGE_STREAM)
         self.noise_base = rng.stream_base(self.key, _NOISE_STREAM)
 
-    def rekey(self, salt: int) -> None:
-        """Mix ``salt`` into every environment's key of the counter-based random streams: from now on the
-        traffic draws other random numbers (:func:`lcsim.planning.redraw_future` is the planner's use)."""
-        self.key = self.key ^ rng.stream_base(np.array([salt], dtype=np.uint64), _REDRAW_STREAM)[0]
+    def rekey(self, salt: int | np.ndarray) -> None:
+        """Mix ``salt`` (one for all, or ``(E,)``, one per environment) into every environment's key of the
+        counter-based random streams: from now on the traffic draws other random numbers
+        (:func:`lcsim.planning.redraw_future` is the planner's use)."""
+        salts = np.broadcast_to(np.asarray(salt, dtype=np.uint64), (self.num_envs,))
+        self.key = self.key ^ rng.stream_base(salts, _REDRAW_STREAM)
         self._derive_stream_bases()
+
+    def replicate(self, rows: np.ndarray) -> HighwaySim:
+        """A new simulator whose environments are copies of environments ``rows`` (repeats allowed), in that
+        order, with everything they carry (state, history, controllers, random keys) and no hooks: futures of
+        the same states imagined side by side in one batch."""
+        rows = np.asarray(rows, dtype=np.int64)
+        new = object.__new__(HighwaySim)
+        state = self.__getstate__()
+        for name in ("vf", "vi", "vb", "ef", "ei", "eb", "keys"):
+            state[name] = np.ascontiguousarray(state[name][:, rows])
+        state["hist"] = self.hist[rows]
+        state["num_envs"], state["hooks"] = len(rows), []
+        pid = object.__new__(PIDBank)
+        pid.__dict__.update(self.pid.__dict__)
+        pid.errors, pid.count = self.pid.errors[rows], self.pid.count[rows]
+        state["pid"] = pid
+        new.__setstate__(state)
+        return new
 
     def _spawn(self, e: int, gen: np.random.Generator) -> None:
         _cfg, tc, ec, road = self.config, self.config.traffic, self.config.ego, self.road

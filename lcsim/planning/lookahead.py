@@ -9,7 +9,7 @@ import numpy as np
 
 from lcsim.core import KEEP, RUNNING, SUCCESS, TIMEOUT, LaneChangeCore
 from lcsim.drivers import Driver, RuleBasedDriver
-from lcsim.planning.perception import imagined_copy, perceive, redraw_future
+from lcsim.planning.perception import perceive, redraw_future
 
 
 @dataclass(frozen=True, slots=True, kw_only=True)
@@ -92,10 +92,13 @@ class LookaheadDriver:
         """The predictions the driver that made the decision saw (recorded by lc-eval), if it has any."""
         return getattr(self.proposer or self.rule, "last_prediction", None)
 
-    def survives(self, core: LaneChangeCore, actions: np.ndarray, salt: int = 1) -> np.ndarray:
+    def survives(self, core: LaneChangeCore, actions: np.ndarray, salt: int | np.ndarray = 1) -> np.ndarray:
         """``(E,)`` bool: no collision or off-road within the horizon after ``actions``, then the driver
-        ``rule`` (in a future redrawn with ``salt`` when blind)."""
-        future = imagined_copy(core)
+        ``rule`` (in a future redrawn with ``salt``, one or one per environment, when blind)."""
+        return self._survives(core.replicate(np.arange(core.num_envs)), actions, salt)
+
+    def _survives(self, future: LaneChangeCore, actions: np.ndarray, salt: int | np.ndarray) -> np.ndarray:
+        """:meth:`survives` in ``future``, a copy the call may change."""
         if self.config.blind:
             redraw_future(future.sim, salt)
         if self.config.perceived:
@@ -119,13 +122,16 @@ class LookaheadDriver:
         self.last_alive = np.full(mask.shape, np.nan)
         if not choice.any():
             return planned
+        # Every (environment with a choice, decision it may take, sample) is one environment of a single imagined
+        # batch: all the futures run side by side in the compiled core.
+        env, action = np.nonzero(mask & choice[:, None])
+        samples = self.config.samples
+        env, action = np.repeat(env, samples), np.repeat(action, samples)
+        salt = np.tile(np.arange(1, samples + 1), len(env) // samples)
+        survived = self._survives(core.replicate(env), action, salt)
         alive = np.zeros(mask.shape)  # share of the imagined futures each decision survives
-        for action in range(3):
-            if (mask[:, action] & choice).any():  # imagined futures per action someone can take
-                actions = np.where(mask[:, action], action, KEEP)
-                for salt in range(1, self.config.samples + 1):
-                    alive[:, action] += self.survives(core, actions, salt) & mask[:, action]
-        alive /= self.config.samples
+        np.add.at(alive, (env, action), survived)
+        alive /= samples
         self.last_alive = np.where(mask & choice[:, None], alive, np.nan)
         best = alive.max(axis=1)
         fallback = np.where(alive[:, KEEP] >= best, KEEP, alive.argmax(axis=1))  # keep, else the first best change

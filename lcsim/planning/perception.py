@@ -25,15 +25,16 @@ def imagined_copy(core: LaneChangeCore) -> LaneChangeCore:
     return copy.deepcopy(core, {id(core.sim.hooks): [], id(core.renderer): None})
 
 
-def redraw_future(sim: HighwaySim, salt: int) -> None:
-    """Give every environment's traffic other random draws from now on (``salt`` >= 1 picks which).
+def redraw_future(sim: HighwaySim, salt: int | np.ndarray) -> None:
+    """Give every environment's traffic other random draws from now on (``salt`` >= 1 picks which; one per
+    environment when an array).
 
     The traffic's spontaneous lane changes are drawn from a counter-based stream keyed by the episode
     seed, so a copy of the simulator foresees them exactly. A planner that imagines futures in a copy
     it has redrawn knows the traffic's rules and present state but not its coming random choices: what
     an onboard predictor could know.
     """
-    if salt < 1:
+    if np.any(np.asarray(salt) < 1):
         raise ValueError(f"salt must be >= 1 (0 would keep the episode's own draws), got {salt}")
     sim.rekey(salt)
 
