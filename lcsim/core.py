@@ -105,11 +105,8 @@ class LaneChangeCore:
     def action_mask(self) -> np.ndarray:
         """``(E, 3)`` bool: right / keep / left. A change in progress allows only keep; no lane, no change."""
         sim = self.sim
-        lane = sim.target_lane[:, 0]
-        idle = ~sim.ego_lc_active if not sim.autopilot_ego else np.ones(self.num_envs, dtype=bool)
-        mask = np.ones((self.num_envs, 3), dtype=bool)
-        mask[:, RIGHT] = idle & (lane > 0)
-        mask[:, LEFT] = idle & (lane < sim.road.num_lanes - 1)
+        mask = np.empty((self.num_envs, 3), dtype=bool)
+        kernel.action_mask(sim.vi, sim.eb, sim.road.num_lanes, sim.autopilot_ego, mask)
         return mask
 
     def step(self, actions: np.ndarray) -> StepResult:
@@ -122,7 +119,7 @@ class LaneChangeCore:
         """
         sim, cfg, e = self.sim, self.config, self.num_envs
         actions = np.asarray(actions, dtype=np.int64).reshape(e)
-        if ((actions < 0) | (actions > 2)).any():
+        if actions.min() < 0 or actions.max() > 2:
             raise ValueError(f"actions must be in {{0, 1, 2}} (right, keep, left), got {actions.tolist()}")
         refused, x_before = np.empty(e, dtype=bool), np.empty(e)
         code = self._code

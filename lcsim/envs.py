@@ -87,7 +87,8 @@ class LaneChangeEnv(gym.Env):
     def step(self, action: Any):
         if not self._started:
             raise RuntimeError("call reset() before step()")
-        if not self.action_space.contains(action):  # an integer (or 0-d integer array) in {0, 1, 2}
+        # an integer (or 0-d integer array) in {0, 1, 2} (a plain int checked first: the common case, cheaply)
+        if not (type(action) is int and 0 <= action <= 2) and not self.action_space.contains(action):
             raise ValueError(f"action must be 0 (right), 1 (keep) or 2 (left), got {action!r}")
         res = self.core.step(np.array([int(action)]))
         info = _info(res, self.core.action_mask(), 0, float(self.core.sim.t_s[0]))

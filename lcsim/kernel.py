@@ -852,3 +852,14 @@ def rule_actions(rp, mask, vf, vi, num_lanes, actions):
                     best, best_score = j, score
         if best >= 0:
             actions[e] = best
+
+
+@njit(cache=True)
+def action_mask(vi, eb, num_lanes, autopilot_ego, mask):
+    """``mask`` ``(E, 3)``: right / keep / left allowed. A change in progress allows only keep; no lane, no change."""
+    for e in range(mask.shape[0]):
+        idle = autopilot_ego or not eb[EGO_LC_ACTIVE, e]
+        lane = vi[TARGET, e, 0]
+        mask[e, 0] = idle and lane > 0
+        mask[e, 1] = True
+        mask[e, 2] = idle and lane < num_lanes - 1

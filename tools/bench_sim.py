@@ -7,9 +7,11 @@ every 0.5 s) through the gymnasium API, for one environment (``LaneChangeEnv``) 
 When highway-env is installed, measures its ``highway-v0`` with 100 vehicles on the same machine.
 
 With ``--full``, also: batches of 8 and 256, every size without the image, the lookahead planner's cost per
-decision (perceived, as the safety layer runs it), and, when numba is installed, the floor a compiled
-simulator could reach: a bare IDM sub-step (per-lane leaders from a sort, no lane changes, controller,
-sensors or observation) compiled with numba, for one environment and for 64.
+decision (perceived, as the safety layer runs it), and the floor of a compiled simulator: a bare IDM sub-step
+(per-lane leaders from a sort, no lane changes, controller, sensors or observation) compiled with numba, for one
+environment and for 64, next to the batch of 64 with the image as a ratio (``floor_over_image_envs64``: how many
+times the bare sub-step's speed the whole simulator is from). The simulator itself is compiled too
+(:mod:`lcsim.kernel`); its first call compiles once per machine (``tools/bench_compile.py`` times it).
 
     python tools/bench_sim.py            # human-readable
     python tools/bench_sim.py --json     # one JSON object
@@ -195,6 +197,9 @@ def main(argv: list[str] | None = None) -> int:
         for size in (1, 64):
             floor = bench_numba_floor(args.seconds, size)
             result[f"numba_floor_envs{size}_sim_s_per_s"] = None if floor is None else round(floor, 1)
+        floor64 = result["numba_floor_envs64_sim_s_per_s"]
+        result["floor_over_image_envs64"] = None if not floor64 else round(floor64 / batch, 2)
+        result["ratio_single_vs_highway_env"] = None if hwy is None else round(single / hwy, 1)
     if args.json:
         print(json.dumps(result))
     else:
@@ -207,7 +212,7 @@ def main(argv: list[str] | None = None) -> int:
             print(f"batch 64 vs highway-v0: x{batch / hwy:.0f}")
         if args.full:
             for key, value in result.items():
-                if key.startswith(("image_", "no_image_", "numba_", "planner_")):
+                if key.startswith(("image_", "no_image_", "numba_", "planner_", "floor_", "ratio_single")):
                     print(f"{key:42s}: {'numba not installed' if value is None else value}")
     return 0
 
