@@ -51,7 +51,8 @@ PAPER_RECIPES = ("paper-hybrid-ppo", "paper-hybrid-ppo-warm", "paper-a2c", "pape
                  "paper-ppo-image", "paper-ppo-prediction")  # fmt: skip
 """The paper-faithful recipes: each method trained from scratch (the warm-start row from rule demonstrations)
 with the paper's budgets and observation."""
-BEST_RECIPES = ("hybrid-ppo", "pure-ppo", "pure-ppo-dagger", "prediction-ppo", "image-ppo", "a2c-hybrid", "dqn-hybrid")
+BEST_RECIPES = ("hybrid-ppo", "hybrid-ppo-dagger", "pure-ppo", "pure-ppo-dagger", "prediction-ppo", "image-ppo",
+                "a2c-hybrid", "dqn-hybrid")  # fmt: skip
 """The project's best recipe for each method."""
 
 
