@@ -175,13 +175,16 @@ def without_wall_times(metrics: dict) -> dict:
 
 
 def check_parallel_policies_equal_sequential_ones(run_dir: Path) -> None:
-    """Two recipes redone by ``--jobs 2`` worker processes give the same policies and figures as the first run."""
-    redo = [("paper-ppo-pure", 0), ("a2c-hybrid", 1)]
+    """Three recipes redone by ``--jobs 2`` worker processes give the same policies and figures as the first run
+    (DAgger's rounds too, whose collection then runs inside the worker: a pool's worker cannot start another)."""
+    redo = [("paper-ppo-pure", 0), ("a2c-hybrid", 1), ("pure-ppo-dagger", 0)]
     before = {}
     for key, seed in redo:
         d = policy_dir(run_dir, key, seed)
         before[key] = (without_wall_times(stage_metrics(run_dir, key, seed)), (d / "train" / "policy.safetensors").read_bytes())
         (d / "train" / "policy.safetensors").unlink()  # outputs changed: the stage is redone from scratch
+        if (d / "dagger").is_dir():
+            (d / "dagger" / "dagger.json").unlink()  # and the DAgger rounds before it
     assert experiment_main(["--preset", "tiny", "--seeds", str(SEEDS), "--out", str(run_dir), "--jobs", "2", "-q"]) == 0
     for key, seed in redo:
         d = policy_dir(run_dir, key, seed)

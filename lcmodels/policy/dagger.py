@@ -338,9 +338,12 @@ def dagger(
         t0 = time.perf_counter()
         seeds = [seed + (r - 1) * episodes + i for i in range(episodes)]
         parts = [seeds[i::workers] for i in range(workers) if seeds[i::workers]]
-        with ProcessPoolExecutor(len(parts), mp_context=ctx) as pool:
-            jobs = [(str(current), p, predictor, labels, expert, expert_lookahead) for p in parts]
-            got = list(pool.map(_collect_job, jobs))
+        jobs = [(str(current), p, predictor, labels, expert, expert_lookahead) for p in parts]
+        if len(jobs) == 1:  # in this process: it may itself be a worker of a pool (lc-experiment --jobs 2)
+            got = [_collect_job(jobs[0])]
+        else:
+            with ProcessPoolExecutor(len(parts), mp_context=ctx) as pool:
+                got = list(pool.map(_collect_job, jobs))
         kept = [g for g in got if len(g.labels)]
         states = sum(len(g.labels) for g in kept)
         if kept:
