@@ -45,6 +45,7 @@ from lcdata.executors import EXECUTORS, ray_map
 from lcdata.procs import die_with_parent
 from lcdata.writer import EpisodeWriter, package_version
 from lcdata.writer_process import WRITER_MODES, ProcessEpisodeWriter, open_writer
+from lcsim import kernel
 from lcsim.config import ScenarioConfig
 from lcsim.core import KEEP, RUNNING, SUCCESS, LaneChangeCore, StepResult
 from lcsim.drivers import Driver
@@ -52,6 +53,12 @@ from lcsim.envs import episode_seed as lcsim_episode_seed
 from lcsim.episodes import EpisodeHook, run_episodes
 from lcsim.registry import DRIVER_NAMES, make_driver
 from lcsim.sim import HighwaySim
+
+# The rows of the simulator's state blocks the recorder copies at every step (x .. accel, lane and target_lane).
+_FLOAT_ROWS = slice(kernel.X, kernel.ACCEL + 1)
+_INT_ROWS = slice(kernel.LANE, kernel.TARGET + 1)
+assert kernel.VF_NAMES[_FLOAT_ROWS] == ("x", "y", "yaw", "speed", "accel")
+assert kernel.VI_NAMES[_INT_ROWS] == ("lane", "target_lane")
 
 log = logging.getLogger(__name__)
 
@@ -115,7 +122,6 @@ class EpisodeRecorder:
         self._ts: list[float] = []
         self._ego: list[float] = []  # 8 per step
         self._rows: list[np.ndarray] = []  # 7 per step: x, y, yaw, speed, accel, lane, target_lane
-        self._one_env = core.num_envs == 1
 
     # -- life cycle -------------------------------------------------------------------------------
     def attach(self) -> None:
@@ -143,9 +149,9 @@ class EpisodeRecorder:
 
     # -- per simulation step (the hook) -----------------------------------------------------------
     def __call__(self, sim: HighwaySim) -> None:
-        # Runs after every simulation step. It keeps references to the simulator's state arrays, which
-        # the simulator replaces (never changes) at every step. The steps go to the writer in one call at
-        # the end of the decision (_flush_steps), or before an event so that the file keeps step order.
+        # Runs after every simulation step. It keeps copies of this step's vehicle states (the simulator updates its
+        # arrays in place). The steps go to the writer in one call at the end of the decision (_flush_steps), or
+        # before an event so that the file keeps step order.
         e = self.env
         if self.done or sim.frozen.item(e):
             return
@@ -155,10 +161,10 @@ class EpisodeRecorder:
         self._ts.append(t)
         self._ego += (sim.speed.item(e, 0), sim.lane.item(e, 0), collision_with, invasion, off_road,
                       sim.steer.item(e), sim.throttle.item(e), sim.brake.item(e))  # fmt: skip
-        if self._one_env:  # the (1, N) arrays themselves
-            self._rows += (sim.x, sim.y, sim.yaw, sim.speed, sim.accel, sim.lane, sim.target_lane)
-        else:
-            self._rows += (sim.x[e], sim.y[e], sim.yaw[e], sim.speed[e], sim.accel[e], sim.lane[e], sim.target_lane[e])
+        # The simulator updates its state in place: copies of this step's x, y, yaw, speed, accel (rows of its float
+        # block) and lane, target_lane (rows of its int block), two copies in all.
+        f, i = sim.vf[_FLOAT_ROWS, e].copy(), sim.vi[_INT_ROWS, e].copy()
+        self._rows += (f[0], f[1], f[2], f[3], f[4], i[0], i[1])
         active = sim.lc_active.item(e, 0) if sim.autopilot_ego else sim.ego_lc_active.item(e)
         if not (collision_with >= 0 or invasion >= 0 or off_road != self._off_road or active != self._lc_active):
             if len(self._steps) == self.MAX_PENDING_STEPS:

@@ -123,8 +123,6 @@ class LaneChangeCore:
             raise ValueError(f"actions must be in {{0, 1, 2}} (right, keep, left), got {actions.tolist()}")
         refused, x_before = np.empty(e, dtype=bool), np.empty(e)
         code = self._code
-        if sim.hooks:  # (a hook may hold the last step's arrays: the decision's lane change must not write them)
-            sim._fresh_vehicle_blocks()
         kernel.begin_decision(actions, self._refuse_invalid, code, sim.params, sim.iparams, sim.vf, sim.vi, sim.ef,
                               sim.eb, x_before, refused)
         # Every environment runs to the next decision or to its first event (contact, road edge, route's end),

@@ -99,10 +99,7 @@ class HighwaySim:
         self.hist = np.zeros((e, self.history_len, n, 2))
         self.hist_ptr = 0
         self.target_speed = ec.target_speed_kmh / 3.6
-        # Called after every substep. Contract (tested in tests/test_record.py): while hooks are attached, each
-        # substep binds new x, y, yaw, speed, accel, lane and target_lane arrays and nothing writes into earlier
-        # ones (only reset writes, into the rows it resets; a lane change copies the vehicle blocks before it
-        # sets the target), so a hook may keep references to them.
+        # Called after every substep. The state arrays are updated in place: a hook that keeps values copies them.
         self.hooks: list[SubstepHook] = []
 
     def _bind(self) -> None:
@@ -111,12 +108,6 @@ class HighwaySim:
             setattr(self, "_" + name, getattr(self, block)[row])
         self.drivers = DriverParams(*(self.vf[K.VF_NAMES.index(name)] for name in _DRIVER_ROWS))
         self.index = LaneIndex(self.vf, self.vi, self.config.road.num_lanes)
-
-    def _fresh_vehicle_blocks(self) -> None:
-        """Copy the per-vehicle blocks and bind the copies: the arrays a hook holds are never written again."""
-        for name in _VEHICLE_BLOCKS:
-            setattr(self, name, getattr(self, name).copy())
-        self._bind()
 
     def __getstate__(self) -> dict[str, Any]:
         # (copies of a simulator, e.g. a planner's deepcopy, copy the blocks and bind their views anew)
@@ -134,8 +125,6 @@ class HighwaySim:
     def reset(self, env_ids: Sequence[int] | np.ndarray, seeds: Sequence[int]) -> None:
         """Spawn new episodes in environments ``env_ids``, each fully determined by its seed."""
         env_ids = np.asarray(env_ids, dtype=np.int64)
-        if self.hooks:
-            self._fresh_vehicle_blocks()
         for e, seed in zip(env_ids, seeds, strict=True):
             self._spawn(int(e), np.random.default_rng(int(seed)))
         self.frozen[env_ids] = False
@@ -250,8 +239,6 @@ class HighwaySim:
         ``same_lane_time_s * speed``, moves laterally over ``lane_change_time_s * speed`` metres, then
         follows the target lane. A target beyond the edge lanes leads off the road, as in CARLA.
         """
-        if self.hooks:  # the previous step's arrays may be held by a hook
-            self._fresh_vehicle_blocks()
         K.start_lane_changes(np.asarray(env_mask, dtype=bool), np.asarray(direction, dtype=np.int64), self.params,
                              self.vf, self.vi, self.ef, self.eb)
 
@@ -259,8 +246,6 @@ class HighwaySim:
     def substep(self) -> None:
         """Advance every environment by one simulation step (frozen environments stay as they are), then call the
         hooks."""
-        if self.hooks:
-            self._fresh_vehicle_blocks()
         self._advance(1, False)
         for hook in self.hooks:
             hook(self)

@@ -63,7 +63,8 @@ class Capture:
 
 
 def _state(sim: Any) -> dict[str, np.ndarray]:
-    return {name: np.array(getattr(sim, name)) for name in SIM_STATE}
+    # (with the rows of the state blocks the recorder copies each step: vf's x .. accel, vi's lane, target_lane)
+    return {name: np.array(getattr(sim, name)) for name in SIM_STATE} | {"vf": sim.vf[:5].copy(), "vi": sim.vi[:2].copy()}
 
 
 def capture(config: ScenarioConfig, seed: int, driver: str) -> Capture:
