@@ -15,8 +15,13 @@ from collections.abc import Sequence
 import numpy as np
 from numba import njit
 
+from lcdata import mcap_write
 from lcdata.encode import VEHICLE_COLUMNS, VehicleEncoder
-from lcdata.mcap_write import MESSAGE_HEADER_BYTES
+
+# The MCAP message record's header size (opcode, length, channel, sequence, log and publish times), written out here:
+# compiled functions keep module constants in numba's cache, which only this file's changes invalidate.
+MESSAGE_HEADER_BYTES = 31
+assert MESSAGE_HEADER_BYTES == mcap_write.MESSAGE_HEADER_BYTES
 
 EGO_MAX_BYTES = 11 + 9 + 9 + 3 * 11 + 2 + 27
 """Upper bound of an ``lc.EgoState`` message (step varint, t, speed, three sint varints, off_road, controls)."""

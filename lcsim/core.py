@@ -161,6 +161,8 @@ class LaneChangeCore:
     def _observe(self, ids: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """The slots' vehicles, ``current`` and ``history`` of environments ``ids`` (one compiled call)."""
         sim, b = self.sim, len(ids)
+        if b and (ids.min() < 0 or ids.max() >= self.num_envs):
+            raise IndexError(f"environment ids must be in [0, {self.num_envs}), got {ids.tolist()}")
         nb = np.empty((b, self.k), dtype=np.int64)
         cur = np.empty((b, 1 + self.k, self._num_features), dtype=np.float32)
         hist = np.empty((b, self.k, sim.history_len, 3), dtype=np.float32)

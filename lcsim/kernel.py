@@ -589,6 +589,7 @@ def advance(steps, stop_on_event, p, ip, vf, vi, vb, ef, ei, eb, keys, hist, his
                              scratch)
                 if stop_on_event and (ei[COLLISION_WITH, e] >= 0 or eb[OFF_ROAD, e] or vf[X, e, 0] >= route):
                     frozen = True
+                    eb[FROZEN, e] = True
             slot = (hist_ptr + s + 1) % h
             for v in range(n):
                 hist[e, slot, v, 0] = vf[X, e, v]

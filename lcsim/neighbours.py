@@ -61,6 +61,9 @@ class LaneIndex:
         lane = np.asarray(lane, dtype=np.int64)
         e, k = lane.shape
         veh = np.arange(k, dtype=np.int64) if vehicles is None else np.asarray(vehicles, dtype=np.int64)
+        n = self.order.shape[1]
+        if e != self.order.shape[0] or veh.shape != (k,) or (k and (veh.min() < 0 or veh.max() >= n)):
+            raise IndexError(f"lane must be (E={self.order.shape[0]}, K) and vehicles K indices in [0, {n})")
         envs = np.repeat(np.arange(e, dtype=np.int64), k)
         out = K.nearest_many(self._vi, self.num_lanes, envs, np.tile(veh, e), lane.ravel(), ahead)
         return out.reshape(e, k)
@@ -72,6 +75,8 @@ class LaneIndex:
         """
         n = self.order.shape[1]
         flat = np.asarray(flat, dtype=np.int64)
+        if flat.size and (flat.min() < 0 or flat.max() >= self.order.size):
+            raise IndexError(f"flat indices must be in [0, {self.order.size})")
         envs = flat // n
         out = K.nearest_many(self._vi, self.num_lanes, envs, flat - envs * n, np.asarray(lane, dtype=np.int64),
                              ahead)
@@ -80,5 +85,7 @@ class LaneIndex:
     def lane_members_one(self, vehicle: int, lane: int, ahead: bool, count: int, env: int = 0) -> list[int]:
         """The ``count`` members of ``lane`` nearest ahead of (behind) ``vehicle`` of environment ``env``, nearest
         first, as vehicle indices; fewer when there are fewer, none when the lane does not exist."""
+        if not (0 <= env < self.order.shape[0] and 0 <= vehicle < self.order.shape[1]):
+            raise IndexError(f"no vehicle {vehicle} in environment {env}")
         return K.lane_members(self._vi, self.num_lanes, env, vehicle, lane, ahead, count).tolist()
 

@@ -2,7 +2,7 @@
 
 State lives in ``(E, N)`` arrays (views of a few blocks, :mod:`lcsim.kernel`); vehicle 0 of every environment is
 the ego. :meth:`HighwaySim.advance` runs any number of simulation steps of every environment in one compiled call:
-neighbour search on the per-lane sorted order, IDM for the traffic, Traffic-Manager-like lane changes at the check
+neighbour search on each environment's sorted order, IDM for the traffic, Traffic-Manager-like lane changes at the check
 period, the ego's PID controller on a kinematic bicycle model, then collision, lane-invasion and off-road sensors.
 No per-vehicle Python objects and no Python per step; episodes are spawned (:meth:`HighwaySim.reset`) in Python.
 """
@@ -98,7 +98,6 @@ class HighwaySim:
         self.history_len = config.history_steps
         self.hist = np.zeros((e, self.history_len, n, 2))
         self.hist_ptr = 0
-        self.target_speed = ec.target_speed_kmh / 3.6
         # Called after every substep. The state arrays are updated in place: a hook that keeps values copies them.
         self.hooks: list[SubstepHook] = []
 

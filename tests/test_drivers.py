@@ -154,7 +154,7 @@ def test_lookahead_with_a_proposer_keeps_its_decision_unless_that_future_crashes
     proposer = make_driver("random", 5)
     proposer.last_prediction = np.zeros((4, 1, 1, 2))  # what a policy that predicts would expose
     driver = LookaheadDriver(LookaheadConfig(horizon_decisions=6, blind=True), proposer=proposer)
-    assert driver.name == "random+lookahead-blind-rule" and driver.last_prediction is proposer.last_prediction
+    assert driver.name == "random+lookahead-blind-rule" and driver.last_prediction is None  # nothing decided yet
     kept = vetoed = choices = 0
     for _ in range(30):
         if (core.outcome != "").any():
@@ -164,6 +164,7 @@ def test_lookahead_with_a_proposer_keeps_its_decision_unless_that_future_crashes
         proposed.rng = copy.deepcopy(proposer.rng)
         wanted = proposed({}, mask, core)
         actions = driver({}, mask, core)
+        assert driver.last_prediction is proposer.last_prediction  # what the proposer decided on
         ok = np.stack([driver.survives(core, np.where(mask[:, a], a, KEEP)) & mask[:, a] for a in range(3)], 1)
         rows = np.arange(4)
         stands = ok[rows, wanted] | ~ok.any(axis=1)  # the proposal survives, or nothing does
@@ -271,3 +272,24 @@ def test_perceived_lookahead_is_deterministic_and_only_picks_surviving_decisions
 def test_lookahead_config_refuses_perception_without_blindness():
     with pytest.raises(ValueError, match="perceived"):
         LookaheadConfig(perceived=True)
+
+
+def test_the_planner_reports_the_prediction_its_driver_decided_on():
+    """A driver followed in the imagined futures also runs on their batch; the planner's ``last_prediction`` is
+    still the one the driver had when it made the decision (one row per environment), not the last imagined one."""
+
+    class Tagging:
+        name = "tagging"
+        needs_observation = False
+
+        def __call__(self, obs, action_mask, core):
+            self.last_prediction = np.full((core.num_envs, 1), float(core.num_envs))
+            return np.full(core.num_envs, KEEP, dtype=np.int64)
+
+    env = LaneChangeVectorEnv(4, ScenarioConfig(render_image=False))
+    obs, info = env.reset(seed=3)
+    driver = LookaheadDriver(LookaheadConfig(blind=True, horizon_decisions=2, samples=2), rule=Tagging())
+    for _ in range(3):
+        actions = driver(obs, info["action_mask"], env.core)
+        assert driver.last_prediction.shape == (4, 1) and (driver.last_prediction == 4.0).all()
+        obs, *_, info = env.step(actions)

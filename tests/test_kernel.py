@@ -29,9 +29,18 @@ _ROLLOUT = textwrap.dedent("""
         core.step(np.ones(2, dtype=np.int64))
     env = LaneChangeVectorEnv(1, ScenarioConfig(render_image=False))
     obs, info = env.reset(seed=2)
-    driver = LookaheadDriver(LookaheadConfig(blind=True, perceived=True))
+    driver = LookaheadDriver(LookaheadConfig(blind=True, perceived=True, samples=2))
     for _ in range(3):
         obs, *_, info = env.step(driver(obs, info["action_mask"], env.core))
+    index = env.core.sim.index
+    n = env.core.sim.num_vehicles
+    lanes = np.tile(np.arange(-1, 6), (1, n // 7 + 1))[:, :n]
+    for ahead in (True, False):
+        index.neighbour_in_lane(lanes, ahead)
+        index.neighbour_flat(np.arange(n), lanes[0], ahead)
+        for lane in range(-1, 6):
+            index.lane_members_one(0, lane, ahead, 3)
+            index.lane_members_one(n - 1, lane, ahead, 200)
     print("rollout done")
 """)
 
@@ -41,3 +50,28 @@ def test_a_rollout_with_bounds_checking_on(tmp_path):
     res = subprocess.run([sys.executable, "-c", _ROLLOUT], env=env, capture_output=True, text=True, timeout=900,
                          check=False)
     assert res.returncode == 0 and "rollout done" in res.stdout, res.stderr[-3000:]
+
+
+def test_advance_freezes_an_environment_at_its_event_with_hooks_or_without():
+    """``advance(stop_on_event=True)`` freezes an environment at the step its ego passes the route's end, whether
+    the steps run in one compiled call or one by one for the hooks, and the two give the same state."""
+    import numpy as np
+
+    from lcsim.config import ScenarioConfig, TrafficConfig
+    from lcsim.sim import HighwaySim
+
+    cfg = ScenarioConfig(render_image=False, route_length_m=10.0, traffic=TrafficConfig(num_vehicles=6))
+    sims = []
+    for hooked in (False, True):
+        sim = HighwaySim(cfg, 2)
+        sim.reset([0, 1], [1, 2])
+        if hooked:
+            sim.hooks.append(lambda s: None)
+        sim.advance(40, stop_on_event=True)
+        assert sim.frozen.all() and (sim.x[:, 0] >= 10.0).all()
+        steps = sim.step.copy()
+        sim.advance(5)  # frozen environments stay where they are
+        assert np.array_equal(sim.step, steps)
+        sims.append(sim)
+    for block in ("vf", "vi", "vb", "ef", "ei", "eb"):
+        assert np.array_equal(getattr(sims[0], block), getattr(sims[1], block), equal_nan=True), block

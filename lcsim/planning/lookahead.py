@@ -51,13 +51,14 @@ def _driver_name(driver: Driver) -> str:
 class LookaheadDriver:
     """A privileged planner: a driver (the rule-based one by default), checked against the simulator's future.
 
-    Before each decision it copies the whole simulator (every environment, with its random state)
-    three times, applies right / keep / left in the copies, follows the driver ``rule`` for
-    ``horizon_decisions`` more decisions and keeps that driver's own choice if its future is
-    collision-free; otherwise it takes a surviving alternative (keep first). Unless ``blind``, it sees
+    Before each decision it copies every environment that has a choice (with its random state) once per
+    decision it may take (and per sample), side by side in one batch (:meth:`LaneChangeCore.replicate`),
+    applies right / keep / left in the copies, follows the driver ``rule`` for ``horizon_decisions`` more
+    decisions and keeps that driver's own choice if its future is collision-free; otherwise it takes a
+    surviving alternative (keep first). Unless ``blind``, it sees
     exactly what will happen, which no policy can, so it is an *upper reference* for what the scenario
     allows, not a baseline to beat. Blind, it is one step of policy improvement over its rollout driver
-    that a policy could in principle learn (a teacher for DAgger). About 50x the cost of a decision.
+    that a policy could in principle learn (a teacher for DAgger).
 
     A rollout driver that reads the observation sets ``needs_observation = True``; it gets the imagined
     copy's observation, which has no image (the copies do not render).
@@ -77,6 +78,7 @@ class LookaheadDriver:
         """``(E, 3)`` after each call: the share of imagined futures each decision survived, NaN where it was
         not imagined (not allowed, or no choice to make): the labels a learned safety critic is fitted to."""
         self._observe = bool(getattr(self.rule, "needs_observation", False))
+        self._prediction: np.ndarray | None = None
 
     @property
     def name(self) -> str:  # type: ignore[override]
@@ -89,8 +91,9 @@ class LookaheadDriver:
 
     @property
     def last_prediction(self) -> np.ndarray | None:
-        """The predictions the driver that made the decision saw (recorded by lc-eval), if it has any."""
-        return getattr(self.proposer or self.rule, "last_prediction", None)
+        """The predictions the driver that made the decision saw (recorded by lc-eval), if it has any: taken when it
+        decided, before the imagined futures (where the same driver may run on their batch) replace its own."""
+        return self._prediction
 
     def survives(self, core: LaneChangeCore, actions: np.ndarray, salt: int | np.ndarray = 1) -> np.ndarray:
         """``(E,)`` bool: no collision or off-road within the horizon after ``actions``, then the driver
@@ -113,7 +116,9 @@ class LookaheadDriver:
 
     def __call__(self, obs: dict[str, np.ndarray], action_mask: np.ndarray, core: LaneChangeCore) -> np.ndarray:
         mask = np.asarray(action_mask, dtype=bool).reshape(-1, 3)
-        planned = np.asarray((self.proposer or self.rule)(obs, mask, core), dtype=np.int64).reshape(len(mask))
+        decider = self.proposer or self.rule
+        planned = np.asarray(decider(obs, mask, core), dtype=np.int64).reshape(len(mask))
+        self._prediction = getattr(decider, "last_prediction", None)
         # a proposal the mask refuses becomes a keep, which the planner then checks: it never passes on a
         # refused decision (rewarded off_road under "refuse", leaving the road under "leave_road")
         planned = np.where(mask[np.arange(len(mask)), planned], planned, KEEP)
