@@ -55,10 +55,10 @@ from lcsim.registry import DRIVER_NAMES, make_driver
 from lcsim.sim import HighwaySim
 
 # The rows of the simulator's state blocks the recorder copies at every step (x .. accel, lane and target_lane).
-_FLOAT_ROWS = slice(kernel.X, kernel.ACCEL + 1)
-_INT_ROWS = slice(kernel.LANE, kernel.TARGET + 1)
-assert kernel.VF_NAMES[_FLOAT_ROWS] == ("x", "y", "yaw", "speed", "accel")
-assert kernel.VI_NAMES[_INT_ROWS] == ("lane", "target_lane")
+RECORDED_FLOAT_ROWS = slice(kernel.X, kernel.ACCEL + 1)
+RECORDED_INT_ROWS = slice(kernel.LANE, kernel.TARGET + 1)
+assert kernel.VF_NAMES[RECORDED_FLOAT_ROWS] == ("x", "y", "yaw", "speed", "accel")
+assert kernel.VI_NAMES[RECORDED_INT_ROWS] == ("lane", "target_lane")
 
 log = logging.getLogger(__name__)
 
@@ -163,7 +163,7 @@ class EpisodeRecorder:
                       sim.steer.item(e), sim.throttle.item(e), sim.brake.item(e))  # fmt: skip
         # The simulator updates its state in place: copies of this step's x, y, yaw, speed, accel (rows of its float
         # block) and lane, target_lane (rows of its int block), two copies in all.
-        f, i = sim.vf[_FLOAT_ROWS, e].copy(), sim.vi[_INT_ROWS, e].copy()
+        f, i = sim.vf[RECORDED_FLOAT_ROWS, e].copy(), sim.vi[RECORDED_INT_ROWS, e].copy()
         self._rows += (f[0], f[1], f[2], f[3], f[4], i[0], i[1])
         active = sim.lc_active.item(e, 0) if sim.autopilot_ego else sim.ego_lc_active.item(e)
         if not (collision_with >= 0 or invasion >= 0 or off_road != self._off_road or active != self._lc_active):

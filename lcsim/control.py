@@ -22,19 +22,16 @@ __all__ = ["PIDBank", "ego_law", "pid_reference"]
 
 
 class PIDBank:
-    """The error windows of E x C PID controllers (C = 2: longitudinal, lateral), stepped together.
+    """The error windows of E x C PID controllers (C = 2: longitudinal, lateral), stepped together (their gains
+    are the compiled core's parameters, :func:`lcsim.kernel.kernel_params`).
 
     ``errors`` ``(E, window, C)`` by ring slot, ``count`` ``(E, 1)`` errors pushed since the reset, ``ptr`` the
     ring slot of the latest error (shared: the controllers are stepped together).
     """
 
-    def __init__(self, num_envs: int, gains: list, window: int) -> None:
-        self.kp = np.array([g.kp for g in gains])
-        self.ki = np.array([g.ki for g in gains])
-        self.kd = np.array([g.kd for g in gains])
-        self.dt = np.array([g.dt_s for g in gains])
+    def __init__(self, num_envs: int, controllers: int, window: int) -> None:
         self.window = window
-        self.errors = np.zeros((num_envs, window, len(gains)))
+        self.errors = np.zeros((num_envs, window, controllers))
         self.count = np.zeros((num_envs, 1), dtype=np.int64)
         self.ptr = 0
 

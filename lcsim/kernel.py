@@ -243,6 +243,25 @@ def ego_law(p, x, y, yaw, speed, lead_gap, px0, plen, py0, py1, steer_past, acce
             max(speed + accel * p[DT], 0.0), accel, steer, throttle, brake)
 
 
+@njit(cache=True)
+def stream_bases(keys, salt):
+    """``(E,)`` the stream bases of keys ``keys`` for a stream's ``salt`` (:func:`lcsim.rng.stream_base`)."""
+    out = np.empty_like(keys)
+    for i in range(keys.shape[0]):
+        out[i] = _mix(keys[i] ^ salt)
+    return out
+
+
+@njit(cache=True)
+def uniform_draws(bases, steps, n):
+    """``(E, n)``: the draws :func:`uniform_one` gives counters ``0 .. n-1`` of each environment at its step."""
+    out = np.empty((bases.shape[0], n))
+    for e in range(bases.shape[0]):
+        for i in range(n):
+            out[e, i] = uniform_one(bases[e], steps[e], i)
+    return out
+
+
 # ------------------------------------------------------------------------------------------------ neighbour index
 @njit(cache=True)
 def _build_index_env(e, p, ip, vf, vi, vb, scratch_lanes):
@@ -327,22 +346,29 @@ def _is_member(vi, e, v, lane):
 
 
 @njit(cache=True)
-def nearest_in_lane(vi, num_lanes, e, pos, lane, ahead):
-    """The nearest member of ``lane`` ahead of (behind) sorted position ``pos`` of environment ``e``: a vehicle
-    index, -1 when none or the lane does not exist."""
+def member_at_rank(vi, num_lanes, e, pos, lane, ahead, rank):
+    """The ``rank``-th nearest member (1: the nearest) of ``lane`` ahead of (behind) sorted position ``pos`` of
+    environment ``e``: a vehicle index, -1 when there are fewer or the lane does not exist."""
     if lane < 0 or lane >= num_lanes:
         return -1
     order = vi[ORDER, e]
-    n = order.shape[0]
-    if ahead:
-        for q in range(pos + 1, n):
-            if _is_member(vi, e, order[q], lane):
+    n, k = order.shape[0], 0
+    step = 1 if ahead else -1
+    q = pos + step
+    while 0 <= q < n:
+        if _is_member(vi, e, order[q], lane):
+            k += 1
+            if k == rank:
                 return order[q]
-    else:
-        for q in range(pos - 1, -1, -1):
-            if _is_member(vi, e, order[q], lane):
-                return order[q]
+        q += step
     return -1
+
+
+@njit(cache=True, inline="always")
+def nearest_in_lane(vi, num_lanes, e, pos, lane, ahead):
+    """The nearest member of ``lane`` ahead of (behind) sorted position ``pos`` of environment ``e``: a vehicle
+    index, -1 when none or the lane does not exist."""
+    return member_at_rank(vi, num_lanes, e, pos, lane, ahead, 1)
 
 
 @njit(cache=True)
@@ -361,19 +387,14 @@ def nearest_many(vi, num_lanes, envs, vehicles, lanes, ahead):
 @njit(cache=True)
 def lane_members(vi, num_lanes, e, vehicle, lane, ahead, count):
     """The ``count`` members of ``lane`` nearest ahead of (behind) ``vehicle``, nearest first (fewer when there are)."""
-    out = np.full(count, -1, dtype=np.int64)
-    if lane < 0 or lane >= num_lanes:
-        return out[:0]
-    order = vi[ORDER, e]
-    n, k = order.shape[0], 0
-    pos = vi[POS_OF, e, vehicle]
-    step = 1 if ahead else -1
-    q = pos + step
-    while 0 <= q < n and k < count:
-        if _is_member(vi, e, order[q], lane):
-            out[k] = order[q]
-            k += 1
-        q += step
+    out = np.empty(count, dtype=np.int64)
+    pos, k = vi[POS_OF, e, vehicle], 0
+    while k < count:
+        u = nearest_in_lane(vi, num_lanes, e, pos, lane, ahead)
+        if u < 0:
+            break
+        out[k] = u
+        pos, k = vi[POS_OF, e, u], k + 1
     return out[:k]
 
 
@@ -602,23 +623,10 @@ def advance(steps, stop_on_event, p, ip, vf, vi, vb, ef, ei, eb, keys, hist, his
 def _slot_neighbours(vi, vf, e, num_lanes, slots, range2, out):
     """The vehicles of the lane slots of environment ``e`` (``slots`` rows: lane offset from the ego's target lane,
     ahead (1) or behind (0), rank), -1 where a slot is empty or beyond the sensing range."""
-    order = vi[ORDER, e]
-    n = order.shape[0]
     ego_lane, pos = vi[TARGET, e, 0], vi[POS_OF, e, 0]
     x, y = vf[X, e], vf[Y, e]
     for j in range(slots.shape[0]):
-        lane, step, rank = ego_lane + slots[j, 0], 1 if slots[j, 1] else -1, slots[j, 2]
-        found = -1
-        if 0 <= lane < num_lanes:
-            q, k = pos + step, 0
-            while 0 <= q < n:
-                u = order[q]
-                if _is_member(vi, e, u, lane):
-                    k += 1
-                    if k == rank:
-                        found = u
-                        break
-                q += step
+        found = member_at_rank(vi, num_lanes, e, pos, ego_lane + slots[j, 0], slots[j, 1] != 0, slots[j, 2])
         if found >= 0:
             dx, dy = x[found] - x[0], y[found] - y[0]
             if dx * dx + dy * dy > range2:

@@ -73,7 +73,6 @@ class HighwaySim:
         self.dt = config.dt_s
         tc, ec = config.traffic, config.ego
         self.ids = np.arange(n, dtype=np.int64)
-        self.check_every = max(1, round(tc.lane_change_check_period_s / self.dt))
         self.human = tc.human_like
         self.params, self.iparams = K.kernel_params(config, autopilot_ego)
         self.vf = np.zeros((len(K.VF_NAMES), e, n))
@@ -92,7 +91,7 @@ class HighwaySim:
         for name in _DRIVER_ROWS:
             getattr(self.drivers, name)[...] = getattr(nominal, name)[0]
         self.index.order[:] = self.ids
-        self.pid = PIDBank(e, [ec.longitudinal_pid, ec.lateral_pid], ec.pid_window)
+        self.pid = PIDBank(e, 2, ec.pid_window)  # longitudinal, lateral
         self.collision_with[:] = self.lane_invasion[:] = -1
         # Position history ring buffer (E, H, N, 2) with a global write pointer.
         self.history_len = config.history_steps
@@ -259,7 +258,7 @@ class HighwaySim:
         if not self.hooks:
             self._advance(steps, stop_on_event)
             return
-        for _ in range(steps):
+        for _ in range(steps):  # (the hooks see the event's step before it freezes the environment)
             self.substep()
             if stop_on_event:
                 self.frozen |= (self.collision_with >= 0) | self.off_road | (self.x[:, 0] >= self.config.route_length_m)

@@ -32,7 +32,15 @@ from typing import Any
 
 import numpy as np
 
-from lcdata.record import EpisodeRecorder, episode_metadata, episode_seed, resolve_driver, seed_start_time_ns
+from lcdata.record import (
+    RECORDED_FLOAT_ROWS,
+    RECORDED_INT_ROWS,
+    EpisodeRecorder,
+    episode_metadata,
+    episode_seed,
+    resolve_driver,
+    seed_start_time_ns,
+)
 from lcdata.writer_process import WRITER_MODES, open_writer, writer_process_pid
 from lcsim import corpus_scenario, paper_scenario
 from lcsim.config import ScenarioConfig
@@ -64,7 +72,8 @@ class Capture:
 
 def _state(sim: Any) -> dict[str, np.ndarray]:
     # (with the rows of the state blocks the recorder copies each step: vf's x .. accel, vi's lane, target_lane)
-    return {name: np.array(getattr(sim, name)) for name in SIM_STATE} | {"vf": sim.vf[:5].copy(), "vi": sim.vi[:2].copy()}
+    return {name: np.array(getattr(sim, name)) for name in SIM_STATE} | {"vf": sim.vf[RECORDED_FLOAT_ROWS].copy(),
+                                                                         "vi": sim.vi[RECORDED_INT_ROWS].copy()}
 
 
 def capture(config: ScenarioConfig, seed: int, driver: str) -> Capture:
