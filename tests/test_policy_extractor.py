@@ -16,6 +16,7 @@ from lcmodels.policy import (
     CompactVGG,
     HybridExtractor,
     PolicyConfig,
+    StridedCompact,
     load_demonstrations,
     load_policy,
     policy_vec_env,
@@ -189,5 +190,10 @@ def test_vgg16_and_compact_on_a_120px_batch() -> None:
     assert vgg(x).shape == (2, 10)
     assert sum(isinstance(m, torch.nn.Conv2d) for m in vgg.modules()) == 13
     assert CompactVGG()(x).shape == (2, 10)
+    strided = StridedCompact()
+    assert strided(x).shape == (2, 10)
+    # the same channels and reduction as the compact network: a 32x5x5 map from 120 px (and from 64 px, 3x3)
+    assert strided.head[1].in_features == 32 * 5 * 5 and StridedCompact(size=64).head[1].in_features == 32 * 3 * 3
     space = spaces.Dict({"current": spaces.Box(-1, 1, (9, 9)), "image": spaces.Box(0, 255, (3, 120, 120), np.uint8)})
     assert HybridExtractor(space, image_net="vgg16").features_dim == 74
+    assert HybridExtractor(space, image_net="strided").features_dim == 74

@@ -2,7 +2,7 @@
 
 Public API::
 
-    HybridExtractor, CompactVGG, VGG16                      # extractor.py
+    HybridExtractor, CompactVGG, StridedCompact, VGG16      # extractor.py
     OBS_MODES, ObsMode, policy_vec_env, build_observation   # obs.py
     PolicyConfig, train_policy                              # train.py
     load_demonstrations, pretrain, bc_loss                  # warmstart.py
@@ -12,7 +12,7 @@ Public API::
 
 from lcmodels.policy.checkpoint import load_policy, read_meta, save_policy
 from lcmodels.policy.evaluate import PolicyDriver, eval_user_seeds, evaluate
-from lcmodels.policy.extractor import VGG16, CompactVGG, HybridExtractor
+from lcmodels.policy.extractor import VGG16, CompactVGG, HybridExtractor, StridedCompact
 from lcmodels.policy.obs import OBS_MODES, ObsMode, build_observation, policy_vec_env
 from lcmodels.policy.train import PolicyConfig, train_policy
 from lcmodels.policy.warmstart import bc_loss, load_demonstrations, pretrain
@@ -25,6 +25,7 @@ __all__ = [
     "ObsMode",
     "PolicyConfig",
     "PolicyDriver",
+    "StridedCompact",
     "bc_loss",
     "build_observation",
     "eval_user_seeds",

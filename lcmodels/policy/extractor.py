@@ -33,7 +33,7 @@ from lcsim.config import LANE_SLOTS
 from lcsim.core import CURRENT_FEATURES
 
 ImageNet = Literal["compact", "vgg16"]
-IMAGE_NETS: tuple[str, ...] = ("compact", "vgg16")
+IMAGE_NETS: tuple[str, ...] = ("compact", "strided", "vgg16")
 
 # Scales of the `current` columns x, y, vx, vy, yaw, speed, lane, target_lane, present (and accel_mps2,
 # with ScenarioConfig.observe_acceleration).
@@ -115,9 +115,40 @@ class CompactVGG(nn.Module):
         return self.head(self.features(x))
 
 
+class StridedCompact(nn.Module):
+    """The compact network with its 2x2 max poolings folded into stride-2 convolutions.
+
+    The same 3x3 average pooling first (40 px at 1.5 m), then three 3x3 convolutions of stride 2 + ReLU
+    (16, 32, 32 channels: 20, 10 and 5 px) and a linear layer: the same channels and the same 8x reduction
+    as :class:`CompactVGG`, each convolution computed at its output's resolution rather than its input's,
+    so about 0.9 M multiply-adds per image against 3.5 M, and no max pooling (which costs a CPU more than
+    the convolutions do).
+    """
+
+    def __init__(self, in_channels: int = 3, size: int = 120, out_features: int = 10) -> None:
+        super().__init__()
+        layers: list[nn.Module] = [nn.AvgPool2d(3)]
+        c = in_channels
+        for width in (16, 32, 32):
+            layers += [nn.Conv2d(c, width, 3, stride=2, padding=1), nn.ReLU(inplace=True)]
+            c = width
+        self.features = nn.Sequential(*layers)
+        side = size // 3
+        if side < 8:
+            raise ValueError(f"the strided network needs images of at least 24x24 pixels, got {size}")
+        for _ in range(3):
+            side = (side + 1) // 2
+        self.head = nn.Sequential(nn.Flatten(), nn.Linear(32 * side * side, out_features), nn.ReLU(inplace=True))
+
+    def forward(self, x: torch.Tensor) -> torch.Tensor:
+        return self.head(self.features(x))
+
+
 def make_image_net(name: str, in_channels: int, size: int, out_features: int) -> nn.Module:
     if name == "compact":
         return CompactVGG(in_channels, size, out_features)
+    if name == "strided":
+        return StridedCompact(in_channels, size, out_features)
     if name == "vgg16":
         return VGG16(in_channels, size, out_features)
     raise ValueError(f"unknown image network {name!r}; choose one of {', '.join(IMAGE_NETS)}")
