@@ -9,6 +9,7 @@ import numpy as np
 import pytest
 import torch
 from gymnasium import spaces
+from stable_baselines3.common.utils import obs_as_tensor
 
 from lcdata.record import record_episodes
 from lcmodels.policy import (
@@ -17,11 +18,14 @@ from lcmodels.policy import (
     HybridExtractor,
     PolicyConfig,
     StridedCompact,
+    bc_loss,
     load_demonstrations,
     load_policy,
     policy_vec_env,
+    pretrain,
     train_policy,
 )
+from lcmodels.policy.extractor import pooled_images, prepools
 from lcmodels.policy.obs import OBS_MODES, policy_observation_space, scenario_for_mode
 from lcmodels.policy.train import build_model
 from lcsim.config import tiny_scenario
@@ -197,3 +201,36 @@ def test_vgg16_and_compact_on_a_120px_batch() -> None:
     space = spaces.Dict({"current": spaces.Box(-1, 1, (9, 9)), "image": spaces.Box(0, 255, (3, 120, 120), np.uint8)})
     assert HybridExtractor(space, image_net="vgg16").features_dim == 74
     assert HybridExtractor(space, image_net="strided").features_dim == 74
+
+
+def test_pooled_images_are_the_networks_first_layer() -> None:
+    """The pooling computed ahead of the compact networks is their AvgPool2d (remainder dropped), and a
+    network fed it gives what it gives the full image."""
+    x = np.random.default_rng(3).integers(0, 256, (4, 3, 121, 121), dtype=np.uint8)
+    pooled = pooled_images(x, np.array([2, 0]))
+    ref = torch.nn.functional.avg_pool2d(torch.as_tensor(x[[2, 0]]).float(), 3)
+    assert pooled.shape == (2, 3, 40, 40)
+    torch.testing.assert_close(torch.from_numpy(pooled), ref)
+    for net in (CompactVGG(size=121), StridedCompact(size=121)):
+        assert prepools(net)
+        full = net(torch.as_tensor(x).float() / 255.0)
+        torch.testing.assert_close(net(torch.from_numpy(pooled_images(x)) / 255.0), full)
+    assert not prepools(VGG16())
+    with pytest.raises(ValueError, match="uint8"):
+        pooled_images(x.astype(np.float32))
+
+
+@pytest.mark.parametrize("net", ["compact", "strided"])
+def test_cloning_feeds_pooled_images_with_the_full_images_loss(tmp_path: Path, net: str) -> None:
+    """bc_loss (pooled images) equals the policy's own loss on the full images; pretrain learns with them."""
+    config = scenario_for_mode(tiny_scenario(), "image")
+    record_episodes(config, [1], "oracle", tmp_path / "demos", scenario="tiny")
+    demos = load_demonstrations(tmp_path / "demos", "image", None, scenario=config)
+    env = policy_vec_env(LaneChangeSB3VecEnv(1, config), "image")
+    model = build_model(tiny_policy(obs="image", image_net=net), env)
+    with torch.no_grad():
+        obs = obs_as_tensor(demos.obs, model.policy.device)
+        _v, log_prob, _e = model.policy.evaluate_actions(obs, torch.as_tensor(demos.actions))
+    assert bc_loss(model, demos) == pytest.approx(float(-log_prob.mean()), rel=1e-5)
+    losses = pretrain(model, demos, epochs=3, learning_rate=3e-3)
+    assert losses[-1] < losses[0]

@@ -3,7 +3,10 @@
 - ``image`` (3, 120, 120) uint8, scaled to [0, 1] by stable-baselines3: the paper's VGG-16
   (:class:`VGG16`, 13 convolutions and 5 poolings, then two linear layers down to 10 features) or the
   compact VGG-style default (:class:`CompactVGG`, three 3x3-convolution blocks on the image average-pooled
-  to 40x40; about 4000x fewer multiply-adds, so it trains on a CPU).
+  to 40x40; about 4000x fewer multiply-adds, so it trains on a CPU), or the same with stride-2 convolutions
+  in place of the max poolings (:class:`StridedCompact`, a quarter of the compact network's multiply-adds).
+  The compact networks' first layer, the average pooling, is linear: training and the frozen branch
+  compute it once per image from the uint8 pixels (:func:`pooled_images`) and feed the rest of the network.
 - ``current`` (1+K, 9): the ego and its K neighbour slots (:data:`lcsim.core.CURRENT_FEATURES`; a tenth
   column, the acceleration, with ``ScenarioConfig.observe_acceleration``), scaled per column to order
   one, flattened, two-layer MLP. With ``contact_features`` the MLP also gets, per slot, the time to
@@ -23,6 +26,7 @@ from __future__ import annotations
 import math
 from typing import Literal
 
+import numba
 import numpy as np
 import torch
 from gymnasium import spaces
@@ -32,7 +36,7 @@ from torch import nn
 from lcsim.config import LANE_SLOTS
 from lcsim.core import CURRENT_FEATURES
 
-ImageNet = Literal["compact", "vgg16"]
+ImageNet = Literal["compact", "strided", "vgg16"]
 IMAGE_NETS: tuple[str, ...] = ("compact", "strided", "vgg16")
 
 # Scales of the `current` columns x, y, vx, vy, yaw, speed, lane, target_lane, present (and accel_mps2,
@@ -92,6 +96,54 @@ class VGG16(nn.Module):
         return self.head(self.features(x))
 
 
+IMAGE_POOL = 3
+"""The compact networks' first layer: IMAGE_POOL x IMAGE_POOL average pooling (120 px -> 40 px)."""
+
+
+def _pooled_forward(features: nn.Sequential, x: torch.Tensor, size: int) -> torch.Tensor:
+    # A (size/IMAGE_POOL)-pixel input is the image pooled already (pooled_images): the rest of the layers.
+    return features(x) if x.shape[-1] == size else features[1:](x)
+
+
+def prepools(net: nn.Module) -> bool:
+    """Whether ``net`` starts with the average pooling that :func:`pooled_images` computes ahead of it."""
+    return isinstance(net, (CompactVGG, StridedCompact))
+
+
+@numba.njit(cache=True, nogil=True)
+def _pool_rows(images: np.ndarray, rows: np.ndarray, k: int, out: np.ndarray) -> None:
+    n_c, side = out.shape[1], out.shape[2]
+    inv = np.float32(1.0 / (k * k))
+    for r in range(rows.size):
+        src = rows[r]
+        for c in range(n_c):
+            for i in range(side):
+                for j in range(side):
+                    acc = 0
+                    for a in range(k):
+                        for b in range(k):
+                            acc += images[src, c, i * k + a, j * k + b]
+                    out[r, c, i, j] = np.float32(acc) * inv
+
+
+def pooled_images(images: np.ndarray, rows: np.ndarray | None = None, k: int = IMAGE_POOL) -> np.ndarray:
+    """``(N, C, S, S)`` uint8 images -> ``(len(rows), C, S // k, S // k)`` float32 means of k x k blocks.
+
+    What the compact networks' first layer computes (``nn.AvgPool2d(k)``, the remainder rows and columns
+    dropped), on the 0-255 scale, in one pass over the pixels of ``rows`` (default: all) and without the
+    image ever held as floats: a ninth of the values stable-baselines3 then scales to [0, 1], which is how
+    cloning and the frozen branch feed the networks (:func:`_pooled_forward` takes the smaller input for
+    pooled). The same values as the pooling layer up to float rounding.
+    """
+    images = np.ascontiguousarray(images)
+    if images.dtype != np.uint8 or images.ndim != 4:
+        raise ValueError(f"pooled_images needs (N, C, S, S) uint8 images, got {images.dtype} {images.shape}")
+    rows = np.arange(len(images)) if rows is None else np.asarray(rows, dtype=np.int64)
+    out = np.empty((rows.size, images.shape[1], images.shape[2] // k, images.shape[3] // k), np.float32)
+    _pool_rows(images, rows.astype(np.int64, copy=False), k, out)
+    return out
+
+
 class CompactVGG(nn.Module):
     """A small VGG-style network for the semantic bird's-eye image.
 
@@ -103,16 +155,17 @@ class CompactVGG(nn.Module):
     def __init__(self, in_channels: int = 3, size: int = 120, out_features: int = 10) -> None:
         super().__init__()
         self.features = nn.Sequential(
-            nn.AvgPool2d(3),
+            nn.AvgPool2d(IMAGE_POOL),
             _vgg_features((16, "M", 32, "M", 32, "M"), in_channels),
         )
-        side = size // 3 // 8
+        side = size // IMAGE_POOL // 8
         if side < 1:
             raise ValueError(f"the compact VGG needs images of at least 24x24 pixels, got {size}")
         self.head = nn.Sequential(nn.Flatten(), nn.Linear(32 * side * side, out_features), nn.ReLU(inplace=True))
+        self.size = size
 
     def forward(self, x: torch.Tensor) -> torch.Tensor:
-        return self.head(self.features(x))
+        return self.head(_pooled_forward(self.features, x, self.size))
 
 
 class StridedCompact(nn.Module):
@@ -127,21 +180,22 @@ class StridedCompact(nn.Module):
 
     def __init__(self, in_channels: int = 3, size: int = 120, out_features: int = 10) -> None:
         super().__init__()
-        layers: list[nn.Module] = [nn.AvgPool2d(3)]
+        layers: list[nn.Module] = [nn.AvgPool2d(IMAGE_POOL)]
         c = in_channels
         for width in (16, 32, 32):
             layers += [nn.Conv2d(c, width, 3, stride=2, padding=1), nn.ReLU(inplace=True)]
             c = width
         self.features = nn.Sequential(*layers)
-        side = size // 3
+        side = size // IMAGE_POOL
         if side < 8:
             raise ValueError(f"the strided network needs images of at least 24x24 pixels, got {size}")
         for _ in range(3):
             side = (side + 1) // 2
         self.head = nn.Sequential(nn.Flatten(), nn.Linear(32 * side * side, out_features), nn.ReLU(inplace=True))
+        self.size = size
 
     def forward(self, x: torch.Tensor) -> torch.Tensor:
-        return self.head(self.features(x))
+        return self.head(_pooled_forward(self.features, x, self.size))
 
 
 def make_image_net(name: str, in_channels: int, size: int, out_features: int) -> nn.Module:
@@ -176,7 +230,10 @@ class ImageEncoder:
 
     def __call__(self, images: np.ndarray) -> np.ndarray:
         with torch.no_grad():
-            x = torch.as_tensor(np.asarray(images)).float() / 255.0
+            if prepools(self.net):
+                x = torch.from_numpy(pooled_images(np.asarray(images))) / 255.0
+            else:
+                x = torch.as_tensor(np.asarray(images)).float() / 255.0
             return self.net(x).numpy().astype(np.float32, copy=False)
 
     def state_dict(self) -> dict[str, torch.Tensor]:

@@ -30,6 +30,7 @@ from stable_baselines3.common.utils import obs_as_tensor
 from lcdata.offline import episode_config, rebuild_observations
 from lcdata.reader import list_episodes, read_episode
 from lcmodels.policy.checkpoint import scenario_differences
+from lcmodels.policy.extractor import HybridExtractor, pooled_images, prepools
 from lcmodels.policy.obs import build_observation, mode_keys
 from lcmodels.predictor.inference import Predictor
 from lcsim.config import ScenarioConfig
@@ -138,6 +139,20 @@ def load_demonstrations(
                           np.concatenate(returns).astype(np.float32), used)  # fmt: skip
 
 
+def _pools_images(policy: torch.nn.Module) -> bool:
+    """Whether the policy's image branch starts with the pooling :func:`pooled_images` computes ahead."""
+    return any(isinstance(m, HybridExtractor) and "image" in m.branches and prepools(m.branches["image"])
+               for m in policy.modules())  # fmt: skip
+
+
+def _batch(demos: Demonstrations, rows: np.ndarray, pooled: bool) -> dict[str, np.ndarray]:
+    # Pooled images: a ninth of the pixels for stable-baselines3 to scale, the network's pooling skipped.
+    obs = {k: v[rows] for k, v in demos.obs.items() if not (pooled and k == "image")}
+    if pooled and "image" in demos.obs:
+        obs["image"] = pooled_images(demos.obs["image"], rows)
+    return obs
+
+
 def pretrain(
     model: BaseAlgorithm,
     demos: Demonstrations,
@@ -168,13 +183,14 @@ def pretrain(
     weights = torch.as_tensor(weights / weights[demos.actions].mean(), dtype=torch.float32, device=policy.device)
     sample_w = None if demos.weights is None else torch.as_tensor(demos.weights / demos.weights.mean(),
                                                                    dtype=torch.float32, device=policy.device)
+    pooled = _pools_images(policy)
     losses: list[float] = []
     for epoch in range(epochs):
         perm = gen.permutation(n)
         total, count = 0.0, 0
         for start in range(0, n, batch_size):
             idx = perm[start : start + batch_size]
-            obs = obs_as_tensor({k: v[idx] for k, v in demos.obs.items()}, policy.device)
+            obs = obs_as_tensor(_batch(demos, idx, pooled), policy.device)
             act = torch.as_tensor(demos.actions[idx], device=policy.device)
             ret = torch.as_tensor(demos.returns[idx], device=policy.device)
             w = weights[act] if sample_w is None else weights[act] * sample_w[torch.as_tensor(idx)]
@@ -207,10 +223,11 @@ def bc_loss(model: BaseAlgorithm, demos: Demonstrations, batch_size: int = 1024)
     policy = model.policy
     policy.set_training_mode(False)
     total = 0.0
+    pooled = _pools_images(policy)
     with torch.no_grad():
         for start in range(0, len(demos), batch_size):
             sl = slice(start, start + batch_size)
-            obs = obs_as_tensor({k: v[sl] for k, v in demos.obs.items()}, policy.device)
+            obs = obs_as_tensor(_batch(demos, np.arange(sl.start, min(sl.stop, len(demos))), pooled), policy.device)
             act = torch.as_tensor(demos.actions[sl], device=policy.device)
             if isinstance(model, DQN):
                 logits = policy.q_net(obs)  # type: ignore[attr-defined]
