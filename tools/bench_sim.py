@@ -8,8 +8,8 @@ When highway-env is installed, measures its ``highway-v0`` with 100 vehicles on 
 
 With ``--full``, also: batches of 8 and 256, every size without the image, the lookahead planner's cost per
 decision (perceived, as the safety layer runs it), and the floor of a compiled simulator: a bare IDM sub-step
-(per-lane leaders from a sort, no lane changes, controller, sensors or observation) compiled with numba, for one
-environment and for 64, next to the batch of 64 with the image as a ratio (``floor_over_image_envs64``: how many
+(per-lane leaders from an insertion sort of the previous order, as the simulator keeps it; no lane changes,
+controller, sensors or observation) compiled with numba, for one environment and for 64, next to the batch of 64 with the image as a ratio (``floor_over_image_envs64``: how many
 times the bare sub-step's speed the whole simulator is from). The simulator itself is compiled too
 (:mod:`lcsim.kernel`); its first call compiles once per machine (``tools/bench_compile.py`` times it).
 
@@ -95,16 +95,22 @@ def bench_numba_floor(seconds: float, num_envs: int) -> float | None:
         return None
 
     @numba.njit(cache=True)
-    def substeps(x, v, v0, lane, length, steps, dt, lanes):  # pragma: no cover - compiled
+    def substeps(x, v, v0, lane, length, order, steps, dt, lanes):  # pragma: no cover - compiled
         e_count, n = x.shape
         lead = np.empty(lanes, dtype=np.int64)
         acc = np.empty(n)
         for _ in range(steps):
             for e in range(e_count):
-                order = np.argsort(x[e])
+                o = order[e]
+                for k in range(1, n):  # insertion sort from the previous sub-step's order, as lcsim.kernel does
+                    i, m = o[k], k - 1
+                    while m >= 0 and x[e, o[m]] > x[e, i]:
+                        o[m + 1] = o[m]
+                        m -= 1
+                    o[m + 1] = i
                 lead[:] = -1
                 for k in range(n - 1, -1, -1):  # front to back: the last vehicle seen in a lane leads
-                    i = order[k]
+                    i = o[k]
                     j = lead[lane[e, i]]
                     gap, dv = 1e9, 0.0
                     if j >= 0:
@@ -127,10 +133,11 @@ def bench_numba_floor(seconds: float, num_envs: int) -> float | None:
     v0 = v + rng.normal(0.0, 0.5, (num_envs, n))
     lane = rng.integers(0, 4, (num_envs, n)).astype(np.int64)
     length = np.full((num_envs, n), 5.37)
-    substeps(x, v, v0, lane, length, 1, 0.05, 4)  # compile (or load the cache)
+    order = np.tile(np.arange(n), (num_envs, 1))
+    substeps(x, v, v0, lane, length, order, 1, 0.05, 4)  # compile (or load the cache)
     steps, t0 = 0, time.perf_counter()
     while time.perf_counter() - t0 < seconds:
-        substeps(x, v, v0, lane, length, 100, 0.05, 4)
+        substeps(x, v, v0, lane, length, order, 100, 0.05, 4)
         steps += 100
     return steps * num_envs * 0.05 / (time.perf_counter() - t0)
 
