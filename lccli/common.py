@@ -47,7 +47,8 @@ def positive_float(text: str) -> float:
 
 
 def add_lookahead_arguments(p: argparse.ArgumentParser) -> None:
-    """``--lookahead-horizon``, ``--lookahead-samples`` and ``--lookahead-perceived``: how the lookahead
+    """``--lookahead-horizon``, ``--lookahead-samples``, ``--lookahead-perceived`` and
+    ``--lookahead-driver-draws``: how the lookahead
     planners imagine (``lc-eval``, ``lc-record`` and the tools that run the same drivers)."""
     p.add_argument("--lookahead-horizon", type=int_at_least(1), default=None,
                    help="lookahead drivers: decisions imagined after each candidate one (default 16, i.e. 8 s)")
@@ -57,12 +58,16 @@ def add_lookahead_arguments(p: argparse.ArgumentParser) -> None:
                    help="lookahead-blind drivers: imagine each future from what the ego's sensors show (no traffic "
                    "beyond the scenario's sensing range, each vehicle's unseen desired speed read from its motion): "
                    "the planner needs no privileged state, only the traffic's rules")
+    p.add_argument("--lookahead-driver-draws", action="store_true",
+                   help="with --lookahead-perceived, human-like traffic: each imagined future draws the unseen "
+                   "drivers' own parameters from the traffic's distribution instead of taking the median driver "
+                   "(with --lookahead-samples > 1 a decision's survival is its share over plausible drivers)")
 
 
 def lookahead_options(args: argparse.Namespace) -> dict[str, int]:
     """The ``--lookahead-*`` options given (``LookaheadConfig`` fields, for ``driver_for``)."""
     given = {"horizon_decisions": args.lookahead_horizon, "samples": args.lookahead_samples,
-             "perceived": args.lookahead_perceived or None}
+             "perceived": args.lookahead_perceived or None, "driver_draws": args.lookahead_driver_draws or None}
     return {k: v for k, v in given.items() if v is not None}
 
 

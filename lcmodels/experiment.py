@@ -463,6 +463,8 @@ class Experiment:
         s = recipe.safety  # capped with the recipe (Experiment.recipes)
         assert s is not None
         look = {"horizon_decisions": s.horizon, "samples": s.samples, "perceived": s.perceived}
+        if s.driver_draws:  # (named only when set: stages measured before the field existed stay complete)
+            look["driver_draws"] = True
         inputs = {"policy": final.digest} | ({"follow": follow.digest} if follow is not None else {})
         return self.evaluation(
             f"{recipe.name}/seed{seed}/safety", policy_dir(self.out, recipe.name, seed) / "safety",

@@ -109,6 +109,9 @@ class SafetySpec:
     samples: int = 1
     perceived: bool = True
     """Imagine from what the ego's sensors show (no privileged state)."""
+    driver_draws: bool = False
+    """Perceived, human-like traffic: each imagined future draws the unseen drivers from the traffic's
+    distribution instead of the median driver (with ``samples`` > 1: a share over plausible drivers)."""
 
 
 _SPECS: dict[str, type] = {"demos": DemoSpec, "dagger": DaggerSpec, "safety": SafetySpec}

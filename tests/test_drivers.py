@@ -272,6 +272,8 @@ def test_perceived_lookahead_is_deterministic_and_only_picks_surviving_decisions
 def test_lookahead_config_refuses_perception_without_blindness():
     with pytest.raises(ValueError, match="perceived"):
         LookaheadConfig(perceived=True)
+    with pytest.raises(ValueError, match="driver_draws"):
+        LookaheadConfig(blind=True, driver_draws=True)
 
 
 def test_the_planner_reports_the_prediction_its_driver_decided_on():

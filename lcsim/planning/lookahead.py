@@ -31,6 +31,11 @@ class LookaheadConfig:
     the scenario's ``sensing_range_m``, the range the observation has): no traffic beyond that range, and
     each vehicle's unseen desired speed estimated. The planner then needs no privileged state, only the
     traffic's rules and the ego's perception."""
+    driver_draws: bool = False
+    """Perceived only, human-like traffic: each imagined future draws the unseen drivers' own parameters
+    (headway, acceleration, reaction, lane-change habits) from the traffic's distribution instead of taking
+    the median driver, so with ``samples`` > 1 a decision's survival is its share over drivers the sensors
+    cannot tell apart (:func:`~lcsim.planning.perception.perceive`)."""
 
     def __post_init__(self) -> None:
         if not isinstance(self.horizon_decisions, int) or self.horizon_decisions < 1:
@@ -42,6 +47,8 @@ class LookaheadConfig:
         if self.perceived and not self.blind:
             raise ValueError("perceived=True needs blind=True (a planner that sees the coming random draws is "
                              "privileged whatever it perceives)")
+        if self.driver_draws and not self.perceived:
+            raise ValueError("driver_draws=True needs perceived=True (an unperceived copy knows every driver)")
 
 
 def _driver_name(driver: Driver) -> str:
@@ -105,7 +112,7 @@ class LookaheadDriver:
         if self.config.blind:
             redraw_future(future.sim, salt)
         if self.config.perceived:
-            perceive(future.sim, future.config.sensing_range_m)
+            perceive(future.sim, future.config.sensing_range_m, draw_drivers=self.config.driver_draws)
         future.step(actions)
         for _ in range(self.config.horizon_decisions):
             if (future.outcome != RUNNING).all():  # ended environments stay frozen; nothing left to see
