@@ -33,11 +33,12 @@ evaluation and budget caps::
     [safety]                       # optional: also evaluate the final policy behind the lookahead planner
     follow = "pure-ppo"            # the recipe whose policy the imagined futures follow
     horizon = 32
+    samples = 3                    # redrawn futures per candidate decision
     perceived = true
 
 The stage tables override ``[policy]`` for their stage. ``--set policy.learning_rate=1e-4`` (or
 ``train.timesteps=...``, ``demos.episodes=...``) overrides a value on the command line. Whatever a recipe
-reached is recorded next to it (``<name>.reached.json``) by ``tools/publish_results.py``.
+reached is recorded next to it (``<name>.reached.json``) by ``tools/publish_zoo.py``.
 """
 
 from __future__ import annotations
