@@ -58,9 +58,13 @@ class DriverParams:
 
     def set_nominal(self, mask: np.ndarray, cfg: TrafficConfig, dt: float) -> None:
         """Put the drivers where ``mask`` is set at the medians (what a planner that cannot see them assumes)."""
-        nominal = DriverParams.nominal(cfg, (1,), dt)
-        for name in self.__slots__:  # (in place: the simulator's drivers are views of its state)
-            getattr(self, name)[...] = np.where(mask, getattr(nominal, name)[0], getattr(self, name))
+        self.set_where(mask, DriverParams.nominal(cfg, (1,), dt))
+
+    def set_where(self, mask: np.ndarray, other: DriverParams) -> None:
+        """Take ``other``'s drivers (arrays broadcasting to ours) where ``mask`` is set, in place (the simulator's
+        drivers are views of its state)."""
+        for name in self.__slots__:
+            getattr(self, name)[...] = np.where(mask, getattr(other, name), getattr(self, name))
 
 
 def idm_accel(v: np.ndarray, v0: np.ndarray, gap: np.ndarray, dv: np.ndarray, cfg: TrafficConfig,

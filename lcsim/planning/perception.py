@@ -82,8 +82,7 @@ def _draw_drivers(sim: HighwaySim, mask: np.ndarray) -> None:
     drawn = DriverParams.nominal(sim.config.traffic, mask.shape, sim.dt)
     for e in range(mask.shape[0]):
         drawn.draw(e, gen, sim.config.traffic, sim.dt, mask.shape[1])
-    for name in DriverParams.__slots__:  # (in place: the simulator's drivers are views of its state)
-        getattr(sim.drivers, name)[...] = np.where(mask, getattr(drawn, name), getattr(sim.drivers, name))
+    sim.drivers.set_where(mask, drawn)
 
 
 def estimated_desired_speeds(sim: HighwaySim) -> np.ndarray:
