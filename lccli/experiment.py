@@ -50,7 +50,9 @@ def experiment_parser() -> argparse.ArgumentParser:
     p.add_argument("--recipe", action="append", default=None, metavar="NAME_OR_FILE",
                    help="run this recipe (a name in lcmodels/recipes/ or a .toml file) instead of the preset's; "
                    "repeat for several")
-    p.add_argument("--seeds", type=positive_int, default=1, help="training seeds per recipe (default 1)")
+    p.add_argument("--seeds", type=positive_int, default=1,
+                   help="training seeds per recipe (default 1; the paper preset trains hybrid-ppo, and pure-ppo "
+                   "that its safety layer follows, with 2)")
     p.add_argument("--out", type=Path, required=True, help="experiment directory (resumed when it holds one)")
     p.add_argument("--threads", type=positive_int, default=1,
                    help="torch threads (default 1: on a shared 2-core machine 1 is often fastest; results do "

@@ -473,6 +473,33 @@ class Experiment:
             follow=str(previous_policy(follow)) if follow is not None else None, lookahead=look,
             label="lookahead-blind:policy")  # fmt: skip
 
+    def safety_when_ready(self, recipe: Recipe, seed: int, done: list[StageResult], predictor: StageResult | None,
+                          follow: tuple[Recipe, StageResult | None] | None) -> StageResult | None:  # fmt: skip
+        """``recipe``'s safety stage right after its training (``done``: its stages), when the policy the
+        planner follows is trained already; else None, and the run does it after every recipe. ``follow``:
+        the followed recipe and its demonstrations. Parallel workers call it, so that the one-core safety
+        evaluation overlaps the remaining training."""
+        from lcmodels.policy.obs import needs_predictor
+
+        if recipe.safety is None or len(done) < 2 or done[-1].status not in ("skipped", "done"):
+            return None
+        follow_final = None
+        if recipe.safety.follow:
+            if follow is None:
+                return None
+            f_recipe, f_demos = follow
+            self.dry_run, progress, n = True, self._progress, len(self.stages)
+            self._progress = None  # a look at the follower's stages, not progress
+            try:
+                f_done = self.recipe_stages(f_recipe, seed, predictor if needs_predictor(f_recipe.obs) else None,
+                                            f_demos)  # fmt: skip
+            finally:
+                self.dry_run, self._progress, self.stages[n:] = False, progress, []
+            if len(f_done) < 2 or any(st.status != "skipped" for st in f_done):
+                return None
+            follow_final = f_done[-2]
+        return self.safety(recipe, seed, done[-2], follow_final, predictor)
+
     # -- the whole run -------------------------------------------------------------------------------
     def plan(self) -> list[StageResult]:
         """What :meth:`run` would do, without doing it: each stage ``skipped`` or ``would run (why)``.
@@ -525,8 +552,9 @@ class Experiment:
             finally:
                 self._invocation_t0 = None
             wall = time.perf_counter() - t0
-            report = write_report(ReportInput(self.out, self.preset, self.seeds, list(self.stages), self.invocations,
-                                              self.command, self.recipes()), wall_s=wall)
+            report = write_report(ReportInput(self.out, self.preset, self.max_seeds, list(self.stages), self.invocations,
+                                              self.command, self.recipes(),
+                                              {r.name: self.seeds_of(r.name) for r in self.recipes()}), wall_s=wall)
         self.emit(f"[report] wrote {report}")
         return ExperimentResult(self.out, self.preset, self.seeds, list(self.stages), wall, report)
 
@@ -571,6 +599,20 @@ class Experiment:
         self._recipes = [r.capped(self.preset.cap_dict) for r in out]
         return self._recipes
 
+    def seeds_of(self, name: str) -> int:
+        """Training seeds of recipe ``name``: ``--seeds``, or more where the preset asks (``recipe_seeds``), and
+        a followed recipe as many as the recipe whose safety layer follows it (same seed, same follower)."""
+        asked = dict(self.preset.recipe_seeds)
+        n = max(self.seeds, asked.get(name, 1))
+        for r in self.recipes():
+            if r.safety is not None and r.safety.follow == name and r.name != name:
+                n = max(n, self.seeds_of(r.name))
+        return n
+
+    @property
+    def max_seeds(self) -> int:
+        return max([self.seeds, *(self.seeds_of(r.name) for r in self.recipes())])
+
     def _stages(self, *, skip_train: bool, jobs: int = 1) -> None:
         from lcmodels.policy.obs import needs_predictor
 
@@ -583,8 +625,10 @@ class Experiment:
             if "clone" in r.stages and demos_key(r.demos) not in demos:
                 demos[demos_key(r.demos)] = self.demos(r.demos)
         tasks = []
-        for seed in range(self.seeds):
+        for seed in range(self.max_seeds):
             for r in recipes:
+                if seed >= self.seeds_of(r.name):
+                    continue
                 task = (r, seed, predictor if needs_predictor(r.obs) else None,
                         demos[demos_key(r.demos)] if "clone" in r.stages else None)  # fmt: skip
                 if skip_train:  # a complete stage is reported as such (with its recorded time); the rest not run
@@ -598,6 +642,10 @@ class Experiment:
                                        for s in self.stages[n:]]  # fmt: skip
                     continue
                 tasks.append(task)
+        # a safety layer's policies first (their safety stage can start as soon as both are trained), the
+        # rest in recipe order
+        followed = {r.safety.follow for r in recipes if r.safety is not None}
+        tasks.sort(key=lambda t: 0 if t[0].safety is not None or t[0].name in followed else 1)
         if self.executor == "ray" and not self.dry_run and tasks:
             results = self._ray_policies(tasks)
         elif jobs == 1 or self.dry_run or len(tasks) < 2:
@@ -698,7 +746,13 @@ class Experiment:
         pool = ctx.Pool(min(jobs, len(tasks)), initializer=_policy_worker_init,
                         initargs=(queue, self.threads, os.getpid()))
         try:
-            pending = [pool.apply_async(_policy_worker, (self.preset, self.out, self.seeds, *task)) for task in tasks]
+            by_key = {(t[0].name, t[1]): t for t in tasks}
+            pending = []
+            for task in tasks:
+                r, seed = task[0], task[1]
+                f = by_key.get((r.safety.follow, seed)) if r.safety is not None and r.safety.follow else None
+                pending.append(pool.apply_async(_policy_worker, (self.preset, self.out, self.seeds, *task,
+                                                                 (f[0], f[3]) if f else None)))  # fmt: skip
             while not all(r.ready() for r in pending):
                 for r in pending:
                     if r.ready() and not r.successful():
@@ -748,10 +802,14 @@ def _policy_worker_init(queue: Any, threads: int, parent: int | None = None) -> 
 
 
 def _policy_worker(preset: Preset, out: Path, seeds: int, recipe: Recipe, seed: int, predictor: StageResult | None,
-                   demos: StageResult | None) -> list[StageResult]:  # fmt: skip
-    """One policy stage in a worker process of :meth:`Experiment._parallel_policies`."""
+                   demos: StageResult | None,
+                   follow: tuple[Recipe, StageResult | None] | None = None) -> list[StageResult]:  # fmt: skip
+    """One recipe's stages in a worker process of :meth:`Experiment._parallel_policies`, then its safety stage
+    if the policy that one follows is trained (:meth:`Experiment.safety_when_ready`)."""
     exp = Experiment(preset, out, seeds=seeds, threads=_WORKER["threads"], progress=_WORKER["queue"].put)
-    return exp.recipe_stages(recipe, seed, predictor, demos)
+    done = exp.recipe_stages(recipe, seed, predictor, demos)
+    exp.safety_when_ready(recipe, seed, done, predictor, follow)
+    return done
 
 
 def run_experiment(preset: Preset | str, out: str | Path, *, seeds: int = 1, command: str = "", threads: int = 1,

@@ -81,6 +81,9 @@ class Preset:
     predictor_tensorboard: bool = True
     recipes: tuple[str, ...] = (*PAPER_RECIPES, *BEST_RECIPES)
     """Recipe names or files (:mod:`lcmodels.recipe`), each trained with every training seed."""
+    recipe_seeds: tuple[tuple[str, int], ...] = ()
+    """Recipes trained with more seeds than ``--seeds`` asks, ``(name, seeds)``; a recipe whose policy a
+    safety layer follows gets as many seeds as the recipe it serves."""
     caps: tuple[tuple[str, int], ...] = ()
     """Upper bounds on the recipes' integer settings, ``(name, cap)`` (``timesteps``, ``episodes``, ``epochs``,
     ``warm_start_epochs``, ``rounds``, ``n_envs``, ``horizon``...): the small presets' budgets."""
@@ -109,6 +112,9 @@ class Preset:
         for name in ("val_episodes", "test_episodes", "record_workers", "predictor_epochs"):
             if getattr(self, name) < 1:
                 raise ValueError(f"Preset.{name} must be >= 1, got {getattr(self, name)}")
+        for name, n in self.recipe_seeds:
+            if not isinstance(n, int) or isinstance(n, bool) or n < 1:
+                raise ValueError(f"Preset.recipe_seeds: {name!r} needs an integer >= 1, got {n!r}")
         if self.test_seed in self.val_seeds:
             raise ValueError(f"Preset.test_seed {self.test_seed} must not be a validation seed {self.val_seeds}")
 
@@ -140,8 +146,9 @@ PRESETS: dict[str, Preset] = {
         recipes=("quick-pure",), val_episodes=200, val_seeds=(0,), test_episodes=200, oracle=False, zoo=True,
         showcase_episodes=3,
     ),
-    # The paper's setting: every recipe at its own budget (hours on a CPU; use --seeds and resume).
-    "paper": Preset(name="paper"),
+    # The paper's setting: every recipe at its own budget, Hybrid-PPO with two training seeds (hours on a CPU;
+    # it resumes).
+    "paper": Preset(name="paper", recipe_seeds=(("hybrid-ppo", 2),)),
 }
 
 

@@ -333,6 +333,8 @@ class ReportInput:
     command: str
     recipes: list[Any] = field(default_factory=list)
     """The :class:`lcmodels.recipe.Recipe` objects the experiment ran."""
+    recipe_seeds: dict[str, int] = field(default_factory=dict)
+    """Training seeds of each recipe (default ``seeds``)."""
 
 
 def write_report(exp: ReportInput, *, wall_s: float) -> Path:
@@ -352,8 +354,11 @@ def write_report(exp: ReportInput, *, wall_s: float) -> Path:
     L: list[str] = []
     add = L.append
     add(f"# lc-experiment report: preset `{p.name}`\n")
-    add(f"- recipes: {', '.join(f'`{r.name}`' for r in exp.recipes)}; training seeds per recipe: **{exp.seeds}** "
-        f"(0..{exp.seeds - 1})")
+    counts = {r.name: exp.recipe_seeds.get(r.name, exp.seeds) for r in exp.recipes}
+    usual = min(counts.values(), default=exp.seeds)
+    more = ", ".join(f"`{n}` {k}" for n, k in counts.items() if k != usual)
+    add(f"- recipes: {', '.join(f'`{r.name}`' for r in exp.recipes)}; training seeds per recipe: **{usual}** "
+        f"(from 0){f'; more for {more}' if more else ''}")
     add(f"- **test**: {p.test_episodes} held-out episodes of evaluation seed {p.test_seed}, never used for any "
         f"choice: every figure of the tables. **Validation**: {p.val_episodes} episodes of evaluation seed(s) "
         f"{', '.join(str(v) for v in p.val_seeds)}, the episodes the recipes were chosen on (last table).")

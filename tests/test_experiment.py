@@ -40,6 +40,7 @@ def test_tiny_preset_end_to_end(tmp_path: Path, capsys: pytest.CaptureFixture[st
     check_every_recipe_kind_ran(run_dir)
     check_report_holds_the_numbers_of_the_metrics_files(run_dir)
     check_parallel_policies_equal_sequential_ones(run_dir)
+    check_a_safety_stage_runs_as_soon_as_its_follower_is_trained(run_dir)
     check_rerun_skips_everything_and_a_changed_recipe_is_stale(run_dir, capsys)
     check_publish_copies_the_report_and_every_metrics_file(run_dir, tmp_path / "published", capsys)
     check_the_report_states_the_wall_time_of_every_invocation(run_dir)
@@ -190,6 +191,48 @@ def check_parallel_policies_equal_sequential_ones(run_dir: Path) -> None:
         d = policy_dir(run_dir, key, seed)
         after = (without_wall_times(stage_metrics(run_dir, key, seed)), (d / "train" / "policy.safetensors").read_bytes())
         assert after == before[key]
+
+
+def check_a_safety_stage_runs_as_soon_as_its_follower_is_trained(run_dir: Path) -> None:
+    """What a ``--jobs`` worker does after training a recipe with a safety layer: its safety stage, when the
+    policy the planner follows is trained already (the same figures as the run's own), else nothing."""
+    exp = Experiment(PRESETS["tiny"], run_dir, seeds=SEEDS)
+    hybrid, pure = (next(r for r in exp.recipes() if r.name == n) for n in ("hybrid-ppo", "pure-ppo"))
+    exp.dry_run = True
+    predictor = exp.predictor(exp.corpus())
+    demos = exp.demos(pure.demos)
+    done = exp.recipe_stages(hybrid, 1, predictor, exp.demos(hybrid.demos))
+    exp.dry_run = False
+    assert [s.status for s in done] == ["skipped"] * (len(hybrid.stages) + 1)
+    metrics = policy_dir(run_dir, "hybrid-ppo", 1) / "safety" / "metrics.json"
+    before = without_wall_times(json.loads(metrics.read_text()))
+    metrics.unlink()
+    assert exp.safety_when_ready(hybrid, 1, done, predictor, None) is None  # the follower is not known
+    follower = policy_dir(run_dir, "pure-ppo", 1) / "train" / "policy.safetensors"
+    kept = follower.read_bytes()
+    follower.unlink()
+    assert exp.safety_when_ready(hybrid, 1, done, predictor, (pure, demos)) is None  # not trained
+    assert not metrics.exists()
+    follower.write_bytes(kept)
+    res = exp.safety_when_ready(hybrid, 1, done, predictor, (pure, demos))
+    assert res is not None and res.status == "done" and res.name == "hybrid-ppo/seed1/safety"
+    assert without_wall_times(json.loads(metrics.read_text())) == before
+
+
+def test_a_preset_trains_some_recipes_with_more_seeds_and_their_followers_with_them(tmp_path: Path) -> None:
+    paper = PRESETS["paper"]
+    assert dict(paper.recipe_seeds) == {"hybrid-ppo": 2}
+    exp = Experiment(paper, tmp_path / "p")
+    seeds = {r.name: exp.seeds_of(r.name) for r in exp.recipes()}
+    assert seeds.pop("hybrid-ppo") == 2 and seeds.pop("pure-ppo") == 2  # pure-ppo: its safety layer's follower
+    assert set(seeds.values()) == {1} and exp.max_seeds == 2
+    exp3 = Experiment(paper, tmp_path / "p", seeds=3)
+    assert {exp3.seeds_of(r.name) for r in exp3.recipes()} == {3}
+    only = dataclasses.replace(paper, recipes=("hybrid-ppo",))
+    assert [(r.name, Experiment(only, tmp_path / "p").seeds_of(r.name)) for r in Experiment(only, tmp_path).recipes()] \
+        == [("hybrid-ppo", 2), ("pure-ppo", 2)]
+    with pytest.raises(ValueError, match="recipe_seeds: 'hybrid-ppo' needs an integer >= 1, got 0"):
+        Preset(name="x", recipe_seeds=(("hybrid-ppo", 0),))
 
 
 def test_a_second_run_in_a_directory_in_use_is_refused(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
