@@ -311,11 +311,13 @@ class Experiment:
     def evaluation(self, name: str, path: Path, spec: str, inputs: dict[str, str], *,
                    predictor: Path | None = None, follow: str | None = None,
                    lookahead: dict[str, Any] | None = None, scenario: Any = None,
-                   label: str | None = None) -> StageResult:  # fmt: skip
-        """``metrics.json`` of driver ``spec`` on the validation seeds and the test episodes (see :class:`Preset`).
-        ``label``: the driver as the stage's config names it (not the policy's path, an input by its hash)."""
+                   label: str | None = None, test_only: bool = False) -> StageResult:  # fmt: skip
+        """``metrics.json`` of driver ``spec`` on the validation seeds and the test episodes (see :class:`Preset`;
+        ``test_only``: the test episodes alone). ``label``: the driver as the stage's config names it (not the
+        policy's path, an input by its hash)."""
         p = self.preset
-        splits = [("val", s, p.val_episodes) for s in p.val_seeds] + [("test", p.test_seed, p.test_episodes)]
+        splits = [] if test_only else [("val", s, p.val_episodes) for s in p.val_seeds]
+        splits.append(("test", p.test_seed, p.test_episodes))
 
         def work(keep: bool) -> float:
             result: dict[str, Any] = {"config": cfg, "val": {}}
@@ -670,15 +672,19 @@ class Experiment:
             self.zoo_stages(predictor)
 
     def zoo_stages(self, predictor: StageResult) -> None:
-        """Every zoo policy on the test episodes (with the zoo's predictor), then a few recorded episodes of the
-        best one and a Rerun ``.rrd`` of the first (``make demo``)."""
+        """Every zoo policy on the test episodes (with the zoo's predictor), and behind its safety layer where
+        its card has one; then a few recorded episodes of the best one and a Rerun ``.rrd`` of the first
+        (``make demo``)."""
         from lcmodels.zoo import zoo_entries
 
         results = []
-        for entry in zoo_entries():
+        entries = zoo_entries()
+        for entry in entries:
             res = self.evaluation(f"zoo/{entry.name}", self.out / "zoo" / entry.name, str(entry.policy),
                                   {"policy": entry.sha256}, predictor=entry.predictor, label=f"zoo:{entry.name}")
             results.append((entry, res))
+        for entry in entries:
+            self.zoo_safety(entry, {e.name: e for e in entries})
         if not results or self.preset.showcase_episodes < 1 or self.dry_run:
             return
         best_success = -1.0
@@ -687,6 +693,26 @@ class Experiment:
             if success > best_success:
                 best, best_success = (entry, res), success
         self.showcase(*best)
+
+    def zoo_safety(self, entry: Any, zoo: dict[str, Any]) -> StageResult | None:
+        """Zoo policy ``entry`` behind the safety layer its card was measured with (the lookahead settings of
+        the card, the imagined futures following the zoo's entry of the recipe's ``safety.follow``), on the
+        test episodes alone; None when the card has no safety layer or the zoo lacks the followed policy."""
+        look = ((entry.card.get("safety_layer") or {}).get("config") or {}).get("lookahead")
+        if not look:
+            return None
+        try:
+            recipe = load_recipe(str(entry.card.get("recipe", "")))
+        except ValueError:
+            return None
+        follow = zoo.get(recipe.safety.follow) if recipe.safety is not None and recipe.safety.follow else None
+        if recipe.safety is None or (recipe.safety.follow and follow is None):
+            return None
+        inputs = {"policy": entry.sha256} | ({"follow": follow.sha256} if follow is not None else {})
+        return self.evaluation(f"zoo-safety/{entry.name}", self.out / "zoo-safety" / entry.name,
+                               f"lookahead-blind:{entry.policy}", inputs, predictor=entry.predictor,
+                               follow=str(follow.policy) if follow is not None else None, lookahead=dict(look),
+                               label=f"lookahead-blind:zoo:{entry.name}", test_only=True)  # fmt: skip
 
     def showcase(self, entry: Any, evaluated: StageResult) -> StageResult:
         """``showcase_episodes`` test episodes of zoo policy ``entry`` recorded (MCAP) in ``DIR/showcase``, and

@@ -124,6 +124,10 @@ def collect(out: Path, seeds: int, recipes: list[Any]) -> dict[str, MethodRuns]:
             z = MethodRuns(f"zoo:{d.name}", f"shipped checkpoint{commit}", "zoo", str(card.get("row", "")), note=commit)
             if _add_eval(z, read_json(d / "metrics.json"), 0):
                 runs[z.key] = z
+            safe = MethodRuns(f"{z.key}+safety", f"shipped checkpoint{commit} behind the safety layer", "zoo",
+                              z.row, note=commit)  # fmt: skip
+            if _add_eval(safe, read_json(out / "zoo-safety" / d.name / "metrics.json"), 0):
+                runs[safe.key] = safe
     return runs
 
 

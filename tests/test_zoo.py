@@ -16,6 +16,7 @@ from lccli.record import record_main
 from lccli.view import main as view_main
 from lcmodels.experiment import PRESETS, Experiment
 from lcmodels.zoo import check_episodes, publish_from_experiment, zoo_dir, zoo_entries, zoo_entry
+from tests.test_experiment import md_table
 
 
 @pytest.fixture(scope="module")
@@ -77,6 +78,15 @@ def test_an_entry_published_from_an_experiment_works_wherever_a_policy_does(
         cell = f"{100 * z['success_rate']:.1f} [{100 * ci[0]:.1f}, {100 * ci[1]:.1f}] (`zoo:{name}`{note})"
         assert cell in report, cell
     assert "shipped checkpoint (zoo): success %" in report and "quick recipe (trained now): success %" in report
+    # the entry whose card has a safety layer, behind it (following the zoo's pure-ppo), on the test episodes
+    safe = json.loads((tmp_path / "demo" / "zoo-safety" / "hybrid-ppo" / "metrics.json").read_text())
+    assert safe["val"] == {} and safe["test"]["episodes"] == demo.test_episodes and safe["test"]["planner_choices"] > 0
+    assert safe["config"]["follow"] and safe["config"]["lookahead"] == card["safety_layer"]["config"]["lookahead"]
+    refs = md_table(report, "## References")
+    row = next(r for r in refs if r["driver"].endswith("(`zoo:hybrid-ppo+safety`)"))
+    ci = safe["test"]["success_rate_ci95"]
+    assert row["success %"] == f"{100 * safe['test']['success_rate']:.1f} [{100 * ci[0]:.1f}, {100 * ci[1]:.1f}]"
+    assert not (tmp_path / "demo" / "zoo-safety" / "pure-ppo").exists()  # its card has no safety layer
     shown = sorted(p.suffix for p in (tmp_path / "demo" / "showcase").iterdir())
     assert shown == [".mcap", ".mcap", ".rrd"]
 
