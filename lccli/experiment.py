@@ -18,18 +18,20 @@ EXPERIMENT_EPILOG = """stages (each skipped when complete, redone when missing o
               validation and test episodes, and safety (behind the lookahead planner) where it asks
                                                                         DIR/policies/<recipe>/seed<k>/<stage>/
   rule, oracle  the references on the same episodes                    DIR/rule/, DIR/oracle/
-  zoo         (quick) the shipped policies on the test episodes, a few recorded   DIR/zoo/, DIR/showcase/
+  zoo         (quick) the shipped policies on the test episodes (and behind their safety layer), a few
+              recorded                                          DIR/zoo/, DIR/zoo-safety/, DIR/showcase/
   report      DIR/REPORT.md, DIR/fig5_safe_forward.png, DIR/fig6_total_reward.png
 
 recipes: lcmodels/recipes/*.toml (paper-*: the paper's methods as it trains them; hybrid-ppo, pure-ppo, ...:
 the project's best per method; quick-pure: make demo's), or a .toml file of your own (--recipe FILE).
 
 presets: tiny (seconds, for tests: every recipe with tiny budgets), quick (make demo: the zoo, one quick
-recipe, minutes on 2 cores), paper (every recipe at its own budget, 1000 test episodes: hours).
+recipe, minutes on 2 cores), paper (every recipe at its own budget, hybrid-ppo with 2 training seeds, 1000 test episodes: hours).
 
 examples:
   lc-experiment --preset quick --out runs/demo
-  lc-experiment --preset paper --seeds 2 --jobs 2 --out runs/paper   # stop any time; rerun to continue
+  lc-experiment --preset paper --jobs 2 --out runs/paper   # stop any time; rerun to continue
+  lc-experiment --preset paper --seeds 3 --jobs 2 --out runs/paper   # every recipe with 3 training seeds
   lc-experiment --preset paper --recipe hybrid-ppo --recipe pure-ppo --jobs 2 --out runs/best
 """
 
