@@ -47,8 +47,8 @@ def positive_float(text: str) -> float:
 
 
 def add_lookahead_arguments(p: argparse.ArgumentParser) -> None:
-    """``--lookahead-horizon``, ``--lookahead-samples``, ``--lookahead-perceived`` and
-    ``--lookahead-driver-draws``: how the lookahead
+    """``--lookahead-horizon``, ``--lookahead-samples``, ``--lookahead-perceived``,
+    ``--lookahead-driver-draws`` and ``--lookahead-margin``: how the lookahead
     planners imagine (``lc-eval``, ``lc-record`` and the tools that run the same drivers)."""
     p.add_argument("--lookahead-horizon", type=int_at_least(1), default=None,
                    help="lookahead drivers: decisions imagined after each candidate one (default 16, i.e. 8 s)")
@@ -62,12 +62,16 @@ def add_lookahead_arguments(p: argparse.ArgumentParser) -> None:
                    help="with --lookahead-perceived, human-like traffic: each imagined future draws the unseen "
                    "drivers' own parameters from the traffic's distribution instead of taking the median driver "
                    "(with --lookahead-samples > 1 a decision's survival is its share over plausible drivers)")
+    p.add_argument("--lookahead-margin", type=float, default=None, metavar="M",
+                   help="lookahead-blind drivers: imagine the ego M metres longer at its front and back, so that a "
+                   "decision survives only with that much more room than contact (default 0)")
 
 
-def lookahead_options(args: argparse.Namespace) -> dict[str, int]:
+def lookahead_options(args: argparse.Namespace) -> dict[str, int | float]:
     """The ``--lookahead-*`` options given (``LookaheadConfig`` fields, for ``driver_for``)."""
     given = {"horizon_decisions": args.lookahead_horizon, "samples": args.lookahead_samples,
-             "perceived": args.lookahead_perceived or None, "driver_draws": args.lookahead_driver_draws or None}
+             "perceived": args.lookahead_perceived or None, "driver_draws": args.lookahead_driver_draws or None,
+             "margin_m": args.lookahead_margin}
     return {k: v for k, v in given.items() if v is not None}
 
 

@@ -276,6 +276,29 @@ def test_lookahead_config_refuses_perception_without_blindness():
         LookaheadConfig(blind=True, driver_draws=True)
 
 
+def test_a_margin_makes_the_imagined_ego_longer_and_refuses_tight_decisions():
+    core = _dense_core()
+    plain = LookaheadDriver(LookaheadConfig(horizon_decisions=6, blind=True))
+    margin = LookaheadDriver(LookaheadConfig(horizon_decisions=6, blind=True, margin_m=3.0))
+    length = core.sim.length.copy()
+    survived = np.zeros(2, dtype=int)
+    for _ in range(20):
+        if (core.outcome != "").any():
+            break
+        mask = core.action_mask()
+        for a in range(3):
+            act = np.where(mask[:, a], a, KEEP)
+            plain_ok, margin_ok = (d.survives(core, act) & mask[:, a] for d in (plain, margin))
+            survived += (int(plain_ok.sum()), int(margin_ok.sum()))
+        core.step(plain({}, mask, core))
+    assert 0 < survived[1] < survived[0]  # 3 m more room at each end: fewer decisions survive, not none
+    assert np.array_equal(core.sim.length, length)  # only the imagined copies are longer
+    with pytest.raises(ValueError, match="margin_m > 0 needs blind"):
+        LookaheadConfig(margin_m=1.0)
+    with pytest.raises(ValueError, match="margin_m must be a number of metres"):
+        LookaheadConfig(blind=True, margin_m=-0.5)
+
+
 def test_the_planner_reports_the_prediction_its_driver_decided_on():
     """A driver followed in the imagined futures also runs on their batch; the planner's ``last_prediction`` is
     still the one the driver had when it made the decision (one row per environment), not the last imagined one."""

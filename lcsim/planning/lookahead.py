@@ -36,6 +36,9 @@ class LookaheadConfig:
     (headway, acceleration, reaction, lane-change habits) from the traffic's distribution instead of taking
     the median driver, so with ``samples`` > 1 a decision's survival is its share over drivers the sensors
     cannot tell apart (:func:`~lcsim.planning.perception.perceive`)."""
+    margin_m: float = 0.0
+    """Blind only: the imagined ego is this much longer at its front and at its back, so a decision survives
+    only if it keeps that much more room than contact (a gap the real traffic's noise may close is refused)."""
 
     def __post_init__(self) -> None:
         if not isinstance(self.horizon_decisions, int) or self.horizon_decisions < 1:
@@ -47,6 +50,10 @@ class LookaheadConfig:
         if self.perceived and not self.blind:
             raise ValueError("perceived=True needs blind=True (a planner that sees the coming random draws is "
                              "privileged whatever it perceives)")
+        if isinstance(self.margin_m, bool) or not isinstance(self.margin_m, int | float) or not 0.0 <= self.margin_m <= 10.0:
+            raise ValueError(f"margin_m must be a number of metres in [0, 10], got {self.margin_m!r}")
+        if self.margin_m and not self.blind:
+            raise ValueError("margin_m > 0 needs blind=True (a planner that sees the true future needs no margin)")
         if self.driver_draws and not self.perceived:
             raise ValueError("driver_draws=True needs perceived=True (an unperceived copy knows every driver)")
 
@@ -113,6 +120,8 @@ class LookaheadDriver:
             redraw_future(future.sim, salt)
         if self.config.perceived:
             perceive(future.sim, future.config.sensing_range_m, draw_drivers=self.config.driver_draws)
+        if self.config.margin_m:
+            future.sim.length[:, 0] += 2.0 * self.config.margin_m
         future.step(actions)
         for _ in range(self.config.horizon_decisions):
             if (future.outcome != RUNNING).all():  # ended environments stay frozen; nothing left to see
