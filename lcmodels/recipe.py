@@ -113,6 +113,9 @@ class SafetySpec:
     driver_draws: bool = False
     """Perceived, human-like traffic: each imagined future draws the unseen drivers from the traffic's
     distribution instead of the median driver (with ``samples`` > 1: a share over plausible drivers)."""
+    margin_m: float = 0.0
+    """The imagined ego this much longer at its front and back: a decision survives only with that much room
+    to spare (:class:`lcsim.planning.LookaheadConfig`)."""
 
 
 _SPECS: dict[str, type] = {"demos": DemoSpec, "dagger": DaggerSpec, "safety": SafetySpec}
@@ -165,8 +168,8 @@ class Recipe:
             if spec is not None:
                 for f in dataclasses.fields(cls):
                     v = getattr(spec, f.name)
-                    want = {"int": int, "str": str, "bool": bool}[str(f.type)]
-                    if not isinstance(v, want) or (want is int and isinstance(v, bool)):
+                    want = {"int": int, "str": str, "bool": bool, "float": (int, float)}[str(f.type)]
+                    if not isinstance(v, want) or (want is not bool and isinstance(v, bool)):
                         raise ValueError(f"{where}: {name}.{f.name} must be of type {f.type}, got {v!r}")
                     if want is int and v < (0 if f.name == "seed" else 1):
                         raise ValueError(f"{where}: {name}.{f.name} must be >= 1, got {v!r}")
@@ -177,6 +180,8 @@ class Recipe:
                              f"got {self.demos.driver!r}")  # fmt: skip
         if self.dagger.labels not in ("plan", "winning"):
             raise ValueError(f"{where}: dagger.labels must be plan or winning, got {self.dagger.labels!r}")
+        if self.safety is not None and not 0.0 <= self.safety.margin_m <= 10.0:
+            raise ValueError(f"{where}: safety.margin_m must be in [0, 10] metres, got {self.safety.margin_m!r}")
         if self.safety is not None and self.safety.follow and not _NAME.match(self.safety.follow):
             raise ValueError(f"{where}: safety.follow must name a recipe, got {self.safety.follow!r}")
         for stage in (s for s in stages if s != "dagger"):  # each training stage's PolicyConfig, paths stood in for

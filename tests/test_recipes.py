@@ -85,6 +85,13 @@ def test_settings_override_a_recipe_as_the_fields_type_and_refuse_what_it_does_n
         with pytest.raises(ValueError) as exc:
             load_recipe("pure-ppo").with_settings([bad])
         assert message in str(exc.value) and "\n" not in str(exc.value)
+    safe = load_recipe("hybrid-ppo").with_settings(["safety.margin_m=1.5"])
+    assert safe.safety is not None and safe.safety.margin_m == 1.5 and safe.safety.samples == 3
+    for bad, message in (("safety.margin_m=wide", "expected a value of type float"),
+                         ("safety.margin_m=-1", "safety.margin_m must be in [0, 10] metres, got -1.0")):  # fmt: skip
+        with pytest.raises(ValueError) as exc:
+            load_recipe("hybrid-ppo").with_settings([bad])
+        assert message in str(exc.value) and "\n" not in str(exc.value)
 
 
 def test_caps_lower_every_budget_but_seeds() -> None:
