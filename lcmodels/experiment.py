@@ -757,10 +757,14 @@ class Experiment:
     def _parallel_policies(self, tasks: list[tuple[Any, ...]], jobs: int) -> list[list[StageResult]]:
         """The policy stages ``tasks`` in ``jobs`` spawned processes; results in task order.
 
-        Progress lines come back through a queue. The first failure stops every worker and is raised; the
-        stages it interrupted keep their pending records and resume on the next run.
+        Progress lines come back through a queue. The first failure stops every worker and is raised; a worker
+        that dies (killed, or out of memory) ends the run with :class:`ChildProcessError` naming the recipes
+        left, instead of a wait for a result that never comes. The stages interrupted keep their pending records
+        and resume on the next run.
         """
         import multiprocessing as mp
+        from concurrent.futures import FIRST_EXCEPTION, ProcessPoolExecutor, wait
+        from concurrent.futures.process import BrokenProcessPool
 
         ctx = mp.get_context("spawn")  # no fork of a process that may hold torch threads
         queue = ctx.Queue()
@@ -771,29 +775,37 @@ class Experiment:
 
         printer = threading.Thread(target=pump, daemon=True)
         printer.start()
-        pool = ctx.Pool(min(jobs, len(tasks)), initializer=_policy_worker_init,
-                        initargs=(queue, self.threads, os.getpid()))
+        pool = ProcessPoolExecutor(min(jobs, len(tasks)), mp_context=ctx, initializer=_policy_worker_init,
+                                   initargs=(queue, self.threads, os.getpid()))  # fmt: skip
+        futures = []
         try:
             by_key = {(t[0].name, t[1]): t for t in tasks}
-            pending = []
             for task in tasks:
                 r, seed = task[0], task[1]
                 f = by_key.get((r.safety.follow, seed)) if r.safety is not None and r.safety.follow else None
-                pending.append(pool.apply_async(_policy_worker, (self.preset, self.out, self.seeds, *task,
-                                                                 (f[0], f[3]) if f else None)))  # fmt: skip
-            while not all(r.ready() for r in pending):
-                for r in pending:
-                    if r.ready() and not r.successful():
-                        r.get()  # raises the worker's exception
-                time.sleep(0.5)
-            results = [r.get() for r in pending]
+                futures.append(pool.submit(_policy_worker, self.preset, self.out, self.seeds, *task,
+                                           (f[0], f[3]) if f else None))  # fmt: skip
+            wait(futures, return_when=FIRST_EXCEPTION)
+            for fut in futures:
+                exc = fut.exception() if fut.done() else None
+                if isinstance(exc, BrokenProcessPool):
+                    left = [f"{t[0].name}/seed{t[1]}" for t, g in zip(tasks, futures, strict=True)
+                            if not g.done() or g.exception() is not None]  # fmt: skip
+                    raise ChildProcessError(f"a worker process died (killed, or out of memory?) with {', '.join(left)} "
+                                            "unfinished; what finished is kept and a rerun resumes the rest") from None
+                if exc is not None:
+                    raise exc
+            results = [fut.result() for fut in futures]
         except BaseException:
-            pool.terminate()
+            for fut in futures:
+                fut.cancel()
+            for proc in list((getattr(pool, "_processes", None) or {}).values()):
+                proc.terminate()  # a running stage stops now; its pending record resumes it
+            pool.shutdown(wait=True, cancel_futures=True)
             raise
         else:
-            pool.close()
+            pool.shutdown(wait=True)
         finally:
-            pool.join()
             queue.put(None)
             printer.join()
         return results

@@ -235,6 +235,32 @@ def test_a_preset_trains_some_recipes_with_more_seeds_and_their_followers_with_t
         Preset(name="x", recipe_seeds=(("hybrid-ppo", 0),))
 
 
+def test_a_worker_that_dies_ends_the_run_in_one_line_and_a_rerun_resumes(tmp_path: Path) -> None:
+    """A ``--jobs`` worker killed (as the kernel's out-of-memory killer does) stops the run with an error naming
+    what is left, instead of a wait for a result that never comes; the same run then completes."""
+    import multiprocessing
+    import os
+    import signal
+
+    killed: list[int] = []
+
+    def kill_the_workers(msg: str) -> None:
+        if not killed and "/train] running" in msg:
+            for child in multiprocessing.active_children():
+                os.kill(child.pid, signal.SIGKILL)
+                killed.append(child.pid)
+
+    preset = dataclasses.replace(PRESETS["tiny"], recipes=("paper-ppo-pure", "paper-a2c"), oracle=False)
+    with pytest.raises(ChildProcessError) as exc:
+        Experiment(preset, tmp_path / "run", progress=kill_the_workers).run(jobs=2)
+    assert killed and "a worker process died" in str(exc.value) and "\n" not in str(exc.value)
+    assert "paper-ppo-pure/seed0" in str(exc.value) or "paper-a2c/seed0" in str(exc.value)
+    assert not multiprocessing.active_children()  # no worker left behind
+    Experiment(preset, tmp_path / "run").run(jobs=2)
+    for name in preset.recipes:
+        assert stage_metrics(tmp_path / "run", name)["test"]["episodes"] == preset.test_episodes
+
+
 def test_a_second_run_in_a_directory_in_use_is_refused(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
     import fcntl
 
