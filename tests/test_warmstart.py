@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import dataclasses
+import itertools
 from pathlib import Path
 
 import numpy as np
@@ -19,7 +20,7 @@ from lcmodels.policy import (
 )
 from lcmodels.policy.obs import policy_observation_space, scenario_for_mode
 from lcmodels.policy.train import build_model
-from lcmodels.policy.warmstart import Demonstrations
+from lcmodels.policy.warmstart import Demonstrations, RowChunks
 from lcsim.config import tiny_scenario
 from lcsim.sb3 import LaneChangeSB3VecEnv
 
@@ -50,6 +51,29 @@ def test_warm_start_lowers_the_behaviour_cloning_loss(tmp_path: Path) -> None:
     losses = pretrain(model, demos, epochs=4, batch_size=32)
     after = bc_loss(model, demos)
     assert after < before * 0.8, (before, after, losses)
+
+
+def test_cloning_from_row_chunks_is_cloning_from_their_concatenation(tmp_path: Path) -> None:
+    """DAgger's training set stays in its rounds' arrays (RowChunks): the same batches, the same policy."""
+    import torch
+
+    config = tiny_scenario()
+    record_episodes(config, [1, 2], "rule", tmp_path / "demos", scenario="tiny")
+    demos = load_demonstrations(tmp_path / "demos", "image", None, scenario=config)
+    cuts = [0, 7, 8, len(demos) // 2, len(demos)]  # chunks of 7 rows, 1 row and the rest
+    chunked = Demonstrations({k: RowChunks([v[a:b] for a, b in itertools.pairwise(cuts)]) for k, v in demos.obs.items()},
+                             demos.actions, demos.returns, demos.episodes)  # fmt: skip
+    rows = np.array([len(demos) - 1, 0, 7, 3, 8, 7])
+    for k, v in demos.obs.items():
+        assert chunked.obs[k].shape == v.shape and np.array_equal(chunked.obs[k][rows], v[rows])
+    with pytest.raises(IndexError):
+        chunked.obs["image"][np.array([len(demos)])]
+    env = policy_vec_env(LaneChangeSB3VecEnv(2, config), "image")
+    models = [build_model(tiny_policy(obs="image"), env) for _ in range(2)]
+    losses = [pretrain(m, d, epochs=2, batch_size=16, seed=3) for m, d in zip(models, (demos, chunked), strict=True)]
+    assert losses[0] == losses[1]
+    for a, b in zip(models[0].policy.parameters(), models[1].policy.parameters(), strict=True):
+        assert torch.equal(a, b)
 
 
 @pytest.mark.parametrize("heavier", [0, 2])

@@ -40,7 +40,7 @@ from lcmodels.fileio import POLICY_FILE, write_json
 from lcmodels.policy.checkpoint import load_policy, save_policy
 from lcmodels.policy.evaluate import PolicyDriver, evaluate
 from lcmodels.policy.obs import mode_keys, scenario_for_mode
-from lcmodels.policy.warmstart import Demonstrations, every_tenth, load_demonstrations, pretrain
+from lcmodels.policy.warmstart import Demonstrations, RowChunks, every_tenth, load_demonstrations, pretrain
 from lcsim.core import KEEP, SUCCESS, LaneChangeCore, StepResult
 from lcsim.episodes import EpisodeHook, run_episodes
 from lcsim.planning import LookaheadConfig, LookaheadDriver, SearchResult, search_from
@@ -361,7 +361,7 @@ def dagger(
         say(f"round {r}: the policy drove {episodes} episodes ({outcomes.count('success')} successes), "
             f"{states} states labelled with {sum(g.searches for g in got)} searches in {collect_s:.0f} s")
         all_labels = np.concatenate(targets)
-        train = Demonstrations({k: np.concatenate(v) for k, v in data.items()}, all_labels,
+        train = Demonstrations({k: RowChunks(v) for k, v in data.items()}, all_labels,
                                np.zeros(len(all_labels), dtype=np.float32), 0, np.concatenate(weights))  # fmt: skip
         t1 = time.perf_counter()
         losses = pretrain(model, train, epochs=epochs, value_coef=0.0, seed=r)

@@ -45,7 +45,7 @@ _OBSERVATION_ONLY = ("render_image", *_REOBSERVED)
 class Demonstrations:
     """Recorded decisions: policy observations ``(M, ...)``, actions ``(M,)`` and returns ``(M,)``."""
 
-    obs: dict[str, np.ndarray]
+    obs: dict[str, np.ndarray | RowChunks]
     actions: np.ndarray
     returns: np.ndarray
     episodes: int
@@ -55,6 +55,41 @@ class Demonstrations:
 
     def __len__(self) -> int:
         return len(self.actions)
+
+
+class RowChunks:
+    """Arrays of one dtype and trailing shape read as their concatenation by row indices (``chunks[rows]``),
+    never copied into one: DAgger's training set grows by a round at a time, and a concatenation of image
+    observations would hold it twice (about 9 GB each at six rounds of 200 episodes)."""
+
+    def __init__(self, parts: list[np.ndarray]) -> None:
+        if not parts:
+            raise ValueError("RowChunks needs at least one array")
+        self.parts = list(parts)
+        self._ends = np.cumsum([len(p) for p in self.parts])
+        self._starts = self._ends - np.array([len(p) for p in self.parts])
+
+    def __len__(self) -> int:
+        return int(self._ends[-1])
+
+    @property
+    def shape(self) -> tuple[int, ...]:
+        return (len(self), *self.parts[0].shape[1:])
+
+    @property
+    def dtype(self) -> np.dtype:
+        return self.parts[0].dtype
+
+    def __getitem__(self, rows: np.ndarray) -> np.ndarray:
+        rows = np.asarray(rows, dtype=np.int64)
+        if rows.ndim != 1 or (rows.size and (rows.min() < 0 or rows.max() >= len(self))):
+            raise IndexError(f"RowChunks takes a 1-D array of row indices in [0, {len(self)})")
+        which = np.searchsorted(self._ends, rows, side="right")
+        out = np.empty((rows.size, *self.parts[0].shape[1:]), self.dtype)
+        for i in np.unique(which):
+            sel = which == i
+            out[sel] = self.parts[i][rows[sel] - self._starts[i]]
+        return out
 
 
 def _discounted(rewards: np.ndarray, gamma: float) -> np.ndarray:
@@ -149,7 +184,8 @@ def _batch(demos: Demonstrations, rows: np.ndarray, pooled: bool) -> dict[str, n
     # Pooled images: a ninth of the pixels for stable-baselines3 to scale, the network's pooling skipped.
     obs = {k: v[rows] for k, v in demos.obs.items() if not (pooled and k == "image")}
     if pooled and "image" in demos.obs:
-        obs["image"] = pooled_images(demos.obs["image"], rows)
+        images = demos.obs["image"]
+        obs["image"] = pooled_images(images, rows) if isinstance(images, np.ndarray) else pooled_images(images[rows])
     return obs
 
 
