@@ -6,6 +6,12 @@ stage records (``stages/*.json``) and, per stage, ``metrics.json`` / ``run.json`
 TensorBoard logs or MCAP episodes). It refuses a run without a report or with unfinished stages, and a
 destination that exists unless ``overwrite``; then it replaces only files of that layout (and removes
 those of it the run no longer has), keeping anything else there (a note written by hand).
+
+With ``weights`` it also copies each stage's final ``policy.safetensors`` and the ``predictor.pt`` (a few
+hundred KB each): the folder is then an experiment directory that resumes. Copied to a working place and run
+again with the same command, it re-records the corpus and the demonstrations (the same bytes: their stage
+records still match), skips every finished stage, and goes on with what is new (another seed, another
+recipe): a long run spans machines and checkouts through git.
 """
 
 from __future__ import annotations
@@ -18,28 +24,33 @@ from lcmodels.presets import INVOCATIONS, MARKER, ORACLE_KEY, REPORT_NAME, RULE_
 TOP = (REPORT_NAME, MARKER)
 OPTIONAL_TOP = (INVOCATIONS,)  # runs of lc-toolkit versions before it have none
 PER_STAGE = ("metrics.json", "run.json", "progress.csv", "warm_start.json", "dagger.json")
+WEIGHTS = ("policy.safetensors", "predictor.pt")
+"""A stage's final weights (not its checkpoints): what a later stage reads from a finished one."""
 SPLIT_FILES = "*-seed*.json"
 """An evaluation stage's finished splits (``val-seed0.json``, ``test-seed9.json``): an interrupted one's too."""
 
 
-def published_files(run: Path) -> list[Path]:
-    """Paths (relative to ``run``) of the files to publish."""
+def published_files(run: Path, *, weights: bool = False) -> list[Path]:
+    """Paths (relative to ``run``) of the files to publish (``weights``: the stages' final weights too)."""
     files = [Path(n) for n in TOP] + [Path(n) for n in OPTIONAL_TOP if (run / n).is_file()]
     files += sorted(p.relative_to(run) for p in run.glob("*.png"))
     files += sorted(p.relative_to(run) for p in (run / STAGES_DIR).glob("*.json") if not p.name.endswith(".pending.json"))
     stage_dirs = [run / "predictor", run / RULE_KEY, run / ORACLE_KEY, *sorted(run.glob("policies/*/seed*/*")),
                   *sorted(run.glob("policies/*/seed*/dagger/round*")), *sorted(run.glob("zoo/*"))]
+    per_stage = PER_STAGE + WEIGHTS if weights else PER_STAGE
     for d in stage_dirs:
-        files += [(d / n).relative_to(run) for n in PER_STAGE if (d / n).is_file()]
+        files += [(d / n).relative_to(run) for n in per_stage if (d / n).is_file()]
         files += sorted(p.relative_to(run) for p in d.glob(SPLIT_FILES))  # an evaluation's finished splits
     return files
 
 
-def publish(run: Path, dest: Path, *, overwrite: bool = False, allow_pending: bool = False) -> list[Path]:
+def publish(run: Path, dest: Path, *, overwrite: bool = False, allow_pending: bool = False,
+            weights: bool = False) -> list[Path]:
     """Copy the published files of ``run`` to ``dest``; returns their paths relative to both.
 
     ``allow_pending``: publish a run with unfinished stages (their pending records stay behind; what they
     finished, such as an evaluation's completed splits, is copied), for a run stopped on purpose.
+    ``weights``: copy the stages' final weights too, so that ``dest`` resumes as an experiment directory.
 
     Raises:
         ValueError: ``run`` is no finished experiment (unless ``allow_pending``), or ``dest`` exists and not
@@ -54,9 +65,9 @@ def publish(run: Path, dest: Path, *, overwrite: bool = False, allow_pending: bo
                          "or publish it as it is with --allow-pending")
     if dest.exists() and not overwrite:
         raise ValueError(f"{dest} exists; pass --overwrite to replace the published files in it")
-    files = published_files(run)
+    files = published_files(run, weights=weights)
     if dest.exists():  # the layout's files the run no longer has go; nothing else is touched
-        stale = set(published_files(dest)) - set(files)
+        stale = set(published_files(dest, weights=weights)) - set(files)
         for rel in stale:
             (dest / rel).unlink()
     for rel in files:

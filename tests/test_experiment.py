@@ -5,6 +5,7 @@ from __future__ import annotations
 import dataclasses
 import json
 import re
+import shutil
 from pathlib import Path
 
 import numpy as np
@@ -43,6 +44,7 @@ def test_tiny_preset_end_to_end(tmp_path: Path, capsys: pytest.CaptureFixture[st
     check_a_safety_stage_runs_as_soon_as_its_follower_is_trained(run_dir)
     check_rerun_skips_everything_and_a_changed_recipe_is_stale(run_dir, capsys)
     check_publish_copies_the_report_and_every_metrics_file(run_dir, tmp_path / "published", capsys)
+    check_a_folder_published_with_weights_resumes_as_the_run(run_dir, tmp_path, capsys)
     check_the_report_states_the_wall_time_of_every_invocation(run_dir)
     check_skip_train_reports_complete_policies_with_their_time_and_keeps_the_command(run_dir)
 
@@ -415,6 +417,30 @@ def check_publish_copies_the_report_and_every_metrics_file(run_dir: Path, dest: 
     split = Path("policies") / "pure-ppo" / "seed0" / "eval" / "val-seed0.json"
     assert (dest.with_name("partial") / split).read_bytes() == (run_dir / split).read_bytes()
     assert not (dest.with_name("partial") / "stages" / "stopped.pending.json").exists()
+
+
+def check_a_folder_published_with_weights_resumes_as_the_run(run_dir: Path, tmp_path: Path,
+                                                            capsys: pytest.CaptureFixture[str]) -> None:  # fmt: skip
+    """A run published with its weights, copied elsewhere and run again: the recordings are re-made to the same
+    bytes, every other stage is complete, and the report's tables are the run's."""
+    from lcmodels.publish import publish
+
+    dest = tmp_path / "published-weights"
+    files = publish(run_dir, dest, weights=True)
+    assert not [f for f in files if f.suffix == ".mcap" or "checkpoints" in f.parts]
+    assert {f.name for f in files} >= {"policy.safetensors", "predictor.pt"}
+    resumed = tmp_path / "resumed"
+    shutil.copytree(dest, resumed)
+    capsys.readouterr()
+    assert experiment_main(["--preset", "tiny", "--seeds", str(SEEDS), "--out", str(resumed)]) == 0
+    out = capsys.readouterr().out
+    ran = sorted(re.findall(r"\[([^\]]+)\] running", out))
+    assert ran and all(name == "corpus" or name.startswith("demos/") for name in ran), ran
+    for rec in (run_dir / "corpus").glob("*.mcap"):
+        assert (resumed / "corpus" / rec.name).read_bytes() == rec.read_bytes()
+    before, after = (run_dir / REPORT_NAME).read_text(), (resumed / REPORT_NAME).read_text()
+    for heading in ("## Table III", "## Table IV", "## References", "## Every row"):
+        assert md_table(after, heading) == md_table(before, heading)
 
 
 def check_the_report_states_the_wall_time_of_every_invocation(run_dir: Path) -> None:

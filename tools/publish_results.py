@@ -2,7 +2,11 @@
 """Copy an lc-experiment directory's report and small result files to a folder meant for git
 (:func:`lcmodels.publish.publish`).
 
-    python tools/publish_results.py runs/paper docs/results/paper [--overwrite]
+    python tools/publish_results.py runs/paper docs/results/paper [--overwrite] [--weights]
+
+With --weights the folder also holds each stage's final weights and resumes as an experiment directory:
+`cp -r docs/results/paper runs/paper` and the same lc-experiment command goes on where the run stopped
+(the recordings are re-made, the same bytes; finished stages are skipped).
 """
 
 from __future__ import annotations
@@ -21,9 +25,12 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--overwrite", action="store_true", help="replace the published files in an existing destination")
     ap.add_argument("--allow-pending", action="store_true",
                     help="publish a run stopped on purpose with unfinished stages (their finished parts are copied)")
+    ap.add_argument("--weights", action="store_true",
+                    help="also copy each stage's policy.safetensors and the predictor.pt, so the folder resumes")
     args = ap.parse_args(argv)
     try:
-        files = publish(args.run, args.dest, overwrite=args.overwrite, allow_pending=args.allow_pending)
+        files = publish(args.run, args.dest, overwrite=args.overwrite, allow_pending=args.allow_pending,
+                        weights=args.weights)
     except (ValueError, OSError) as exc:
         print(f"publish_results.py: error: {exc}", file=sys.stderr)
         return 2
