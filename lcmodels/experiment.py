@@ -294,21 +294,9 @@ class Experiment:
                       f"(constant velocity {m['constant_velocity']['ade']:.4f} / "
                       f"{m['constant_velocity']['fde']:.4f})")  # fmt: skip
 
-        def upgrade(stored: dict[str, Any]) -> dict[str, Any]:
-            # a predictor trained under a time limit that never stopped it is the predictor without one (the
-            # paper preset had a 600 s limit): such directories stay complete
-            limit = stored.get("time_limit_s")
-            if limit is None or tc.time_limit_s is not None:
-                return stored
-            training = (read_json(path / "metrics.json") or {}).get("training", {})
-            epochs, seconds = training.get("epochs"), training.get("seconds")
-            if epochs == stored.get("max_epochs") or (seconds is not None and seconds <= limit):
-                return stored | {"time_limit_s": None}
-            return stored
-
         cfg = {k: v for k, v in dataclasses.asdict(tc).items() if k not in ("progress", "num_threads")}
         return self._stage("predictor", path, cfg, {"corpus": corpus.digest},
-                           lambda: ["predictor.pt", "metrics.json"], work, upgrade=upgrade)  # fmt: skip
+                           lambda: ["predictor.pt", "metrics.json"], work)  # fmt: skip
 
     def demos(self, spec: DemoSpec) -> StageResult:
         """The demonstrations ``spec`` (with images), recorded once however many recipes clone them."""

@@ -75,9 +75,7 @@ class Preset:
     predictor_layers: int = 2
     predictor_ff_dim: int = 256
     predictor_epochs: int = 20
-    predictor_time_limit_s: float | None = None
-    """A wall-clock cap on the predictor's training (None: its epochs alone). A cap makes the predictor, and
-    every policy reading it, depend on the machine's load: only ``quick`` (make demo's budget) has one."""
+    predictor_time_limit_s: float | None = 600.0
     predictor_max_train_windows: int = 200_000
     predictor_stride: int = 1
     predictor_tensorboard: bool = True

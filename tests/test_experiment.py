@@ -303,21 +303,6 @@ def check_rerun_skips_everything_and_a_changed_recipe_is_stale(run_dir: Path, ca
     assert {p: p.stat().st_mtime_ns for p in policies} == before
 
 
-def test_a_predictor_its_time_limit_never_stopped_stays_complete_without_the_limit(tmp_path: Path) -> None:
-    """A wall-clock limit that did not bind leaves the predictor that no limit gives: a directory trained under
-    one stays complete for a preset without it; one the limit cut short is retrained."""
-    base = dataclasses.replace(PRESETS["tiny"], predictor_epochs=2)
-    for limit, status in ((600.0, "skipped"), (1e-9, "done")):
-        run_dir = tmp_path / f"limit-{limit}"
-        limited = Experiment(dataclasses.replace(base, predictor_time_limit_s=limit), run_dir)
-        limited.predictor(limited.corpus())
-        epochs = json.loads((run_dir / "predictor" / "metrics.json").read_text())["training"]["epochs"]
-        assert epochs == (2 if limit > 1 else 1)
-        unlimited = Experiment(base, run_dir)
-        assert unlimited.predictor(unlimited.corpus()).status == status
-        assert json.loads((run_dir / "predictor" / "metrics.json").read_text())["training"]["epochs"] == 2
-
-
 def test_an_interrupted_recording_stage_keeps_the_time_of_its_first_part(tmp_path: Path) -> None:
     """A recording stage stopped after 2 of its 3 episodes and resumed records the time of both parts."""
 
