@@ -77,7 +77,7 @@ def train_predictor_parser() -> argparse.ArgumentParser:
         help="deterministic subsample of training windows (default 200000)",
     )
     p.add_argument(
-        "--time-limit", type=float, default=None, help="stop after the epoch that passes this many seconds"
+        "--time-limit", type=float, default=None, help="stop after the epoch that passes this many seconds of compute (CPU seconds over --threads: other busy processes do not move it)"
     )
     p.add_argument(
         "--seed", type=int, default=0, help="seed for the split, initialisation and batches (default 0)"

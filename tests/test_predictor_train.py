@@ -126,3 +126,13 @@ def test_gated_training_with_input_noise_round_trips(tmp_path: Path) -> None:
     assert torch.equal(pred, again) and torch.equal(gate, gate_again)
     with pytest.raises(ValueError, match="input_noise_m"):
         TrainConfig(input_noise_m=-0.1)
+
+
+def test_a_time_limit_stops_after_the_epoch_that_crosses_it_and_says_so(
+    run: tuple[Path, dict[str, Any]], tmp_path: Path
+) -> None:
+    _, metrics = run
+    assert metrics["training"]["stopped_by"] in ("max_epochs", "patience")
+    cut = train_predictor(_tracks(), dataclasses.replace(SMALL, time_limit_s=1e-9), tmp_path / "cut")
+    assert cut["training"]["epochs"] == 1 and cut["training"]["stopped_by"] == "time_limit"
+    assert cut["training"]["history"] == metrics["training"]["history"][:1]  # the same first epoch

@@ -82,7 +82,9 @@ class TrainConfig:
     num_threads: int = 2
     """torch intra-op threads during training."""
     time_limit_s: float | None = None
-    """Stop after the epoch that crosses this wall time (breaks bit-determinism when it triggers)."""
+    """Stop after the epoch that crosses this much compute: the process's CPU seconds over ``num_threads``, so that
+    other busy processes do not move the stop; a slower machine still can (bit-determinism ends when it stops
+    training; ``metrics.json``'s ``training.stopped_by`` says what ended it)."""
     progress: bool = True
     """Show a tqdm progress bar."""
     tensorboard: bool = True
@@ -239,7 +241,7 @@ def train_predictor(
 def _train(
     episodes_tracks: pd.DataFrame | list[pd.DataFrame], config: TrainConfig, out: Path
 ) -> dict[str, Any]:
-    start = time.perf_counter()
+    start, cpu_start = time.perf_counter(), time.process_time()
     corpus = Corpus.from_tracks(episodes_tracks, config.window_options())
     ids = corpus.episode_ids
     if len(ids) < 3:
@@ -293,6 +295,7 @@ def _train(
     initial_val = best_val
     best_state = copy.deepcopy(model.state_dict())
     best_epoch, history, stale, global_step = 0, [], 0, 0
+    stopped_by = "max_epochs"
     bar = tqdm(range(1, config.max_epochs + 1), desc="predictor", disable=not config.progress, leave=False)
     for epoch in bar:
         model.train()
@@ -335,9 +338,12 @@ def _train(
             stale += 1
             if stale > config.patience:
                 logger.info("early stop after epoch %d (best %d)", epoch, best_epoch)
+                stopped_by = "patience"
                 break
-        if config.time_limit_s is not None and time.perf_counter() - start > config.time_limit_s:
-            logger.warning("time limit of %.0f s reached after epoch %d", config.time_limit_s, epoch)
+        compute_s = (time.process_time() - cpu_start) / config.num_threads
+        if config.time_limit_s is not None and compute_s > config.time_limit_s and epoch < config.max_epochs:
+            logger.warning("time limit of %.0f s of compute reached after epoch %d", config.time_limit_s, epoch)
+            stopped_by = "time_limit"
             break
     bar.close()
     model.load_state_dict(best_state)
@@ -358,7 +364,8 @@ def _train(
             "test": len(rows["test"]),
         },
     }
-    result["training"] = {"epochs": len(history), "seconds": train_time, "history": history}
+    result["training"] = {"epochs": len(history), "seconds": train_time, "stopped_by": stopped_by,
+                          "history": history}
     result["config"] = config.to_dict()
     for name in ("model", "constant_velocity", "constant_acceleration"):
         logger.info("test %s: ADE %.5f m, FDE %.5f m", name, result[name]["ade"], result[name]["fde"])
