@@ -27,6 +27,7 @@ from lcmodels.experiment import (
     Preset,
     policy_dir,
 )
+from lcmodels.policy.checkpoint import find_predictor, read_meta
 from lcmodels.recipe import load_recipe
 
 SEEDS = 2
@@ -441,6 +442,14 @@ def check_a_folder_published_with_weights_resumes_as_the_run(run_dir: Path, tmp_
     before, after = (run_dir / REPORT_NAME).read_text(), (resumed / REPORT_NAME).read_text()
     for heading in ("## Table III", "## Table IV", "## References", "## Every row"):
         assert md_table(after, heading) == md_table(before, heading)
+    # a policy of the copy whose card names a predictor no longer there reads the copy's own, found by SHA-256
+    policy = resumed / "policies" / "hybrid-ppo" / "seed0" / "train" / "policy.safetensors"
+    meta = read_meta(policy)
+    assert Path(meta["predictor"]["path"]).is_relative_to(run_dir.resolve())  # where it was trained
+    gone = meta | {"predictor": meta["predictor"] | {"path": str(tmp_path / "gone" / "predictor.pt")}}
+    assert find_predictor(gone, policy) == (resumed / "predictor" / "predictor.pt").resolve()
+    other = gone | {"predictor": gone["predictor"] | {"sha256": "0" * 64}}
+    assert find_predictor(other, policy) is None  # a predictor with other weights is not taken for it
 
 
 def check_the_report_states_the_wall_time_of_every_invocation(run_dir: Path) -> None:

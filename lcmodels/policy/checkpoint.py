@@ -249,6 +249,30 @@ def policy_model(meta: dict[str, Any], *, future_steps: int = 10, device: str = 
     return build_model(cfg, None, None, device, observation_space=space)
 
 
+PREDICTOR_FILE = Path("predictor") / "predictor.pt"
+"""Where an experiment directory (and the zoo) keeps its predictor."""
+
+
+def find_predictor(meta: dict[str, Any], policy: str | os.PathLike[str]) -> Path | None:
+    """The predictor a policy's card names: its path (relative to the policy file in a zoo entry), else, when
+    the directory has moved since training (a published experiment, another checkout), the
+    ``predictor/predictor.pt`` of the nearest folder above the policy holding one whose SHA-256 is the card's.
+    ``None`` when neither is there."""
+    info = meta.get("predictor") or {}
+    stored = info.get("path")
+    policy = Path(policy)
+    if stored:
+        p = Path(stored) if Path(stored).is_absolute() else policy.parent / stored
+        if p.is_file():
+            return p
+    sha = info.get("sha256")
+    for folder in policy.resolve().parents:
+        candidate = folder / PREDICTOR_FILE
+        if candidate.is_file() and (sha is None or file_sha256(candidate) == sha):
+            return candidate
+    return None
+
+
 def load_policy(path: str | os.PathLike[str], *, obs_mode: str | None = None,
                 predictor: str | os.PathLike[str] | None = None, scenario: ScenarioConfig | None = None,
                 device: str = "cpu", trust_pickle: bool = False) -> LoadedPolicy:
@@ -281,9 +305,7 @@ def load_policy(path: str | os.PathLike[str], *, obs_mode: str | None = None,
     pred_path: Path | None = None
     if needs_predictor(str(meta.get("obs_mode"))):
         stored = (meta.get("predictor") or {}).get("path")
-        if stored and not Path(stored).is_absolute():  # a zoo entry's predictor: relative to the policy file
-            stored = str(path.parent / stored)
-        pred_path = Path(predictor) if predictor is not None else (Path(stored) if stored else None)
+        pred_path = Path(predictor) if predictor is not None else find_predictor(meta, path)
         if pred_path is None or not pred_path.is_file():
             raise ValueError(
                 f"{path} needs the predictor it was trained with ({stored or 'unknown'}), which is not there; "

@@ -37,7 +37,7 @@ import numpy as np
 import torch
 
 from lcmodels.fileio import POLICY_FILE, write_json
-from lcmodels.policy.checkpoint import load_policy, save_policy
+from lcmodels.policy.checkpoint import find_predictor, load_policy, save_policy
 from lcmodels.policy.evaluate import PolicyDriver, evaluate
 from lcmodels.policy.obs import mode_keys, scenario_for_mode
 from lcmodels.policy.warmstart import Demonstrations, RowChunks, every_tenth, load_demonstrations, pretrain
@@ -296,8 +296,9 @@ def dagger(
         raise FileNotFoundError(f"{run_dir} is not a finished lc-train-policy run (policy.safetensors, run.json)")
     run = json.loads((run_dir / "run.json").read_text())
     demos_dir = run["config"].get("warm_start") or ""
-    predictor = (run.get("predictor") or {}).get("path")
-    loaded = load_policy(policy_path, predictor=predictor)
+    loaded = load_policy(policy_path)  # the predictor its card names (found by SHA-256 if the run has moved)
+    found = find_predictor(loaded.meta, policy_path)
+    predictor = str(found) if found is not None else None
     mode, model = loaded.obs_mode, loaded.model
     config = scenario_for_mode(loaded.scenario, mode)
     data: dict[str, list[np.ndarray]] = {k: [] for k in mode_keys(mode)}
