@@ -121,13 +121,12 @@ def check_episodes(policy: str | os.PathLike[str], *, seed: int, episodes: int =
     return [{"seed": int(e.seed), "outcome": e.outcome, "return": round(float(e.ret), 6)} for e in stats]
 
 
-def publish_from_experiment(run: str | os.PathLike[str], recipe_name: str, *, seed: int = 0, name: str | None = None,
-                            root: str | os.PathLike[str] | None = None, commit: str = "",
-                            overwrite: bool = False) -> ZooEntry:  # fmt: skip
-    """Publish the final policy of ``recipe_name`` (training seed ``seed``) of the ``lc-experiment`` directory
-    ``run`` as zoo entry ``name`` (default: the recipe's name), with a card of its recipe, commit, training
-    time, validation and test figures (and the safety layer's, when run), the experiment's command, and the
-    outcomes of :data:`CHECK_EPISODES` test episodes re-run now."""
+def experiment_card(run: str | os.PathLike[str], recipe_name: str, *, seed: int = 0,
+                    commit: str = "") -> tuple[dict[str, Any], Path, bool]:
+    """What the ``lc-experiment`` directory ``run`` measured for ``recipe_name`` (training seed ``seed``): the
+    card of its final policy (recipe, commit, training time, validation and test figures, the safety layer's
+    when run, the experiment's command), the policy file, and whether it reads predictions. ``ValueError``
+    when the recipe's evaluation or its policy is missing."""
     from lcmodels.presets import STAGES_DIR, StageResult, policy_dir, previous_policy
     from lcmodels.recipe import load_recipe
 
@@ -154,7 +153,6 @@ def publish_from_experiment(run: str | os.PathLike[str], recipe_name: str, *, se
         return {k: summary[k] for k in keep if k in summary}
 
     safety = read_json(d / "safety" / "metrics.json")
-    test_seed = int(ev["test"].get("eval_seed", 0))
     card = {
         "recipe": recipe.name, "recipe_version": recipe.version, "row": recipe.row, "kind": recipe.kind,
         "description": recipe.description, "training_seed": seed, "commit": commit,
@@ -163,10 +161,22 @@ def publish_from_experiment(run: str | os.PathLike[str], recipe_name: str, *, se
         "safety_layer": ({"test": figures(safety["test"]), "config": safety.get("config", {})}
                          if safety and "test" in safety else None),
         "experiment_command": experiment.get("command", ""), "preset": (experiment.get("preset") or {}).get("name"),
-        "check": {"eval_seed": test_seed, "episodes": check_episodes(policy, seed=test_seed)},
     }  # fmt: skip
-    return publish_entry(policy, name or recipe.name, predictor=run / "predictor" / "predictor.pt" if needs else None,
-                         card=card, root=root, overwrite=overwrite)  # fmt: skip
+    return card, policy, needs
+
+
+def publish_from_experiment(run: str | os.PathLike[str], recipe_name: str, *, seed: int = 0, name: str | None = None,
+                            root: str | os.PathLike[str] | None = None, commit: str = "",
+                            overwrite: bool = False) -> ZooEntry:  # fmt: skip
+    """Publish the final policy of ``recipe_name`` (training seed ``seed``) of the ``lc-experiment`` directory
+    ``run`` as zoo entry ``name`` (default: the recipe's name), with a card of its recipe, commit, training
+    time, validation and test figures (and the safety layer's, when run), the experiment's command
+    (:func:`experiment_card`), and the outcomes of :data:`CHECK_EPISODES` test episodes re-run now."""
+    card, policy, needs = experiment_card(run, recipe_name, seed=seed, commit=commit)
+    test_seed = int(card["test"].get("eval_seed", 0))
+    card["check"] = {"eval_seed": test_seed, "episodes": check_episodes(policy, seed=test_seed)}
+    return publish_entry(policy, name or card["recipe"], predictor=Path(run) / "predictor" / "predictor.pt" if needs
+                         else None, card=card, root=root, overwrite=overwrite)  # fmt: skip
 
 
 def resolve_policy_spec(spec: str) -> tuple[str, str | None]:
@@ -182,5 +192,5 @@ def resolve_policy_spec(spec: str) -> tuple[str, str | None]:
     return spec, None
 
 
-__all__ = ["CHECK_EPISODES", "ENTRY_CARD", "ZOO_PREFIX", "ZooEntry", "check_episodes", "publish_entry",
+__all__ = ["CHECK_EPISODES", "ENTRY_CARD", "ZOO_PREFIX", "ZooEntry", "check_episodes", "experiment_card", "publish_entry",
            "publish_from_experiment", "resolve_policy_spec", "zoo_dir", "zoo_entries", "zoo_entry"]

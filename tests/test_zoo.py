@@ -15,7 +15,14 @@ from lccli.experiment import experiment_main
 from lccli.record import record_main
 from lccli.view import main as view_main
 from lcmodels.experiment import PRESETS, Experiment
-from lcmodels.zoo import check_episodes, publish_from_experiment, zoo_dir, zoo_entries, zoo_entry
+from lcmodels.zoo import (
+    check_episodes,
+    experiment_card,
+    publish_from_experiment,
+    zoo_dir,
+    zoo_entries,
+    zoo_entry,
+)
 from tests.test_experiment import md_table
 
 
@@ -40,6 +47,12 @@ def test_an_entry_published_from_an_experiment_works_wherever_a_policy_does(
     assert card["recipe"] == "hybrid-ppo" and card["training_wall_s"] > 0 and card["safety_layer"]["test"]
     with pytest.raises(ValueError, match="exists"):
         publish_from_experiment(tiny_run, "hybrid-ppo", root=root)  # nothing is replaced silently
+    # what a recipe reached, without a zoo entry (the paper-faithful recipes' records): the card's figures
+    measured, policy, reads_predictions = experiment_card(tiny_run, "hybrid-ppo", commit="abc1234")
+    assert json.loads(json.dumps(measured)) == {k: card[k] for k in measured}
+    assert policy.is_file() and reads_predictions and measured["experiment_command"].startswith("lc-experiment")
+    with pytest.raises(ValueError, match="holds no evaluation"):
+        experiment_card(tiny_run, "paper-dqn")  # a recipe the run did not train
 
     # The zoo moves as a folder: the hybrid policy finds the zoo's predictor relative to itself.
     moved = tmp_path / "elsewhere"

@@ -7,6 +7,9 @@ Each entry: policy.safetensors (weights and the policy's card), policy.card.json
 training time, validation / test / safety-layer figures, the experiment's command, and the outcomes of a few
 test episodes re-run now); the predictor the prediction and hybrid policies read goes to zoo/predictor/. A packaged
 recipe also gets lcmodels/recipes/<name>.reached.json: what it reached, with which command and commit.
+--reached-only writes that record alone, for a recipe whose policy the zoo does not ship (the paper-faithful ones):
+
+    python tools/publish_zoo.py runs/paper-best paper-hybrid-ppo paper-a2c --reached-only
 """
 
 from __future__ import annotations
@@ -26,10 +29,12 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--seed", type=int, default=0, help="training seed of the runs to publish (default 0)")
     ap.add_argument("--zoo", type=Path, default=None, help="zoo directory (default: zoo/ of this checkout)")
     ap.add_argument("--overwrite", action="store_true", help="replace entries that exist")
+    ap.add_argument("--reached-only", action="store_true",
+                    help="write only lcmodels/recipes/<name>.reached.json, no zoo entry (packaged recipes)")
     args = ap.parse_args(argv)
     from lcmodels.fileio import write_json
     from lcmodels.recipe import RECIPES_DIR, recipe_path
-    from lcmodels.zoo import publish_from_experiment
+    from lcmodels.zoo import experiment_card, publish_from_experiment
 
     try:
         commit = subprocess.run(["git", "rev-parse", "--short", "HEAD"], capture_output=True, text=True,
@@ -38,19 +43,27 @@ def main(argv: list[str] | None = None) -> int:
         commit = ""
     for name in args.recipes:
         try:
-            entry = publish_from_experiment(args.run, name, seed=args.seed, root=args.zoo, commit=commit,
-                                            overwrite=args.overwrite)  # fmt: skip
+            reached = recipe_path(name).with_suffix(".reached.json")
+            packaged = reached.parent == RECIPES_DIR
+            if args.reached_only and not packaged:
+                raise ValueError(f"{name} is not a packaged recipe: --reached-only writes lcmodels/recipes/ records")
+            if args.reached_only:
+                card = experiment_card(args.run, name, seed=args.seed, commit=commit)[0]
+            else:
+                entry = publish_from_experiment(args.run, name, seed=args.seed, root=args.zoo, commit=commit,
+                                                overwrite=args.overwrite)  # fmt: skip
+                card = entry.card
         except ValueError as exc:
             print(f"publish_zoo: error: {str(exc).splitlines()[0]}", file=sys.stderr)
             return 2
-        t = entry.card["test"]
-        reached = recipe_path(name).with_suffix(".reached.json")
-        if reached.parent == RECIPES_DIR:  # a packaged recipe records what it reached, next to it
+        t = card["test"]
+        if packaged:  # a packaged recipe records what it reached, next to it
             keep = ("recipe_version", "preset", "experiment_command", "commit", "training_seed", "training_wall_s",
                     "test", "validation", "safety_layer")
             write_json(reached, {"recipe": name, "published": time.strftime("%Y-%m-%d"),
-                                 **{k: entry.card.get(k) for k in keep}})  # fmt: skip
-        print(f"zoo:{entry.name}: {entry.policy} (test success {100 * t['success_rate']:.1f}% of {t['episodes']})")
+                                 **{k: card.get(k) for k in keep}})  # fmt: skip
+        where = reached if args.reached_only else f"zoo:{entry.name}: {entry.policy}"
+        print(f"{where} (test success {100 * t['success_rate']:.1f}% of {t['episodes']})")
     return 0
 
 
