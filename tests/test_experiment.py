@@ -450,6 +450,11 @@ def check_a_folder_published_with_weights_resumes_as_the_run(run_dir: Path, tmp_
     assert find_predictor(gone, policy) == (resumed / "predictor" / "predictor.pt").resolve()
     other = gone | {"predictor": gone["predictor"] | {"sha256": "0" * 64}}
     assert find_predictor(other, policy) is None  # a predictor with other weights is not taken for it
+    (tmp_path / "retrained.pt").write_bytes(b"other weights")
+    replaced = meta | {"predictor": meta["predictor"] | {"path": str(tmp_path / "retrained.pt")}}
+    assert find_predictor(replaced, policy) == (resumed / "predictor" / "predictor.pt").resolve()  # by hash
+    unhashed = {"predictor": {"path": str(tmp_path / "gone" / "predictor.pt")}}
+    assert find_predictor(unhashed, policy) is None  # without a hash, no search for "some" predictor
 
 
 def check_the_report_states_the_wall_time_of_every_invocation(run_dir: Path) -> None:

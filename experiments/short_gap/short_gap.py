@@ -21,6 +21,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import os
 import sys
 from collections.abc import Callable, Sequence
 from typing import Any
@@ -82,6 +83,8 @@ class ShortGapProbe(EpisodeHook):
                 where = "ahead in the target lane" if b["x"][p] > b["x"][0] else "behind in the target lane"
             elif b["lc_active"][p] and b["target"][p] == target:
                 where = "already changing into the target lane"
+            elif b["lc_active"][p]:
+                where = "changing out of the target lane"
             else:
                 where = "changed into the target lane after the ego began"
             acc = np.array([a[p] for a in self.accel[e]]) if self.accel[e] else np.zeros(1)
@@ -105,19 +108,25 @@ def main(argv: Sequence[str] | None = None) -> int:
     p.add_argument("--follow", default=None, help="the driver the imagined futures follow (lc-eval's --lookahead-follow)")
     p.add_argument("--samples", type=int, default=3, help="imagined futures per candidate decision (default 3)")
     p.add_argument("--horizon", type=int, default=32, help="decisions imagined after each candidate (default 32)")
-    p.add_argument("--episodes", type=int, default=200)
+    p.add_argument("--episodes", type=int, default=200, help="held-out episodes (default 200)")
     p.add_argument("--seed", type=int, default=0, help="evaluation seed (lc-eval's --seed)")
     p.add_argument("--json-out", default=None)
     args = p.parse_args(argv)
+    if args.episodes < 1 or args.samples < 1 or args.horizon < 1:
+        p.error("--episodes, --samples and --horizon must be >= 1")
+    if args.json_out and not os.path.isdir(os.path.dirname(os.path.abspath(args.json_out))):
+        p.error(f"--json-out: no folder {os.path.dirname(os.path.abspath(args.json_out))}")
+    if args.json_out and os.path.exists(args.json_out):
+        p.error(f"--json-out: {args.json_out} exists; choose a new file")
     import torch
 
     from lcmodels.zoo import resolve_policy_spec
 
     torch.set_num_threads(1)
 
-    spec = resolve_policy_spec(args.policy)[0] if "zoo:" in args.policy else args.policy
-    follow = resolve_policy_spec(args.follow)[0] if args.follow and "zoo:" in args.follow else args.follow
     try:
+        spec = resolve_policy_spec(args.policy)[0] if "zoo:" in args.policy else args.policy
+        follow = resolve_policy_spec(args.follow)[0] if args.follow and "zoo:" in args.follow else args.follow
         driver, config = driver_for(spec, follow=follow, lookahead={"samples": args.samples, "perceived": True,
                                                                    "horizon_decisions": args.horizon})
     except (ValueError, OSError) as exc:

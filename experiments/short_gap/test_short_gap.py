@@ -24,7 +24,8 @@ def test_the_probe_describes_every_short_gap_collision_the_breakdown_counts():
         assert case["alive_at_start"] is None  # the random driver imagines nothing
 
 
-def test_a_driver_without_a_lookahead_is_a_one_line_error(capsys):
-    assert main(["rule", "--episodes", "2"]) == 2
-    err = capsys.readouterr().err
-    assert err.startswith("short_gap: error:") and err.count("\n") == 1
+def test_a_driver_without_a_lookahead_or_an_unknown_zoo_entry_is_a_one_line_error(capsys):
+    for argv in (["rule", "--episodes", "2"], ["lookahead-blind:zoo:no-such-entry", "--episodes", "2"]):
+        assert main(argv) == 2
+        err = capsys.readouterr().err
+        assert err.startswith("short_gap: error:") and err.count("\n") == 1, err

@@ -254,21 +254,22 @@ PREDICTOR_FILE = Path("predictor") / "predictor.pt"
 
 
 def find_predictor(meta: dict[str, Any], policy: str | os.PathLike[str]) -> Path | None:
-    """The predictor a policy's card names: its path (relative to the policy file in a zoo entry), else, when
-    the directory has moved since training (a published experiment, another checkout), the
-    ``predictor/predictor.pt`` of the nearest folder above the policy holding one whose SHA-256 is the card's.
-    ``None`` when neither is there."""
+    """The predictor a policy's card names: its path (relative to the policy file in a zoo entry) when the file
+    there has the card's SHA-256, else, when the directory has moved since training (a published experiment,
+    another checkout) or the file there was replaced, the ``predictor/predictor.pt`` of the nearest folder above
+    the policy whose SHA-256 is the card's. A card without a SHA-256 gets its path only. ``None`` when none fits."""
     info = meta.get("predictor") or {}
-    stored = info.get("path")
+    stored, sha = info.get("path"), info.get("sha256")
     policy = Path(policy)
     if stored:
         p = Path(stored) if Path(stored).is_absolute() else policy.parent / stored
-        if p.is_file():
+        if p.is_file() and (sha is None or file_sha256(p) == sha):
             return p
-    sha = info.get("sha256")
+    if sha is None:
+        return None
     for folder in policy.resolve().parents:
         candidate = folder / PREDICTOR_FILE
-        if candidate.is_file() and (sha is None or file_sha256(candidate) == sha):
+        if candidate.is_file() and file_sha256(candidate) == sha:
             return candidate
     return None
 

@@ -297,7 +297,7 @@ def dagger(
     run = json.loads((run_dir / "run.json").read_text())
     demos_dir = run["config"].get("warm_start") or ""
     loaded = load_policy(policy_path)  # the predictor its card names (found by SHA-256 if the run has moved)
-    found = find_predictor(loaded.meta, policy_path)
+    found = find_predictor(loaded.meta, policy_path) if loaded.predictor is not None else None
     predictor = str(found) if found is not None else None
     mode, model = loaded.obs_mode, loaded.model
     config = scenario_for_mode(loaded.scenario, mode)
