@@ -28,6 +28,7 @@ from typing import Any
 
 import numpy as np
 
+from lccli.common import non_negative_int, positive_int, zoo_spec
 from lcmodels.analysis import classify_collision
 from lcmodels.policy.evaluate import driver_for, eval_user_seeds
 from lcsim.config import paper_scenario
@@ -104,30 +105,24 @@ class ShortGapProbe(EpisodeHook):
 def main(argv: Sequence[str] | None = None) -> int:
     p = argparse.ArgumentParser(prog="short_gap", description=__doc__.split("\n\n")[1],
                                 formatter_class=argparse.RawDescriptionHelpFormatter)
-    p.add_argument("policy", help="an lc-eval driver, e.g. lookahead-blind:zoo:hybrid-ppo")
-    p.add_argument("--follow", default=None, help="the driver the imagined futures follow (lc-eval's --lookahead-follow)")
-    p.add_argument("--samples", type=int, default=3, help="imagined futures per candidate decision (default 3)")
-    p.add_argument("--horizon", type=int, default=32, help="decisions imagined after each candidate (default 32)")
-    p.add_argument("--episodes", type=int, default=200, help="held-out episodes (default 200)")
-    p.add_argument("--seed", type=int, default=0, help="evaluation seed (lc-eval's --seed)")
+    p.add_argument("policy", type=zoo_spec, help="an lc-eval driver, e.g. lookahead-blind:zoo:hybrid-ppo")
+    p.add_argument("--follow", type=zoo_spec, default=None, help="the driver the imagined futures follow (lc-eval's --lookahead-follow)")
+    p.add_argument("--samples", type=positive_int, default=3, help="imagined futures per candidate decision (default 3)")
+    p.add_argument("--horizon", type=positive_int, default=32, help="decisions imagined after each candidate (default 32)")
+    p.add_argument("--episodes", type=positive_int, default=200, help="held-out episodes (default 200)")
+    p.add_argument("--seed", type=non_negative_int, default=0, help="evaluation seed (lc-eval's --seed)")
     p.add_argument("--json-out", default=None)
     args = p.parse_args(argv)
-    if args.episodes < 1 or args.samples < 1 or args.horizon < 1:
-        p.error("--episodes, --samples and --horizon must be >= 1")
     if args.json_out and not os.path.isdir(os.path.dirname(os.path.abspath(args.json_out))):
         p.error(f"--json-out: no folder {os.path.dirname(os.path.abspath(args.json_out))}")
     if args.json_out and os.path.exists(args.json_out):
         p.error(f"--json-out: {args.json_out} exists; choose a new file")
     import torch
 
-    from lcmodels.zoo import resolve_policy_spec
-
     torch.set_num_threads(1)
 
     try:
-        spec = resolve_policy_spec(args.policy)[0] if "zoo:" in args.policy else args.policy
-        follow = resolve_policy_spec(args.follow)[0] if args.follow and "zoo:" in args.follow else args.follow
-        driver, config = driver_for(spec, follow=follow, lookahead={"samples": args.samples, "perceived": True,
+        driver, config = driver_for(args.policy, follow=args.follow, lookahead={"samples": args.samples, "perceived": True,
                                                                    "horizon_decisions": args.horizon})
     except (ValueError, OSError) as exc:
         print(f"short_gap: error: {str(exc).splitlines()[0]}", file=sys.stderr)

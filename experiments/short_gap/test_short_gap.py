@@ -1,5 +1,7 @@
 """experiments/short_gap/short_gap.py on small real episodes of the random driver (most of its crashes are short gaps)."""
 
+import pytest
+
 from lcmodels.analysis import CollisionBreakdown
 from lcmodels.policy.evaluate import eval_user_seeds
 from lcsim.config import paper_scenario
@@ -25,7 +27,10 @@ def test_the_probe_describes_every_short_gap_collision_the_breakdown_counts():
 
 
 def test_a_driver_without_a_lookahead_or_an_unknown_zoo_entry_is_a_one_line_error(capsys):
-    for argv in (["rule", "--episodes", "2"], ["lookahead-blind:zoo:no-such-entry", "--episodes", "2"]):
-        assert main(argv) == 2
-        err = capsys.readouterr().err
-        assert err.startswith("short_gap: error:") and err.count("\n") == 1, err
+    assert main(["rule", "--episodes", "2"]) == 2
+    err = capsys.readouterr().err
+    assert err.startswith("short_gap: error:") and err.count("\n") == 1, err
+    with pytest.raises(SystemExit) as exc:  # argparse's own error: usage, then one error line
+        main(["lookahead-blind:zoo:no-such-entry", "--episodes", "2"])
+    assert exc.value.code == 2
+    assert capsys.readouterr().err.splitlines()[-1].startswith("short_gap: error: argument policy:")

@@ -204,6 +204,8 @@ class LoadedPolicy:
     meta: dict[str, Any]
     predictor: Predictor | None
     scenario: ScenarioConfig
+    predictor_path: Path | None = None
+    """The file ``predictor`` was loaded from."""
 
     @property
     def obs_mode(self) -> str:
@@ -312,7 +314,8 @@ def load_policy(path: str | os.PathLike[str], *, obs_mode: str | None = None,
                 f"{path} needs the predictor it was trained with ({stored or 'unknown'}), which is not there; "
                 "pass its path with --predictor"
             )
-        sha = file_sha256(pred_path)
+        card_sha = (meta.get("predictor") or {}).get("sha256")  # find_predictor took only a file of that hash
+        sha = card_sha if predictor is None and card_sha else file_sha256(pred_path)
     problems = compatibility_problems(meta, obs_mode=obs_mode, predictor_sha256=sha, scenario=scenario)
     if problems:
         raise ValueError(f"{path} does not match: " + "; ".join(problems))
@@ -324,7 +327,7 @@ def load_policy(path: str | os.PathLike[str], *, obs_mode: str | None = None,
         model = policy_model(meta, future_steps=future, device=device)
         load_weights(model, path, device, meta)
         model.num_timesteps = int(meta.get("timesteps", 0))
-    return LoadedPolicy(model, meta, loaded_predictor, ScenarioConfig.from_dict(meta["scenario"]))
+    return LoadedPolicy(model, meta, loaded_predictor, ScenarioConfig.from_dict(meta["scenario"]), pred_path)
 
 
 def _load_legacy(path: str | os.PathLike[str], algo: str, device: str) -> BaseAlgorithm:

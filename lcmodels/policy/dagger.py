@@ -37,7 +37,7 @@ import numpy as np
 import torch
 
 from lcmodels.fileio import POLICY_FILE, write_json
-from lcmodels.policy.checkpoint import find_predictor, load_policy, save_policy
+from lcmodels.policy.checkpoint import load_policy, save_policy
 from lcmodels.policy.evaluate import PolicyDriver, evaluate
 from lcmodels.policy.obs import mode_keys, scenario_for_mode
 from lcmodels.policy.warmstart import Demonstrations, RowChunks, every_tenth, load_demonstrations, pretrain
@@ -297,8 +297,7 @@ def dagger(
     run = json.loads((run_dir / "run.json").read_text())
     demos_dir = run["config"].get("warm_start") or ""
     loaded = load_policy(policy_path)  # the predictor its card names (found by SHA-256 if the run has moved)
-    found = find_predictor(loaded.meta, policy_path) if loaded.predictor is not None else None
-    predictor = str(found) if found is not None else None
+    predictor = str(loaded.predictor_path) if loaded.predictor_path is not None else None
     mode, model = loaded.obs_mode, loaded.model
     config = scenario_for_mode(loaded.scenario, mode)
     data: dict[str, list[np.ndarray]] = {k: [] for k in mode_keys(mode)}
