@@ -52,6 +52,9 @@ def main(argv: list[str] | None = None) -> int:
                     "against 1 for one where they agree (1)")
     ap.add_argument("--threads", type=positive_int, default=1,
                     help="torch threads for training (default 1: more collapse when another process shares the cores)")
+    ap.add_argument("--demonstrations", default=None, metavar="DIR",
+                    help="where the run's demonstrations are now, when they have moved since it was trained "
+                    "(default: the directory its run.json names)")
     ap.add_argument("--resume", action="store_true",
                     help="continue the rounds already in --out (same run, --episodes, --seed, --labels) up to "
                     "--rounds in all")
@@ -67,7 +70,7 @@ def main(argv: list[str] | None = None) -> int:
         dagger(args.run, args.out, rounds=args.rounds, episodes=args.episodes, epochs=args.epochs, seed=args.seed,
                workers=args.workers, eval_episodes=args.eval_episodes, eval_seed=args.eval_seed, labels=args.labels,
                expert=args.expert, correction_weight=args.correction_weight, resume=args.resume,
-               expert_lookahead=lookahead_options(args),
+               expert_lookahead=lookahead_options(args), demonstrations=args.demonstrations,
                progress=lambda msg: print(msg, flush=True))  # fmt: skip
     except (ValueError, OSError) as exc:
         return fail("lc-dagger", str(exc).splitlines()[0])

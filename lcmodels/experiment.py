@@ -415,7 +415,7 @@ class Experiment:
         return self._stage(name, path, stage_cfg, inputs, lambda: outputs, work,
                            resumable=_resumable_policy_change, upgrade=stored_config)  # fmt: skip
 
-    def _dagger_stage(self, recipe: Recipe, seed: int, clone: StageResult) -> StageResult:
+    def _dagger_stage(self, recipe: Recipe, seed: int, clone: StageResult, demos: StageResult | None) -> StageResult:
         from lcmodels.policy.dagger import dagger
 
         spec = recipe.dagger
@@ -426,6 +426,7 @@ class Experiment:
             dagger(clone.path, path, rounds=spec.rounds, episodes=spec.episodes, epochs=spec.epochs,
                    seed=spec.seed + 10_000 * seed, workers=1, eval_episodes=0, labels=spec.labels,
                    expert=spec.expert, resume=keep and (path / "dagger.json").exists(),
+                   demonstrations=demos.path if demos is not None else None,
                    progress=lambda m: self.emit(f"[{name}] {m}"))  # fmt: skip
 
         cfg = dataclasses.asdict(spec) | {"training_seed": seed}
@@ -442,7 +443,7 @@ class Experiment:
         for stage in recipe.stages:
             if stage == "dagger":
                 assert previous is not None
-                previous = self._dagger_stage(recipe, seed, previous)
+                previous = self._dagger_stage(recipe, seed, previous, demos if "clone" in recipe.stages else None)
             else:
                 previous = self._policy_stage(recipe, stage, seed, predictor, demos if stage == "clone" else None,
                                               previous)  # fmt: skip

@@ -247,6 +247,7 @@ def dagger(
     correction_weight: float = 1.0,
     expert_lookahead: dict[str, int] | None = None,
     resume: bool = False,
+    demonstrations: str | os.PathLike[str] | None = None,
     progress: Callable[[str], None] | None = None,
 ) -> list[dict[str, Any]]:
     """Run DAgger rounds from a warm-started ``lc-train-policy`` run; returns every round's record.
@@ -270,6 +271,8 @@ def dagger(
             up to ``rounds`` in all: their labelled states rejoin the training set and the last round's
             policy is trained on. The result is the one an uninterrupted call gives (each round trains
             with a fresh optimiser and a seed of its own).
+        demonstrations: where the run's demonstrations are now, when they have moved with it (an experiment
+            directory published and resumed elsewhere); default: the path its ``run.json`` names.
     """
     run_dir, out = Path(run_dir), Path(out)
     say = progress or (lambda _msg: None)
@@ -296,6 +299,11 @@ def dagger(
         raise FileNotFoundError(f"{run_dir} is not a finished lc-train-policy run (policy.safetensors, run.json)")
     run = json.loads((run_dir / "run.json").read_text())
     demos_dir = run["config"].get("warm_start") or ""
+    if demos_dir and demonstrations is not None:
+        demos_dir = str(demonstrations)
+    if demos_dir and not Path(demos_dir).is_dir():
+        raise FileNotFoundError(f"the demonstrations {run_dir} was warm-started on are not at {demos_dir} any more; "
+                                "name where they are now")
     loaded = load_policy(policy_path)  # the predictor its card names (found by SHA-256 if the run has moved)
     predictor = str(loaded.predictor_path) if loaded.predictor_path is not None else None
     mode, model = loaded.obs_mode, loaded.model
