@@ -46,6 +46,18 @@ def positive_float(text: str) -> float:
     return value
 
 
+def _driver_fields(text: str) -> tuple[str, ...]:
+    """``--lookahead-known-drivers``: comma-separated :class:`lcsim.traffic.DriverParams` field names."""
+    from lcsim.traffic import DriverParams
+
+    names = tuple(n.strip() for n in text.split(",") if n.strip())
+    bad = [n for n in names if n not in DriverParams.__slots__]
+    if not names or bad:
+        raise argparse.ArgumentTypeError(f"{bad[0] if bad else text!r} is not a driver parameter "
+                                         f"(one of {', '.join(DriverParams.__slots__)})")
+    return names
+
+
 def add_lookahead_arguments(p: argparse.ArgumentParser) -> None:
     """``--lookahead-horizon``, ``--lookahead-samples``, ``--lookahead-perceived``,
     ``--lookahead-driver-draws`` and ``--lookahead-margin``: how the lookahead
@@ -62,6 +74,14 @@ def add_lookahead_arguments(p: argparse.ArgumentParser) -> None:
                    help="with --lookahead-perceived, human-like traffic: each imagined future draws the unseen "
                    "drivers' own parameters from the traffic's distribution instead of taking the median driver "
                    "(with --lookahead-samples > 1 a decision's survival is its share over plausible drivers)")
+    p.add_argument("--lookahead-estimate-drivers", action="store_true",
+                   help="with --lookahead-perceived, human-like traffic: infer each vehicle's car-following "
+                   "parameters, reaction time and desired speed from its motion while in sight, and imagine it "
+                   "with a driver drawn from that estimate instead of the median driver")
+    p.add_argument("--lookahead-known-drivers", type=_driver_fields, default=None, metavar="FIELDS",
+                   help="with --lookahead-perceived, a privileged diagnostic: the imagined futures keep these driver "
+                   "parameters at their true values (comma-separated: time_headway, max_accel, inv_2sqrt_ab, lag, "
+                   "lc_inv_duration, eagerness), the ceiling of a planner that would estimate them")
     p.add_argument("--lookahead-margin", type=float, default=None, metavar="M",
                    help="lookahead-blind drivers: imagine the ego M metres longer at its front and back, so that a "
                    "decision survives only with that much more room than contact (default 0)")
@@ -71,7 +91,8 @@ def lookahead_options(args: argparse.Namespace) -> dict[str, int | float]:
     """The ``--lookahead-*`` options given (``LookaheadConfig`` fields, for ``driver_for``)."""
     given = {"horizon_decisions": args.lookahead_horizon, "samples": args.lookahead_samples,
              "perceived": args.lookahead_perceived or None, "driver_draws": args.lookahead_driver_draws or None,
-             "margin_m": args.lookahead_margin}
+             "margin_m": args.lookahead_margin, "known_drivers": args.lookahead_known_drivers,
+             "estimate_drivers": args.lookahead_estimate_drivers or None}
     return {k: v for k, v in given.items() if v is not None}
 
 

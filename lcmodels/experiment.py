@@ -468,6 +468,8 @@ class Experiment:
         look = {"horizon_decisions": s.horizon, "samples": s.samples, "perceived": s.perceived}
         if s.driver_draws:  # (named only when set: stages measured before the field existed stay complete)
             look["driver_draws"] = True
+        if s.estimate_drivers:
+            look["estimate_drivers"] = True
         if s.margin_m:
             look["margin_m"] = float(s.margin_m)
         inputs = {"policy": final.digest} | ({"follow": follow.digest} if follow is not None else {})

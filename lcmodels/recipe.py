@@ -113,6 +113,10 @@ class SafetySpec:
     driver_draws: bool = False
     """Perceived, human-like traffic: each imagined future draws the unseen drivers from the traffic's
     distribution instead of the median driver (with ``samples`` > 1: a share over plausible drivers)."""
+    estimate_drivers: bool = False
+    """Perceived, human-like traffic: each vehicle's car-following parameters, reaction time and desired speed
+    inferred from its motion while in sight, its imagined driver drawn from that estimate
+    (:class:`lcsim.planning.estimate.DriverEstimator`)."""
     margin_m: float = 0.0
     """The imagined ego this much longer at its front and back: a decision survives only with that much room
     to spare (:class:`lcsim.planning.LookaheadConfig`)."""

@@ -9,6 +9,7 @@ import numpy as np
 
 from lcsim.core import KEEP, RUNNING, SUCCESS, TIMEOUT, LaneChangeCore
 from lcsim.drivers import Driver, RuleBasedDriver
+from lcsim.planning.estimate import LONGITUDINAL, DriverEstimator
 from lcsim.planning.perception import perceive, redraw_future
 
 
@@ -36,6 +37,15 @@ class LookaheadConfig:
     (headway, acceleration, reaction, lane-change habits) from the traffic's distribution instead of taking
     the median driver, so with ``samples`` > 1 a decision's survival is its share over drivers the sensors
     cannot tell apart (:func:`~lcsim.planning.perception.perceive`)."""
+    estimate_drivers: bool = False
+    """Perceived only, human-like traffic: infer each vehicle's own car-following parameters, reaction time and
+    desired speed from its motion over the decisions it has been in sight (:class:`~lcsim.planning.estimate.
+    DriverEstimator`), and imagine it with a driver drawn from that posterior instead of the median driver."""
+    known_drivers: tuple[str, ...] = ()
+    """Perceived only, a privileged diagnostic: the imagined copies keep these parameters of every driver (names
+    of :class:`~lcsim.traffic.DriverParams` fields: ``time_headway``, ``max_accel``, ``inv_2sqrt_ab``, ``lag``,
+    ``lc_inv_duration``, ``eagerness``) at their true values, which no sensor shows: the ceiling of a planner
+    that would estimate them from the traffic's motion."""
     margin_m: float = 0.0
     """Blind only: the imagined ego is this much longer at its front and at its back, so a decision survives
     only if it keeps that much more room than contact (a gap the real traffic's noise may close is refused)."""
@@ -54,6 +64,17 @@ class LookaheadConfig:
             raise ValueError(f"margin_m must be a number of metres in [0, 10], got {self.margin_m!r}")
         if self.margin_m and not self.blind:
             raise ValueError("margin_m > 0 needs blind=True (a planner that sees the true future needs no margin)")
+        from lcsim.traffic import DriverParams
+
+        if isinstance(self.known_drivers, list):  # read back from JSON
+            object.__setattr__(self, "known_drivers", tuple(self.known_drivers))
+        if not isinstance(self.known_drivers, tuple) or not all(n in DriverParams.__slots__ for n in self.known_drivers):
+            raise ValueError(f"known_drivers must be a tuple of driver parameters ({', '.join(DriverParams.__slots__)}), "
+                             f"got {self.known_drivers!r}")
+        if self.known_drivers and not self.perceived:
+            raise ValueError("known_drivers needs perceived=True (an unperceived copy knows every driver)")
+        if self.estimate_drivers and not self.perceived:
+            raise ValueError("estimate_drivers=True needs perceived=True (an unperceived copy knows every driver)")
         if self.driver_draws and not self.perceived:
             raise ValueError("driver_draws=True needs perceived=True (an unperceived copy knows every driver)")
 
@@ -93,6 +114,7 @@ class LookaheadDriver:
         not imagined (not allowed, or no choice to make): the labels a learned safety critic is fitted to."""
         self._observe = bool(getattr(self.rule, "needs_observation", False))
         self._prediction: np.ndarray | None = None
+        self._estimator: DriverEstimator | None = None
 
     @property
     def name(self) -> str:  # type: ignore[override]
@@ -112,14 +134,19 @@ class LookaheadDriver:
     def survives(self, core: LaneChangeCore, actions: np.ndarray, salt: int | np.ndarray = 1) -> np.ndarray:
         """``(E,)`` bool: no collision or off-road within the horizon after ``actions``, then the driver
         ``rule`` (in a future redrawn with ``salt``, one or one per environment, when blind)."""
-        return self._survives(core.replicate(np.arange(core.num_envs)), actions, salt)
+        rows = np.arange(core.num_envs)
+        return self._survives(core.replicate(rows), actions, salt, rows)
 
-    def _survives(self, future: LaneChangeCore, actions: np.ndarray, salt: int | np.ndarray) -> np.ndarray:
-        """:meth:`survives` in ``future``, a copy the call may change."""
+    def _survives(self, future: LaneChangeCore, actions: np.ndarray, salt: int | np.ndarray,
+                  rows: np.ndarray) -> np.ndarray:  # fmt: skip
+        """:meth:`survives` in ``future``, a copy the call may change of the environments ``rows``."""
         if self.config.blind:
             redraw_future(future.sim, salt)
         if self.config.perceived:
-            perceive(future.sim, future.config.sensing_range_m, draw_drivers=self.config.driver_draws)
+            perceive(future.sim, future.config.sensing_range_m, draw_drivers=self.config.driver_draws,
+                     known_drivers=self.config.known_drivers)
+            if self._estimator is not None:
+                self._imagine_estimated(future, np.broadcast_to(np.asarray(salt), rows.shape), rows)
         if self.config.margin_m:
             future.sim.length[:, 0] += 2.0 * self.config.margin_m
         future.step(actions)
@@ -130,7 +157,25 @@ class LookaheadDriver:
             future.step(self.rule(obs, future.action_mask(), future))
         return np.isin(future.outcome, (RUNNING, SUCCESS, TIMEOUT))
 
+    def _imagine_estimated(self, future: LaneChangeCore, salt: np.ndarray, rows: np.ndarray) -> None:
+        """The drivers of the vehicles the estimator has evidence on, drawn from their posteriors."""
+        assert self._estimator is not None
+        sim = future.sim
+        known = self._estimator.evidence[rows] & sim.is_traffic
+        known[:, 0] = False
+        if not known.any():
+            return
+        drawn, v0 = self._estimator.draw(rows, salt, np.asarray(sim.step))
+        for name in LONGITUDINAL:
+            getattr(sim.drivers, name)[...] = np.where(known, getattr(drawn, name), getattr(sim.drivers, name))
+        sim.v0 = np.where(known, v0, sim.v0)
+
     def __call__(self, obs: dict[str, np.ndarray], action_mask: np.ndarray, core: LaneChangeCore) -> np.ndarray:
+        if self.config.estimate_drivers and core.sim.human:
+            if self._estimator is None:
+                cfg = core.config
+                self._estimator = DriverEstimator(cfg.traffic, cfg.dt_s, cfg.steps_per_decision, cfg.sensing_range_m)
+            self._estimator.observe(core)
         mask = np.asarray(action_mask, dtype=bool).reshape(-1, 3)
         decider = self.proposer or self.rule
         planned = np.asarray(decider(obs, mask, core), dtype=np.int64).reshape(len(mask))
@@ -149,7 +194,7 @@ class LookaheadDriver:
         samples = self.config.samples
         env, action = np.repeat(env, samples), np.repeat(action, samples)
         salt = np.tile(np.arange(1, samples + 1), len(env) // samples)
-        survived = self._survives(core.replicate(env), action, salt)
+        survived = self._survives(core.replicate(env), action, salt, env)
         alive = np.zeros(mask.shape)  # share of the imagined futures each decision survives
         np.add.at(alive, (env, action), survived)
         alive /= samples

@@ -39,7 +39,8 @@ def redraw_future(sim: HighwaySim, salt: int | np.ndarray) -> None:
     sim.rekey(salt)
 
 
-def perceive(sim: HighwaySim, range_m: float, *, draw_drivers: bool = False) -> None:
+def perceive(sim: HighwaySim, range_m: float, *, draw_drivers: bool = False,
+             known_drivers: tuple[str, ...] = ()) -> None:
     """Reduce every environment to what its ego's sensors tell about the traffic (for an imagined copy).
 
     Traffic vehicles farther than ``range_m`` from the ego (centre to centre) are moved 100 km behind
@@ -55,6 +56,9 @@ def perceive(sim: HighwaySim, range_m: float, *, draw_drivers: bool = False) -> 
     traffic's distribution, from a generator seeded by the copy's random keys (so each redrawn future of
     :func:`redraw_future` imagines other plausible drivers, and the same state gives the same draws): a
     planner that imagines several futures then weighs the drivers it cannot tell apart, not only the median.
+
+    ``known_drivers`` (names of :class:`~lcsim.traffic.DriverParams` fields) keeps those parameters of every
+    driver at their true values: a privileged diagnostic, the ceiling of a planner that would estimate them.
     """
     if not range_m > 0:
         raise ValueError(f"range_m must be > 0, got {range_m!r}")
@@ -65,6 +69,10 @@ def perceive(sim: HighwaySim, range_m: float, *, draw_drivers: bool = False) -> 
     far &= traffic
     sim.x = np.where(far, sim.x[:, :1] - 1.0e5 - 50.0 * sim.ids[None, :], sim.x)  # parked, spaced apart
     sim.rebuild_index()
+    unknown = set(known_drivers) - set(DriverParams.__slots__)
+    if unknown:
+        raise ValueError(f"known_drivers: no driver parameter {sorted(unknown)[0]!r}")
+    true = {name: getattr(sim.drivers, name).copy() for name in known_drivers}
     if sim.human:  # each driver's own parameters show in no sensor: the copy's drivers are the median ones
         # (or plausible ones drawn), but a lane change under way keeps its pace (its progress shows)
         if draw_drivers:
@@ -72,6 +80,8 @@ def perceive(sim: HighwaySim, range_m: float, *, draw_drivers: bool = False) -> 
         else:
             sim.drivers.set_nominal(traffic, sim.config.traffic, sim.dt)
         sim.drivers.lc_inv_duration[...] = np.where(sim.lc_active, original_durations, sim.drivers.lc_inv_duration)
+        for name, values in true.items():
+            getattr(sim.drivers, name)[...] = values
     sim.v0 = np.where(traffic, estimated_desired_speeds(sim), sim.v0)
 
 
