@@ -124,3 +124,16 @@ def test_the_shipped_zoo_is_small_and_holds_no_pickle() -> None:
     assert sum(p.stat().st_size for p in files) <= 25 * 2**20
     assert {p.suffix for p in files} <= {".safetensors", ".json", ".pt", ".md"}
     assert all(p.name == "predictor.pt" for p in files if p.suffix == ".pt")  # loaded with weights_only=True
+
+
+def test_publish_zoo_refuses_zoo_options_with_reached_only(tmp_path: Path) -> None:
+    import subprocess
+    import sys
+
+    tool = Path(__file__).parents[1] / "tools" / "publish_zoo.py"
+    for extra in (["--zoo", str(tmp_path / "z")], ["--overwrite"]):
+        out = subprocess.run([sys.executable, str(tool), str(tmp_path), "paper-a2c", "--reached-only", *extra],
+                             capture_output=True, text=True)  # fmt: skip
+        assert out.returncode == 2 and "Traceback" not in out.stderr
+        assert out.stderr.strip().splitlines()[-1].endswith("--reached-only writes none")
+    assert not (tmp_path / "z").exists()

@@ -28,10 +28,13 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("recipes", nargs="+", help="recipe names whose final policies to publish")
     ap.add_argument("--seed", type=int, default=0, help="training seed of the runs to publish (default 0)")
     ap.add_argument("--zoo", type=Path, default=None, help="zoo directory (default: zoo/ of this checkout)")
-    ap.add_argument("--overwrite", action="store_true", help="replace entries that exist")
+    ap.add_argument("--overwrite", action="store_true",
+                    help="replace zoo entries that exist (the recipe's .reached.json, a record in git, is always rewritten)")
     ap.add_argument("--reached-only", action="store_true",
                     help="write only lcmodels/recipes/<name>.reached.json, no zoo entry (packaged recipes)")
     args = ap.parse_args(argv)
+    if args.reached_only and (args.zoo is not None or args.overwrite):
+        ap.error("--zoo and --overwrite apply to zoo entries; --reached-only writes none")
     from lcmodels.fileio import write_json
     from lcmodels.recipe import RECIPES_DIR, recipe_path
     from lcmodels.zoo import experiment_card, publish_from_experiment
