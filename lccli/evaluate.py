@@ -4,8 +4,11 @@ analysis tools share."""
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import functools
 import json
+import shlex
+import sys
 import time
 from collections.abc import Callable
 from pathlib import Path
@@ -158,6 +161,7 @@ def eval_parser() -> argparse.ArgumentParser:
 
 def eval_main(argv: list[str] | None = None) -> int:
     args = eval_parser().parse_args(argv)
+    command = "lc-eval " + shlex.join(sys.argv[1:] if argv is None else argv)
 
     error = functools.partial(fail, "lc-eval")
 
@@ -250,6 +254,9 @@ def eval_main(argv: list[str] | None = None) -> int:
     summary["decisions"] = sum(r.length for r in results)
     if isinstance(driver, LookaheadDriver) and args.executor != "ray":  # a planner: how often it overrode
         summary["planner_choices"], summary["planner_overrides"] = driver.choices, driver.overrides
+    if isinstance(driver, LookaheadDriver):  # what the planner imagined: the file says how it was made
+        summary["lookahead"] = dataclasses.asdict(driver.config) | {"follow": args.lookahead_follow}
+    summary["command"] = command
     print(format_eval(summary))
     print(f"{summary['decisions']} decisions in {summary['wall_s']} s ({args.batch} episodes at a time, "
           f"{args.threads} torch threads)")

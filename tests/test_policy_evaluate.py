@@ -116,7 +116,11 @@ def test_a_lookahead_follows_a_policy_without_image_and_refuses_one_with(tmp_pat
     assert eval_main([f"lookahead-blind:{image}", "--lookahead-follow", "rule", "--lookahead-horizon", "2",
                       "--lookahead-perceived", "--episodes", "2", "--no-record", "--json-out",
                       str(tmp_path / "perceived.json")]) == 0  # fmt: skip
-    assert json.loads((tmp_path / "perceived.json").read_text())["driver"] == "ppo-image+lookahead-perceived-rule"
+    perceived = json.loads((tmp_path / "perceived.json").read_text())
+    assert perceived["driver"] == "ppo-image+lookahead-perceived-rule"
+    # the file says how it was made: the planner's settings and the command
+    assert perceived["lookahead"]["perceived"] and perceived["lookahead"]["horizon_decisions"] == 2
+    assert perceived["lookahead"]["follow"] == "rule" and perceived["command"].startswith(f"lc-eval lookahead-blind:")
     assert eval_main(["lookahead-blind", "--lookahead-horizon", "2", "--lookahead-samples", "2", "--episodes", "2",
                       "--scenario", "tiny", "--no-record", "--json-out", str(tmp_path / "la.json")]) == 0
     assert json.loads((tmp_path / "la.json").read_text())["episodes"] == 2

@@ -25,14 +25,14 @@ def ray_instance():
 
 
 def _figures(path: Path, base: Path | None = None) -> dict:
-    """A metrics file without what differs between two runs of the same work in two directories: wall times,
-    the directory in the paths it names (``base``), and the policy's hash (its card names the predictor's
+    """A metrics file without what differs between two runs of the same work in two directories: wall times, the
+    command that made it, the directory in the paths it names (``base``), and the policy's hash (its card names the predictor's
     path, which is in the run directory; so does an initial policy's hash)."""
 
     def strip(x, parent=""):
         if isinstance(x, dict):
             return {k: strip(v, k) for k, v in x.items()
-                    if k not in ("wall_s", "seconds", "collect_s", "train_s", "policy_sha256") and not (parent == "warm_start" and k == "sha256")}
+                    if k not in ("wall_s", "seconds", "collect_s", "train_s", "policy_sha256", "command") and not (parent == "warm_start" and k == "sha256")}
         if isinstance(x, list):
             return [strip(v, parent) for v in x]
         return x.replace(str(base), "DIR") if isinstance(x, str) and base is not None else x
