@@ -81,6 +81,15 @@ def test_dagger_resumed_gives_the_rounds_of_an_uninterrupted_run(tmp_path: Path)
         dagger(tmp_path / "bc", tmp_path / "parts", rounds=3, resume=True, **{**args, "labels": "winning"})
     with pytest.raises(FileNotFoundError, match="no DAgger rounds"):
         dagger(tmp_path / "bc", tmp_path / "empty", rounds=1, resume=True, **args)
+    # the run and its rounds moved together (a published experiment resumed elsewhere): found by the policy's hash
+    dagger(tmp_path / "bc", tmp_path / "half", rounds=1, **args)
+    (tmp_path / "elsewhere").mkdir()
+    for name in ("bc", "half"):
+        (tmp_path / name).rename(tmp_path / "elsewhere" / name)
+    moved = dagger(tmp_path / "elsewhere" / "bc", tmp_path / "elsewhere" / "half", rounds=2, resume=True, **args)
+    assert moved[1]["training_states"] == straight[1]["training_states"]
+    c = load_policy(tmp_path / "elsewhere" / "half" / "round2" / "policy.safetensors").model.policy.state_dict()
+    assert all(torch.equal(a[k], c[k]) for k in a)
 
 
 @pytest.mark.slow

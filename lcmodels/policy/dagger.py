@@ -36,6 +36,7 @@ from typing import Any
 import numpy as np
 import torch
 
+from lcdata.fileio import file_sha256
 from lcmodels.fileio import POLICY_FILE, write_json
 from lcmodels.policy.checkpoint import load_policy, save_policy
 from lcmodels.policy.evaluate import PolicyDriver, evaluate
@@ -207,7 +208,9 @@ def _finished_rounds(out: Path, run_dir: Path, *, episodes: int, seed: int, labe
     records = book.get("rounds") or []
     if not records:
         raise FileNotFoundError(f"{out}/dagger.json lists no finished round")
-    if Path(book.get("run_dir", "")).resolve() != run_dir.resolve():
+    same_place = Path(book.get("run_dir", "")).resolve() == run_dir.resolve()
+    moved = bool(book.get("run_policy_sha256")) and book["run_policy_sha256"] == file_sha256(run_dir / POLICY_FILE)
+    if not (same_place or moved):  # the run's policy, wherever it is now (a published experiment resumed elsewhere)
         raise ValueError(f"{out} continues the run {book.get('run_dir')}, not {run_dir}")
     first = records[0]
     differs = [f"{name}: {have} there, {want} asked" for name, have, want in (
@@ -298,6 +301,7 @@ def dagger(
     if not policy_path.is_file() or not (run_dir / "run.json").is_file():
         raise FileNotFoundError(f"{run_dir} is not a finished lc-train-policy run (policy.safetensors, run.json)")
     run = json.loads((run_dir / "run.json").read_text())
+    run_sha256 = file_sha256(policy_path)
     demos_dir = run["config"].get("warm_start") or ""
     if demos_dir and demonstrations is not None:
         demos_dir = str(demonstrations)
@@ -397,7 +401,8 @@ def dagger(
                 f"collision {100 * summary['collision_rate']:.1f}%")
         write_json(out / f"round{r}" / "metrics.json", record)
         records.append(record)
-        write_json(out / "dagger.json", {"run_dir": str(run_dir), "demonstrations": demos_dir, "rounds": records})
+        write_json(out / "dagger.json", {"run_dir": str(run_dir), "run_policy_sha256": run_sha256,
+                                         "demonstrations": demos_dir, "rounds": records})  # fmt: skip
     return records
 
 
