@@ -52,7 +52,7 @@ def test_dagger_round_labels_the_policys_states_with_the_oracle_and_saves_a_load
         dagger(tmp_path / "bc", tmp_path / "dg", rounds=1, episodes=1, epochs=1)
     # the demonstrations moved (a published experiment resumed elsewhere): named, they are found; else one line
     (tmp_path / "demos").rename(tmp_path / "moved")
-    with pytest.raises(FileNotFoundError, match="not at .*demos any more; name where they are now"):
+    with pytest.raises(FileNotFoundError, match=r"not at .*demos any more; name where they are now"):
         dagger(tmp_path / "bc", tmp_path / "dg2", rounds=1, episodes=2, epochs=1, seed=7, workers=1, eval_episodes=0)
     moved = dagger(tmp_path / "bc", tmp_path / "dg2", rounds=1, episodes=2, epochs=1, seed=7, workers=1,
                    eval_episodes=0, demonstrations=tmp_path / "moved")  # fmt: skip

@@ -120,7 +120,7 @@ def test_a_lookahead_follows_a_policy_without_image_and_refuses_one_with(tmp_pat
     assert perceived["driver"] == "ppo-image+lookahead-perceived-rule"
     # the file says how it was made: the planner's settings and the command
     assert perceived["lookahead"]["perceived"] and perceived["lookahead"]["horizon_decisions"] == 2
-    assert perceived["lookahead"]["follow"] == "rule" and perceived["command"].startswith(f"lc-eval lookahead-blind:")
+    assert perceived["lookahead"]["follow"] == "rule" and perceived["command"].startswith("lc-eval lookahead-blind:")
     assert eval_main(["lookahead-blind", "--lookahead-horizon", "2", "--lookahead-samples", "2", "--episodes", "2",
                       "--scenario", "tiny", "--no-record", "--json-out", str(tmp_path / "la.json")]) == 0
     assert json.loads((tmp_path / "la.json").read_text())["episodes"] == 2
