@@ -12,10 +12,10 @@ A lab script for the shielded study (docs/results/shielded/NOTE.md), not a recip
 from __future__ import annotations
 
 import argparse
-import dataclasses
 import json
 import time
 from pathlib import Path
+from typing import ClassVar
 
 import numpy as np
 import torch
@@ -34,7 +34,7 @@ class ShieldedVecEnv(LaneChangeSB3VecEnv):
 
     layer: LookaheadDriver
     penalty: float = 0.0
-    counts = {"choices": 0, "overrides": 0}
+    counts: ClassVar[dict[str, int]] = {"choices": 0, "overrides": 0}
 
     def step_wait(self):  # type: ignore[override]
         proposed = np.asarray(self._actions, dtype=np.int64).reshape(-1)
