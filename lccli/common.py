@@ -48,19 +48,17 @@ def positive_float(text: str) -> float:
 
 def _driver_fields(text: str) -> tuple[str, ...]:
     """``--lookahead-known-drivers``: comma-separated :class:`lcsim.traffic.DriverParams` field names."""
-    from lcsim.traffic import DriverParams
+    from lcsim.traffic import driver_fields
 
-    names = tuple(n.strip() for n in text.split(",") if n.strip())
-    bad = [n for n in names if n not in DriverParams.__slots__]
-    if not names or bad:
-        raise argparse.ArgumentTypeError(f"{bad[0] if bad else text!r} is not a driver parameter "
-                                         f"(one of {', '.join(DriverParams.__slots__)})")
-    return names
+    try:
+        return driver_fields([n.strip() for n in text.split(",") if n.strip()] or [text])
+    except ValueError as exc:
+        raise argparse.ArgumentTypeError(str(exc)) from exc
 
 
 def add_lookahead_arguments(p: argparse.ArgumentParser) -> None:
-    """``--lookahead-horizon``, ``--lookahead-samples``, ``--lookahead-perceived``,
-    ``--lookahead-driver-draws`` and ``--lookahead-margin``: how the lookahead
+    """``--lookahead-horizon``, ``--lookahead-samples``, ``--lookahead-perceived``, ``--lookahead-driver-draws``,
+    ``--lookahead-estimate-drivers``, ``--lookahead-known-drivers`` and ``--lookahead-margin``: how the lookahead
     planners imagine (``lc-eval``, ``lc-record`` and the tools that run the same drivers)."""
     p.add_argument("--lookahead-horizon", type=int_at_least(1), default=None,
                    help="lookahead drivers: decisions imagined after each candidate one (default 16, i.e. 8 s)")

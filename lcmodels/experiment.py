@@ -443,7 +443,7 @@ class Experiment:
         for stage in recipe.stages:
             if stage == "dagger":
                 assert previous is not None
-                previous = self._dagger_stage(recipe, seed, previous, demos if "clone" in recipe.stages else None)
+                previous = self._dagger_stage(recipe, seed, previous, demos)
             else:
                 previous = self._policy_stage(recipe, stage, seed, predictor, demos if stage == "clone" else None,
                                               previous)  # fmt: skip

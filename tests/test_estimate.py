@@ -52,10 +52,11 @@ def test_a_new_episode_forgets_and_draws_are_reproducible():
     core, est = _paper_run(6, envs=2)
     assert est.evidence[0].any() and est.evidence[1].any()
     rows, salt, step = np.array([0, 0, 1]), np.array([1, 2, 1]), np.array([7, 7, 7])
-    a, v0a = est.draw(rows, salt, step)
-    b, v0b = est.draw(rows, salt, step)
-    assert np.array_equal(v0a, v0b) and all(np.array_equal(getattr(a, n), getattr(b, n)) for n in LONGITUDINAL)
-    assert not np.array_equal(v0a[0], v0a[1])  # another salt, other plausible drivers
+    a, v0a, seen = est.draw(rows, salt, step)
+    b, v0b, _ = est.draw(rows, salt, step)
+    assert np.array_equal(seen, est.evidence[rows]) and np.isnan(v0a[~seen]).all()  # drawn only where observed
+    assert np.array_equal(v0a, v0b, equal_nan=True) and all(np.array_equal(getattr(a, n), getattr(b, n)) for n in LONGITUDINAL)
+    assert not np.array_equal(v0a[0][seen[0]], v0a[1][seen[1]])  # another salt, other plausible drivers
     core.reset([1], [999])
     est.observe(core)
     assert est.evidence[0].any() and not est.evidence[1].any()

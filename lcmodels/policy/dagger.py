@@ -209,7 +209,8 @@ def _finished_rounds(out: Path, run_dir: Path, *, episodes: int, seed: int, labe
     if not records:
         raise FileNotFoundError(f"{out}/dagger.json lists no finished round")
     same_place = Path(book.get("run_dir", "")).resolve() == run_dir.resolve()
-    moved = bool(book.get("run_policy_sha256")) and book["run_policy_sha256"] == file_sha256(run_dir / POLICY_FILE)
+    moved = (not same_place and bool(book.get("run_policy_sha256"))
+             and book["run_policy_sha256"] == file_sha256(run_dir / POLICY_FILE))  # fmt: skip
     if not (same_place or moved):  # the run's policy, wherever it is now (a published experiment resumed elsewhere)
         raise ValueError(f"{out} continues the run {book.get('run_dir')}, not {run_dir}")
     first = records[0]

@@ -125,10 +125,11 @@ class DriverEstimator:
         respond_v = np.zeros(shape)  # ... and in the speed change
         v0 = np.broadcast_to(self.v0[None, :], shape)
         free = ~np.isfinite(a["gap"]) | ~np.isfinite(b["gap"])
+        gap_a, gap_b = np.where(free, 0.0, a["gap"]), np.where(free, 0.0, b["gap"])
         for k in range(self.steps):
             w = k / self.steps
             v = (1 - w) * a["speed"] + w * b["speed"]
-            gap = np.where(free, np.inf, (1 - w) * np.where(free, 0.0, a["gap"]) + w * np.where(free, 0.0, b["gap"]))
+            gap = np.where(free, np.inf, (1 - w) * gap_a + w * gap_b)
             ls = (1 - w) * a["lead_speed"] + w * b["lead_speed"]
             cmd = idm_accel(np.broadcast_to(v[:, None], shape), v0, np.broadcast_to(gap[:, None], shape),
                             np.broadcast_to((v - ls)[:, None], shape), tc, drivers)  # fmt: skip
@@ -164,9 +165,7 @@ class DriverEstimator:
         """``(R, N, M)`` each vehicle's posterior over the candidates (uniform for a vehicle never observed)."""
         if self.loglik is None:
             raise ValueError("observe a core first")
-        ll = self.loglik if rows is None else self.loglik[rows]
-        p = np.exp(ll - ll.max(axis=-1, keepdims=True))
-        return p / p.sum(axis=-1, keepdims=True)
+        return _normalised(self.loglik if rows is None else self.loglik[rows])
 
     @property
     def evidence(self) -> np.ndarray:
@@ -175,27 +174,31 @@ class DriverEstimator:
             raise ValueError("observe a core first")
         return self._seen >= 0
 
-    def draw(self, rows: np.ndarray, salt: np.ndarray, step: np.ndarray) -> tuple[DriverParams, np.ndarray]:
-        """Drivers ``(R, N)`` and their desired speeds (m/s) for imagined copies of environments ``rows``: each
-        vehicle's drawn from its posterior, from a generator seeded by the copy's ``salt`` and ``step`` (the same
-        state and salt give the same drivers)."""
+    def draw(self, rows: np.ndarray, salt: np.ndarray, step: np.ndarray) -> tuple[DriverParams, np.ndarray, np.ndarray]:
+        """For imagined copies of environments ``rows``: drivers ``(R, N)``, their desired speeds (m/s) and where
+        they were drawn (the vehicles with :attr:`evidence`; the others are the median driver with a NaN desired
+        speed). Each is drawn from its posterior by a generator seeded by the copy's ``salt`` and ``step`` and
+        its row (the same state and salt give the same drivers)."""
         rows = np.asarray(rows)
-        r, n = len(rows), self.loglik.shape[1] if self.loglik is not None else 0
+        seen = self.evidence[rows]
+        r, n = seen.shape
         u = np.empty((r, n))
         for i in range(r):
             u[i] = np.random.default_rng([int(salt[i]), int(step[i]), int(rows[i])]).random(n)
-        pick = np.zeros((r, n), dtype=np.int64)
-        seen = self.evidence[rows]  # a vehicle never observed keeps the prior: drawn like the rest, from it
-        ll = self.loglik[rows][seen]
-        post = np.exp(ll - ll.max(axis=-1, keepdims=True))
-        post = np.cumsum(post / post.sum(axis=-1, keepdims=True), axis=-1)
-        pick[seen] = np.minimum((post < u[seen][:, None]).sum(axis=-1), post.shape[-1] - 1)
-        unseen = np.cumsum(np.exp(self.log_prior))
-        pick[~seen] = np.minimum(np.searchsorted(unseen, u[~seen], side="left"), len(unseen) - 1)
+        post = np.cumsum(_normalised(self.loglik[rows][seen]), axis=-1)
+        pick = np.minimum((post < u[seen][:, None]).sum(axis=-1), post.shape[-1] - 1)
         drawn = DriverParams.nominal(self.traffic, (r, n), self.dt)
         for name in LONGITUDINAL:
-            getattr(drawn, name)[...] = getattr(self.candidates, name)[pick]
-        return drawn, self.v0[pick]
+            getattr(drawn, name)[seen] = getattr(self.candidates, name)[pick]
+        v0 = np.full((r, n), np.nan)
+        v0[seen] = self.v0[pick]
+        return drawn, v0, seen
+
+
+def _normalised(loglik: np.ndarray) -> np.ndarray:
+    """Probabilities over the last axis from log-likelihoods."""
+    p = np.exp(loglik - loglik.max(axis=-1, keepdims=True))
+    return p / p.sum(axis=-1, keepdims=True)
 
 
 __all__ = ["LONGITUDINAL", "DriverEstimator"]

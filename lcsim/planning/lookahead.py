@@ -11,6 +11,7 @@ from lcsim.core import KEEP, RUNNING, SUCCESS, TIMEOUT, LaneChangeCore
 from lcsim.drivers import Driver, RuleBasedDriver
 from lcsim.planning.estimate import LONGITUDINAL, DriverEstimator
 from lcsim.planning.perception import perceive, redraw_future
+from lcsim.traffic import driver_fields
 
 
 @dataclass(frozen=True, slots=True, kw_only=True)
@@ -64,13 +65,9 @@ class LookaheadConfig:
             raise ValueError(f"margin_m must be a number of metres in [0, 10], got {self.margin_m!r}")
         if self.margin_m and not self.blind:
             raise ValueError("margin_m > 0 needs blind=True (a planner that sees the true future needs no margin)")
-        from lcsim.traffic import DriverParams
-
-        if isinstance(self.known_drivers, list):  # read back from JSON
-            object.__setattr__(self, "known_drivers", tuple(self.known_drivers))
-        if not isinstance(self.known_drivers, tuple) or not all(n in DriverParams.__slots__ for n in self.known_drivers):
-            raise ValueError(f"known_drivers must be a tuple of driver parameters ({', '.join(DriverParams.__slots__)}), "
-                             f"got {self.known_drivers!r}")
+        if not isinstance(self.known_drivers, tuple | list):
+            raise ValueError(f"known_drivers must be a tuple of driver parameters, got {self.known_drivers!r}")
+        object.__setattr__(self, "known_drivers", driver_fields(self.known_drivers, "known_drivers"))  # a list read back from JSON
         if self.known_drivers and not self.perceived:
             raise ValueError("known_drivers needs perceived=True (an unperceived copy knows every driver)")
         if self.estimate_drivers and not self.perceived:
@@ -161,11 +158,7 @@ class LookaheadDriver:
         """The drivers of the vehicles the estimator has evidence on, drawn from their posteriors."""
         assert self._estimator is not None
         sim = future.sim
-        known = self._estimator.evidence[rows] & sim.is_traffic
-        known[:, 0] = False
-        if not known.any():
-            return
-        drawn, v0 = self._estimator.draw(rows, salt, np.asarray(sim.step))
+        drawn, v0, known = self._estimator.draw(rows, salt, np.asarray(sim.step))  # traffic in sight, never the ego
         for name in LONGITUDINAL:
             getattr(sim.drivers, name)[...] = np.where(known, getattr(drawn, name), getattr(sim.drivers, name))
         sim.v0 = np.where(known, v0, sim.v0)

@@ -16,7 +16,7 @@ import numpy as np
 
 from lcsim.core import LaneChangeCore
 from lcsim.sim import HighwaySim
-from lcsim.traffic import DriverParams, idm_accel
+from lcsim.traffic import DriverParams, driver_fields, idm_accel
 
 
 def imagined_copy(core: LaneChangeCore) -> LaneChangeCore:
@@ -69,10 +69,7 @@ def perceive(sim: HighwaySim, range_m: float, *, draw_drivers: bool = False,
     far &= traffic
     sim.x = np.where(far, sim.x[:, :1] - 1.0e5 - 50.0 * sim.ids[None, :], sim.x)  # parked, spaced apart
     sim.rebuild_index()
-    unknown = set(known_drivers) - set(DriverParams.__slots__)
-    if unknown:
-        raise ValueError(f"known_drivers: no driver parameter {sorted(unknown)[0]!r}")
-    true = {name: getattr(sim.drivers, name).copy() for name in known_drivers}
+    true = {name: getattr(sim.drivers, name).copy() for name in driver_fields(known_drivers, "known_drivers")}
     if sim.human:  # each driver's own parameters show in no sensor: the copy's drivers are the median ones
         # (or plausible ones drawn), but a lane change under way keeps its pace (its progress shows)
         if draw_drivers:
