@@ -105,6 +105,25 @@ def _no_wall() -> None:
     pass
 
 
+def lookahead_settings(s: Any) -> dict[str, Any]:
+    """The :class:`lcsim.planning.LookaheadConfig` fields of a recipe's ``[safety]`` table (a
+    :class:`lcmodels.recipe.SafetySpec`); the optional ones named only when set, so that stages measured before
+    a field existed stay complete."""
+    look: dict[str, Any] = {"horizon_decisions": s.horizon, "samples": s.samples, "perceived": s.perceived}
+    if s.driver_draws:
+        look["driver_draws"] = True
+    if s.estimate_drivers:
+        look["estimate_drivers"] = True
+    if s.margin_m:
+        look["margin_m"] = float(s.margin_m)
+    return look
+
+
+def _evaluated(done: Sequence[StageResult]) -> bool:
+    """A recipe's stages reached its evaluation (a ``shielded`` stage waits for the policy its layer follows)."""
+    return bool(done) and done[-1].name.endswith("/eval")
+
+
 
 
 class Experiment:
@@ -365,13 +384,15 @@ class Experiment:
 
     # -- recipes -------------------------------------------------------------------------------------
     def _policy_stage(self, recipe: Recipe, stage: str, seed: int, predictor: StageResult | None,
-                      demos: StageResult | None, previous: StageResult | None) -> StageResult:  # fmt: skip
-        """One ``clone`` or ``train`` stage of ``recipe``: an ``lcmodels.policy.train`` run directory."""
+                      demos: StageResult | None, previous: StageResult | None,
+                      follow: StageResult | None = None) -> StageResult:  # fmt: skip
+        """One ``clone``, ``train`` or ``shielded`` stage of ``recipe``: an ``lcmodels.policy.train`` run
+        directory. ``follow``: for ``shielded``, the final stage of the recipe the safety layer follows."""
         from lcmodels.policy.obs import needs_predictor
         from lcmodels.policy.train import stored_config, train_policy
 
         path = policy_dir(self.out, recipe.name, seed) / stage
-        init = str(previous_policy(previous)) if previous is not None and stage == "train" else ""
+        init = str(previous_policy(previous)) if previous is not None and stage != "clone" else ""
         cfg = recipe.policy_config(stage, scenario=self.preset.scenario, seed=seed,
                                    warm_start=str(demos.path.resolve()) if demos is not None else "",
                                    init_policy=init, eval_episodes=0, caps=self.preset.cap_dict)  # fmt: skip
@@ -387,6 +408,11 @@ class Experiment:
         if cfg.init_policy:
             assert previous is not None
             inputs["init_policy"] = previous.digest
+        shield_cfg: dict[str, Any] = {}
+        if stage == "shielded":
+            assert follow is not None and recipe.safety is not None
+            inputs["follow"] = follow.digest
+            shield_cfg = {"lookahead": lookahead_settings(recipe.safety), "penalty": float(recipe.shielded.penalty)}
         name = f"{recipe.name}/seed{seed}/{stage}"
         shown = [0]
 
@@ -399,18 +425,27 @@ class Experiment:
                       f"collision {row['collision_rate']:.2f} return {row['mean_return']:.1f}")
 
         def work(keep: bool) -> float:
+            shield = None
+            if shield_cfg:
+                from lcmodels.policy.shield import shield_for
+
+                assert follow is not None
+                shield = shield_for(shield_cfg["lookahead"], str(previous_policy(follow)), shield_cfg["penalty"],
+                                    cfg.scenario_config(), str(pred_path) if pred_path else None)  # fmt: skip
             try:
-                res = train_policy(cfg, path, predictor=pred_path, progress=show)
+                res = train_policy(cfg, path, predictor=pred_path, progress=show, shield=shield)
             except ValueError as exc:  # the directory holds another run (e.g. moved --out): start over
                 if "another configuration" not in str(exc):
                     raise
                 shutil.rmtree(path)
                 path.mkdir(parents=True)
-                res = train_policy(cfg, path, predictor=pred_path, progress=show)
+                res = train_policy(cfg, path, predictor=pred_path, progress=show, shield=shield)
             return res.wall_s
 
         stage_cfg = cfg.to_dict() | {"warm_start": "demos" if cfg.warm_start else "",
                                      "init_policy": "previous" if cfg.init_policy else ""}  # fmt: skip
+        if shield_cfg:
+            stage_cfg["shield"] = shield_cfg
         outputs = [POLICY_FILE, "metrics.json"] + (["progress.csv"] if cfg.timesteps > 0 else [])
         return self._stage(name, path, stage_cfg, inputs, lambda: outputs, work,
                            resumable=_resumable_policy_change, upgrade=stored_config)  # fmt: skip
@@ -433,20 +468,25 @@ class Experiment:
         return self._stage(name, path, cfg, {"clone": clone.digest},
                            lambda: [f"round{spec.rounds}/{POLICY_FILE}", "dagger.json"], work)
 
-    def recipe_stages(self, recipe: Recipe, seed: int, predictor: StageResult | None,
-                      demos: StageResult | None) -> list[StageResult]:  # fmt: skip
-        """Every stage of ``recipe`` with training seed ``seed``, then its evaluation."""
+    def recipe_stages(self, recipe: Recipe, seed: int, predictor: StageResult | None, demos: StageResult | None,
+                      follow: StageResult | None = None,
+                      done: Sequence[StageResult] = ()) -> list[StageResult]:  # fmt: skip
+        """Every stage of ``recipe`` with training seed ``seed``, then its evaluation. A ``shielded`` stage needs
+        ``follow``, the final stage of the recipe its safety layer follows: without it the stages stop before it
+        (and :func:`_evaluated` is false); ``done``: the stages such a call returned, to go on from."""
         from lcmodels.policy.obs import needs_predictor
 
-        done: list[StageResult] = []
-        previous: StageResult | None = None
-        for stage in recipe.stages:
+        done = list(done)
+        previous: StageResult | None = done[-1] if done else None
+        for stage in recipe.stages[len(done):]:
             if stage == "dagger":
                 assert previous is not None
                 previous = self._dagger_stage(recipe, seed, previous, demos)
+            elif stage == "shielded" and follow is None:
+                return done
             else:
                 previous = self._policy_stage(recipe, stage, seed, predictor, demos if stage == "clone" else None,
-                                              previous)  # fmt: skip
+                                              previous, follow if stage == "shielded" else None)  # fmt: skip
             done.append(previous)
         assert previous is not None
         uses_predictor = needs_predictor(recipe.obs)
@@ -463,15 +503,8 @@ class Experiment:
         """``recipe``'s final policy behind the lookahead planner (its ``[safety]`` table), evaluated."""
         from lcmodels.policy.obs import needs_predictor
 
-        s = recipe.safety  # capped with the recipe (Experiment.recipes)
-        assert s is not None
-        look = {"horizon_decisions": s.horizon, "samples": s.samples, "perceived": s.perceived}
-        if s.driver_draws:  # (named only when set: stages measured before the field existed stay complete)
-            look["driver_draws"] = True
-        if s.estimate_drivers:
-            look["estimate_drivers"] = True
-        if s.margin_m:
-            look["margin_m"] = float(s.margin_m)
+        assert recipe.safety is not None  # capped with the recipe (Experiment.recipes)
+        look = lookahead_settings(recipe.safety)
         inputs = {"policy": final.digest} | ({"follow": follow.digest} if follow is not None else {})
         return self.evaluation(
             f"{recipe.name}/seed{seed}/safety", policy_dir(self.out, recipe.name, seed) / "safety",
@@ -480,32 +513,62 @@ class Experiment:
             follow=str(previous_policy(follow)) if follow is not None else None, lookahead=look,
             label="lookahead-blind:policy")  # fmt: skip
 
+    def follower_ready(self, recipe: Recipe, seed: int, predictor: StageResult | None,
+                       follow: tuple[Recipe, StageResult | None] | None) -> StageResult | None:  # fmt: skip
+        """The final stage of the recipe ``recipe``'s safety layer follows (``follow``: that recipe and its
+        demonstrations) with training seed ``seed``, when it is trained and evaluated already; else None."""
+        from lcmodels.policy.obs import needs_predictor
+
+        if recipe.safety is None or not recipe.safety.follow or follow is None:
+            return None
+        f_recipe, f_demos = follow
+        dry, progress, n = self.dry_run, self._progress, len(self.stages)
+        self.dry_run, self._progress = True, None  # a look at the follower's stages, not progress
+        try:
+            f_done = self.recipe_stages(f_recipe, seed, predictor if needs_predictor(f_recipe.obs) else None, f_demos)
+        finally:
+            self.dry_run, self._progress, self.stages[n:] = dry, progress, []
+        if not _evaluated(f_done) or any(st.status != "skipped" for st in f_done):
+            return None
+        return f_done[-2]
+
     def safety_when_ready(self, recipe: Recipe, seed: int, done: list[StageResult], predictor: StageResult | None,
                           follow: tuple[Recipe, StageResult | None] | None) -> StageResult | None:  # fmt: skip
         """``recipe``'s safety stage right after its training (``done``: its stages), when the policy the
         planner follows is trained already; else None, and the run does it after every recipe. ``follow``:
         the followed recipe and its demonstrations. Parallel workers call it, so that the one-core safety
         evaluation overlaps the remaining training."""
-        from lcmodels.policy.obs import needs_predictor
-
-        if recipe.safety is None or len(done) < 2 or done[-1].status not in ("skipped", "done"):
+        if recipe.safety is None or not _evaluated(done) or done[-1].status not in ("skipped", "done"):
             return None
         follow_final = None
         if recipe.safety.follow:
-            if follow is None:
+            follow_final = self.follower_ready(recipe, seed, predictor, follow)
+            if follow_final is None:
                 return None
-            f_recipe, f_demos = follow
-            self.dry_run, progress, n = True, self._progress, len(self.stages)
-            self._progress = None  # a look at the follower's stages, not progress
-            try:
-                f_done = self.recipe_stages(f_recipe, seed, predictor if needs_predictor(f_recipe.obs) else None,
-                                            f_demos)  # fmt: skip
-            finally:
-                self.dry_run, self._progress, self.stages[n:] = False, progress, []
-            if len(f_done) < 2 or any(st.status != "skipped" for st in f_done):
-                return None
-            follow_final = f_done[-2]
         return self.safety(recipe, seed, done[-2], follow_final, predictor)
+
+    def _follow_of(self, recipe: Recipe, demos: dict[str, StageResult]) -> tuple[Recipe, StageResult | None] | None:
+        """The recipe ``recipe``'s safety layer follows and its demonstrations (``demos`` by key), if any."""
+        if recipe.safety is None or not recipe.safety.follow:
+            return None
+        f = next((r for r in self.recipes() if r.name == recipe.safety.follow), None)
+        if f is None:
+            return None
+        return f, demos[demos_key(f.demos)] if "clone" in f.stages else None
+
+    def _shielded_after(self, tasks: list[tuple[Any, ...]], results: list[list[StageResult]]) -> None:
+        """The ``shielded`` stages (and evaluations) left waiting for the policy their layer follows, now that
+        every recipe's other stages ran; ``results`` updated in place."""
+        index = {(t[0].name, t[1]): i for i, t in enumerate(tasks)}
+        for i, task in enumerate(tasks):
+            r, seed = task[0], task[1]
+            if _evaluated(results[i]) or "shielded" not in r.stages or r.safety is None:
+                continue
+            j = index.get((r.safety.follow, seed))
+            if j is None or not _evaluated(results[j]) or not results[j][-2].outputs or (
+                    "pending" in results[j][-2].outputs):  # fmt: skip
+                continue
+            results[i] = self.recipe_stages(*task, follow=results[j][-2], done=results[i])
 
     # -- the whole run -------------------------------------------------------------------------------
     def plan(self) -> list[StageResult]:
@@ -642,7 +705,10 @@ class Experiment:
                     dry, self.dry_run = self.dry_run, True
                     n = len(self.stages)
                     try:
-                        self.recipe_stages(*task)
+                        done = self.recipe_stages(*task)
+                        follow = self._follow_of(r, demos)
+                        if not _evaluated(done) and (ready := self.follower_ready(r, seed, predictor, follow)):
+                            self.recipe_stages(*task, follow=ready, done=done)
                     finally:
                         self.dry_run = dry
                     self.stages[n:] = [s if s.status == "skipped" else StageResult(s.name, "not run", s.path, 0.0)
@@ -662,14 +728,16 @@ class Experiment:
         if self.executor == "ray" or (jobs > 1 and not self.dry_run and len(tasks) >= 2):
             for res in results:
                 self.stages.extend(res)
+        self._shielded_after(tasks, results)
         self.reference(RULE_KEY)  # after the recipes: the oracle's search is slower than some training runs
         if self.preset.oracle:
             self.reference(ORACLE_KEY)
         if skip_train or self.dry_run:
             return
-        finals = {(t[0].name, t[1]): res[-2] for t, res in zip(tasks, results, strict=True)}
+        finals = {(t[0].name, t[1]): res[-2] for t, res in zip(tasks, results, strict=True) if _evaluated(res)}
         for r, seed, _pred, _ in tasks:
-            if r.safety is None:
+            if r.safety is None or (r.name, seed) not in finals or (r.safety.follow and (
+                    r.safety.follow, seed) not in finals):  # fmt: skip
                 continue
             follow = finals.get((r.safety.follow, seed)) if r.safety.follow else None
             self.safety(r, seed, finals[(r.name, seed)], follow, predictor)
@@ -847,10 +915,12 @@ def _policy_worker_init(queue: Any, threads: int, parent: int | None = None) -> 
 def _policy_worker(preset: Preset, out: Path, seeds: int, recipe: Recipe, seed: int, predictor: StageResult | None,
                    demos: StageResult | None,
                    follow: tuple[Recipe, StageResult | None] | None = None) -> list[StageResult]:  # fmt: skip
-    """One recipe's stages in a worker process of :meth:`Experiment._parallel_policies`, then its safety stage
-    if the policy that one follows is trained (:meth:`Experiment.safety_when_ready`)."""
+    """One recipe's stages in a worker process of :meth:`Experiment._parallel_policies`; its shielded stage and
+    safety stage too if the policy its layer follows is trained (:meth:`Experiment.follower_ready`)."""
     exp = Experiment(preset, out, seeds=seeds, threads=_WORKER["threads"], progress=_WORKER["queue"].put)
     done = exp.recipe_stages(recipe, seed, predictor, demos)
+    if not _evaluated(done) and (follow_final := exp.follower_ready(recipe, seed, predictor, follow)) is not None:
+        done = exp.recipe_stages(recipe, seed, predictor, demos, follow_final, done)  # its shielded stage, then on
     exp.safety_when_ready(recipe, seed, done, predictor, follow)
     return done
 

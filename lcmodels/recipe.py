@@ -8,7 +8,7 @@ evaluation and budget caps::
     version = 1                    # raised when a change alters what the recipe reaches
     row = "ppo-hybrid"             # the table row it fills (lcmodels.presets.ROWS)
     kind = "best"                  # paper (faithful to the paper), best (the project's best), demo
-    stages = ["clone", "train"]    # in order, from: clone, dagger, train
+    stages = ["clone", "train"]    # in order, from: clone, dagger, train, shielded
 
     [policy]                       # PolicyConfig fields of every stage (not seed, scenario, paths, evaluation)
     algo = "ppo"
@@ -30,15 +30,19 @@ evaluation and budget caps::
     learning_rate = 3e-5
     freeze_image = true
 
+    [shielded]                     # fine-tuning behind the safety layer (needs [safety] and a stage before it)
+    timesteps = 150000             # more PPO steps with the [train] settings; the layer executes each decision
+    penalty = 100.0                # raw reward taken per proposal the layer overrides (a collision: 500)
+
     [safety]                       # optional: also evaluate the final policy behind the lookahead planner
     follow = "pure-ppo"            # the recipe whose policy the imagined futures follow
     horizon = 32
     samples = 3                    # redrawn futures per candidate decision
     perceived = true
 
-The stage tables override ``[policy]`` for their stage. ``--set policy.learning_rate=1e-4`` (or
-``train.timesteps=...``, ``demos.episodes=...``) overrides a value on the command line. Whatever a recipe
-reached is recorded next to it (``<name>.reached.json``) by ``tools/publish_zoo.py``.
+The stage tables override ``[policy]`` for their stage (a ``shielded`` stage trains with ``[train]``'s).
+``--set policy.learning_rate=1e-4`` (or ``train.timesteps=...``, ``demos.episodes=...``) overrides a value on
+the command line. Whatever a recipe reached is recorded next to it (``<name>.reached.json``) by ``tools/publish_zoo.py``.
 """
 
 from __future__ import annotations
@@ -54,7 +58,7 @@ from typing import Any
 from lcsim.config import parse_value, read_data_file
 
 RECIPES_DIR = Path(__file__).parent / "recipes"
-STAGE_KINDS: tuple[str, ...] = ("clone", "dagger", "train")
+STAGE_KINDS: tuple[str, ...] = ("clone", "dagger", "train", "shielded")
 RECIPE_KINDS: tuple[str, ...] = ("paper", "best", "demo")
 EXPERIMENT_FIELDS: tuple[str, ...] = ("seed", "scenario", "warm_start", "init_policy", "eval_episodes", "eval_seed",
                                       "record_eval")  # fmt: skip
@@ -122,7 +126,15 @@ class SafetySpec:
     to spare (:class:`lcsim.planning.LookaheadConfig`)."""
 
 
-_SPECS: dict[str, type] = {"demos": DemoSpec, "dagger": DaggerSpec, "safety": SafetySpec}
+@dataclass(frozen=True, slots=True, kw_only=True)
+class ShieldedSpec:
+    timesteps: int = 150_000
+    """PPO steps behind the safety layer, from the previous stage's policy with the ``[train]`` settings."""
+    penalty: float = 100.0
+    """Raw reward taken per proposal the layer overrides (:mod:`lcmodels.policy.shield`; a collision costs 500)."""
+
+
+_SPECS: dict[str, type] = {"demos": DemoSpec, "dagger": DaggerSpec, "shielded": ShieldedSpec, "safety": SafetySpec}
 _STAGE_TABLES = ("clone", "train")
 
 
@@ -141,6 +153,7 @@ class Recipe:
     train: dict[str, Any] = field(default_factory=dict)
     demos: DemoSpec = DemoSpec()
     dagger: DaggerSpec = DaggerSpec()
+    shielded: ShieldedSpec = ShieldedSpec()
     safety: SafetySpec | None = None
 
     def __post_init__(self) -> None:
@@ -162,6 +175,9 @@ class Recipe:
                              f"order, got {list(self.stages)!r}")  # fmt: skip
         if "dagger" in stages and "clone" not in stages:
             raise ValueError(f"{where}: a dagger stage needs a clone stage before it")
+        if "shielded" in stages and (stages[0] == "shielded" or self.safety is None or not self.safety.follow):
+            raise ValueError(f"{where}: a shielded stage needs a stage before it and a [safety] table naming the "
+                             "recipe its imagined futures follow (safety.follow)")
         for name in ("policy", *_STAGE_TABLES):
             table = getattr(self, name)
             if not isinstance(table, dict):
@@ -177,6 +193,8 @@ class Recipe:
                         raise ValueError(f"{where}: {name}.{f.name} must be of type {f.type}, got {v!r}")
                     if want is int and v < (0 if f.name == "seed" else 1):
                         raise ValueError(f"{where}: {name}.{f.name} must be >= 1, got {v!r}")
+        if self.shielded.penalty < 0:
+            raise ValueError(f"{where}: shielded.penalty must be >= 0, got {self.shielded.penalty!r}")
         from lcsim.registry import DRIVER_NAMES
 
         if "clone" in stages and self.demos.driver not in DRIVER_NAMES:
@@ -208,7 +226,10 @@ class Recipe:
         return str(self.stage_settings(self.final_stage).get("obs", PolicyConfig().obs))
 
     def stage_settings(self, stage: str) -> dict[str, Any]:
-        """The PolicyConfig fields this recipe gives stage ``stage`` (``[policy]`` then the stage's table)."""
+        """The PolicyConfig fields this recipe gives stage ``stage`` (``[policy]`` then the stage's table; a
+        ``shielded`` stage: ``[train]``'s with its own ``timesteps``)."""
+        if stage == "shielded":
+            return {**self.policy, **self.train, "timesteps": self.shielded.timesteps}
         return {**self.policy, **(getattr(self, stage) if stage in _STAGE_TABLES else {})}
 
     def policy_config(self, stage: str, *, scenario: str, seed: int, warm_start: str = "", init_policy: str = "",
@@ -225,7 +246,7 @@ class Recipe:
         elif "learning_rate" not in settings:  # fine-tuning from a previous stage learns at the slower rate
             settings["learning_rate"] = default_learning_rate(settings.get("algo", "ppo"), fine_tune=bool(init_policy))
         data = {**settings, "seed": seed, "scenario": scenario, "warm_start": warm_start if stage == "clone" else "",
-                "init_policy": init_policy if stage == "train" else "", "eval_episodes": eval_episodes,
+                "init_policy": init_policy if stage in ("train", "shielded") else "", "eval_episodes": eval_episodes,
                 "eval_seed": eval_seed, "record_eval": record_eval}  # fmt: skip
         defaults = PolicyConfig()
         for key, cap in (caps or {}).items():
@@ -332,7 +353,7 @@ class Recipe:
                     value, getattr(spec, name), f"--set {text}", names[name])
             else:
                 raise ValueError(f"--set {text}: no table {table!r} (tables: policy, clone, train, demos, dagger, "
-                                 "safety)")  # fmt: skip
+                                 "shielded, safety)")  # fmt: skip
         return Recipe.from_dict(data, where=f"recipe {self.name!r} with --set {', '.join(settings)}")
 
 
@@ -370,6 +391,7 @@ __all__ = [
     "DemoSpec",
     "Recipe",
     "SafetySpec",
+    "ShieldedSpec",
     "load_recipe",
     "recipe_names",
     "recipe_path",

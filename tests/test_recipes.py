@@ -53,6 +53,12 @@ def write(tmp_path: Path, text: str, name: str = "mine") -> Path:
         ('kind = "fast"\n', "kind must be one of"),
         ("version = 0\n", "version must be an integer >= 1"),
         ("[policy\n", "is not valid TOML"),
+        ('stages = ["train", "shielded"]\n', "a shielded stage needs a stage before it and a [safety] table"),
+        ('stages = ["shielded"]\n[safety]\nfollow = "pure-ppo"\n', "a shielded stage needs a stage before it"),
+        ('stages = ["train", "shielded"]\n[shielded]\npenalty = -1.0\n[safety]\nfollow = "pure-ppo"\n',
+         "shielded.penalty must be >= 0"),
+        ("[shielded]\ntimesteps = 0\n", "shielded.timesteps must be >= 1"),
+        ("[shielded]\nepisodes = 3\n", "[shielded] has no key(s) ['episodes']"),
     ],
 )
 def test_a_bad_recipe_is_one_line_naming_the_file_and_the_problem(tmp_path: Path, text: str, message: str) -> None:

@@ -71,6 +71,7 @@ from lcmodels.policy.obs import (
     policy_vec_env,
     summarize,
 )
+from lcmodels.policy.shield import Shield, ShieldedSB3VecEnv
 from lcmodels.predictor.inference import Predictor
 from lcsim.config import ScenarioConfig
 from lcsim.sb3 import LaneChangeSB3VecEnv
@@ -242,6 +243,7 @@ def stored_config(data: dict[str, Any]) -> dict[str, Any]:
 
 RUN_OUTPUTS: tuple[str, ...] = (
     "run.json", "progress.csv", "metrics.json", "warm_start.json", "train_episode_seeds.npy", "image_encoder.pt",
+    "shield.json",
     POLICY_FILE, card_path(POLICY_FILE).name, "checkpoints/latest.json", "checkpoints/step-*.safetensors",
     "checkpoints/step-*.card.json", "checkpoints/step-*.optim.pt", "checkpoints/*.partial*", "*.partial*",
     "eval/metrics.json", "eval/metrics.json.partial", "eval/episodes/*.mcap", "eval/episodes/*.mcap.partial",
@@ -337,6 +339,7 @@ def train_policy(
     log_every: int | None = None,
     overwrite: bool = False,
     trust_pickle: bool = False,
+    shield: Shield | None = None,
 ) -> TrainResult:
     """Train (or resume, or just finish evaluating) the run in ``out``; see the module docstring.
 
@@ -348,6 +351,8 @@ def train_policy(
         overwrite: replace a run of another configuration in ``out`` (only its own files go, and only
             after every other check has passed).
         trust_pickle: let ``cfg.init_policy`` be a legacy stable-baselines3 ``.zip`` (loading one runs code).
+        shield: a safety layer that executes the policy's decisions during training, each overridden proposal
+            penalised (:mod:`lcmodels.policy.shield`); what it did goes to ``shield.json``.
 
     Raises:
         ValueError: bad input (missing predictor, a different run in ``out``, an unusable initial policy or
@@ -386,7 +391,11 @@ def train_policy(
     done_steps = int(train_info.get("timesteps", 0)) if final.exists() else 0
     torch.manual_seed(cfg.seed)
     if not final.exists() or done_steps < cfg.timesteps:
-        train_info = _train(cfg, run, pred, device, log_every, final, initial)
+        train_info = _train(cfg, run, pred, device, log_every, final, initial, shield)
+        if shield is not None:  # the decisions of the steps this call trained (a resumed run: since its checkpoint)
+            write_json(out / "shield.json", shield.counts() | {"penalty": shield.penalty,
+                                                               "from_step": run.start_timesteps,
+                                                               "to_step": int(train_info.get("timesteps", 0))})
     config = cfg.scenario_config()
     metrics: dict[str, Any] = {"config": cfg.to_dict(), "train": train_info}
     eval_json = out / "eval" / "metrics.json"
@@ -422,7 +431,7 @@ def _check_demonstrations(path: Path) -> None:
 
 
 def _train(cfg: PolicyConfig, run: _Run, pred: Predictor | None, device: str, log_every: int | None,
-           final: Path, initial: LoadedPolicy | None) -> dict[str, Any]:
+           final: Path, initial: LoadedPolicy | None, shield: Shield | None = None) -> dict[str, Any]:
     out = run.out
     resume = run.ckpt_state.exists()
     state: dict[str, Any] = {}
@@ -443,7 +452,7 @@ def _train(cfg: PolicyConfig, run: _Run, pred: Predictor | None, device: str, lo
         if f.name not in keep:
             f.unlink()
     config = cfg.scenario_config()
-    base = LaneChangeSB3VecEnv(cfg.n_envs, config)
+    base = LaneChangeSB3VecEnv(cfg.n_envs, config) if shield is None else ShieldedSB3VecEnv(cfg.n_envs, config, shield)
     # The initial policy (loaded once, before anything was written): its weights start the model, its image
     # branch (when frozen) the wrapper.
     encoder = _frozen_image_encoder(cfg, run, config, initial) if cfg.freeze_image else None

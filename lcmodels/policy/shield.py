@@ -1,0 +1,93 @@
+"""Shielded training: PPO steps in which a safety layer executes the policy's decisions.
+
+Post-posed shielding with a penalty (Alshiekh et al., "Safe reinforcement learning via shielding", 2018): the
+policy proposes, the lookahead safety layer (:class:`lcsim.planning.LookaheadDriver` with the policy as proposer)
+executes its proposal or overrides it, and each proposal not executed as proposed costs the policy ``penalty`` raw
+reward (a collision costs 500): one the layer overrode, or a change towards a lane the road does not have, which
+the layer turns into a keep. The policy learns what the layer lets through instead of relying on it; behind the same
+layer at evaluation it proposes fewer decisions that lead into states with none left that survives.
+
+``lc-experiment`` runs it as a recipe's ``shielded`` stage (:mod:`lcmodels.recipe`); :func:`shield_for` builds
+the layer of a recipe's ``[safety]`` settings.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Any
+
+import numpy as np
+from stable_baselines3.common.vec_env.base_vec_env import VecEnvStepReturn
+
+from lcsim.config import ScenarioConfig
+from lcsim.planning import LookaheadConfig, LookaheadDriver
+from lcsim.sb3 import LaneChangeSB3VecEnv
+
+
+@dataclass
+class Shield:
+    """The safety layer between a training policy and the road, and what it did."""
+
+    layer: LookaheadDriver
+    """Its ``proposer`` is set at each step to the policy's proposals."""
+    penalty: float
+    """Raw reward taken per overridden proposal (before the run's reward scale)."""
+    choices: int = 0
+    """Decisions the layer saw with a choice to make."""
+    overrides: int = 0
+    """Of those, the proposals it overrode."""
+    replaced: int = 0
+    """Proposals not executed as proposed, the penalised ones: the overrides and the refused lane changes."""
+
+    def __post_init__(self) -> None:
+        if isinstance(self.penalty, bool) or not isinstance(self.penalty, int | float) or self.penalty < 0:
+            raise ValueError(f"shield penalty must be a number >= 0, got {self.penalty!r}")
+        if not self.layer.config.blind:
+            raise ValueError("a shield's lookahead must be blind (a layer that sees the future is privileged)")
+
+    def execute(self, proposed: np.ndarray, core: Any) -> np.ndarray:
+        """The decisions the layer executes for ``proposed`` in ``core``'s environments."""
+        proposed = np.asarray(proposed, dtype=np.int64).reshape(-1)
+        self.layer.proposer = lambda obs, mask, c: proposed
+        before = (self.layer.choices, self.layer.overrides)
+        executed = self.layer({}, core.action_mask(), core)
+        self.choices += self.layer.choices - before[0]
+        self.overrides += self.layer.overrides - before[1]
+        self.replaced += int((executed != proposed).sum())
+        return executed
+
+    def counts(self) -> dict[str, int]:
+        return {"choices": self.choices, "overrides": self.overrides, "replaced": self.replaced}
+
+
+class ShieldedSB3VecEnv(LaneChangeSB3VecEnv):
+    """:class:`~lcsim.sb3.LaneChangeSB3VecEnv` with ``shield`` between the policy and the road: the layer's
+    decision is executed, and the reward of an environment whose proposal was not executed is lowered by the
+    shield's penalty."""
+
+    def __init__(self, num_envs: int, config: ScenarioConfig | None, shield: Shield) -> None:
+        super().__init__(num_envs, config)
+        self.shield = shield
+
+    def step_wait(self) -> VecEnvStepReturn:
+        assert self._actions is not None, "step_async() first"
+        proposed = np.asarray(self._actions, dtype=np.int64).reshape(-1)
+        executed = self.shield.execute(proposed, self.venv.core)
+        self._actions = executed
+        obs, reward, dones, infos = super().step_wait()
+        overridden = executed != proposed
+        return obs, (reward - self.shield.penalty * overridden).astype(np.float32), dones, infos
+
+
+def shield_for(lookahead: dict[str, Any], follow: str, penalty: float, scenario: ScenarioConfig,
+               predictor: str | None = None) -> Shield:  # fmt: skip
+    """The shield of a recipe's safety layer: a blind lookahead with the settings ``lookahead`` (fields of
+    :class:`~lcsim.planning.LookaheadConfig`) whose imagined futures follow the policy file ``follow`` (one that
+    does not read the image) or a built-in driver."""
+    from lcmodels.policy.evaluate import _follower
+
+    config = LookaheadConfig(**{"blind": True, **lookahead})
+    return Shield(LookaheadDriver(config, rule=_follower(follow, scenario, predictor, "cpu")), float(penalty))
+
+
+__all__ = ["Shield", "ShieldedSB3VecEnv", "shield_for"]
