@@ -105,6 +105,15 @@ def _no_wall() -> None:
     pass
 
 
+def _stored_stage_config(data: dict[str, Any]) -> dict[str, Any]:
+    """A policy stage's recorded config in today's form (:func:`lcmodels.policy.train.stored_config`), the
+    shielded stage's ``shield`` table kept as it is."""
+    from lcmodels.policy.train import stored_config
+
+    extra = {k: data[k] for k in ("shield",) if k in data}
+    return stored_config({k: v for k, v in data.items() if k not in extra}) | extra
+
+
 def lookahead_settings(s: Any) -> dict[str, Any]:
     """The :class:`lcsim.planning.LookaheadConfig` fields of a recipe's ``[safety]`` table (a
     :class:`lcmodels.recipe.SafetySpec`); the optional ones named only when set, so that stages measured before
@@ -389,7 +398,7 @@ class Experiment:
         """One ``clone``, ``train`` or ``shielded`` stage of ``recipe``: an ``lcmodels.policy.train`` run
         directory. ``follow``: for ``shielded``, the final stage of the recipe the safety layer follows."""
         from lcmodels.policy.obs import needs_predictor
-        from lcmodels.policy.train import stored_config, train_policy
+        from lcmodels.policy.train import train_policy
 
         path = policy_dir(self.out, recipe.name, seed) / stage
         init = str(previous_policy(previous)) if previous is not None and stage != "clone" else ""
@@ -448,7 +457,7 @@ class Experiment:
             stage_cfg["shield"] = shield_cfg
         outputs = [POLICY_FILE, "metrics.json"] + (["progress.csv"] if cfg.timesteps > 0 else [])
         return self._stage(name, path, stage_cfg, inputs, lambda: outputs, work,
-                           resumable=_resumable_policy_change, upgrade=stored_config)  # fmt: skip
+                           resumable=_resumable_policy_change, upgrade=_stored_stage_config)  # fmt: skip
 
     def _dagger_stage(self, recipe: Recipe, seed: int, clone: StageResult, demos: StageResult | None) -> StageResult:
         from lcmodels.policy.dagger import dagger
@@ -565,10 +574,15 @@ class Experiment:
             if _evaluated(results[i]) or "shielded" not in r.stages or r.safety is None:
                 continue
             j = index.get((r.safety.follow, seed))
-            if j is None or not _evaluated(results[j]) or not results[j][-2].outputs or (
-                    "pending" in results[j][-2].outputs):  # fmt: skip
+            if j is None or not results[j]:
                 continue
-            results[i] = self.recipe_stages(*task, follow=results[j][-2], done=results[i])
+            if _evaluated(results[j]) and "pending" not in results[j][-2].outputs:
+                follow = results[j][-2]
+            elif self.dry_run:  # the plan: the stage would run once the follower's stages have
+                follow = results[j][-1]
+            else:
+                continue
+            results[i] = self.recipe_stages(*task, follow=follow, done=results[i])
 
     # -- the whole run -------------------------------------------------------------------------------
     def plan(self) -> list[StageResult]:
@@ -725,7 +739,7 @@ class Experiment:
             results = [self.recipe_stages(*task) for task in tasks]  # their stages are in self.stages already
         else:
             results = self._parallel_policies(tasks, jobs)
-        if self.executor == "ray" or (jobs > 1 and not self.dry_run and len(tasks) >= 2):
+        if not self.dry_run and (self.executor == "ray" or (jobs > 1 and len(tasks) >= 2)):
             for res in results:
                 self.stages.extend(res)
         self._shielded_after(tasks, results)

@@ -32,7 +32,7 @@ evaluation and budget caps::
 
     [shielded]                     # fine-tuning behind the safety layer (needs [safety] and a stage before it)
     timesteps = 150000             # more PPO steps with the [train] settings; the layer executes each decision
-    penalty = 100.0                # raw reward taken per proposal the layer overrides (a collision: 500)
+    penalty = 100.0                # raw reward per proposal not executed as proposed (a collision: 500)
 
     [safety]                       # optional: also evaluate the final policy behind the lookahead planner
     follow = "pure-ppo"            # the recipe whose policy the imagined futures follow
@@ -48,6 +48,7 @@ the command line. Whatever a recipe reached is recorded next to it (``<name>.rea
 from __future__ import annotations
 
 import dataclasses
+import math
 import os
 import re
 from collections.abc import Sequence
@@ -131,7 +132,8 @@ class ShieldedSpec:
     timesteps: int = 150_000
     """PPO steps behind the safety layer, from the previous stage's policy with the ``[train]`` settings."""
     penalty: float = 100.0
-    """Raw reward taken per proposal the layer overrides (:mod:`lcmodels.policy.shield`; a collision costs 500)."""
+    """Raw reward taken per proposal not executed as proposed (:mod:`lcmodels.policy.shield`; a collision costs
+    500)."""
 
 
 _SPECS: dict[str, type] = {"demos": DemoSpec, "dagger": DaggerSpec, "shielded": ShieldedSpec, "safety": SafetySpec}
@@ -193,8 +195,11 @@ class Recipe:
                         raise ValueError(f"{where}: {name}.{f.name} must be of type {f.type}, got {v!r}")
                     if want is int and v < (0 if f.name == "seed" else 1):
                         raise ValueError(f"{where}: {name}.{f.name} must be >= 1, got {v!r}")
-        if self.shielded.penalty < 0:
+        if not math.isfinite(self.shielded.penalty) or self.shielded.penalty < 0:
             raise ValueError(f"{where}: shielded.penalty must be >= 0, got {self.shielded.penalty!r}")
+        if "shielded" in stages and self.safety is not None and self.safety.follow == self.name:
+            raise ValueError(f"{where}: a shielded stage's safety layer cannot follow the recipe itself "
+                             "(safety.follow)")
         from lcsim.registry import DRIVER_NAMES
 
         if "clone" in stages and self.demos.driver not in DRIVER_NAMES:

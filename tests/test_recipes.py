@@ -58,6 +58,8 @@ def write(tmp_path: Path, text: str, name: str = "mine") -> Path:
         ('stages = ["train", "shielded"]\n[shielded]\npenalty = -1.0\n[safety]\nfollow = "pure-ppo"\n',
          "shielded.penalty must be >= 0"),
         ("[shielded]\ntimesteps = 0\n", "shielded.timesteps must be >= 1"),
+        ("[shielded]\npenalty = nan\n", "shielded.penalty must be >= 0"),
+        ('stages = ["train", "shielded"]\n[safety]\nfollow = "mine"\n', "cannot follow the recipe itself"),
         ("[shielded]\nepisodes = 3\n", "[shielded] has no key(s) ['episodes']"),
     ],
 )

@@ -3,8 +3,10 @@
 Post-posed shielding with a penalty (Alshiekh et al., "Safe reinforcement learning via shielding", 2018): the
 policy proposes, the lookahead safety layer (:class:`lcsim.planning.LookaheadDriver` with the policy as proposer)
 executes its proposal or overrides it, and each proposal not executed as proposed costs the policy ``penalty`` raw
-reward (a collision costs 500): one the layer overrode, or a change towards a lane the road does not have, which
-the layer turns into a keep. The policy learns what the layer lets through instead of relying on it; behind the same
+reward (a collision costs 500): one the layer overrode, and a lane change the action mask refuses, which the
+layer turns into a keep (towards a lane the road does not have, or while a change is under way, when the
+simulator ignores the decision). The policy trains unmasked, so it learns to propose what the layer executes.
+The training returns in ``progress.csv`` include the penalties. The policy learns what the layer lets through instead of relying on it; behind the same
 layer at evaluation it proposes fewer decisions that lead into states with none left that survives.
 
 ``lc-experiment`` runs it as a recipe's ``shielded`` stage (:mod:`lcmodels.recipe`); :func:`shield_for` builds
@@ -31,16 +33,18 @@ class Shield:
     layer: LookaheadDriver
     """Its ``proposer`` is set at each step to the policy's proposals."""
     penalty: float
-    """Raw reward taken per overridden proposal (before the run's reward scale)."""
+    """Raw reward taken per proposal not executed as proposed (before the run's reward scale)."""
     choices: int = 0
     """Decisions the layer saw with a choice to make."""
     overrides: int = 0
     """Of those, the proposals it overrode."""
     replaced: int = 0
-    """Proposals not executed as proposed, the penalised ones: the overrides and the refused lane changes."""
+    """Proposals not executed as proposed, the penalised ones: the overrides and the lane changes the mask
+    refuses."""
 
     def __post_init__(self) -> None:
-        if isinstance(self.penalty, bool) or not isinstance(self.penalty, int | float) or self.penalty < 0:
+        if isinstance(self.penalty, bool) or not isinstance(self.penalty, int | float) or not (
+                0 <= self.penalty < float("inf")):  # fmt: skip
             raise ValueError(f"shield penalty must be a number >= 0, got {self.penalty!r}")
         if not self.layer.config.blind:
             raise ValueError("a shield's lookahead must be blind (a layer that sees the future is privileged)")
