@@ -155,7 +155,7 @@ PRESETS: dict[str, Preset] = {
     ),
     # The paper's setting: every recipe at its own budget, Hybrid-PPO with two training seeds (hours on a CPU;
     # it resumes).
-    "paper": Preset(name="paper", recipe_seeds=(("hybrid-ppo", 2),)),
+    "paper": Preset(name="paper", recipe_seeds=(("hybrid-ppo", 2), ("hybrid-ppo-shielded", 2))),
 }
 
 

@@ -244,7 +244,7 @@ def check_a_safety_stage_runs_as_soon_as_its_follower_is_trained(run_dir: Path) 
 
 def test_a_preset_trains_some_recipes_with_more_seeds_and_their_followers_with_them(tmp_path: Path) -> None:
     paper = PRESETS["paper"]
-    assert dict(paper.recipe_seeds) == {"hybrid-ppo": 2}
+    assert dict(paper.recipe_seeds) == {"hybrid-ppo": 2, "hybrid-ppo-shielded": 2}
     exp = Experiment(paper, tmp_path / "p")
     seeds = {r.name: exp.seeds_of(r.name) for r in exp.recipes()}
     assert seeds.pop("hybrid-ppo") == 2 and seeds.pop("pure-ppo") == 2  # pure-ppo: its safety layer's follower

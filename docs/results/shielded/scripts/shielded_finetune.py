@@ -2,7 +2,8 @@
 """Hybrid-PPO fine-tuned behind its safety layer: PPO steps in which the perceived lookahead layer executes the
 decision and a proposal it overrides costs the policy a penalty (post-posed shielding with punishment).
 
-A lab script for the shielded study (docs/results/shielded/NOTE.md), not a recipe stage:
+The lab script of the shielded study's first runs (docs/results/shielded/NOTE.md); the recipe stage that does
+the same is lcmodels.policy.shield (recipe hybrid-ppo-shielded):
 
     python docs/results/shielded/scripts/shielded_finetune.py --timesteps 150000 --penalty 100 --out runs/shielded
     lc-eval lookahead-blind:runs/shielded/policy.safetensors --lookahead-follow zoo:pure-ppo --lookahead-perceived \\
