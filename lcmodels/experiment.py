@@ -110,8 +110,9 @@ def _stored_stage_config(data: dict[str, Any]) -> dict[str, Any]:
     shielded stage's ``shield`` table kept as it is."""
     from lcmodels.policy.train import stored_config
 
-    extra = {k: data[k] for k in ("shield",) if k in data}
-    return stored_config({k: v for k, v in data.items() if k not in extra}) | extra
+    if "shield" not in data:
+        return stored_config(data)
+    return stored_config({k: v for k, v in data.items() if k != "shield"}) | {"shield": data["shield"]}
 
 
 def lookahead_settings(s: Any) -> dict[str, Any]:
@@ -738,7 +739,7 @@ class Experiment:
         elif jobs == 1 or self.dry_run or len(tasks) < 2:
             results = [self.recipe_stages(*task) for task in tasks]  # their stages are in self.stages already
         else:
-            results = self._parallel_policies(tasks, jobs)
+            results = self._parallel_policies(tasks, jobs, demos)
         if not self.dry_run and (self.executor == "ray" or (jobs > 1 and len(tasks) >= 2)):
             for res in results:
                 self.stages.extend(res)
@@ -839,8 +840,10 @@ class Experiment:
             self.emit(f"[{tasks[i][0].name}/seed{tasks[i][1]}] on Ray ({len(done)}/{len(tasks)} recipes)")
         return [done[i] for i in range(len(tasks))]
 
-    def _parallel_policies(self, tasks: list[tuple[Any, ...]], jobs: int) -> list[list[StageResult]]:
-        """The policy stages ``tasks`` in ``jobs`` spawned processes; results in task order.
+    def _parallel_policies(self, tasks: list[tuple[Any, ...]], jobs: int,
+                           demos: dict[str, StageResult]) -> list[list[StageResult]]:  # fmt: skip
+        """The policy stages ``tasks`` in ``jobs`` spawned processes (``demos``: the demonstrations by key, for
+        the recipes their safety layers follow); results in task order.
 
         Progress lines come back through a queue. The first failure stops every worker and is raised; a worker
         that dies (killed, or out of memory) ends the run with :class:`ChildProcessError` naming the recipes
@@ -864,12 +867,9 @@ class Experiment:
                                    initargs=(queue, self.threads, os.getpid()))  # fmt: skip
         futures = []
         try:
-            by_key = {(t[0].name, t[1]): t for t in tasks}
             for task in tasks:
-                r, seed = task[0], task[1]
-                f = by_key.get((r.safety.follow, seed)) if r.safety is not None and r.safety.follow else None
                 futures.append(pool.submit(_policy_worker, self.preset, self.out, self.seeds, *task,
-                                           (f[0], f[3]) if f else None))  # fmt: skip
+                                           self._follow_of(task[0], demos)))  # fmt: skip
             wait(futures, return_when=FIRST_EXCEPTION)
             for fut in futures:
                 exc = fut.exception() if fut.done() else None

@@ -33,7 +33,7 @@ def test_the_shielded_env_steps_what_the_layer_executes_and_takes_the_penalty_pe
     overridden_total = 0
     for _ in range(40):
         proposed = np.full(4, LEFT)
-        executed = twin.execute(proposed, shielded.venv.core)
+        executed, _ = twin.execute(proposed, shielded.venv.core)
         obs_s, r_s, d_s, _ = shielded.step(proposed)
         obs_p, r_p, d_p, _ = plain.step(executed)
         overridden = executed != proposed

@@ -1,8 +1,8 @@
 """Shielded training: PPO steps in which a safety layer executes the policy's decisions.
 
 Post-posed shielding with a penalty (Alshiekh et al., "Safe reinforcement learning via shielding", 2018): the
-policy proposes, the lookahead safety layer (:class:`lcsim.planning.LookaheadDriver` with the policy as proposer)
-executes its proposal or overrides it, and each proposal not executed as proposed costs the policy ``penalty`` raw
+policy proposes, the lookahead safety layer (:meth:`lcsim.planning.LookaheadDriver.check`) executes its proposal
+or overrides it, and each proposal not executed as proposed costs the policy ``penalty`` raw
 reward (a collision costs 500): one the layer overrode, and a lane change the action mask refuses, which the
 layer turns into a keep (towards a lane the road does not have, or while a change is under way, when the
 simulator ignores the decision). The policy trains unmasked, so it learns to propose what the layer executes.
@@ -31,13 +31,10 @@ class Shield:
     """The safety layer between a training policy and the road, and what it did."""
 
     layer: LookaheadDriver
-    """Its ``proposer`` is set at each step to the policy's proposals."""
+    """It checks the policy's proposals (:meth:`~lcsim.planning.LookaheadDriver.check`) and counts its choices
+    and overrides."""
     penalty: float
     """Raw reward taken per proposal not executed as proposed (before the run's reward scale)."""
-    choices: int = 0
-    """Decisions the layer saw with a choice to make."""
-    overrides: int = 0
-    """Of those, the proposals it overrode."""
     replaced: int = 0
     """Proposals not executed as proposed, the penalised ones: the overrides and the lane changes the mask
     refuses."""
@@ -49,16 +46,24 @@ class Shield:
         if not self.layer.config.blind:
             raise ValueError("a shield's lookahead must be blind (a layer that sees the future is privileged)")
 
-    def execute(self, proposed: np.ndarray, core: Any) -> np.ndarray:
-        """The decisions the layer executes for ``proposed`` in ``core``'s environments."""
+    @property
+    def choices(self) -> int:
+        """Decisions the layer saw with a choice to make."""
+        return self.layer.choices
+
+    @property
+    def overrides(self) -> int:
+        """Of those, the proposals it overrode."""
+        return self.layer.overrides
+
+    def execute(self, proposed: np.ndarray, core: Any) -> tuple[np.ndarray, np.ndarray]:
+        """The decisions the layer executes for ``proposed`` in ``core``'s environments, and where they differ
+        from the proposals (the penalised environments)."""
         proposed = np.asarray(proposed, dtype=np.int64).reshape(-1)
-        self.layer.proposer = lambda obs, mask, c: proposed
-        before = (self.layer.choices, self.layer.overrides)
-        executed = self.layer({}, core.action_mask(), core)
-        self.choices += self.layer.choices - before[0]
-        self.overrides += self.layer.overrides - before[1]
-        self.replaced += int((executed != proposed).sum())
-        return executed
+        executed = self.layer.check(proposed, core.action_mask(), core)
+        replaced = executed != proposed
+        self.replaced += int(replaced.sum())
+        return executed, replaced
 
     def counts(self) -> dict[str, int]:
         return {"choices": self.choices, "overrides": self.overrides, "replaced": self.replaced}
@@ -75,12 +80,9 @@ class ShieldedSB3VecEnv(LaneChangeSB3VecEnv):
 
     def step_wait(self) -> VecEnvStepReturn:
         assert self._actions is not None, "step_async() first"
-        proposed = np.asarray(self._actions, dtype=np.int64).reshape(-1)
-        executed = self.shield.execute(proposed, self.venv.core)
-        self._actions = executed
+        self._actions, replaced = self.shield.execute(self._actions, self.venv.core)
         obs, reward, dones, infos = super().step_wait()
-        overridden = executed != proposed
-        return obs, (reward - self.shield.penalty * overridden).astype(np.float32), dones, infos
+        return obs, (reward - self.shield.penalty * replaced).astype(np.float32), dones, infos
 
 
 def shield_for(lookahead: dict[str, Any], follow: str, penalty: float, scenario: ScenarioConfig,

@@ -164,15 +164,23 @@ class LookaheadDriver:
         sim.v0 = np.where(known, v0, sim.v0)
 
     def __call__(self, obs: dict[str, np.ndarray], action_mask: np.ndarray, core: LaneChangeCore) -> np.ndarray:
+        mask = np.asarray(action_mask, dtype=bool).reshape(-1, 3)
+        decider = self.proposer or self.rule
+        planned = decider(obs, mask, core)
+        self._prediction = getattr(decider, "last_prediction", None)
+        return self.check(planned, mask, core)
+
+    def check(self, planned: np.ndarray, action_mask: np.ndarray, core: LaneChangeCore) -> np.ndarray:
+        """The decisions executed for the proposals ``planned`` in ``core``'s environments: each kept if no
+        surviving alternative does better in the imagined futures (what :meth:`__call__` does with the
+        proposer's or the rule's decisions; a shield in training passes the policy's)."""
         if self.config.estimate_drivers and core.sim.human:
             if self._estimator is None:
                 cfg = core.config
                 self._estimator = DriverEstimator(cfg.traffic, cfg.dt_s, cfg.steps_per_decision, cfg.sensing_range_m)
             self._estimator.observe(core)
         mask = np.asarray(action_mask, dtype=bool).reshape(-1, 3)
-        decider = self.proposer or self.rule
-        planned = np.asarray(decider(obs, mask, core), dtype=np.int64).reshape(len(mask))
-        self._prediction = getattr(decider, "last_prediction", None)
+        planned = np.asarray(planned, dtype=np.int64).reshape(len(mask))
         # a proposal the mask refuses becomes a keep, which the planner then checks: it never passes on a
         # refused decision (rewarded off_road under "refuse", leaving the road under "leave_road")
         planned = np.where(mask[np.arange(len(mask)), planned], planned, KEEP)
