@@ -55,8 +55,8 @@ def experiment_parser() -> argparse.ArgumentParser:
                    help="run this recipe (a name in lcmodels/recipes/ or a .toml file) instead of the preset's; "
                    "repeat for several")
     p.add_argument("--seeds", type=positive_int, default=1,
-                   help="training seeds per recipe (default 1; the paper preset trains hybrid-ppo and "
-                   "hybrid-ppo-shielded, and pure-ppo that their safety layer follows, with 2)")
+                   help="training seeds per recipe (default 1; the paper preset trains hybrid-ppo, and "
+                   "pure-ppo that its safety layer follows, with 2)")
     p.add_argument("--out", type=Path, required=True, help="experiment directory (resumed when it holds one)")
     p.add_argument("--threads", type=positive_int, default=1,
                    help="torch threads (default 1: on a shared 2-core machine 1 is often fastest; results do "

@@ -54,12 +54,10 @@ with the paper's budgets and observation."""
 BEST_RECIPES = ("hybrid-ppo", "pure-ppo", "pure-ppo-dagger", "prediction-ppo", "image-ppo", "a2c-hybrid",
                 "dqn-hybrid")  # fmt: skip
 """The project's best recipe for each method."""
-OPTIONAL_RECIPES = ("hybrid-ppo-dagger", "hybrid-ppo-shielded")
+OPTIONAL_RECIPES = ("hybrid-ppo-dagger",)
 """Recipes the ``paper`` preset runs only when named (``--recipe``): ``hybrid-ppo-dagger`` trains the image network
 on every state of its six DAgger rounds, several CPU hours (each round adds about 26,000 states), for a route
-that moved the pure policy by 1.6 points, inside the noise (docs/results/human-traffic); ``hybrid-ppo-shielded``
-fine-tunes ``hybrid-ppo`` behind its safety layer, which left the layered figure inside the noise on validation
-(docs/results/shielded)."""
+that moved the pure policy by 1.6 points, inside the noise (docs/results/human-traffic)."""
 
 
 # ------------------------------------------------------------------------------------------------ presets
@@ -155,7 +153,7 @@ PRESETS: dict[str, Preset] = {
     ),
     # The paper's setting: every recipe at its own budget, Hybrid-PPO with two training seeds (hours on a CPU;
     # it resumes).
-    "paper": Preset(name="paper", recipe_seeds=(("hybrid-ppo", 2), ("hybrid-ppo-shielded", 2))),
+    "paper": Preset(name="paper", recipe_seeds=(("hybrid-ppo", 2),)),
 }
 
 

@@ -112,15 +112,15 @@ def check_every_recipe_kind_ran(run_dir: Path) -> None:
     # the shielded stage trained behind the layer that follows pure-ppo of the same seed, from the train stage's
     # policy, and the evaluation and the safety layer took its policy
     for s in range(SEEDS):
-        rec = {st: json.loads((run_dir / "stages" / f"hybrid-ppo-shielded__seed{s}__{st}.json").read_text())
+        rec = {st: json.loads((run_dir / "stages" / f"hybrid-ppo__seed{s}__{st}.json").read_text())
                for st in ("train", "shielded", "eval", "safety")}  # fmt: skip
         follow = json.loads((run_dir / "stages" / f"pure-ppo__seed{s}__train.json").read_text())
-        shielded = policy_dir(run_dir, "hybrid-ppo-shielded", s) / "shielded"
+        shielded = policy_dir(run_dir, "hybrid-ppo", s) / "shielded"
         assert rec["shielded"]["inputs"]["init_policy"] == outputs_digest(rec["train"]["outputs"])
         assert rec["shielded"]["inputs"]["follow"] == outputs_digest(follow["outputs"])
         assert rec["eval"]["inputs"]["policy"] == rec["safety"]["inputs"]["policy"] == outputs_digest(
             rec["shielded"]["outputs"])
-        assert rec["shielded"]["config"]["shield"]["penalty"] == load_recipe("hybrid-ppo-shielded").shielded.penalty
+        assert rec["shielded"]["config"]["shield"]["penalty"] == load_recipe("hybrid-ppo").shielded.penalty
         counts = json.loads((shielded / "shield.json").read_text())
         assert counts["choices"] > 0 and 0 <= counts["overrides"] <= counts["choices"]
         assert counts["to_step"] == PRESETS["tiny"].cap_dict["timesteps"]
@@ -169,9 +169,9 @@ def check_report_holds_the_numbers_of_the_metrics_files(run_dir: Path) -> None:
                 check_cell(row[col].split(" (`")[0], [100 * stage_metrics(run_dir, chosen, s)["test"]["success_rate"]
                                                       for s in range(SEEDS)])  # fmt: skip
     every = {re.search(r"\(`([^`]+)`\)$", r["row"]).group(1): r for r in md_table(report, "## Every row")}
-    assert set(every) == {RULE_KEY, ORACLE_KEY, *RECIPES, "hybrid-ppo+safety", "hybrid-ppo-shielded+safety"}
+    assert set(every) == {RULE_KEY, ORACLE_KEY, *RECIPES, "hybrid-ppo+safety"}
     refs = {re.search(r"\(`([^`]+)`\)$", r["driver"]).group(1): r for r in md_table(report, "## References")}
-    assert set(refs) == {RULE_KEY, ORACLE_KEY, "hybrid-ppo+safety", "hybrid-ppo-shielded+safety"}
+    assert set(refs) == {RULE_KEY, ORACLE_KEY, "hybrid-ppo+safety"}
     rule = stage_metrics(run_dir, RULE_KEY)["test"]
     assert refs[RULE_KEY]["success %"] == every[RULE_KEY]["test success %"]
     assert every[RULE_KEY]["test success %"].startswith(f"{100 * rule['success_rate']:.1f} [")
@@ -216,7 +216,7 @@ def check_a_safety_stage_runs_as_soon_as_its_follower_is_trained(run_dir: Path) 
     """What a ``--jobs`` worker does after training a recipe with a safety layer: its safety stage, when the
     policy the planner follows is trained already (the same figures as the run's own), else nothing."""
     exp = Experiment(PRESETS["tiny"], run_dir, seeds=SEEDS)
-    hybrid, pure = (next(r for r in exp.recipes() if r.name == n) for n in ("hybrid-ppo-shielded", "pure-ppo"))
+    hybrid, pure = (next(r for r in exp.recipes() if r.name == n) for n in ("hybrid-ppo", "pure-ppo"))
     exp.dry_run = True
     predictor = exp.predictor(exp.corpus())
     demos = exp.demos(pure.demos)
@@ -227,7 +227,7 @@ def check_a_safety_stage_runs_as_soon_as_its_follower_is_trained(run_dir: Path) 
     assert [s.name.rsplit("/", 1)[1] for s in waiting] == ["clone", "train"]
     assert [s.status for s in done] == ["skipped"] * (len(hybrid.stages) + 1)
     assert exp.follower_ready(hybrid, 1, predictor, (pure, demos)).digest == follow_final.digest
-    metrics = policy_dir(run_dir, "hybrid-ppo-shielded", 1) / "safety" / "metrics.json"
+    metrics = policy_dir(run_dir, "hybrid-ppo", 1) / "safety" / "metrics.json"
     before = without_wall_times(json.loads(metrics.read_text()))
     metrics.unlink()
     assert exp.safety_when_ready(hybrid, 1, done, predictor, None) is None  # the follower is not known
@@ -238,13 +238,13 @@ def check_a_safety_stage_runs_as_soon_as_its_follower_is_trained(run_dir: Path) 
     assert not metrics.exists()
     follower.write_bytes(kept)
     res = exp.safety_when_ready(hybrid, 1, done, predictor, (pure, demos))
-    assert res is not None and res.status == "done" and res.name == "hybrid-ppo-shielded/seed1/safety"
+    assert res is not None and res.status == "done" and res.name == "hybrid-ppo/seed1/safety"
     assert without_wall_times(json.loads(metrics.read_text())) == before
 
 
 def test_a_preset_trains_some_recipes_with_more_seeds_and_their_followers_with_them(tmp_path: Path) -> None:
     paper = PRESETS["paper"]
-    assert dict(paper.recipe_seeds) == {"hybrid-ppo": 2, "hybrid-ppo-shielded": 2}
+    assert dict(paper.recipe_seeds) == {"hybrid-ppo": 2}
     exp = Experiment(paper, tmp_path / "p")
     seeds = {r.name: exp.seeds_of(r.name) for r in exp.recipes()}
     assert seeds.pop("hybrid-ppo") == 2 and seeds.pop("pure-ppo") == 2  # pure-ppo: its safety layer's follower
@@ -312,7 +312,7 @@ def check_rerun_skips_everything_and_a_changed_recipe_is_stale(run_dir: Path, ca
     assert {p: p.stat().st_mtime_ns for p in policies} == before
 
     # A recipe file with other demonstration episodes: its demos, clone, train and evaluation are stale, and so
-    # is the shielded stage of hybrid-ppo-shielded, whose safety layer follows it; the packaged recipe sharing the old
+    # is the shielded stage of hybrid-ppo, whose safety layer follows it; the packaged recipe sharing the old
     # demonstrations and every other recipe stay complete.
     changed = load_recipe("pure-ppo").with_settings(["demos.seed=6000"])
     path = run_dir.parent / "pure-ppo.toml"
@@ -322,7 +322,7 @@ def check_rerun_skips_everything_and_a_changed_recipe_is_stale(run_dir: Path, ca
     plan = {s.name: s.status for s in exp.plan()}
     stale = {n for n, st in plan.items() if st != "skipped"}
     assert stale == {"demos/oracle-s6000-n2"} | {f"pure-ppo/seed{s}/{st}" for s in range(SEEDS) for st in ("clone", "train")} \
-        | {f"hybrid-ppo-shielded/seed{s}/shielded" for s in range(SEEDS)}
+        | {f"hybrid-ppo/seed{s}/shielded" for s in range(SEEDS)}
     assert {p: p.stat().st_mtime_ns for p in policies} == before
 
 
