@@ -38,6 +38,27 @@ class ZooEntry:
     def sha256(self) -> str:
         return file_sha256(self.policy)
 
+    @property
+    def weights_sha256(self) -> str:
+        return weights_sha256(self.policy)
+
+
+def weights_sha256(policy: str | os.PathLike[str]) -> str:
+    """SHA-256 of a ``policy.safetensors`` file's tensors alone (names, dtypes, shapes, bytes, in name order):
+    the same for a trained policy and its zoo copy, whose header card differs."""
+    import hashlib
+
+    import torch
+    from safetensors import safe_open
+
+    h = hashlib.sha256()
+    with safe_open(str(policy), framework="pt") as f:
+        for k in sorted(f.keys()):
+            t = f.get_tensor(k)
+            h.update(f"{k}|{t.dtype}|{tuple(t.shape)}|".encode())
+            h.update(t.contiguous().reshape(-1).view(torch.uint8).numpy().tobytes())
+    return h.hexdigest()
+
 
 def zoo_entries() -> list[ZooEntry]:
     """Every entry of the zoo, by name (none when there is no zoo)."""
@@ -121,13 +142,45 @@ def check_episodes(policy: str | os.PathLike[str], *, seed: int, episodes: int =
     return [{"seed": int(e.seed), "outcome": e.outcome, "return": round(float(e.ret), 6)} for e in stats]
 
 
+def final_policy(run: str | os.PathLike[str], recipe_name: str, seed: int) -> Path:
+    """The policy file the last training stage of ``recipe_name`` (training seed ``seed``) of the
+    ``lc-experiment`` directory ``run`` ended with; ``ValueError`` when it is missing."""
+    from lcmodels.presets import STAGES_DIR, StageResult, policy_dir, previous_policy
+    from lcmodels.recipe import load_recipe
+
+    recipe = load_recipe(recipe_name)
+    final = policy_dir(Path(run), recipe.name, seed) / recipe.final_stage
+    rec = read_json(Path(run) / STAGES_DIR / f"{recipe.name}__seed{seed}__{recipe.final_stage}.json") or {}
+    policy = previous_policy(StageResult("final", "skipped", final, 0.0, outputs=rec.get("outputs", {})))
+    if not policy.is_file():
+        raise ValueError(f"{policy} does not exist: finish the experiment first")
+    return policy
+
+
+def follower_mismatches(entries: list[ZooEntry] | None = None) -> list[str]:
+    """One line per zoo entry whose safety-layer figure was measured following a policy the zoo does not ship
+    as that recipe's entry (the figure would not hold for the shipped pair); empty when the zoo is consistent."""
+    entries = zoo_entries() if entries is None else entries
+    by_name = {e.name: e for e in entries}
+    bad = []
+    for e in entries:
+        follow = (e.card.get("safety_layer") or {}).get("follow")
+        if not follow:
+            continue
+        shipped = by_name.get(follow["recipe"])
+        if shipped is None or shipped.weights_sha256 != follow["weights_sha256"]:
+            bad.append(f"zoo:{e.name}'s safety layer was measured following {follow['recipe']} training seed "
+                       f"{follow['training_seed']}, which the zoo does not ship as zoo:{follow['recipe']}")
+    return bad
+
+
 def experiment_card(run: str | os.PathLike[str], recipe_name: str, *, seed: int = 0,
                     commit: str = "") -> tuple[dict[str, Any], Path, bool]:
     """What the ``lc-experiment`` directory ``run`` measured for ``recipe_name`` (training seed ``seed``): the
     card of its final policy (recipe, commit, training time, validation and test figures, the safety layer's
     when run, the experiment's command), the policy file, and whether it reads predictions. ``ValueError``
     when the recipe's evaluation or its policy is missing."""
-    from lcmodels.presets import STAGES_DIR, StageResult, policy_dir, previous_policy
+    from lcmodels.presets import STAGES_DIR, policy_dir
     from lcmodels.recipe import load_recipe
 
     run = Path(run)
@@ -136,11 +189,7 @@ def experiment_card(run: str | os.PathLike[str], recipe_name: str, *, seed: int 
     ev = read_json(d / "eval" / "metrics.json")
     if not ev or "test" not in ev:
         raise ValueError(f"{d / 'eval'} holds no evaluation: finish the experiment first")
-    final = d / recipe.final_stage
-    rec = read_json(run / STAGES_DIR / f"{recipe.name}__seed{seed}__{recipe.final_stage}.json") or {}
-    policy = previous_policy(StageResult("final", "skipped", final, 0.0, outputs=rec.get("outputs", {})))
-    if not policy.is_file():
-        raise ValueError(f"{policy} does not exist")
+    policy = final_policy(run, recipe_name, seed)
     walls = [float((read_json(run / STAGES_DIR / f"{recipe.name}__seed{seed}__{st}.json") or {}).get("wall_s", 0.0))
              for st in recipe.stages]  # fmt: skip
     meta = read_json(policy.parent / "policy.card.json") or {}
@@ -153,13 +202,18 @@ def experiment_card(run: str | os.PathLike[str], recipe_name: str, *, seed: int 
         return {k: summary[k] for k in keep if k in summary}
 
     safety = read_json(d / "safety" / "metrics.json")
+    follow = None
+    if safety and "test" in safety and recipe.safety is not None and recipe.safety.follow:
+        # the policy the layer's imagined futures followed: the zoo must ship the same one for the figure to hold
+        follow = {"recipe": recipe.safety.follow, "training_seed": seed,
+                  "weights_sha256": weights_sha256(final_policy(run, recipe.safety.follow, seed))}
     card = {
         "recipe": recipe.name, "recipe_version": recipe.version, "row": recipe.row, "kind": recipe.kind,
         "description": recipe.description, "training_seed": seed, "commit": commit,
         "training_wall_s": round(sum(walls), 1), "stages_wall_s": dict(zip(recipe.stages, walls, strict=True)),
         "test": figures(ev["test"]), "validation": {k: figures(v) for k, v in ev.get("val", {}).items()},
         "safety_layer": ({"test": figures(safety["test"]), "config": safety.get("config", {})}
-                         if safety and "test" in safety else None),
+                         | ({"follow": follow} if follow else {}) if safety and "test" in safety else None),
         "experiment_command": experiment.get("command", ""), "preset": (experiment.get("preset") or {}).get("name"),
     }  # fmt: skip
     return card, policy, needs
@@ -192,5 +246,6 @@ def resolve_policy_spec(spec: str) -> tuple[str, str | None]:
     return spec, None
 
 
-__all__ = ["CHECK_EPISODES", "ENTRY_CARD", "ZOO_PREFIX", "ZooEntry", "check_episodes", "experiment_card", "publish_entry",
-           "publish_from_experiment", "resolve_policy_spec", "zoo_dir", "zoo_entries", "zoo_entry"]
+__all__ = ["CHECK_EPISODES", "ENTRY_CARD", "ZOO_PREFIX", "ZooEntry", "check_episodes", "experiment_card", "final_policy",
+           "follower_mismatches", "publish_entry", "publish_from_experiment", "resolve_policy_spec", "weights_sha256",
+           "zoo_dir", "zoo_entries", "zoo_entry"]

@@ -18,7 +18,9 @@ from lcmodels.experiment import PRESETS, Experiment
 from lcmodels.zoo import (
     check_episodes,
     experiment_card,
+    follower_mismatches,
     publish_from_experiment,
+    weights_sha256,
     zoo_dir,
     zoo_entries,
     zoo_entry,
@@ -64,6 +66,12 @@ def test_an_entry_published_from_an_experiment_works_wherever_a_policy_does(
     assert zoo_entry("pure-ppo").predictor is None
     assert check_episodes(moved / "hybrid-ppo" / "policy.safetensors", seed=card["check"]["eval_seed"]) == \
         card["check"]["episodes"]  # fmt: skip
+    # the card names the policy its safety layer followed; the zoo ships that one, so the figure holds for the pair
+    follow = card["safety_layer"]["follow"]
+    trained = tiny_run / "policies" / "pure-ppo" / "seed0" / "train" / "policy.safetensors"
+    assert follow == {"recipe": "pure-ppo", "training_seed": 0, "weights_sha256": weights_sha256(trained)}
+    assert weights_sha256(moved / "pure-ppo" / "policy.safetensors") == follow["weights_sha256"]
+    assert follower_mismatches() == []
 
     out = tmp_path / "eval.json"
     assert eval_main(["zoo:hybrid-ppo", "--episodes", "4", "--seed", "9", "--no-record", "--json-out", str(out)]) == 0
@@ -115,6 +123,39 @@ def test_a_shipped_entry_reproduces_the_episodes_its_card_lists(name: str) -> No
     assert check_episodes(entry.policy, seed=check["eval_seed"], episodes=len(check["episodes"])) == check["episodes"]
     t = entry.card["test"]
     assert t["episodes"] >= 200 and 0.0 <= t["success_rate"] <= 1.0
+
+
+def test_the_shipped_zoo_ships_the_policy_each_safety_layer_was_measured_following() -> None:
+    assert follower_mismatches() == []
+    assert any((e.card.get("safety_layer") or {}).get("follow") for e in zoo_entries())
+
+
+def test_publishing_a_layered_policy_without_its_follower_is_refused(
+    tiny_run: Path, tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    import runpy
+    import sys
+
+    root = tmp_path / "zoo"
+    tool = str(Path(__file__).resolve().parents[1] / "tools" / "publish_zoo.py")
+
+    def publish(*args: str) -> int:
+        argv, sys.argv = sys.argv, [tool, str(tiny_run), *args, "--zoo", str(root)]
+        try:
+            with pytest.raises(SystemExit) as done:
+                runpy.run_path(tool, run_name="__main__")
+        finally:
+            sys.argv = argv
+        return int(done.value.code)
+
+    assert publish("hybrid-ppo") == 2
+    assert "measured following pure-ppo training seed 0" in capsys.readouterr().err
+    assert not (root / "hybrid-ppo").exists()  # nothing written
+    # another policy under the follower's name does not make the pair either
+    publish_from_experiment(tiny_run, "hybrid-ppo", name="pure-ppo", root=root)
+    assert publish("hybrid-ppo") == 2 and not (root / "hybrid-ppo").exists()
+    assert "measured following pure-ppo" in capsys.readouterr().err
+    # (a successful run of the tool rewrites the packaged recipes' .reached.json records: not done here)
 
 
 def test_the_shipped_zoo_is_small_and_holds_no_pickle() -> None:

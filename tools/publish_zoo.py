@@ -3,6 +3,8 @@
 
     python tools/publish_zoo.py runs/paper hybrid-ppo pure-ppo [--seed 0] [--overwrite]
 
+A recipe with a safety layer is published with the policy its layer followed (same run and seed) or refused:
+its card's safety-layer figure holds for that pair only, and the zoo's layer follows the zoo's entry.
 Each entry: policy.safetensors (weights and the policy's card), policy.card.json, zoo.json (recipe, commit,
 training time, validation / test / safety-layer figures, the experiment's command, and the outcomes of a few
 test episodes re-run now); the predictor the prediction and hybrid policies read goes to zoo/predictor/. A packaged
@@ -37,13 +39,28 @@ def main(argv: list[str] | None = None) -> int:
         ap.error("--zoo and --overwrite apply to zoo entries; --reached-only writes none")
     from lcmodels.fileio import write_json
     from lcmodels.recipe import RECIPES_DIR, recipe_path
-    from lcmodels.zoo import experiment_card, publish_from_experiment
+    from lcmodels.zoo import experiment_card, publish_from_experiment, weights_sha256, zoo_dir
 
     try:
         commit = subprocess.run(["git", "rev-parse", "--short", "HEAD"], capture_output=True, text=True,
                                 check=True, cwd=Path(__file__).parent).stdout.strip()  # fmt: skip
     except (OSError, subprocess.CalledProcessError):
         commit = ""
+    if not args.reached_only:  # a safety layer's figure holds only for the follower it was measured with
+        try:
+            for name in args.recipes:
+                follow = (experiment_card(args.run, name, seed=args.seed)[0].get("safety_layer") or {}).get("follow")
+                if not follow or follow["recipe"] in args.recipes:
+                    continue
+                root = args.zoo if args.zoo is not None else zoo_dir()
+                shipped = root / follow["recipe"] / "policy.safetensors"
+                if not shipped.is_file() or weights_sha256(shipped) != follow["weights_sha256"]:
+                    raise ValueError(f"{name}'s safety layer was measured following {follow['recipe']} training seed "
+                                     f"{args.seed}, which the zoo does not hold: publish both, "
+                                     f"{name} {follow['recipe']} --seed {args.seed}")
+        except ValueError as exc:
+            print(f"publish_zoo: error: {str(exc).splitlines()[0]}", file=sys.stderr)
+            return 2
     for name in args.recipes:
         try:
             reached = recipe_path(name).with_suffix(".reached.json")
