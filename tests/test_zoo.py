@@ -15,6 +15,7 @@ from lccli.experiment import experiment_main
 from lccli.record import record_main
 from lccli.view import main as view_main
 from lcmodels.experiment import PRESETS, Experiment
+from lcmodels.recipe import RECIPES_DIR
 from lcmodels.zoo import (
     check_episodes,
     experiment_card,
@@ -155,7 +156,13 @@ def test_publishing_a_layered_policy_without_its_follower_is_refused(
     publish_from_experiment(tiny_run, "hybrid-ppo", name="pure-ppo", root=root)
     assert publish("hybrid-ppo") == 2 and not (root / "hybrid-ppo").exists()
     assert "measured following pure-ppo" in capsys.readouterr().err
-    # (a successful run of the tool rewrites the packaged recipes' .reached.json records: not done here)
+    # the pair is published; a zoo elsewhere leaves the package's .reached.json records as they are
+    records = {p: p.read_bytes() for p in (RECIPES_DIR.glob("*.reached.json"))}
+    shutil.rmtree(root)
+    assert publish("hybrid-ppo", "pure-ppo") == 0
+    follow = json.loads((root / "hybrid-ppo" / "zoo.json").read_text())["safety_layer"]["follow"]
+    assert follow["recipe"] == "pure-ppo" and follow["weights_sha256"] == weights_sha256(root / "pure-ppo" / "policy.safetensors")
+    assert {p: p.read_bytes() for p in RECIPES_DIR.glob("*.reached.json")} == records
 
 
 def test_the_shipped_zoo_is_small_and_holds_no_pickle() -> None:

@@ -8,7 +8,8 @@ its card's safety-layer figure holds for that pair only, and the zoo's layer fol
 Each entry: policy.safetensors (weights and the policy's card), policy.card.json, zoo.json (recipe, commit,
 training time, validation / test / safety-layer figures, the experiment's command, and the outcomes of a few
 test episodes re-run now); the predictor the prediction and hybrid policies read goes to zoo/predictor/. A packaged
-recipe also gets lcmodels/recipes/<name>.reached.json: what it reached, with which command and commit.
+recipe published into this checkout's zoo also gets lcmodels/recipes/<name>.reached.json: what it reached, with
+which command and commit (a zoo elsewhere, --zoo DIR, leaves those records alone).
 --reached-only writes that record alone, for a recipe whose policy the zoo does not ship (the paper-faithful ones):
 
     python tools/publish_zoo.py runs/paper-best paper-hybrid-ppo paper-a2c --reached-only
@@ -31,7 +32,8 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--seed", type=int, default=0, help="training seed of the runs to publish (default 0)")
     ap.add_argument("--zoo", type=Path, default=None, help="zoo directory (default: zoo/ of this checkout)")
     ap.add_argument("--overwrite", action="store_true",
-                    help="replace zoo entries that exist (the recipe's .reached.json, a record in git, is always rewritten)")
+                    help="replace zoo entries that exist (publishing into this checkout's zoo always rewrites the recipe's "
+                         ".reached.json, a record in git)")
     ap.add_argument("--reached-only", action="store_true",
                     help="write only lcmodels/recipes/<name>.reached.json, no zoo entry (packaged recipes)")
     args = ap.parse_args(argv)
@@ -46,6 +48,7 @@ def main(argv: list[str] | None = None) -> int:
                                 check=True, cwd=Path(__file__).parent).stdout.strip()  # fmt: skip
     except (OSError, subprocess.CalledProcessError):
         commit = ""
+    own_zoo = args.zoo is None or args.zoo.resolve() == zoo_dir().resolve()
     if not args.reached_only:  # a safety layer's figure holds only for the follower it was measured with
         try:
             for name in args.recipes:
@@ -77,7 +80,7 @@ def main(argv: list[str] | None = None) -> int:
             print(f"publish_zoo: error: {str(exc).splitlines()[0]}", file=sys.stderr)
             return 2
         t = card["test"]
-        if packaged:  # a packaged recipe records what it reached, next to it
+        if packaged and own_zoo:  # a packaged recipe records what this checkout ships of it, next to it
             keep = ("recipe_version", "preset", "experiment_command", "commit", "training_seed", "training_wall_s",
                     "test", "validation", "safety_layer")
             write_json(reached, {"recipe": name, "published": time.strftime("%Y-%m-%d"),
