@@ -108,8 +108,9 @@ def experiment_main(argv: list[str] | None = None) -> int:
                      ray_address=args.ray_address)  # fmt: skip
     try:
         exp.check_out()
+        exp.recipes()  # every recipe and follower reads, before anything is written
     except ValueError as exc:
-        return error(str(exc))
+        return error(str(exc).splitlines()[0])
     setup_logging("lc-experiment", verbose=False)
     if args.dry_run:
         if not args.out.exists():

@@ -678,9 +678,17 @@ class Experiment:
         if self._recipes is not None:  # read once per experiment (the stages and the report use them)
             return self._recipes
         out = [load_recipe(n) for n in self.preset.recipes]
-        for r in list(out):
+        for r in out:  # grows as it goes: a follower's own follower joins too
             if r.safety is not None and r.safety.follow and r.safety.follow not in {x.name for x in out}:
                 out.append(load_recipe(r.safety.follow))
+        follows = {r.name: r.safety.follow for r in out if r.safety is not None and r.safety.follow}
+        for name in follows:  # a layer following itself is allowed; a longer loop would wait on itself
+            chain = [name]
+            while (nxt := follows.get(chain[-1])) and nxt != chain[-1] and nxt not in chain:
+                chain.append(nxt)
+            if nxt and nxt != chain[-1] and nxt == name:
+                raise ValueError(f"the safety layers' followers form a loop: {' -> '.join([*chain, name])} "
+                                 "(safety.follow)")
         self._recipes = [r.capped(self.preset.cap_dict) for r in out]
         return self._recipes
 

@@ -131,3 +131,21 @@ def test_what_a_recipe_reached_is_recorded_next_to_it_for_its_version() -> None:
         recipe = load_recipe(path.name.removesuffix(".reached.json"))
         assert reached["recipe"] == recipe.name and reached["recipe_version"] == recipe.version
         assert reached["experiment_command"].startswith("lc-experiment ") and reached["test"]["episodes"] >= 200
+
+
+def test_safety_layers_whose_followers_loop_are_one_line_errors(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    import dataclasses
+
+    from lccli.experiment import experiment_main
+
+    base = load_recipe("pure-ppo")
+    for name, follow in (("loop-a", "loop-b"), ("loop-b", "loop-a")):
+        r = dataclasses.replace(base, name=name, safety=dataclasses.replace(load_recipe("hybrid-ppo").safety,
+                                                                            follow=follow))  # fmt: skip
+        (tmp_path / f"{name}.toml").write_text(r.to_toml())
+    args = ["--preset", "tiny", "--recipe", str(tmp_path / "loop-a.toml"), "--recipe", str(tmp_path / "loop-b.toml")]
+    assert experiment_main([*args, "--out", str(tmp_path / "run"), "--dry-run"]) == 2
+    err = capsys.readouterr().err.strip()
+    assert len(err.splitlines()) == 1 and "loop-a -> loop-b -> loop-a" in err and "Traceback" not in err
