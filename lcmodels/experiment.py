@@ -738,12 +738,10 @@ class Experiment:
                                        for s in self.stages[n:]]  # fmt: skip
                     continue
                 tasks.append(task)
-        # a safety layer's policies first (their safety stage can start as soon as both are trained), the
-        # rest in recipe order
-        followed = {r.safety.follow for r in recipes if r.safety is not None}
-        tasks.sort(key=lambda t: 0 if t[0].safety is not None or t[0].name in followed else 1)
+        rank = _task_ranks(recipes)
+        tasks.sort(key=lambda t: rank[t[0].name])
         if self.executor == "ray" and not self.dry_run and tasks:
-            results = self._ray_policies(tasks)
+            results = self._ray_policies(tasks, demos)
         elif jobs == 1 or self.dry_run or len(tasks) < 2:
             results = [self.recipe_stages(*task) for task in tasks]  # their stages are in self.stages already
         else:
@@ -836,12 +834,16 @@ class Experiment:
         cfg = {"zoo": entry.name, "episodes": p.showcase_episodes, "seed": p.test_seed}
         return self._stage("showcase", path, cfg, {"policy": entry.sha256, "eval": evaluated.digest}, outputs, work)
 
-    def _ray_policies(self, tasks: list[tuple[Any, ...]]) -> list[list[StageResult]]:
+    def _ray_policies(self, tasks: list[tuple[Any, ...]],
+                      demos: dict[str, StageResult]) -> list[list[StageResult]]:  # fmt: skip
         """The policy stages ``tasks`` as Ray tasks of ``threads`` CPUs each; results in task order. A stage
-        records, resumes and skips as it does locally: each task runs :meth:`policy` in this directory."""
+        records, resumes and skips as it does locally: each task runs :meth:`policy` in this directory, and goes
+        on to its shielded and safety stages when the policy its layer follows is trained (``demos``: the
+        demonstrations by key, for those followed recipes)."""
         from lcdata.executors import ray_map
 
-        calls = [(i, self.preset, self.out, self.seeds, self.threads, *task) for i, task in enumerate(tasks)]
+        calls = [(i, self.preset, self.out, self.seeds, self.threads, *task, self._follow_of(task[0], demos))
+                 for i, task in enumerate(tasks)]  # fmt: skip
         done: dict[int, list[StageResult]] = {}
         for i, result in ray_map(_ray_policy_task, calls, num_cpus=self.threads):
             done[i] = result
@@ -911,8 +913,18 @@ RAY_SHARDS = 4
 """Ray tasks an evaluation stage is cut into."""
 
 
+def _task_ranks(recipes: Sequence[Recipe]) -> dict[str, int]:
+    """The order in which the recipes' policy tasks start (sorted stably, so recipe order within a rank): the
+    policies a safety layer follows first, then the recipes with a safety layer, then the rest. A follower is
+    then trained by the time the recipe that follows it ends its training, so that recipe's worker goes on to
+    its shielded and safety stages itself instead of leaving them to run one after another at the end."""
+    followed = {r.safety.follow for r in recipes if r.safety is not None and r.safety.follow}
+    return {r.name: 0 if r.name in followed else 1 if r.safety is not None else 2 for r in recipes}
+
+
 def _ray_policy_task(index: int, preset: Preset, out: Path, seeds: int, threads: int, recipe: Recipe, seed: int,
-                     predictor: StageResult | None, demos: StageResult | None) -> tuple[int, list[StageResult]]:
+                     predictor: StageResult | None, demos: StageResult | None,
+                     follow: tuple[Recipe, StageResult | None] | None = None) -> tuple[int, list[StageResult]]:
     """One policy stage as a Ray task of :meth:`Experiment._ray_policies` (its progress lines go to the task's
     log, which Ray forwards to the driver)."""
     import torch
@@ -920,7 +932,7 @@ def _ray_policy_task(index: int, preset: Preset, out: Path, seeds: int, threads:
     logging.basicConfig(level=logging.INFO, format="%(message)s")  # a fresh worker: its log goes to the driver
     torch.set_num_threads(threads)
     exp = Experiment(preset, out, seeds=seeds, threads=threads, progress=log.info)
-    return index, exp.recipe_stages(recipe, seed, predictor, demos)
+    return index, _recipe_then_layer(exp, recipe, seed, predictor, demos, follow)
 
 
 def _policy_worker_init(queue: Any, threads: int, parent: int | None = None) -> None:
@@ -940,6 +952,14 @@ def _policy_worker(preset: Preset, out: Path, seeds: int, recipe: Recipe, seed: 
     """One recipe's stages in a worker process of :meth:`Experiment._parallel_policies`; its shielded stage and
     safety stage too if the policy its layer follows is trained (:meth:`Experiment.follower_ready`)."""
     exp = Experiment(preset, out, seeds=seeds, threads=_WORKER["threads"], progress=_WORKER["queue"].put)
+    return _recipe_then_layer(exp, recipe, seed, predictor, demos, follow)
+
+
+def _recipe_then_layer(exp: Experiment, recipe: Recipe, seed: int, predictor: StageResult | None,
+                       demos: StageResult | None, follow: tuple[Recipe, StageResult | None] | None) -> list[StageResult]:
+    """A worker's share of one recipe and seed: its stages, then its shielded stage and its safety stage if the
+    policy its layer follows is trained already (:meth:`Experiment.follower_ready`); else the run does them after
+    every recipe."""
     done = exp.recipe_stages(recipe, seed, predictor, demos)
     if not _evaluated(done) and (follow_final := exp.follower_ready(recipe, seed, predictor, follow)) is not None:
         done = exp.recipe_stages(recipe, seed, predictor, demos, follow_final, done)  # its shielded stage, then on

@@ -526,3 +526,16 @@ def test_an_interrupted_evaluation_keeps_the_splits_it_finished(tmp_path: Path) 
     assert not any("] val (seed" in line for line in lines) and any("] test (seed" in line for line in lines)
     m = json.loads((tmp_path / "run" / RULE_KEY / "metrics.json").read_text())
     assert m["val"]["0"] == json.loads(first.read_text()) and m["test"]["episodes"] == preset.test_episodes
+
+
+def test_a_followed_policy_is_trained_before_the_recipes_whose_layer_follows_it() -> None:
+    from lcmodels.experiment import _task_ranks
+    from lcmodels.recipe import load_recipe
+
+    recipes = [load_recipe(n) for n in ("a2c-hybrid", "hybrid-ppo", "pure-ppo")]
+    rank = _task_ranks(recipes)
+    assert rank["pure-ppo"] < rank["hybrid-ppo"] < rank["a2c-hybrid"]
+    # the paper preset's order: its workers start both pure-ppo seeds before either hybrid-ppo seed
+    exp = Experiment(PRESETS["paper"], Path("unused"))
+    names = [r.name for r in sorted(exp.recipes(), key=lambda r: _task_ranks(exp.recipes())[r.name])]
+    assert names.index("pure-ppo") < names.index("hybrid-ppo") < names.index("a2c-hybrid")
