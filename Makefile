@@ -20,7 +20,7 @@ $(STAMP): pyproject.toml
 	touch $(STAMP)
 
 demo: $(STAMP)
-	$(BIN)/lc-experiment --preset quick --out $(DEMO_OUT)
+	$(BIN)/lc-experiment --preset quick --jobs 2 --out $(DEMO_OUT)
 	@sed -n '/^## Table III/,/^## Every row/p' $(DEMO_OUT)/REPORT.md | grep -v '^## Every row'
 	@echo "make demo: the report is $(DEMO_OUT)/REPORT.md (figures next to it); rerun to resume or refresh it"
 	@echo "make demo: recorded episodes of the best shipped policy: $(DEMO_OUT)/showcase/ (lc-view $(DEMO_OUT)/showcase/*.rrd)"

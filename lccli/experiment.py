@@ -62,8 +62,9 @@ def experiment_parser() -> argparse.ArgumentParser:
                    help="torch threads (default 1: on a shared 2-core machine 1 is often fastest; results do "
                    "not depend on it beyond float rounding, and changing it does not make stages stale)")
     p.add_argument("--jobs", type=positive_int, default=1,
-                   help="recipes trained at once, each in its own process with --threads torch threads "
-                   "(default 1; on 2 cores --jobs 2 --threads 1 keeps both busy; results do not depend on it)")
+                   help="recipes trained at once, each in its own process with --threads torch threads, and "
+                   "processes an evaluation's episodes are cut over (default 1; on 2 cores --jobs 2 --threads 1 "
+                   "keeps both busy; results do not depend on it)")
     add_executor_arguments(p, "every independent stage a Ray task (each policy x seed, each evaluation shard, "
                            "each recorded episode)", "this machine, --jobs processes")
     p.add_argument("--skip-train", action="store_true",

@@ -163,8 +163,33 @@ class Experiment:
         self._invocation_lock = threading.Lock()
         self.stages: list[StageResult] = []
         self._recipes: list[Recipe] | None = None
+        self.jobs = 1
+        """Processes at once (:meth:`run`'s ``jobs``): policy tasks, and the shards of an evaluation run here."""
+        self._eval_pool: Any = None
 
     # -- helpers -------------------------------------------------------------------------------------
+    def eval_pool(self) -> Any:
+        """The ``jobs`` processes an evaluation of this process cuts its episodes over (local executor,
+        ``jobs`` > 1; None otherwise), started at the first evaluation and kept until :meth:`run` ends."""
+        if self.executor != "local" or self.jobs < 2:
+            return None
+        if self._eval_pool is None:
+            import multiprocessing as mp
+            from concurrent.futures import ProcessPoolExecutor
+
+            self._eval_pool = ProcessPoolExecutor(self.jobs, mp_context=mp.get_context("spawn"),
+                                                  initializer=_eval_worker_init, initargs=(os.getpid(),))  # fmt: skip
+        return self._eval_pool
+
+    def _close_eval_pool(self, *, kill: bool = False) -> None:
+        """Stop :meth:`eval_pool`'s processes (``kill``: now, a shard under way too; its stage resumes)."""
+        if self._eval_pool is not None:
+            if kill:
+                for proc in list((getattr(self._eval_pool, "_processes", None) or {}).values()):
+                    proc.terminate()
+            self._eval_pool.shutdown(wait=True, cancel_futures=True)
+            self._eval_pool = None
+
     def emit(self, msg: str) -> None:
         log.info(msg)
         if self._invocation_t0 is not None:
@@ -369,9 +394,11 @@ class Experiment:
 
             t0 = time.perf_counter()
             rec = p.record_eval and split == "test"
+            pool = self.eval_pool()
             summary, _ = evaluate_sharded(
-                spec, scenario, episodes=episodes, seed=seed,
-                shards=1 if self.executor == "local" else RAY_SHARDS, executor=self.executor,
+                spec, scenario, episodes=episodes, seed=seed, pool=pool,
+                shards=RAY_SHARDS if self.executor == "ray" else self.jobs if pool is not None else 1,
+                executor=self.executor,
                 predictor=str(predictor) if predictor else None, follow=follow, lookahead=lookahead,
                 out_dir=path / "episodes" if rec else None, scenario=p.scenario, overwrite=True)  # fmt: skip
             summary["wall_s"] = time.perf_counter() - t0
@@ -611,6 +638,7 @@ class Experiment:
 
         if jobs < 1:
             raise ValueError(f"jobs must be >= 1, got {jobs}")
+        self.jobs = jobs
         t0 = time.perf_counter()
         self.check_out()
         self.out.mkdir(parents=True, exist_ok=True)
@@ -634,8 +662,12 @@ class Experiment:
                 else:
                     self._stages(skip_train=skip_train, jobs=jobs)
                 self._save_invocation(finished=True)
+            except BaseException:
+                self._close_eval_pool(kill=True)
+                raise
             finally:
                 self._invocation_t0 = None
+                self._close_eval_pool()
             wall = time.perf_counter() - t0
             report = write_report(ReportInput(self.out, self.preset, self.max_seeds, list(self.stages), self.invocations,
                                               self.command, self.recipes(),
@@ -933,6 +965,16 @@ def _ray_policy_task(index: int, preset: Preset, out: Path, seeds: int, threads:
     torch.set_num_threads(threads)
     exp = Experiment(preset, out, seeds=seeds, threads=threads, progress=log.info)
     return index, _recipe_then_layer(exp, recipe, seed, predictor, demos, follow)
+
+
+def _eval_worker_init(parent: int) -> None:
+    """A process of :meth:`Experiment.eval_pool`: one torch thread, ended with the run's process."""
+    import torch
+
+    from lcdata.procs import die_with_parent
+
+    die_with_parent(parent)
+    torch.set_num_threads(1)
 
 
 def _policy_worker_init(queue: Any, threads: int, parent: int | None = None) -> None:

@@ -146,3 +146,22 @@ def test_a_lookahead_follows_a_policy_without_image_and_refuses_one_with(tmp_pat
     assert record_main(["--driver", "rule", "--lookahead-perceived", "--out", str(out)]) == 2
     assert record_main(["--driver", f"lookahead:{tmp_path / 'pure' / 'policy.safetensors'}", "--lookahead-perceived",
                         "--out", str(out)]) == 2  # perception needs a blind planner
+
+
+def test_an_evaluation_cut_over_processes_gives_the_serial_figures_episode_for_episode() -> None:
+    import multiprocessing as mp
+    from concurrent.futures import ProcessPoolExecutor
+
+    from lcmodels.policy.evaluate import evaluate_sharded
+    from lcmodels.zoo import zoo_entry
+
+    hybrid, pure = zoo_entry("hybrid-ppo"), zoo_entry("pure-ppo")
+    spec = f"lookahead-blind:{hybrid.policy}"
+    options = {"predictor": str(hybrid.predictor), "follow": str(pure.policy), "batch": 3,
+               "lookahead": {"horizon_decisions": 4, "perceived": True, "samples": 2}}  # the zoo's layer, shorter
+    serial, rows = evaluate_sharded(spec, None, episodes=6, seed=3, shards=1, **options)
+    with ProcessPoolExecutor(2, mp_context=mp.get_context("spawn")) as pool:
+        cut, cut_rows = evaluate_sharded(spec, None, episodes=6, seed=3, shards=2, pool=pool, **options)
+    assert cut_rows == rows and serial["planner_choices"] > 0
+    drop = {"wall_s", "decisions_per_s"}
+    assert {k: v for k, v in cut.items() if k not in drop} == {k: v for k, v in serial.items() if k not in drop}

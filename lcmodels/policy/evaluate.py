@@ -16,9 +16,9 @@ from __future__ import annotations
 import dataclasses
 import math
 import os
-from collections.abc import Callable, Sequence
+from collections.abc import Callable, Iterable, Iterator, Sequence
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
@@ -30,6 +30,9 @@ from lcsim.core import OUTCOMES, LaneChangeCore
 from lcsim.drivers import Driver
 from lcsim.episodes import EpisodeHook, run_episodes
 from lcsim.registry import split_policy_spec
+
+if TYPE_CHECKING:
+    from concurrent.futures import Executor
 
 EVAL_SEED_BASE = 1_000_000_000
 EVAL_SEED_STRIDE = 100_000
@@ -282,16 +285,36 @@ def _evaluate_shard_task(*args: Any) -> tuple[int, str, list[dict[str, Any]], in
     return _evaluate_shard(*args)
 
 
+def _pool_results(pool: Executor, calls: list[tuple[Any, ...]]) -> Iterator[tuple[Any, ...]]:
+    """The shards ``calls`` at once in the processes of ``pool``, as each ends; a worker that dies is a
+    :class:`ChildProcessError` (an ``OSError``: the commands end it in one line)."""
+    from concurrent.futures import as_completed
+    from concurrent.futures.process import BrokenProcessPool
+
+    futures = [pool.submit(_evaluate_shard_task, *c) for c in calls]
+    try:
+        for fut in as_completed(futures):
+            yield fut.result()
+    except BrokenProcessPool:
+        raise ChildProcessError("an evaluation worker process died (killed, or out of memory?); "
+                                "a rerun resumes") from None  # fmt: skip
+    finally:
+        for fut in futures:
+            fut.cancel()
+
+
 def evaluate_sharded(spec: str, config: ScenarioConfig | None, *, episodes: int = 200, seed: int = 0,
                      shards: int = 4, executor: str = "local", predictor: str | None = None,
                      lookahead: dict[str, int] | None = None, follow: str | None = None, trust_pickle: bool = False,
                      out_dir: str | os.PathLike[str] | None = None, scenario: str = "paper", batch: int = 16,
                      overwrite: bool = False, train_seeds: np.ndarray | None = None,
                      progress: Callable[[int, int], None] | None = None,
-                     driver_name: str | None = None) -> tuple[dict[str, Any], list[EpisodeStats]]:
+                     driver_name: str | None = None,
+                     pool: Executor | None = None) -> tuple[dict[str, Any], list[EpisodeStats]]:
     """:func:`evaluate` of the driver spec ``spec`` (as :func:`driver_for` takes it) with the episodes cut into
-    ``shards`` parts, each run where ``executor`` says (``local``: one after the other here; ``ray``: as Ray
-    tasks in the open :func:`lcdata.executors.ray_session`), each shard whole batches of ``batch`` episodes.
+    ``shards`` parts, each run where ``executor`` says (``local``: one after the other here, or at once in the
+    processes of ``pool``; ``ray``: as Ray tasks in the open :func:`lcdata.executors.ray_session`), each shard
+    whole batches of ``batch`` episodes.
     Every episode depends only on its seed and runs where :func:`evaluate` runs it, so the summary and the
     recorded files are the ones :func:`evaluate` gives, episode for episode (the ``random`` driver aside,
     whose draws follow the batch's calls). ``config``: the scenario of a built-in driver (a policy brings
@@ -324,7 +347,12 @@ def evaluate_sharded(spec: str, config: ScenarioConfig | None, *, episodes: int 
     parts = [[u for b in group for u in b] for group in cut(batches, shards)]
     calls = [(i, spec, scenario_json, part, options) for i, part in enumerate(parts)]
     done: dict[int, tuple[str, list[dict[str, Any]], int, int]] = {}
-    runner = ray_map(_evaluate_shard_task, calls) if executor == "ray" else (_evaluate_shard(*c) for c in calls)
+    if executor == "ray":
+        runner: Iterable[tuple[Any, ...]] = ray_map(_evaluate_shard_task, calls)
+    elif pool is not None and len(calls) > 1:
+        runner = _pool_results(pool, calls)
+    else:
+        runner = (_evaluate_shard(*c) for c in calls)
     for index, *out in runner:
         done[index] = tuple(out)  # type: ignore[assignment]
         if progress is not None:
