@@ -46,6 +46,8 @@ EVAL_EPILOG = """examples:
   lc-eval rule --episodes 200 --out runs/rule-eval
   lc-eval lookahead-blind:runs/hybrid-ppo/policy.safetensors --lookahead-follow runs/ppo-pure/policy.safetensors \\
       --lookahead-horizon 32 --no-record     # Hybrid-PPO behind the planner, imagining 16 s with the pure policy
+  lc-eval lookahead-blind:zoo:hybrid-ppo --lookahead-follow zoo:pure-ppo --lookahead-perceived \
+      --lookahead-horizon 32 --lookahead-samples 3 --episodes 1000 --seed 9 --workers 2   # its card's figure
 
 Evaluation episode i uses the user seed 1000000000 + 100000 * SEED + i, disjoint from training seeds.
 Prints outcome rates (fractions) and means with 95% intervals; --json-out writes them as JSON; every
@@ -145,6 +147,9 @@ def eval_parser() -> argparse.ArgumentParser:
     where = p.add_argument_group("where the episodes run")
     add_executor_arguments(where, "the episodes cut into --shards parts, each a Ray task", "this process")
     where.add_argument("--shards", type=positive_int, default=4, help="Ray tasks the episodes are cut into (4)")
+    where.add_argument("--workers", type=positive_int, default=None,
+                       help="processes at once on this machine: the episodes cut over them, whole batches each, "
+                       "the same figures (default 1); with --bound, the searches (default 2)")
     bound = p.add_argument_group("what the scenario allows (lc-eval oracle --bound)")
     bound.add_argument("--bound", action="store_true",
                        help="with the oracle: prove, episode by episode, whether it can be won at all (the search's "
@@ -155,7 +160,6 @@ def eval_parser() -> argparse.ArgumentParser:
     bound.add_argument("--max-nodes", type=positive_int, default=200_000,
                        help="give up on an episode after this many simulated decisions (default 200000)")
     bound.add_argument("--only", type=int, nargs="+", metavar="I", help="only these episode indices (0-based)")
-    bound.add_argument("--workers", type=positive_int, default=2, help="processes searching at once (default 2)")
     return p
 
 
@@ -221,6 +225,7 @@ def eval_main(argv: list[str] | None = None) -> int:
         scenario_label = str(read_meta(ckpt).get("scenario_name") or "paper")
     show = None if args.quiet else (lambda k, n: print(f"evaluating: {k}/{n} episodes", flush=True))
     start = time.perf_counter()
+    sharded = args.executor == "local" and (args.workers or 1) > 1
     hooks = []
     if args.breakdown:
         from lcmodels.analysis import CollisionBreakdown
@@ -228,16 +233,22 @@ def eval_main(argv: list[str] | None = None) -> int:
         hooks.append(CollisionBreakdown(window_s=args.window_s, front_gap_m=args.front_gap_m,
                                         rear_gap_m=args.rear_gap_m))  # fmt: skip
     try:
-        if args.executor == "ray":
+        if args.executor == "ray" or sharded:
             if hooks:
-                return error("--breakdown runs with the local executor only")
+                return error("--breakdown runs in this process only (no --executor ray, no --workers)")
+            import multiprocessing as mp
+            from concurrent.futures import ProcessPoolExecutor
+
             from lcdata.executors import ray_session
             from lcmodels.policy.evaluate import evaluate_sharded
 
-            with ray_session(args.ray_address):
+            where = (ray_session(args.ray_address) if args.executor == "ray" else
+                     ProcessPoolExecutor(args.workers, mp_context=mp.get_context("spawn")))  # fmt: skip
+            with where as pool:
                 summary, results = evaluate_sharded(
                     args.policy, config if is_driver else None, episodes=args.episodes, seed=args.seed,
-                    shards=args.shards, executor="ray", predictor=str(args.predictor) if args.predictor else None,
+                    shards=args.shards if args.executor == "ray" else args.workers, executor=args.executor,
+                    pool=pool if sharded else None, predictor=str(args.predictor) if args.predictor else None,
                     lookahead=lookahead_options(args), follow=args.lookahead_follow, trust_pickle=args.trust_pickle,
                     out_dir=out, scenario=scenario_label, batch=args.batch, overwrite=args.overwrite,
                     train_seeds=train_seeds, progress=show,
@@ -252,14 +263,15 @@ def eval_main(argv: list[str] | None = None) -> int:
         summary["collision_kinds"] = hooks[0].counts
     summary["wall_s"] = round(time.perf_counter() - start, 3)
     summary["decisions"] = sum(r.length for r in results)
-    if isinstance(driver, LookaheadDriver) and args.executor != "ray":  # a planner: how often it overrode
+    if isinstance(driver, LookaheadDriver) and args.executor != "ray" and not sharded:  # how often it overrode
         summary["planner_choices"], summary["planner_overrides"] = driver.choices, driver.overrides
     if isinstance(driver, LookaheadDriver):  # what the planner imagined: the file says how it was made
         summary["lookahead"] = dataclasses.asdict(driver.config) | {"follow": args.lookahead_follow}
     summary["command"] = command
     print(format_eval(summary))
+    where = f", {args.workers} processes" if sharded else ""
     print(f"{summary['decisions']} decisions in {summary['wall_s']} s ({args.batch} episodes at a time, "
-          f"{args.threads} torch threads)")
+          f"{args.threads} torch threads{where})")
     if "planner_overrides" in summary:
         print(f"the planner overrode {summary['planner_overrides']} of {summary['planner_choices']} decisions "
               "with a choice")
@@ -294,7 +306,7 @@ def _bound_main(args: argparse.Namespace, error: Callable[[str], int]) -> int:
     show = None if args.quiet else (lambda k, n: print(f"\rsearching: {k}/{n} episodes", end="", flush=True))
     try:
         summary, rows = oracle_bound(config, users, indices=args.only, memory_decisions=args.memory,
-                                     max_nodes=args.max_nodes, workers=args.workers, progress=show)
+                                     max_nodes=args.max_nodes, workers=args.workers or 2, progress=show)
     except ValueError as exc:
         return error(str(exc))
     if show is not None:
@@ -307,7 +319,7 @@ def _bound_main(args: argparse.Namespace, error: Callable[[str], int]) -> int:
     print(f"no winning sequence: episodes {summary['not_winnable_episodes'] or 'none'}; undecided (--max-nodes): "
           f"{summary['undecided_episodes'] or 'none'}")
     print(f"search: {summary['nodes_total']} decisions simulated, {summary['cpu_s_total']} s CPU, "
-          f"{summary['wall_s']} s wall on {args.workers} workers")
+          f"{summary['wall_s']} s wall on {args.workers or 2} workers")
     if args.json_out is not None:
         args.json_out.parent.mkdir(parents=True, exist_ok=True)
         args.json_out.write_text(json.dumps({"summary": summary, "episodes": rows}, indent=1) + "\n")

@@ -165,3 +165,19 @@ def test_an_evaluation_cut_over_processes_gives_the_serial_figures_episode_for_e
     assert cut_rows == rows and serial["planner_choices"] > 0
     drop = {"wall_s", "decisions_per_s"}
     assert {k: v for k, v in cut.items() if k not in drop} == {k: v for k, v in serial.items() if k not in drop}
+
+
+def test_lc_eval_workers_give_the_same_figures_and_files(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    runs = {}
+    for workers in ("1", "2"):
+        js, out = tmp_path / f"w{workers}.json", tmp_path / f"w{workers}"
+        assert eval_main(["rule", "--scenario", "tiny", "--episodes", "8", "--batch", "3", "--workers", workers,
+                          "--out", str(out), "--json-out", str(js), "-q"]) == 0  # fmt: skip
+        summary = json.loads(js.read_text())
+        files = {p.name: p.read_bytes() for p in sorted(out.glob("*.mcap"))}
+        runs[workers] = ({k: v for k, v in summary.items() if k not in ("wall_s", "command", "decisions_per_s")}, files)
+    assert "2 processes" in capsys.readouterr().out
+    assert runs["1"] == runs["2"] and len(runs["1"][1]) == 8
+    assert eval_main(["rule", "--scenario", "tiny", "--episodes", "2", "--workers", "2", "--breakdown",
+                      "--no-record"]) == 2  # fmt: skip
+    assert "--breakdown runs in this process only" in capsys.readouterr().err
