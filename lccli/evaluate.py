@@ -4,6 +4,7 @@ analysis tools share."""
 from __future__ import annotations
 
 import argparse
+import contextlib
 import dataclasses
 import functools
 import json
@@ -46,7 +47,7 @@ EVAL_EPILOG = """examples:
   lc-eval rule --episodes 200 --out runs/rule-eval
   lc-eval lookahead-blind:runs/hybrid-ppo/policy.safetensors --lookahead-follow runs/ppo-pure/policy.safetensors \\
       --lookahead-horizon 32 --no-record     # Hybrid-PPO behind the planner, imagining 16 s with the pure policy
-  lc-eval lookahead-blind:zoo:hybrid-ppo --lookahead-follow zoo:pure-ppo --lookahead-perceived \
+  lc-eval lookahead-blind:zoo:hybrid-ppo --lookahead-follow zoo:pure-ppo --lookahead-perceived \\
       --lookahead-horizon 32 --lookahead-samples 3 --episodes 1000 --seed 9 --workers 2   # its card's figure
 
 Evaluation episode i uses the user seed 1000000000 + 100000 * SEED + i, disjoint from training seeds.
@@ -225,6 +226,8 @@ def eval_main(argv: list[str] | None = None) -> int:
         scenario_label = str(read_meta(ckpt).get("scenario_name") or "paper")
     show = None if args.quiet else (lambda k, n: print(f"evaluating: {k}/{n} episodes", flush=True))
     start = time.perf_counter()
+    if args.workers is not None and args.executor == "ray":
+        return error("--workers is for this machine; with --executor ray, --shards says how the episodes are cut")
     sharded = args.executor == "local" and (args.workers or 1) > 1
     hooks = []
     if args.breakdown:
@@ -236,29 +239,38 @@ def eval_main(argv: list[str] | None = None) -> int:
         if args.executor == "ray" or sharded:
             if hooks:
                 return error("--breakdown runs in this process only (no --executor ray, no --workers)")
-            import multiprocessing as mp
-            from concurrent.futures import ProcessPoolExecutor
-
             from lcdata.executors import ray_session
-            from lcmodels.policy.evaluate import evaluate_sharded
+            from lcmodels.policy.evaluate import close_shard_pool, evaluate_sharded, shard_pool
 
-            where = (ray_session(args.ray_address) if args.executor == "ray" else
-                     ProcessPoolExecutor(args.workers, mp_context=mp.get_context("spawn")))  # fmt: skip
-            with where as pool:
-                summary, results = evaluate_sharded(
-                    args.policy, config if is_driver else None, episodes=args.episodes, seed=args.seed,
-                    shards=args.shards if args.executor == "ray" else args.workers, executor=args.executor,
-                    pool=pool if sharded else None, predictor=str(args.predictor) if args.predictor else None,
-                    lookahead=lookahead_options(args), follow=args.lookahead_follow, trust_pickle=args.trust_pickle,
-                    out_dir=out, scenario=scenario_label, batch=args.batch, overwrite=args.overwrite,
-                    train_seeds=train_seeds, progress=show,
-                    driver_name=str(getattr(driver, "name", type(driver).__name__)))  # fmt: skip
+            pool = shard_pool(args.workers, args.threads) if sharded else None
+            try:
+                with ray_session(args.ray_address) if args.executor == "ray" else contextlib.nullcontext():
+                    summary, results = evaluate_sharded(
+                        args.policy, config if is_driver else None, episodes=args.episodes, seed=args.seed,
+                        shards=args.shards if args.executor == "ray" else args.workers, executor=args.executor,
+                        pool=pool, predictor=str(args.predictor) if args.predictor else None,
+                        lookahead=lookahead_options(args), follow=args.lookahead_follow,
+                        trust_pickle=args.trust_pickle, out_dir=out, scenario=scenario_label, batch=args.batch,
+                        overwrite=args.overwrite, train_seeds=train_seeds, progress=show,
+                        driver_name=str(getattr(driver, "name", type(driver).__name__)))  # fmt: skip
+            except BaseException:
+                if pool is not None:
+                    close_shard_pool(pool, kill=True)
+                    pool = None
+                raise
+            finally:
+                if pool is not None:
+                    close_shard_pool(pool)
         else:
             summary, results = evaluate(driver, config, episodes=args.episodes, seed=args.seed, out_dir=out,
                                         batch=args.batch, overwrite=args.overwrite, train_seeds=train_seeds,
                                         progress=show, hooks=hooks, scenario=scenario_label)  # fmt: skip
     except (ValueError, OSError) as exc:
         return error(str(exc).splitlines()[0])
+    except KeyboardInterrupt:
+        print("lc-eval: interrupted; nothing summarised (episodes recorded so far are kept; --overwrite to redo "
+              "them)", file=sys.stderr)  # fmt: skip
+        return 130
     if hooks:
         summary["collision_kinds"] = hooks[0].counts
     summary["wall_s"] = round(time.perf_counter() - start, 3)

@@ -174,20 +174,17 @@ class Experiment:
         if self.executor != "local" or self.jobs < 2:
             return None
         if self._eval_pool is None:
-            import multiprocessing as mp
-            from concurrent.futures import ProcessPoolExecutor
+            from lcmodels.policy.evaluate import shard_pool
 
-            self._eval_pool = ProcessPoolExecutor(self.jobs, mp_context=mp.get_context("spawn"),
-                                                  initializer=_eval_worker_init, initargs=(os.getpid(),))  # fmt: skip
+            self._eval_pool = shard_pool(self.jobs, self.threads)
         return self._eval_pool
 
     def _close_eval_pool(self, *, kill: bool = False) -> None:
         """Stop :meth:`eval_pool`'s processes (``kill``: now, a shard under way too; its stage resumes)."""
         if self._eval_pool is not None:
-            if kill:
-                for proc in list((getattr(self._eval_pool, "_processes", None) or {}).values()):
-                    proc.terminate()
-            self._eval_pool.shutdown(wait=True, cancel_futures=True)
+            from lcmodels.policy.evaluate import close_shard_pool
+
+            close_shard_pool(self._eval_pool, kill=kill)
             self._eval_pool = None
 
     def emit(self, msg: str) -> None:
@@ -668,6 +665,7 @@ class Experiment:
             finally:
                 self._invocation_t0 = None
                 self._close_eval_pool()
+                self.jobs = 1
             wall = time.perf_counter() - t0
             report = write_report(ReportInput(self.out, self.preset, self.max_seeds, list(self.stages), self.invocations,
                                               self.command, self.recipes(),
@@ -947,11 +945,19 @@ RAY_SHARDS = 4
 
 def _task_ranks(recipes: Sequence[Recipe]) -> dict[str, int]:
     """The order in which the recipes' policy tasks start (sorted stably, so recipe order within a rank): the
-    policies a safety layer follows first, then the recipes with a safety layer, then the rest. A follower is
+    policies a safety layer follows first, then the recipes whose layer follows them (a chain by its depth),
+    then the rest. A follower is
     then trained by the time the recipe that follows it ends its training, so that recipe's worker goes on to
     its shielded and safety stages itself instead of leaving them to run one after another at the end."""
-    followed = {r.safety.follow for r in recipes if r.safety is not None and r.safety.follow}
-    return {r.name: 0 if r.name in followed else 1 if r.safety is not None else 2 for r in recipes}
+    follows = {r.name: r.safety.follow for r in recipes if r.safety is not None and r.safety.follow}
+
+    def depth(name: str, seen: frozenset[str] = frozenset()) -> int:  # followers below it in the chain
+        nxt = follows.get(name)
+        return 0 if not nxt or nxt == name or nxt in seen else 1 + depth(nxt, seen | {name})
+
+    involved = set(follows) | set(follows.values())
+    last = 1 + max((depth(n) for n in involved), default=0)
+    return {r.name: depth(r.name) if r.name in involved or r.safety is not None else last for r in recipes}
 
 
 def _ray_policy_task(index: int, preset: Preset, out: Path, seeds: int, threads: int, recipe: Recipe, seed: int,
@@ -964,17 +970,8 @@ def _ray_policy_task(index: int, preset: Preset, out: Path, seeds: int, threads:
     logging.basicConfig(level=logging.INFO, format="%(message)s")  # a fresh worker: its log goes to the driver
     torch.set_num_threads(threads)
     exp = Experiment(preset, out, seeds=seeds, threads=threads, progress=log.info)
-    return index, _recipe_then_layer(exp, recipe, seed, predictor, demos, follow)
-
-
-def _eval_worker_init(parent: int) -> None:
-    """A process of :meth:`Experiment.eval_pool`: one torch thread, ended with the run's process."""
-    import torch
-
-    from lcdata.procs import die_with_parent
-
-    die_with_parent(parent)
-    torch.set_num_threads(1)
+    # the safety stage is left to the driver, which cuts its episodes into Ray tasks
+    return index, _recipe_then_layer(exp, recipe, seed, predictor, demos, follow, safety=False)
 
 
 def _policy_worker_init(queue: Any, threads: int, parent: int | None = None) -> None:
@@ -998,14 +995,16 @@ def _policy_worker(preset: Preset, out: Path, seeds: int, recipe: Recipe, seed: 
 
 
 def _recipe_then_layer(exp: Experiment, recipe: Recipe, seed: int, predictor: StageResult | None,
-                       demos: StageResult | None, follow: tuple[Recipe, StageResult | None] | None) -> list[StageResult]:
-    """A worker's share of one recipe and seed: its stages, then its shielded stage and its safety stage if the
-    policy its layer follows is trained already (:meth:`Experiment.follower_ready`); else the run does them after
-    every recipe."""
+                       demos: StageResult | None, follow: tuple[Recipe, StageResult | None] | None, *,
+                       safety: bool = True) -> list[StageResult]:  # fmt: skip
+    """A worker's share of one recipe and seed: its stages, then its shielded stage and (``safety``) its safety
+    stage if the policy its layer follows is trained already (:meth:`Experiment.follower_ready`); else the run
+    does them after every recipe."""
     done = exp.recipe_stages(recipe, seed, predictor, demos)
     if not _evaluated(done) and (follow_final := exp.follower_ready(recipe, seed, predictor, follow)) is not None:
         done = exp.recipe_stages(recipe, seed, predictor, demos, follow_final, done)  # its shielded stage, then on
-    exp.safety_when_ready(recipe, seed, done, predictor, follow)
+    if safety:
+        exp.safety_when_ready(recipe, seed, done, predictor, follow)
     return done
 
 

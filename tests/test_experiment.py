@@ -535,7 +535,41 @@ def test_a_followed_policy_is_trained_before_the_recipes_whose_layer_follows_it(
     recipes = [load_recipe(n) for n in ("a2c-hybrid", "hybrid-ppo", "pure-ppo")]
     rank = _task_ranks(recipes)
     assert rank["pure-ppo"] < rank["hybrid-ppo"] < rank["a2c-hybrid"]
+    # a chain: a follows b, which follows pure-ppo: pure-ppo, then b, then a
+    hybrid = recipes[1]
+    b = dataclasses.replace(hybrid, name="b")
+    a = dataclasses.replace(hybrid, name="a", safety=dataclasses.replace(hybrid.safety, follow="b"))
+    rank = _task_ranks([a, b, *recipes])
+    assert rank["pure-ppo"] < rank["b"] < rank["a"] < rank["a2c-hybrid"]
     # the paper preset's order: its workers start both pure-ppo seeds before either hybrid-ppo seed
     exp = Experiment(PRESETS["paper"], Path("unused"))
     names = [r.name for r in sorted(exp.recipes(), key=lambda r: _task_ranks(exp.recipes())[r.name])]
     assert names.index("pure-ppo") < names.index("hybrid-ppo") < names.index("a2c-hybrid")
+
+
+def test_jobs_cut_the_runs_own_evaluations_over_processes_with_the_same_figures(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    import importlib
+    import multiprocessing as mp
+
+    from tests.test_policy_evaluate import CountingPool
+
+    ev = importlib.import_module("lcmodels.policy.evaluate")
+    pools: list[CountingPool] = []
+    real_pool = ev.shard_pool
+
+    def counting_pool(*args: int) -> CountingPool:
+        pools.append(CountingPool(real_pool(*args)))
+        return pools[-1]
+
+    monkeypatch.setattr(ev, "shard_pool", counting_pool)
+    # three batches of test episodes: two shards
+    preset = dataclasses.replace(PRESETS["tiny"], recipes=("paper-ppo-pure",), oracle=False, test_episodes=40)
+    for jobs in (1, 2):
+        Experiment(preset, tmp_path / f"j{jobs}").run(jobs=jobs)
+    assert len(pools) == 1 and pools[0].submitted >= 4  # --jobs 2: the rule's and the policy's test episodes
+    assert not mp.active_children()  # closed with the run
+    for key in (RULE_KEY, "paper-ppo-pure"):
+        a, b = stage_metrics(tmp_path / "j1", key), stage_metrics(tmp_path / "j2", key)
+        assert without_wall_times(a) == without_wall_times(b) and a["test"]["episodes"] == 40, key

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import json
 from pathlib import Path
+from typing import Any
 
 import pytest
 
@@ -148,6 +149,20 @@ def test_a_lookahead_follows_a_policy_without_image_and_refuses_one_with(tmp_pat
                         "--out", str(out)]) == 2  # perception needs a blind planner
 
 
+class CountingPool:
+    """A process pool that counts the shards given to it."""
+
+    def __init__(self, pool: Any) -> None:
+        self.pool, self.submitted = pool, 0
+
+    def submit(self, *args: Any, **kwargs: Any) -> Any:
+        self.submitted += 1
+        return self.pool.submit(*args, **kwargs)
+
+    def shutdown(self, *args: Any, **kwargs: Any) -> None:
+        self.pool.shutdown(*args, **kwargs)
+
+
 def test_an_evaluation_cut_over_processes_gives_the_serial_figures_episode_for_episode() -> None:
     import multiprocessing as mp
     from concurrent.futures import ProcessPoolExecutor
@@ -160,14 +175,29 @@ def test_an_evaluation_cut_over_processes_gives_the_serial_figures_episode_for_e
     options = {"predictor": str(hybrid.predictor), "follow": str(pure.policy), "batch": 3,
                "lookahead": {"horizon_decisions": 4, "perceived": True, "samples": 2}}  # the zoo's layer, shorter
     serial, rows = evaluate_sharded(spec, None, episodes=6, seed=3, shards=1, **options)
-    with ProcessPoolExecutor(2, mp_context=mp.get_context("spawn")) as pool:
+    with ProcessPoolExecutor(2, mp_context=mp.get_context("spawn")) as real:
+        pool = CountingPool(real)
         cut, cut_rows = evaluate_sharded(spec, None, episodes=6, seed=3, shards=2, pool=pool, **options)
+    assert pool.submitted == 2  # both shards ran in the pool's processes
     assert cut_rows == rows and serial["planner_choices"] > 0
     drop = {"wall_s", "decisions_per_s"}
     assert {k: v for k, v in cut.items() if k not in drop} == {k: v for k, v in serial.items() if k not in drop}
 
 
-def test_lc_eval_workers_give_the_same_figures_and_files(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+def test_lc_eval_workers_give_the_same_figures_and_files(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str], monkeypatch: pytest.MonkeyPatch
+) -> None:
+    import importlib
+
+    ev = importlib.import_module("lcmodels.policy.evaluate")  # (lcmodels.policy.evaluate is also a function)
+    pools: list[CountingPool] = []
+    real_pool = ev.shard_pool
+
+    def counting_pool(*args: Any) -> CountingPool:
+        pools.append(CountingPool(real_pool(*args)))
+        return pools[-1]
+
+    monkeypatch.setattr(ev, "shard_pool", counting_pool)
     runs = {}
     for workers in ("1", "2"):
         js, out = tmp_path / f"w{workers}.json", tmp_path / f"w{workers}"
@@ -178,6 +208,15 @@ def test_lc_eval_workers_give_the_same_figures_and_files(tmp_path: Path, capsys:
         runs[workers] = ({k: v for k, v in summary.items() if k not in ("wall_s", "command", "decisions_per_s")}, files)
     assert "2 processes" in capsys.readouterr().out
     assert runs["1"] == runs["2"] and len(runs["1"][1]) == 8
+    assert [p.submitted for p in pools] == [2]  # --workers 1 made no pool; --workers 2 cut the episodes in two
+    import multiprocessing as mp
+
+    assert not mp.active_children()  # the pool's processes are gone
+    for argv, message in ((["random", "--workers", "2"], "random driver"),
+                          (["rule", "--workers", "2", "--executor", "ray"], "--workers is for this machine")):
+        assert eval_main([*argv, "--scenario", "tiny", "--episodes", "8", "--batch", "3", "--no-record"]) == 2
+        err = capsys.readouterr().err.strip()
+        assert message in err and len(err.splitlines()) == 1, err
     assert eval_main(["rule", "--scenario", "tiny", "--episodes", "2", "--workers", "2", "--breakdown",
                       "--no-record"]) == 2  # fmt: skip
     assert "--breakdown runs in this process only" in capsys.readouterr().err

@@ -48,7 +48,8 @@ def main(argv: list[str] | None = None) -> int:
                                 check=True, cwd=Path(__file__).parent).stdout.strip()  # fmt: skip
     except (OSError, subprocess.CalledProcessError):
         commit = ""
-    own_zoo = args.zoo is None or args.zoo.resolve() == zoo_dir().resolve()
+    # the records describe what this checkout's own zoo/ ships, whatever LC_ZOO says
+    own_zoo = (args.zoo if args.zoo is not None else zoo_dir()).resolve() == (RECIPES_DIR.parents[1] / "zoo").resolve()
     if not args.reached_only:  # a safety layer's figure holds only for the follower it was measured with
         try:
             for name in args.recipes:

@@ -285,13 +285,45 @@ def _evaluate_shard_task(*args: Any) -> tuple[int, str, list[dict[str, Any]], in
     return _evaluate_shard(*args)
 
 
+def _shard_worker_init(parent: int, threads: int) -> None:
+    """A process of :func:`shard_pool`: ``threads`` torch threads, ended with its parent, deaf to Ctrl-C
+    (the parent stops it: a shard under way is cut, and an interrupted evaluation is run again)."""
+    import signal
+
+    import torch
+
+    from lcdata.procs import die_with_parent
+
+    die_with_parent(parent)
+    signal.signal(signal.SIGINT, signal.SIG_IGN)
+    torch.set_num_threads(threads)
+
+
+def shard_pool(workers: int, threads: int = 1) -> Executor:
+    """``workers`` spawned processes for :func:`evaluate_sharded`'s ``pool`` (``threads`` torch threads each).
+    Close it with :func:`close_shard_pool`."""
+    import multiprocessing as mp
+    from concurrent.futures import ProcessPoolExecutor
+
+    return ProcessPoolExecutor(workers, mp_context=mp.get_context("spawn"), initializer=_shard_worker_init,
+                               initargs=(os.getpid(), threads))  # fmt: skip
+
+
+def close_shard_pool(pool: Executor, *, kill: bool = False) -> None:
+    """Shut :func:`shard_pool`'s processes down; ``kill``: at once, shards under way too."""
+    if kill:
+        for proc in list((getattr(pool, "_processes", None) or {}).values()):
+            proc.terminate()
+    pool.shutdown(wait=True, cancel_futures=True)
+
+
 def _pool_results(pool: Executor, calls: list[tuple[Any, ...]]) -> Iterator[tuple[Any, ...]]:
     """The shards ``calls`` at once in the processes of ``pool``, as each ends; a worker that dies is a
     :class:`ChildProcessError` (an ``OSError``: the commands end it in one line)."""
     from concurrent.futures import as_completed
     from concurrent.futures.process import BrokenProcessPool
 
-    futures = [pool.submit(_evaluate_shard_task, *c) for c in calls]
+    futures = [pool.submit(_evaluate_shard, *c) for c in calls]
     try:
         for fut in as_completed(futures):
             yield fut.result()
@@ -326,6 +358,8 @@ def evaluate_sharded(spec: str, config: ScenarioConfig | None, *, episodes: int 
 
     if executor not in EXECUTORS:
         raise ValueError(f"executor must be one of {', '.join(EXECUTORS)}, got {executor!r}")
+    if spec == "random" and (shards > 1 or executor == "ray"):
+        raise ValueError("the random driver's draws follow its calls: it is evaluated in one process (no shards)")
     user_seeds = eval_user_seeds(episodes, seed)
     if out_dir is not None and not overwrite:  # refuse before any shard writes, as evaluate() does
         name = driver_name
