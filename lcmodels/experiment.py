@@ -762,6 +762,10 @@ class Experiment:
                         follow = self._follow_of(r, demos)
                         if not _evaluated(done) and (ready := self.follower_ready(r, seed, predictor, follow)):
                             self.recipe_stages(*task, follow=ready, done=done)
+                        elif not _evaluated(done):  # waiting for the policy its layer follows: listed, not run
+                            base = policy_dir(self.out, r.name, seed)
+                            self.stages.extend(StageResult(f"{r.name}/seed{seed}/{st}", "not run", base / st, 0.0)
+                                               for st in (*r.stages[len(done):], "eval"))  # fmt: skip
                     finally:
                         self.dry_run = dry
                     self.stages[n:] = [s if s.status == "skipped" else StageResult(s.name, "not run", s.path, 0.0)

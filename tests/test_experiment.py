@@ -573,3 +573,12 @@ def test_jobs_cut_the_runs_own_evaluations_over_processes_with_the_same_figures(
     for key in (RULE_KEY, "paper-ppo-pure"):
         a, b = stage_metrics(tmp_path / "j1", key), stage_metrics(tmp_path / "j2", key)
         assert without_wall_times(a) == without_wall_times(b) and a["test"]["episodes"] == 40, key
+
+
+def test_skip_train_lists_the_stages_waiting_for_a_follower_as_not_run(tmp_path: Path) -> None:
+    out = tmp_path / "run"
+    assert experiment_main(["--preset", "tiny", "--recipe", "hybrid-ppo", "--out", str(out), "--skip-train", "-q"]) == 0
+    stages = {r["stage"]: r["this run"] for r in md_table((out / REPORT_NAME).read_text(), "## Stages")}
+    for st in (*load_recipe("hybrid-ppo").stages, "eval"):  # the shielded stage and what follows it too
+        assert stages[f"hybrid-ppo/seed0/{st}"] == "not run", st
+    assert stages["pure-ppo/seed0/eval"] == "not run"
