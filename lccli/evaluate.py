@@ -240,27 +240,20 @@ def eval_main(argv: list[str] | None = None) -> int:
             if hooks:
                 return error("--breakdown runs in this process only (no --executor ray, no --workers)")
             from lcdata.executors import ray_session
-            from lcmodels.policy.evaluate import close_shard_pool, evaluate_sharded, shard_pool
+            from lcdata.procs import closing_pool
+            from lcmodels.policy.evaluate import evaluate_sharded, shard_pool
 
-            pool = shard_pool(args.workers, args.threads) if sharded else None
-            try:
-                with ray_session(args.ray_address) if args.executor == "ray" else contextlib.nullcontext():
-                    summary, results = evaluate_sharded(
-                        args.policy, config if is_driver else None, episodes=args.episodes, seed=args.seed,
-                        shards=args.shards if args.executor == "ray" else args.workers, executor=args.executor,
-                        pool=pool, predictor=str(args.predictor) if args.predictor else None,
-                        lookahead=lookahead_options(args), follow=args.lookahead_follow,
-                        trust_pickle=args.trust_pickle, out_dir=out, scenario=scenario_label, batch=args.batch,
-                        overwrite=args.overwrite, train_seeds=train_seeds, progress=show,
-                        driver_name=str(getattr(driver, "name", type(driver).__name__)))  # fmt: skip
-            except BaseException:
-                if pool is not None:
-                    close_shard_pool(pool, kill=True)
-                    pool = None
-                raise
-            finally:
-                if pool is not None:
-                    close_shard_pool(pool)
+            where = ray_session(args.ray_address) if args.executor == "ray" else contextlib.nullcontext()
+            pooled = closing_pool(shard_pool(args.workers, args.threads)) if sharded else contextlib.nullcontext()
+            with pooled as pool, where:
+                summary, results = evaluate_sharded(
+                    args.policy, config if is_driver else None, episodes=args.episodes, seed=args.seed,
+                    shards=args.shards if args.executor == "ray" else args.workers, executor=args.executor,
+                    pool=pool, predictor=str(args.predictor) if args.predictor else None,
+                    lookahead=lookahead_options(args), follow=args.lookahead_follow,
+                    trust_pickle=args.trust_pickle, out_dir=out, scenario=scenario_label, batch=args.batch,
+                    overwrite=args.overwrite, train_seeds=train_seeds, progress=show,
+                    driver_name=str(getattr(driver, "name", type(driver).__name__)))  # fmt: skip
         else:
             summary, results = evaluate(driver, config, episodes=args.episodes, seed=args.seed, out_dir=out,
                                         batch=args.batch, overwrite=args.overwrite, train_seeds=train_seeds,
@@ -281,9 +274,9 @@ def eval_main(argv: list[str] | None = None) -> int:
         summary["lookahead"] = dataclasses.asdict(driver.config) | {"follow": args.lookahead_follow}
     summary["command"] = command
     print(format_eval(summary))
-    where = f", {args.workers} processes" if sharded else ""
+    processes = f", {args.workers} processes" if sharded else ""
     print(f"{summary['decisions']} decisions in {summary['wall_s']} s ({args.batch} episodes at a time, "
-          f"{args.threads} torch threads{where})")
+          f"{args.threads} torch threads{processes})")
     if "planner_overrides" in summary:
         print(f"the planner overrode {summary['planner_overrides']} of {summary['planner_choices']} decisions "
               "with a choice")

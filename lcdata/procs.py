@@ -9,6 +9,7 @@ system, watches the parent's pid from a daemon thread as well.
 
 from __future__ import annotations
 
+import contextlib
 import ctypes
 import ctypes.util
 import os
@@ -16,6 +17,8 @@ import signal
 import sys
 import threading
 import time
+from collections.abc import Iterator
+from typing import Any
 
 _PR_SET_PDEATHSIG = 1
 WATCH_INTERVAL_S = 0.2
@@ -42,3 +45,23 @@ def die_with_parent(parent_pid: int | None = None) -> None:
                 os._exit(1)
 
     threading.Thread(target=watch, name="die-with-parent", daemon=True).start()
+
+
+def stop_pool(pool: Any, *, kill: bool = False) -> None:
+    """Shut a ``concurrent.futures`` process pool down, its queued work cancelled; ``kill``: its processes
+    terminated first, so that work under way stops now (an error or an interrupt: a rerun resumes it)."""
+    if kill:
+        for proc in list((getattr(pool, "_processes", None) or {}).values()):
+            proc.terminate()
+    pool.shutdown(wait=True, cancel_futures=True)
+
+
+@contextlib.contextmanager
+def closing_pool(pool: Any) -> Iterator[Any]:
+    """``pool`` for a ``with`` block: stopped at its end, killed (:func:`stop_pool`) when it ends in an exception."""
+    try:
+        yield pool
+    except BaseException:
+        stop_pool(pool, kill=True)
+        raise
+    stop_pool(pool)

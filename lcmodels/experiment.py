@@ -182,9 +182,9 @@ class Experiment:
     def _close_eval_pool(self, *, kill: bool = False) -> None:
         """Stop :meth:`eval_pool`'s processes (``kill``: now, a shard under way too; its stage resumes)."""
         if self._eval_pool is not None:
-            from lcmodels.policy.evaluate import close_shard_pool
+            from lcdata.procs import stop_pool
 
-            close_shard_pool(self._eval_pool, kill=kill)
+            stop_pool(self._eval_pool, kill=kill)
             self._eval_pool = None
 
     def emit(self, msg: str) -> None:
@@ -711,12 +711,10 @@ class Experiment:
         for r in out:  # grows as it goes: a follower's own follower joins too
             if r.safety is not None and r.safety.follow and r.safety.follow not in {x.name for x in out}:
                 out.append(load_recipe(r.safety.follow))
-        follows = {r.name: r.safety.follow for r in out if r.safety is not None and r.safety.follow}
+        follows = _follows(out)
         for name in follows:  # a layer following itself is allowed; a longer loop would wait on itself
-            chain = [name]
-            while (nxt := follows.get(chain[-1])) and nxt != chain[-1] and nxt not in chain:
-                chain.append(nxt)
-            if nxt and nxt != chain[-1] and nxt == name:
+            chain, loops = _follow_chain(follows, name)
+            if loops:
                 raise ValueError(f"the safety layers' followers form a loop: {' -> '.join([*chain, name])} "
                                  "(safety.follow)")
         self._recipes = [r.capped(self.preset.cap_dict) for r in out]
@@ -898,6 +896,8 @@ class Experiment:
         from concurrent.futures import FIRST_EXCEPTION, ProcessPoolExecutor, wait
         from concurrent.futures.process import BrokenProcessPool
 
+        from lcdata.procs import stop_pool
+
         ctx = mp.get_context("spawn")  # no fork of a process that may hold torch threads
         queue = ctx.Queue()
 
@@ -926,11 +926,7 @@ class Experiment:
                     raise exc
             results = [fut.result() for fut in futures]
         except BaseException:
-            for fut in futures:
-                fut.cancel()
-            for proc in list((getattr(pool, "_processes", None) or {}).values()):
-                proc.terminate()  # a running stage stops now; its pending record resumes it
-            pool.shutdown(wait=True, cancel_futures=True)
+            stop_pool(pool, kill=True)  # a running stage stops now; its pending record resumes it
             raise
         else:
             pool.shutdown(wait=True)
@@ -947,21 +943,31 @@ RAY_SHARDS = 4
 """Ray tasks an evaluation stage is cut into."""
 
 
+def _follows(recipes: Sequence[Recipe]) -> dict[str, str]:
+    """Recipe name -> the recipe its safety layer follows, for the recipes whose layer follows one."""
+    return {r.name: r.safety.follow for r in recipes if r.safety is not None and r.safety.follow}
+
+
+def _follow_chain(follows: dict[str, str], name: str) -> tuple[list[str], bool]:
+    """``name`` and the recipes its layer follows in turn, until one follows nothing or itself; and whether
+    the chain comes back to ``name`` (a loop)."""
+    chain = [name]
+    while (nxt := follows.get(chain[-1])) and nxt != chain[-1] and nxt not in chain:
+        chain.append(nxt)
+    return chain, bool(nxt) and nxt != chain[-1] and nxt == name
+
+
 def _task_ranks(recipes: Sequence[Recipe]) -> dict[str, int]:
     """The order in which the recipes' policy tasks start (sorted stably, so recipe order within a rank): the
     policies a safety layer follows first, then the recipes whose layer follows them (a chain by its depth),
-    then the rest. A follower is
-    then trained by the time the recipe that follows it ends its training, so that recipe's worker goes on to
-    its shielded and safety stages itself instead of leaving them to run one after another at the end."""
-    follows = {r.name: r.safety.follow for r in recipes if r.safety is not None and r.safety.follow}
-
-    def depth(name: str, seen: frozenset[str] = frozenset()) -> int:  # followers below it in the chain
-        nxt = follows.get(name)
-        return 0 if not nxt or nxt == name or nxt in seen else 1 + depth(nxt, seen | {name})
-
+    then the rest. A follower is then trained by the time the recipe that follows it ends its training, so
+    that recipe's worker goes on to its shielded and safety stages itself instead of leaving them to run one
+    after another at the end."""
+    follows = _follows(recipes)
+    depth = {r.name: len(_follow_chain(follows, r.name)[0]) - 1 for r in recipes}
     involved = set(follows) | set(follows.values())
-    last = 1 + max((depth(n) for n in involved), default=0)
-    return {r.name: depth(r.name) if r.name in involved or r.safety is not None else last for r in recipes}
+    last = 1 + max((depth[n] for n in involved if n in depth), default=0)
+    return {r.name: depth[r.name] if r.name in involved or r.safety is not None else last for r in recipes}
 
 
 def _ray_policy_task(index: int, preset: Preset, out: Path, seeds: int, threads: int, recipe: Recipe, seed: int,

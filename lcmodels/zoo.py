@@ -21,9 +21,13 @@ ENTRY_CARD = "zoo.json"
 PREDICTOR_DIR = "predictor"
 
 
+CHECKOUT_ZOO = Path(__file__).resolve().parents[1] / "zoo"
+"""``zoo/`` beside the package: the zoo a source checkout ships."""
+
+
 def zoo_dir() -> Path:
-    """``$LC_ZOO``, else ``zoo/`` beside the package (a source checkout)."""
-    return Path(os.environ.get("LC_ZOO") or Path(__file__).resolve().parents[1] / "zoo")
+    """``$LC_ZOO``, else :data:`CHECKOUT_ZOO`."""
+    return Path(os.environ.get("LC_ZOO") or CHECKOUT_ZOO)
 
 
 @dataclass(frozen=True)
@@ -246,6 +250,6 @@ def resolve_policy_spec(spec: str) -> tuple[str, str | None]:
     return spec, None
 
 
-__all__ = ["CHECK_EPISODES", "ENTRY_CARD", "ZOO_PREFIX", "ZooEntry", "check_episodes", "experiment_card", "final_policy",
+__all__ = ["CHECKOUT_ZOO", "CHECK_EPISODES", "ENTRY_CARD", "ZOO_PREFIX", "ZooEntry", "check_episodes", "experiment_card", "final_policy",
            "follower_mismatches", "publish_entry", "publish_from_experiment", "resolve_policy_spec", "weights_sha256",
            "zoo_dir", "zoo_entries", "zoo_entry"]

@@ -72,3 +72,34 @@ EVAL_KEYS = {"success_rate", "collision_rate", "off_road_rate", "timeout_rate", 
              "mean_return", "success_rate_ci95", "collision_rate_ci95", "off_road_rate_ci95",
              "timeout_rate_ci95", "mean_safe_forward_m_ci95", "mean_return_ci95", "episodes"}  # fmt: skip
 """The keys every evaluation summary has."""
+
+
+class CountingPool:
+    """A shard pool that counts the shards given to it (the real processes run them)."""
+
+    def __init__(self, pool) -> None:
+        self.pool, self.submitted = pool, 0
+
+    def submit(self, *args, **kwargs):
+        self.submitted += 1
+        return self.pool.submit(*args, **kwargs)
+
+    def shutdown(self, *args, **kwargs) -> None:
+        self.pool.shutdown(*args, **kwargs)
+
+
+@pytest.fixture
+def shard_pools(monkeypatch: pytest.MonkeyPatch) -> list[CountingPool]:
+    """Every :func:`lcmodels.policy.evaluate.shard_pool` the test starts, counting the shards it runs."""
+    import importlib
+
+    ev = importlib.import_module("lcmodels.policy.evaluate")  # (lcmodels.policy.evaluate is also a function)
+    pools: list[CountingPool] = []
+    real = ev.shard_pool
+
+    def counting(*args, **kwargs) -> CountingPool:
+        pools.append(CountingPool(real(*args, **kwargs)))
+        return pools[-1]
+
+    monkeypatch.setattr(ev, "shard_pool", counting)
+    return pools

@@ -548,22 +548,11 @@ def test_a_followed_policy_is_trained_before_the_recipes_whose_layer_follows_it(
 
 
 def test_jobs_cut_the_runs_own_evaluations_over_processes_with_the_same_figures(
-    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+    tmp_path: Path, shard_pools: list
 ) -> None:
-    import importlib
     import multiprocessing as mp
 
-    from tests.test_policy_evaluate import CountingPool
-
-    ev = importlib.import_module("lcmodels.policy.evaluate")
-    pools: list[CountingPool] = []
-    real_pool = ev.shard_pool
-
-    def counting_pool(*args: int) -> CountingPool:
-        pools.append(CountingPool(real_pool(*args)))
-        return pools[-1]
-
-    monkeypatch.setattr(ev, "shard_pool", counting_pool)
+    pools = shard_pools
     # three batches of test episodes: two shards
     preset = dataclasses.replace(PRESETS["tiny"], recipes=("paper-ppo-pure",), oracle=False, test_episodes=40)
     for jobs in (1, 2):

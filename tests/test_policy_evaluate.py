@@ -4,7 +4,6 @@ from __future__ import annotations
 
 import json
 from pathlib import Path
-from typing import Any
 
 import pytest
 
@@ -17,6 +16,7 @@ from lcmodels.policy import (
 from lcmodels.policy.evaluate import PolicyDriver, driver_for, evaluate, wilson_interval
 from lcmodels.policy.obs import scenario_for_mode
 from lcsim.config import tiny_scenario
+from tests.conftest import CountingPool
 
 from .conftest import EVAL_KEYS, tiny_policy
 
@@ -149,25 +149,9 @@ def test_a_lookahead_follows_a_policy_without_image_and_refuses_one_with(tmp_pat
                         "--out", str(out)]) == 2  # perception needs a blind planner
 
 
-class CountingPool:
-    """A process pool that counts the shards given to it."""
-
-    def __init__(self, pool: Any) -> None:
-        self.pool, self.submitted = pool, 0
-
-    def submit(self, *args: Any, **kwargs: Any) -> Any:
-        self.submitted += 1
-        return self.pool.submit(*args, **kwargs)
-
-    def shutdown(self, *args: Any, **kwargs: Any) -> None:
-        self.pool.shutdown(*args, **kwargs)
-
-
 def test_an_evaluation_cut_over_processes_gives_the_serial_figures_episode_for_episode() -> None:
-    import multiprocessing as mp
-    from concurrent.futures import ProcessPoolExecutor
-
-    from lcmodels.policy.evaluate import evaluate_sharded
+    from lcdata.procs import closing_pool
+    from lcmodels.policy.evaluate import evaluate_sharded, shard_pool
     from lcmodels.zoo import zoo_entry
 
     hybrid, pure = zoo_entry("hybrid-ppo"), zoo_entry("pure-ppo")
@@ -175,7 +159,7 @@ def test_an_evaluation_cut_over_processes_gives_the_serial_figures_episode_for_e
     options = {"predictor": str(hybrid.predictor), "follow": str(pure.policy), "batch": 3,
                "lookahead": {"horizon_decisions": 4, "perceived": True, "samples": 2}}  # the zoo's layer, shorter
     serial, rows = evaluate_sharded(spec, None, episodes=6, seed=3, shards=1, **options)
-    with ProcessPoolExecutor(2, mp_context=mp.get_context("spawn")) as real:
+    with closing_pool(shard_pool(2)) as real:
         pool = CountingPool(real)
         cut, cut_rows = evaluate_sharded(spec, None, episodes=6, seed=3, shards=2, pool=pool, **options)
     assert pool.submitted == 2  # both shards ran in the pool's processes
@@ -185,19 +169,9 @@ def test_an_evaluation_cut_over_processes_gives_the_serial_figures_episode_for_e
 
 
 def test_lc_eval_workers_give_the_same_figures_and_files(
-    tmp_path: Path, capsys: pytest.CaptureFixture[str], monkeypatch: pytest.MonkeyPatch
+    tmp_path: Path, capsys: pytest.CaptureFixture[str], shard_pools: list[CountingPool]
 ) -> None:
-    import importlib
-
-    ev = importlib.import_module("lcmodels.policy.evaluate")  # (lcmodels.policy.evaluate is also a function)
-    pools: list[CountingPool] = []
-    real_pool = ev.shard_pool
-
-    def counting_pool(*args: Any) -> CountingPool:
-        pools.append(CountingPool(real_pool(*args)))
-        return pools[-1]
-
-    monkeypatch.setattr(ev, "shard_pool", counting_pool)
+    pools = shard_pools
     runs = {}
     for workers in ("1", "2"):
         js, out = tmp_path / f"w{workers}.json", tmp_path / f"w{workers}"

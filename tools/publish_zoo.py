@@ -41,7 +41,7 @@ def main(argv: list[str] | None = None) -> int:
         ap.error("--zoo and --overwrite apply to zoo entries; --reached-only writes none")
     from lcmodels.fileio import write_json
     from lcmodels.recipe import RECIPES_DIR, recipe_path
-    from lcmodels.zoo import experiment_card, publish_from_experiment, weights_sha256, zoo_dir
+    from lcmodels.zoo import CHECKOUT_ZOO, experiment_card, publish_from_experiment, weights_sha256, zoo_dir
 
     try:
         commit = subprocess.run(["git", "rev-parse", "--short", "HEAD"], capture_output=True, text=True,
@@ -49,7 +49,7 @@ def main(argv: list[str] | None = None) -> int:
     except (OSError, subprocess.CalledProcessError):
         commit = ""
     # the records describe what this checkout's own zoo/ ships, whatever LC_ZOO says
-    own_zoo = (args.zoo if args.zoo is not None else zoo_dir()).resolve() == (RECIPES_DIR.parents[1] / "zoo").resolve()
+    own_zoo = (args.zoo if args.zoo is not None else zoo_dir()).resolve() == CHECKOUT_ZOO
     if not args.reached_only:  # a safety layer's figure holds only for the follower it was measured with
         try:
             for name in args.recipes:

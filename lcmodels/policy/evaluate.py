@@ -301,20 +301,12 @@ def _shard_worker_init(parent: int, threads: int) -> None:
 
 def shard_pool(workers: int, threads: int = 1) -> Executor:
     """``workers`` spawned processes for :func:`evaluate_sharded`'s ``pool`` (``threads`` torch threads each).
-    Close it with :func:`close_shard_pool`."""
+    Stop it with :func:`lcdata.procs.stop_pool` (or hold it in :func:`lcdata.procs.closing_pool`)."""
     import multiprocessing as mp
     from concurrent.futures import ProcessPoolExecutor
 
     return ProcessPoolExecutor(workers, mp_context=mp.get_context("spawn"), initializer=_shard_worker_init,
                                initargs=(os.getpid(), threads))  # fmt: skip
-
-
-def close_shard_pool(pool: Executor, *, kill: bool = False) -> None:
-    """Shut :func:`shard_pool`'s processes down; ``kill``: at once, shards under way too."""
-    if kill:
-        for proc in list((getattr(pool, "_processes", None) or {}).values()):
-            proc.terminate()
-    pool.shutdown(wait=True, cancel_futures=True)
 
 
 def _pool_results(pool: Executor, calls: list[tuple[Any, ...]]) -> Iterator[tuple[Any, ...]]:
