@@ -45,12 +45,14 @@ def format_eval(ev: dict) -> str:
 EVAL_EPILOG = """examples:
   lc-eval runs/hybrid-ppo/policy.safetensors --episodes 200 --seed 0 --json-out runs/hybrid-ppo/eval200.json
   lc-eval rule --episodes 200 --out runs/rule-eval
+  lc-eval zoo:pure-ppo --scenario dense --episodes 200 --no-record   # a policy on another road of the suite
   lc-eval lookahead-blind:runs/hybrid-ppo/policy.safetensors --lookahead-follow runs/ppo-pure/policy.safetensors \\
       --lookahead-horizon 32 --no-record     # Hybrid-PPO behind the planner, imagining 16 s with the pure policy
   lc-eval lookahead-blind:zoo:hybrid-ppo --lookahead-follow zoo:pure-ppo --lookahead-perceived \\
       --lookahead-horizon 32 --lookahead-samples 3 --episodes 1000 --seed 9 --workers 2   # its card's figure
 
-Evaluation episode i uses the user seed 1000000000 + 100000 * SEED + i, disjoint from training seeds.
+Evaluation episode i uses the user seed 1000000000 + 100000 * SEED + i (SEED < 20000), disjoint from training
+seeds and from the benchmark's sealed test episodes, which only lc-bench --final runs.
 Prints outcome rates (fractions) and means with 95% intervals; --json-out writes them as JSON; every
 episode is recorded to MCAP under --out (actions, reward components, predictions the policy saw).
 """
@@ -125,9 +127,10 @@ def eval_parser() -> argparse.ArgumentParser:
         formatter_class=argparse.RawDescriptionHelpFormatter,
     )
     add_heldout_arguments(p)
-    p.add_argument("--scenario", default=None, metavar="{paper,light,tiny,FILE}",
-                   help="scenario for a built-in driver (default paper), or a scenario file (.toml/.json of "
-                   "ScenarioConfig fields); a policy uses its own")
+    p.add_argument("--scenario", default=None, metavar="NAME|FILE",
+                   help="where to drive: a registered scenario (paper, three-lane, dense, ...; lc-bench --list) or a "
+                   "scenario file (.toml/.json of ScenarioConfig fields); default: a policy's own, paper for a "
+                   "built-in driver. A policy drives elsewhere when its observation keeps its shapes there")
     p.add_argument("--out", type=Path, default=None,
                    help="record every episode here (default: eval-<name>-s<seed> next to the checkpoint, "
                    "or runs/eval-<driver> for a driver)")
@@ -184,6 +187,11 @@ def eval_main(argv: list[str] | None = None) -> int:
     if not is_driver and not ckpt.is_file():
         what = "is a directory" if ckpt.is_dir() else "does not exist"
         return error(f"{args.policy} {what} (expected a policy.safetensors, or {' / '.join(DRIVER_NAMES)})")
+    from lcsim.suite import MAX_VALIDATION_SEED
+
+    if args.seed >= MAX_VALIDATION_SEED:
+        return error(f"--seed must be below {MAX_VALIDATION_SEED}: the seeds above are the benchmark's sealed test "
+                     "episodes, which only lc-bench --final runs")
     if args.json_out is not None and args.json_out.exists() and not args.overwrite:
         return error(f"{args.json_out} already exists; pass --overwrite or choose another --json-out")
     if args.predictor is not None:
@@ -196,18 +204,17 @@ def eval_main(argv: list[str] | None = None) -> int:
         return error(f"--window-s must be > 0, got {args.window_s}")
     torch.set_num_threads(args.threads)
     try:
+        target = scenario(args.scenario) if args.scenario is not None else None
+    except ValueError as exc:
+        return error(str(exc))
+    try:
         driver, config = driver_for(args.policy, predictor=str(args.predictor) if args.predictor else None,
                                     lookahead=lookahead_options(args), follow=args.lookahead_follow,
-                                    trust_pickle=args.trust_pickle)
+                                    trust_pickle=args.trust_pickle, scenario=target)
     except ValueError as exc:
         return error(str(exc).splitlines()[0])
     if config is None:
-        try:
-            config = scenario(args.scenario or "paper")
-        except ValueError as exc:
-            return error(str(exc))
-    elif args.scenario is not None:
-        return error("--scenario applies to built-in drivers; a policy is evaluated in its own scenario")
+        config = target if target is not None else scenario("paper")
     out = None
     if not args.no_record:
         if args.out is not None:
@@ -220,7 +227,7 @@ def eval_main(argv: list[str] | None = None) -> int:
     if not is_driver:
         seeds_file = ckpt.parent / "train_episode_seeds.npy"
         train_seeds = np.load(seeds_file) if seeds_file.exists() else None
-    if is_driver:
+    if is_driver or args.scenario is not None:
         scenario_label = registry_label(args.scenario or "paper")
     else:
         scenario_label = str(read_meta(ckpt).get("scenario_name") or "paper")
@@ -247,7 +254,7 @@ def eval_main(argv: list[str] | None = None) -> int:
             pooled = closing_pool(shard_pool(args.workers, args.threads)) if sharded else contextlib.nullcontext()
             with pooled as pool, where:
                 summary, results = evaluate_sharded(
-                    args.policy, config if is_driver else None, episodes=args.episodes, seed=args.seed,
+                    args.policy, config if is_driver or target is not None else None, episodes=args.episodes, seed=args.seed,
                     shards=args.shards if args.executor == "ray" else args.workers, executor=args.executor,
                     pool=pool, predictor=str(args.predictor) if args.predictor else None,
                     lookahead=lookahead_options(args), follow=args.lookahead_follow,

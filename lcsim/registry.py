@@ -28,16 +28,19 @@ from lcsim.config import (
 )
 from lcsim.drivers import Driver, KeepLaneDriver, RandomDriver, RuleBasedDriver
 from lcsim.planning import LookaheadConfig, LookaheadDriver, OracleDriver
+from lcsim.suite import SUITE_SCENARIOS
 
 SCENARIOS: dict[str, Callable[[], ScenarioConfig]] = {
     "paper": paper_scenario,
     "light": light_scenario,
     "tiny": tiny_scenario,
     "corpus": corpus_scenario,
+    **{name: s.make for name, s in SUITE_SCENARIOS.items() if name != "paper"},
 }
 """Every named scenario: the paper's task (100 vehicles, 600 m), a light one (30 vehicles, 300 m), a tiny one
-for tests (8 vehicles, 150 m), and the trajectory corpus (20 autopilot vehicles, 2000 steps, no image)."""
-TASK_SCENARIOS: tuple[str, ...] = ("paper", "light", "tiny")
+for tests (8 vehicles, 150 m), the trajectory corpus (20 autopilot vehicles, 2000 steps, no image), and the
+benchmark suite's variants of the paper's road (:mod:`lcsim.suite`: ``three-lane``, ``dense``, ...)."""
+TASK_SCENARIOS: tuple[str, ...] = ("paper", "light", "tiny", *(n for n in SUITE_SCENARIOS if n != "paper"))
 """The named scenarios with the ego's lane-change task (the corpus scenario records traffic only)."""
 SCENARIO_FILE_SUFFIXES = (".toml", ".json")
 

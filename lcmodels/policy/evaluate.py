@@ -14,7 +14,6 @@ that use them, the predictions the policy saw (``/prediction``, world frame).
 from __future__ import annotations
 
 import dataclasses
-import math
 import os
 from collections.abc import Callable, Iterable, Iterator, Sequence
 from pathlib import Path
@@ -25,23 +24,30 @@ import numpy as np
 from lcdata.record import RecordingHook, episode_filename, episode_metadata
 from lcmodels.policy.checkpoint import LoadedPolicy
 from lcmodels.policy.obs import EpisodeStats, ObsMode, build_observation, scenario_for_mode, summarize
+from lcmodels.stats import normal_interval as mean_interval
+from lcmodels.stats import wilson_interval
 from lcsim.config import ScenarioConfig
 from lcsim.core import OUTCOMES, LaneChangeCore
 from lcsim.drivers import Driver
 from lcsim.episodes import EpisodeHook, run_episodes
 from lcsim.registry import split_policy_spec
+from lcsim.suite import MAX_VALIDATION_SEED, SEED_STRIDE, VALIDATION_SEED_BASE, observed_by
 
 if TYPE_CHECKING:
     from concurrent.futures import Executor
 
-EVAL_SEED_BASE = 1_000_000_000
-EVAL_SEED_STRIDE = 100_000
+EVAL_SEED_BASE = VALIDATION_SEED_BASE
+EVAL_SEED_STRIDE = SEED_STRIDE
 
 
 def eval_user_seeds(episodes: int, seed: int = 0) -> list[int]:
-    """User seeds of the held-out evaluation episodes (disjoint from training's, see the module doc)."""
+    """User seeds of the held-out validation episodes of evaluation seed ``seed`` (disjoint from training's and
+from the sealed test episodes', see :mod:`lcsim.suite`)."""
     if episodes > EVAL_SEED_STRIDE:
         raise ValueError(f"at most {EVAL_SEED_STRIDE} evaluation episodes per seed, got {episodes}")
+    if not 0 <= seed < MAX_VALIDATION_SEED:
+        raise ValueError(f"evaluation seed must be in 0..{MAX_VALIDATION_SEED - 1}, got {seed} (the seeds above are "
+                         "the benchmark's sealed test episodes: lc-bench --final)")
     return [EVAL_SEED_BASE + seed * EVAL_SEED_STRIDE + i for i in range(episodes)]
 
 
@@ -74,27 +80,6 @@ class PolicyDriver:
         self.last_prediction = pobs.get("prediction")
         actions, _ = self.policy.model.predict(pobs, deterministic=self.deterministic)
         return np.asarray(actions, dtype=np.int64).reshape(-1)
-
-
-def wilson_interval(k: int, n: int, z: float = 1.959964) -> tuple[float, float]:
-    """95% Wilson score interval of a proportion ``k / n``."""
-    if n == 0:
-        return (float("nan"), float("nan"))
-    p = k / n
-    denom = 1 + z * z / n
-    centre = (p + z * z / (2 * n)) / denom
-    half = z * math.sqrt(p * (1 - p) / n + z * z / (4 * n * n)) / denom
-    return (max(0.0, centre - half), min(1.0, centre + half))
-
-
-def mean_interval(values: Sequence[float], z: float = 1.959964) -> tuple[float, float]:
-    """95% normal-approximation interval of the mean."""
-    v = np.asarray(values, dtype=np.float64)
-    if len(v) < 2:
-        return (float("nan"), float("nan"))
-    half = z * float(v.std(ddof=1)) / math.sqrt(len(v))
-    m = float(v.mean())
-    return (m - half, m + half)
 
 
 def summarize_with_intervals(episodes: Sequence[EpisodeStats]) -> dict[str, Any]:
@@ -177,9 +162,23 @@ def policy_path_of(spec: str) -> Path:
     return Path((split_policy_spec(spec) or ("policy:", spec))[1])
 
 
+def transfer_problems(policy: LoadedPolicy, target: ScenarioConfig) -> list[str]:
+    """Why ``policy`` cannot drive in ``target`` (empty: it can): the observation it would see there differs in
+    a key or a shape from the one it was trained on."""
+    from lcmodels.policy.obs import policy_observation_space
+
+    future = policy.predictor.future_steps if policy.predictor is not None else 10
+    have = policy_observation_space(policy.scenario, policy.obs_mode, future)
+    there = policy_observation_space(target, policy.obs_mode, future)
+    problems = [f"{k} {have[k].shape} there is {there[k].shape}" for k in have.spaces
+                if k in there.spaces and have[k].shape != there[k].shape]
+    problems += [f"{k} is missing there" for k in have.spaces if k not in there.spaces]
+    return problems
+
+
 def driver_for(spec: str, *, predictor: str | None = None, device: str = "cpu",
                lookahead: dict[str, int] | None = None, follow: str | None = None,
-               trust_pickle: bool = False) -> tuple[Any, ScenarioConfig | None]:
+               trust_pickle: bool = False, scenario: ScenarioConfig | None = None) -> tuple[Any, ScenarioConfig | None]:
     """A driver from a built-in name (:data:`lcsim.drivers.DRIVER_NAMES`), a policy checkpoint path (``policy:``
     prefix optional), or ``lookahead:PATH`` / ``lookahead-blind:PATH``: :class:`lcsim.planning.LookaheadDriver`
     following that policy in its imagined futures (blind: with the traffic's random draws redrawn). The
@@ -189,8 +188,11 @@ def driver_for(spec: str, *, predictor: str | None = None, device: str = "cpu",
     :class:`lcsim.planning.LookaheadConfig` (``horizon_decisions``, ``samples``) for a lookahead driver.
     ``ValueError`` when ``lookahead`` or ``follow`` is given for a driver they do not apply to.
     ``trust_pickle``: accept legacy stable-baselines3 ``.zip`` policies (loading one runs code stored in it).
+    ``scenario``: run a policy on that road instead of the one it was trained on, observed with the policy's
+    own sensor settings (:func:`lcsim.suite.observed_by`; ``ValueError`` naming what differs when its
+    observation would not have the shapes the policy was trained on).
 
-    Returns the driver and, for a policy, the scenario it was trained on (``None`` for lcsim drivers).
+    Returns the driver and, for a policy, the scenario it drives in (``None`` for lcsim drivers).
     """
     from lcmodels.policy.checkpoint import load_policy
     from lcsim.planning import LookaheadConfig, LookaheadDriver
@@ -204,10 +206,18 @@ def driver_for(spec: str, *, predictor: str | None = None, device: str = "cpu",
         policy = load_policy(path, predictor=predictor, device=device, trust_pickle=trust_pickle)
         driver = PolicyDriver(policy)
         config = driver.config
+        trained = policy.scenario
+        if scenario is not None:
+            there = observed_by(scenario, trained)
+            problems = transfer_problems(policy, there)
+            if problems:
+                raise ValueError(f"{path} cannot drive in that scenario: its observation {problems[0]} "
+                                 f"({len(problems)} difference(s) from the scenario it was trained on)")
+            config = scenario_for_mode(there, policy.obs_mode)
         if prefix != "policy:":
             planner = LookaheadConfig(blind=prefix == "lookahead-blind:")
             if follow is not None:
-                driver = LookaheadDriver(planner, rule=_follower(follow, config, predictor, device, trust_pickle),
+                driver = LookaheadDriver(planner, rule=_follower(follow, trained, predictor, device, trust_pickle),
                                          proposer=driver)
             elif ObsMode.of(policy.obs_mode).reads_image:
                 raise ValueError(f"{path}: a lookahead cannot follow a policy that reads the image (mode "
@@ -226,8 +236,8 @@ def driver_for(spec: str, *, predictor: str | None = None, device: str = "cpu",
 
 def _follower(spec: str, scenario: ScenarioConfig, predictor: str | None, device: str,
               trust_pickle: bool = False) -> Any:
-    """The driver a lookahead's imagined futures follow: a built-in driver, or a policy of ``scenario``
-    that does not read the image."""
+    """The driver a lookahead's imagined futures follow: a built-in driver, or a policy trained on ``scenario``
+    (the proposer's) that does not read the image."""
     from lcmodels.policy.checkpoint import load_policy
     from lcsim.registry import DRIVER_NAMES, make_driver
 
@@ -254,6 +264,7 @@ __all__ = [
     "mean_interval",
     "policy_path_of",
     "summarize_with_intervals",
+    "transfer_problems",
     "wilson_interval",
 ]
 
@@ -265,10 +276,11 @@ def _evaluate_shard(index: int, spec: str, scenario_json: str | None, user_seeds
     statistics and the planner's choices and overrides (0 for other drivers)."""
     from lcsim.planning import LookaheadDriver
 
+    target = None if scenario_json is None else ScenarioConfig.from_json(scenario_json)
     driver, config = driver_for(spec, predictor=options["predictor"], lookahead=options["lookahead"],
-                                follow=options["follow"], trust_pickle=options["trust_pickle"])
+                                follow=options["follow"], trust_pickle=options["trust_pickle"], scenario=target)
     if config is None:
-        config = ScenarioConfig.from_json(str(scenario_json))
+        config = target
     out_dir = options["out_dir"]
     _, results = evaluate(driver, config, out_dir=out_dir, scenario=options["scenario"], batch=options["batch"],
                           overwrite=options["overwrite"], user_seeds=user_seeds)
@@ -333,18 +345,19 @@ def evaluate_sharded(spec: str, config: ScenarioConfig | None, *, episodes: int 
                      out_dir: str | os.PathLike[str] | None = None, scenario: str = "paper", batch: int = 16,
                      overwrite: bool = False, train_seeds: np.ndarray | None = None,
                      progress: Callable[[int, int], None] | None = None,
-                     driver_name: str | None = None,
-                     pool: Executor | None = None) -> tuple[dict[str, Any], list[EpisodeStats]]:
+                     driver_name: str | None = None, pool: Executor | None = None,
+                     user_seeds: Sequence[int] | None = None) -> tuple[dict[str, Any], list[EpisodeStats]]:
     """:func:`evaluate` of the driver spec ``spec`` (as :func:`driver_for` takes it) with the episodes cut into
     ``shards`` parts, each run where ``executor`` says (``local``: one after the other here, or at once in the
     processes of ``pool``; ``ray``: as Ray tasks in the open :func:`lcdata.executors.ray_session`), each shard
     whole batches of ``batch`` episodes.
     Every episode depends only on its seed and runs where :func:`evaluate` runs it, so the summary and the
     recorded files are the ones :func:`evaluate` gives, episode for episode (the ``random`` driver aside,
-    whose draws follow the batch's calls). ``config``: the scenario of a built-in driver (a policy brings
-    its own). The summary
+    whose draws follow the batch's calls). ``config``: the scenario of a built-in driver, or the scenario a
+    policy drives in instead of its own (``None``: its own). The summary
     also has ``planner_choices`` / ``planner_overrides`` for a lookahead. ``driver_name``: the driver's name,
-    when the caller has built it already (else it is built here once, to check for existing files)."""
+    when the caller has built it already (else it is built here once, to check for existing files).
+    ``user_seeds``: run these episodes instead of the ``episodes`` of evaluation seed ``seed``."""
     from lcdata.executors import EXECUTORS, ray_map
     from lcdata.executors import shards as cut
 
@@ -352,12 +365,12 @@ def evaluate_sharded(spec: str, config: ScenarioConfig | None, *, episodes: int 
         raise ValueError(f"executor must be one of {', '.join(EXECUTORS)}, got {executor!r}")
     if spec == "random" and (shards > 1 or executor == "ray"):
         raise ValueError("the random driver's draws follow its calls: it is evaluated in one process (no shards)")
-    user_seeds = eval_user_seeds(episodes, seed)
+    user_seeds = eval_user_seeds(episodes, seed) if user_seeds is None else [int(u) for u in user_seeds]
     if out_dir is not None and not overwrite:  # refuse before any shard writes, as evaluate() does
         name = driver_name
         if name is None:  # (the name the files carry: build the driver once here to learn it)
             driver, _ = driver_for(spec, predictor=predictor, lookahead=lookahead, follow=follow,
-                                   trust_pickle=trust_pickle)
+                                   trust_pickle=trust_pickle, scenario=config)
             name = str(getattr(driver, "name", type(driver).__name__))
         existing = [p for u in user_seeds if (p := Path(out_dir) / episode_filename(scenario, name, u)).exists()]
         if existing:

@@ -1,0 +1,192 @@
+"""``lc-bench``: any policy or driver on every scenario of the benchmark suite, next to each scenario's
+ceiling (the oracle) and floor (the rule-based driver)."""
+
+from __future__ import annotations
+
+import argparse
+import json
+import shlex
+import sys
+from pathlib import Path
+
+from lccli.common import (
+    add_executor_arguments,
+    add_lookahead_arguments,
+    fail,
+    int_at_least,
+    lookahead_options,
+    positive_int,
+)
+
+EPILOG = """examples:
+  lc-bench --list                                          # the suites and their scenarios
+  lc-bench zoo:hybrid-ppo zoo:pure-ppo --episodes 100      # validation episodes (evaluation seed 0), 2 policies
+  lc-bench zoo:hybrid-ppo zoo:pure-ppo rule oracle --final --workers 2   # the sealed test episodes
+  lc-bench lookahead-blind:zoo:hybrid-ppo --lookahead-follow zoo:pure-ppo --lookahead-perceived \\
+      --lookahead-horizon 32 --lookahead-samples 3 --suite paper --final --workers 2   # behind the safety layer
+  lc-bench mypkg.policies:act --episodes 50                # your own policy: act(obs[, action_mask]) -> actions
+
+Validation (default): --episodes episodes of evaluation seed --seed on every scenario, cached under
+--out/cells/, so a rerun resumes. Use them for every choice.
+--final: each scenario's sealed test episodes (2000 on paper, 500 elsewhere), which no other command runs.
+Each result is looked up in the ledger (docs/results/benchmark/ledger.jsonl; LC_LEDGER or --ledger
+elsewhere) and, when missing, run and appended to it with the commit, the date and every episode's outcome:
+a policy is measured once, a changed one gets a new entry. Quote test figures from the ledger, and decide
+nothing on them.
+
+Writes --out/BENCH.md and --out/bench.json: per scenario the ceiling, the floor and each driver's success
+and collision with Wilson 95% intervals over episodes and the normalised score (success / ceiling's
+success); per driver the suite's mean normalised score and McNemar's exact test against the first driver on
+the same episodes; per method (a recipe's training seeds) the IQM with rliable's bootstrap interval.
+"""
+
+
+def bench_parser() -> argparse.ArgumentParser:
+    p = argparse.ArgumentParser(prog="lc-bench", description=__doc__.splitlines()[0].split(": ", 1)[1],
+                                epilog=EPILOG, formatter_class=argparse.RawDescriptionHelpFormatter)
+    p.add_argument("policies", nargs="*", metavar="POLICY",
+                   help="zoo:NAME, a policy.safetensors, a built-in driver (rule, oracle, lookahead, keep, ...), "
+                   "lookahead-blind:POLICY (behind the safety layer), or package.module:callable")
+    p.add_argument("--list", action="store_true", help="list the suites and their scenarios, then exit")
+    p.add_argument("--suite", default=None, help="the suite (default highway; --list shows them)")
+    p.add_argument("--scenario", action="append", default=None, metavar="NAME",
+                   help="only this scenario of the suite (repeatable)")
+    p.add_argument("--final", action="store_true",
+                   help="the sealed test episodes, through the ledger (see below)")
+    p.add_argument("--episodes", type=positive_int, default=None,
+                   help="validation episodes per scenario (default 100; not with --final)")
+    p.add_argument("--seed", type=int_at_least(0), default=None,
+                   help="validation evaluation seed (default 0; not with --final)")
+    p.add_argument("--ledger", type=Path, default=None, help="the ledger (default: LC_LEDGER, else the checkout's)")
+    p.add_argument("--out", type=Path, default=None,
+                   help="where the table and the cached cells go (default runs/bench, or runs/bench-final)")
+    add_lookahead_arguments(p)
+    p.add_argument("--lookahead-follow", metavar="DRIVER", default=None,
+                   help="with lookahead-blind:POLICY: the driver its imagined futures follow")
+    p.add_argument("--batch", type=positive_int, default=20, help="episodes simulated together (default 20)")
+    p.add_argument("--threads", type=positive_int, default=1, help="torch threads per process (default 1)")
+    p.add_argument("-q", "--quiet", action="store_true", help="no progress lines")
+    where = p.add_argument_group("where the episodes run")
+    add_executor_arguments(where, "each cell's episodes cut into Ray tasks", "this machine")
+    where.add_argument("--workers", type=positive_int, default=1,
+                       help="processes on this machine, each cell's episodes cut over them (default 1)")
+    return p
+
+
+def _list() -> str:
+    from lcsim.suite import SUITE_SCENARIOS, SUITES
+
+    lines = []
+    for name, members in SUITES.items():
+        lines.append(f"suite {name}: {', '.join(members)}")
+    lines.append("")
+    for sc in SUITE_SCENARIOS.values():
+        lines.append(f"  {sc.name:<11} {sc.test_episodes:>5} sealed test episodes  {sc.what}")
+    return "\n".join(lines)
+
+
+def main(argv: list[str] | None = None) -> int:
+    args = bench_parser().parse_args(argv)
+    error = lambda msg: fail("lc-bench", msg)  # noqa: E731
+    if args.list:
+        print(_list())
+        return 0
+    if not args.policies:
+        return error("name at least one POLICY (or --list)")
+    command = "lc-bench " + shlex.join(sys.argv[1:] if argv is None else argv)
+
+    from lcmodels.bench.ledger import ledger_path, read_ledger
+    from lcmodels.bench.run import Runner, bench_cell, resolve_driver
+    from lcmodels.bench.table import CEILING, FLOOR, suite_markdown, suite_summary
+    from lcsim.suite import DEFAULT_SUITE, MAX_VALIDATION_SEED, SUITE_SCENARIOS, suite
+
+    if args.final and (args.episodes is not None or args.seed is not None):
+        return error("--final runs each scenario's sealed test episodes, all of them: drop --episodes / --seed")
+    episodes = args.episodes or 100
+    seed = 0 if args.seed is None else args.seed
+    if seed >= MAX_VALIDATION_SEED:
+        return error(f"--seed must be below {MAX_VALIDATION_SEED} (above are the sealed test episodes: --final)")
+    if args.workers > 1 and args.executor == "ray":
+        return error("--workers is for this machine; with --executor ray the cells' episodes become Ray tasks")
+    try:
+        scenarios = suite(args.suite or DEFAULT_SUITE)
+    except ValueError as exc:
+        return error(str(exc))
+    if args.scenario:
+        unknown = [s for s in args.scenario if s not in SUITE_SCENARIOS]
+        if unknown:
+            return error(f"unknown suite scenario {unknown[0]!r}; choose {', '.join(SUITE_SCENARIOS)}")
+        scenarios = [s for s in scenarios if s.name in args.scenario] if args.suite else \
+            [SUITE_SCENARIOS[s] for s in dict.fromkeys(args.scenario)]
+        if not scenarios:
+            return error(f"none of {', '.join(args.scenario)} is in suite {args.suite}")
+    ledger = args.ledger or ledger_path()
+    try:
+        read_ledger(ledger)
+    except (ValueError, OSError) as exc:
+        return error(str(exc).splitlines()[0])
+    out = args.out or Path("runs") / ("bench-final" if args.final else "bench")
+    if out.exists() and not out.is_dir():
+        return error(f"--out {out} exists and is not a directory")
+    lookahead = lookahead_options(args)
+    try:
+        drivers = [resolve_driver(p, lookahead=lookahead if p.startswith("lookahead") else None,
+                                  follow=args.lookahead_follow if p.startswith("lookahead") else None)
+                   for p in args.policies]  # fmt: skip
+        if lookahead and not any(p.startswith("lookahead") for p in args.policies):
+            return error("--lookahead-* settings apply to lookahead:POLICY / lookahead-blind:POLICY drivers")
+        references = {CEILING: resolve_driver(CEILING), FLOOR: resolve_driver(FLOOR)}
+    except (ValueError, OSError) as exc:
+        return error(str(exc).splitlines()[0])
+    labels = [d.label for d in drivers]
+    if len(set(labels)) != len(labels):
+        return error("a POLICY is named twice")
+    todo = [(d, sc) for sc in scenarios for d in [*(r for r in references.values() if r.label not in labels),
+                                                  *drivers]]  # fmt: skip
+    split = "test" if args.final else f"validation seed {seed}"
+    print(f"lc-bench: {len(drivers)} driver(s) x {len(scenarios)} scenario(s) of suite {args.suite or DEFAULT_SUITE}, "
+          f"{split} episodes; ceiling oracle, floor rule" + (f"; ledger {ledger}" if args.final else ""),
+          flush=True)  # fmt: skip
+    quiet = args.quiet
+    show = None if quiet else (lambda k, n: print(f"\r  {k}/{n} episodes", end="", flush=True))
+    runner = Runner(workers=args.workers, executor=args.executor, threads=args.threads, batch=args.batch,
+                    ray_address=args.ray_address, progress=show)  # fmt: skip
+    cells: dict[tuple[str, str], dict] = {}
+    import torch
+
+    torch.set_num_threads(args.threads)
+    try:
+        with runner.session():
+            for i, (driver, sc) in enumerate(todo, 1):
+                cell = bench_cell(driver, sc, runner, final=args.final, episodes=episodes, seed=seed,
+                                  cache_dir=out / "cells", ledger=ledger, command=command)  # fmt: skip
+                rec = cell.record
+                where = {"ledger": "from the ledger", "ledger+": "appended to the ledger", "cache": "cached",
+                         "run": "run"}[cell.source]  # fmt: skip
+                if show is not None and cell.source in ("run", "ledger+"):
+                    print("\r", end="")
+                if not quiet:
+                    print(f"[{i}/{len(todo)}] {driver.label} on {sc.name}: success {100 * rec['success_rate']:.1f}%, "
+                          f"collision {100 * rec['collision_rate']:.1f}% of {rec['episodes']} ({where}"
+                          + (f", {rec['wall_s']} s" if cell.source in ("run", "ledger+") else "") + ")", flush=True)
+                cells[(driver.label, sc.name)] = rec
+    except KeyboardInterrupt:
+        print("\nlc-bench: interrupted; finished cells are kept (a rerun resumes)", file=sys.stderr)
+        return 130
+    except (ValueError, OSError) as exc:
+        return error(str(exc).splitlines()[0])
+    summary = suite_summary(cells, [(d.label, d.group) for d in drivers], scenarios,
+                            suite=args.suite or DEFAULT_SUITE, split=split)  # fmt: skip
+    summary["command"] = command
+    markdown = suite_markdown(summary, command)
+    out.mkdir(parents=True, exist_ok=True)
+    (out / "BENCH.md").write_text(markdown)
+    (out / "bench.json").write_text(json.dumps(summary, indent=1, sort_keys=True) + "\n")
+    print()
+    print(markdown)
+    print(f"lc-bench: wrote {out / 'BENCH.md'} and {out / 'bench.json'}")
+    return 0
+
+
+if __name__ == "__main__":  # pragma: no cover
+    raise SystemExit(main())

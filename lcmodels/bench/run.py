@@ -1,0 +1,335 @@
+"""Running the benchmark: any driver on every scenario of a suite, on validation or sealed test episodes.
+
+A *driver spec* is what ``lc-bench`` takes: ``zoo:NAME``, a ``policy.safetensors``, a built-in driver
+(``rule``, ``oracle``, ...), ``lookahead-blind:POLICY`` (a policy behind the safety layer, with the
+``lookahead`` settings and the ``follow`` driver of :func:`lcmodels.policy.evaluate.driver_for`), or a
+user's own policy as ``package.module:callable``: it is called with the batched gymnasium observation (a
+dict of ``(E, ...)`` arrays: ``current``, ``history``, ``image``) and, when it takes a second argument, the
+``(E, 3)`` action mask, and returns ``(E,)`` actions (0 right, 1 keep, 2 left).
+
+A *cell* is one driver on one scenario on one set of episodes. Validation cells are cached as JSON in the
+run's folder; sealed test cells are looked up in, or appended to, the ledger (:mod:`lcmodels.bench.ledger`).
+"""
+
+from __future__ import annotations
+
+import contextlib
+import dataclasses
+import hashlib
+import importlib
+import inspect
+import re
+import time
+from collections.abc import Callable, Iterator
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from lcmodels.bench.ledger import (
+    append_entry,
+    canonical,
+    cell_key,
+    counts,
+    find_entry,
+    outcome_string,
+    read_ledger,
+)
+from lcmodels.fileio import file_sha256, read_json, write_json
+from lcsim.suite import SuiteScenario, is_sealed
+
+CALLABLE_SPEC = re.compile(r"^[A-Za-z_][\w.]*:[A-Za-z_]\w*$")
+"""``package.module:callable``."""
+POLICY_PREFIXES = ("lookahead:", "lookahead-blind:")
+
+
+@dataclass(frozen=True)
+class BenchDriver:
+    """A driver spec resolved: what to run and what it is."""
+
+    label: str
+    """As the user named it (``zoo:hybrid-ppo``, ``rule``, ...)."""
+    spec: str
+    """What :func:`lcmodels.policy.evaluate.driver_for` takes (zoo names resolved to files)."""
+    identity: dict[str, Any]
+    """What it is, for the ledger: a policy's weights digest, recipe, training seed; a driver's name; ..."""
+    about: dict[str, Any] = field(default_factory=dict)
+    """What people call it (recipe, training seed, zoo name, ...): in the record, not in the key."""
+    predictor: str | None = None
+    lookahead: dict[str, Any] = field(default_factory=dict)
+    follow: str | None = None
+
+    @property
+    def is_callable(self) -> bool:
+        return self.identity.get("kind") == "callable"
+
+    @property
+    def group(self) -> str:
+        """Runs of the same method (a recipe's training seeds) share a group; anything else is its own."""
+        about = self.about
+        if about.get("recipe"):
+            version = f" v{about['recipe_version']}" if about.get("recipe_version") else ""
+            layer = " + safety layer" if self.identity.get("kind") == "safety-layer" else ""
+            return f"{about['recipe']}{version}{layer}"
+        return self.label
+
+
+def policy_identity(path: Path) -> tuple[dict[str, Any], dict[str, Any]]:
+    """What a policy file is, as ``(identity, about)``: the identity is what decides how it drives (its
+    weights' digest and its predictor's), ``about`` what people call it: algorithm, observation, training
+    seed, and its recipe (from a zoo card beside it, or from ``lc-experiment``'s layout
+    ``policies/<recipe>/seed<k>/<stage>/``)."""
+    from lcmodels.policy.checkpoint import read_meta
+    from lcmodels.zoo import ENTRY_CARD, weights_sha256
+
+    meta = read_meta(path)
+    train = meta.get("train_config") or {}
+    predictor = (meta.get("predictor") or {}).get("sha256")
+    ident = {"kind": "policy", "weights_sha256": weights_sha256(path), "predictor_sha256": predictor}
+    about: dict[str, Any] = {"algo": meta.get("algo"), "obs_mode": meta.get("obs_mode"),
+                             "training_seed": train.get("seed")}  # fmt: skip
+    card = path.parent / ENTRY_CARD
+    if card.is_file():
+        zoo = read_json(card)
+        about.update(recipe=zoo.get("recipe"), recipe_version=zoo.get("recipe_version"), zoo=zoo.get("name"))
+        if zoo.get("training_seed") is not None:
+            about["training_seed"] = zoo.get("training_seed")
+    else:
+        parts = path.resolve().parts
+        if len(parts) >= 5 and parts[-5] == "policies" and parts[-3].startswith("seed"):
+            about.update(recipe=parts[-4], stage=parts[-2])
+            with contextlib.suppress(ValueError):
+                about["training_seed"] = int(parts[-3].removeprefix("seed"))
+    return ident, about
+
+
+def _lookahead_settings(blind: bool, options: dict[str, Any]) -> dict[str, Any]:
+    """Every setting of the safety layer's planner (defaults filled in: the same layer has one key)."""
+    from lcsim.planning import LookaheadConfig
+
+    try:
+        return dataclasses.asdict(LookaheadConfig(blind=blind, **options))
+    except TypeError as exc:
+        raise ValueError(f"lookahead settings: {exc}") from None
+
+
+def resolve_driver(label: str, *, lookahead: dict[str, Any] | None = None, follow: str | None = None,
+                   predictor: str | None = None) -> BenchDriver:
+    """A driver spec as :class:`BenchDriver`. ``ValueError`` with one line for a name that is nothing known,
+    a missing file, or settings that do not apply to it."""
+    from lcmodels.policy.evaluate import policy_path_of
+    from lcmodels.zoo import resolve_policy_spec
+    from lcsim.registry import DRIVER_NAMES
+
+    lookahead = dict(lookahead or {})
+    if label in DRIVER_NAMES:
+        if follow is not None:
+            raise ValueError(f"a driver to follow applies to lookahead:POLICY / lookahead-blind:POLICY, not {label}")
+        ident: dict[str, Any] = {"kind": "driver", "name": label}
+        if label.startswith("lookahead"):
+            ident["lookahead"] = _lookahead_settings(label == "lookahead-blind", lookahead)
+        elif lookahead:
+            raise ValueError(f"{', '.join(lookahead)} apply to the lookahead drivers only, not to {label}")
+        return BenchDriver(label, label, ident, lookahead=lookahead)
+    spec, zoo_predictor = resolve_policy_spec(label)
+    prefix = next((p for p in POLICY_PREFIXES if spec.startswith(p)), None)
+    if prefix is None and not spec.startswith("policy:") and CALLABLE_SPEC.match(label):
+        if lookahead or follow:
+            raise ValueError(f"lookahead settings and a driver to follow apply to lookahead:POLICY, not to {label}")
+        return BenchDriver(label, label, {"kind": "callable", "name": label, "source_sha256": _source_digest(label)})
+    path = policy_path_of(spec)
+    if not path.is_file():
+        what = "is a directory" if path.is_dir() else "does not exist"
+        raise ValueError(f"{label}: {path} {what} (expected zoo:NAME, a policy.safetensors, a built-in driver "
+                         f"({', '.join(DRIVER_NAMES)}) or package.module:callable)")
+    policy, about = policy_identity(path)
+    if prefix is None:
+        if lookahead or follow:
+            raise ValueError(f"lookahead settings and a driver to follow apply to lookahead:POLICY, not to {label}")
+        return BenchDriver(label, spec, policy, about, predictor=predictor or zoo_predictor)
+    follow_spec, follow_ident = None, None
+    if follow is not None:
+        followed = resolve_driver(follow)
+        follow_spec, follow_ident = followed.spec, followed.identity
+        about = {**about, "follow": followed.label, "follow_about": followed.about}
+    ident = {"kind": "safety-layer", "policy": policy, "follow": follow_ident,
+             "lookahead": _lookahead_settings(prefix == "lookahead-blind:", lookahead)}  # fmt: skip
+    return BenchDriver(label, spec, ident, about, predictor=predictor or zoo_predictor, lookahead=lookahead,
+                       follow=follow_spec)
+
+
+def _source_digest(spec: str) -> str | None:
+    """SHA-256 of the source file of ``package.module:callable``'s module (``None`` when it has none)."""
+    module = _import_callable(spec)[0]
+    source = getattr(module, "__file__", None)
+    return file_sha256(source) if source else None
+
+
+def _import_callable(spec: str) -> tuple[Any, Callable[..., Any]]:
+    name, _, attr = spec.partition(":")
+    try:
+        module = importlib.import_module(name)
+    except ImportError as exc:
+        raise ValueError(f"{spec}: cannot import {name} ({exc})") from None
+    fn = getattr(module, attr, None)
+    if not callable(fn):
+        raise ValueError(f"{spec}: {name} has no callable {attr}")
+    return module, fn
+
+
+class CallableDriver:
+    """A user's ``package.module:callable`` as a driver: ``fn(obs)`` or ``fn(obs, action_mask)`` -> ``(E,)``."""
+
+    def __init__(self, spec: str) -> None:
+        self.fn = _import_callable(spec)[1]
+        self.name = spec.replace(":", ".").replace("_", "-")
+        try:
+            params = [p for p in inspect.signature(self.fn).parameters.values()
+                      if p.kind in (p.POSITIONAL_ONLY, p.POSITIONAL_OR_KEYWORD)]  # fmt: skip
+        except (TypeError, ValueError):
+            params = []
+        self.with_mask = len(params) >= 2
+
+    def __call__(self, obs: dict[str, np.ndarray], action_mask: np.ndarray, core: Any) -> np.ndarray:
+        actions = self.fn(obs, action_mask) if self.with_mask else self.fn(obs)
+        out = np.asarray(actions).reshape(-1)
+        n = len(action_mask)
+        if out.shape != (n,) or not np.issubdtype(out.dtype, np.integer) or ((out < 0) | (out > 2)).any():
+            raise ValueError(f"{self.name} returned {np.asarray(actions).shape} {np.asarray(actions).dtype} "
+                             f"actions; expected ({n},) integers in 0..2 (0 right, 1 keep, 2 left)")
+        return out.astype(np.int64)
+
+
+def scenario_sha256(config: Any) -> str:
+    """Digest of a scenario's config (a change of the scenario makes new ledger keys)."""
+    return hashlib.sha256(config.to_json().encode()).hexdigest()
+
+
+@dataclass
+class Runner:
+    """Where cells run: in this process, on a pool of ``workers`` processes, or on Ray."""
+
+    workers: int = 1
+    executor: str = "local"
+    threads: int = 1
+    batch: int = 20
+    ray_address: str | None = None
+    progress: Callable[[int, int], None] | None = None
+    _pool: Any = None
+
+    @contextlib.contextmanager
+    def session(self) -> Iterator[Runner]:
+        """Open the pool or the Ray session for the whole run, and close it after."""
+        from lcdata.executors import ray_session
+        from lcdata.procs import closing_pool
+        from lcmodels.policy.evaluate import shard_pool
+
+        if self.executor == "ray":
+            with ray_session(self.ray_address):
+                yield self
+        elif self.workers > 1:
+            with closing_pool(shard_pool(self.workers, self.threads)) as pool:
+                self._pool = pool
+                try:
+                    yield self
+                finally:
+                    self._pool = None
+        else:
+            yield self
+
+    def run(self, driver: BenchDriver, config: Any, scenario: str, user_seeds: list[int]) -> dict[str, Any]:
+        """The driver's episodes ``user_seeds`` in ``config``: counts, means and per-episode outcomes."""
+        from lcmodels.policy.evaluate import driver_for, evaluate, evaluate_sharded
+
+        start = time.perf_counter()
+        extra: dict[str, Any] = {}
+        if driver.identity["kind"] == "driver":  # a built-in driver reads no image: none is rendered
+            config = dataclasses.replace(config, render_image=False)
+        if driver.is_callable or driver.spec == "random" or (self.executor == "local" and self.workers <= 1):
+            if driver.is_callable:
+                built, run_config = CallableDriver(driver.spec), config
+            else:
+                built, own = driver_for(driver.spec, predictor=driver.predictor, lookahead=driver.lookahead or None,
+                                        follow=driver.follow, scenario=config)
+                run_config = own or config
+            summary, results = evaluate(built, run_config, user_seeds=user_seeds, batch=self.batch,
+                                        progress=self.progress, scenario=scenario)
+            if hasattr(built, "overrides"):
+                extra = {"planner_choices": built.choices, "planner_overrides": built.overrides}
+        else:
+            summary, results = evaluate_sharded(
+                driver.spec, config, episodes=len(user_seeds), user_seeds=user_seeds,
+                shards=self.workers if self.executor == "local" else max(4, self.workers), executor=self.executor,
+                pool=self._pool, predictor=driver.predictor, lookahead=driver.lookahead or None,
+                follow=driver.follow, scenario=scenario, batch=self.batch, progress=self.progress)  # fmt: skip
+            extra = {k: summary[k] for k in ("planner_choices", "planner_overrides") if k in summary}
+        outcomes = outcome_string(r.outcome for r in results)
+        return {"outcomes": outcomes, **counts(outcomes),
+                "mean_safe_forward_m": float(np.mean([r.safe_forward_m for r in results])),
+                "mean_return": float(np.mean([r.ret for r in results])),
+                "wall_s": round(time.perf_counter() - start, 1), **extra}
+
+
+@dataclass(frozen=True)
+class Cell:
+    driver: BenchDriver
+    scenario: SuiteScenario
+    record: dict[str, Any]
+    source: str
+    """``ledger`` (found), ``ledger+`` (run and appended), ``cache`` (found in the run's folder), ``run``."""
+
+
+def episodes_for(sc: SuiteScenario, *, final: bool, episodes: int, seed: int) -> list[int]:
+    """The user seeds of a cell: the scenario's sealed test episodes, or ``episodes`` of evaluation seed ``seed``."""
+    from lcmodels.policy.evaluate import eval_user_seeds
+
+    return sc.sealed_seeds() if final else eval_user_seeds(episodes, seed)
+
+
+def bench_cell(driver: BenchDriver, sc: SuiteScenario, runner: Runner, *, final: bool, episodes: int = 100,
+               seed: int = 0, cache_dir: Path | None = None, ledger: Path | None = None,
+               command: str = "") -> Cell:
+    """One driver on one suite scenario: from the ledger or the cache when it is there, else run (and, on
+    the sealed test episodes, appended to the ledger)."""
+    config = sc.make()
+    digest = scenario_sha256(config)
+    seeds = episodes_for(sc, final=final, episodes=episodes, seed=seed)
+    if final != all(is_sealed(u) for u in (seeds[0], seeds[-1])):
+        raise AssertionError("validation cells never run sealed seeds, final cells only sealed seeds")
+    key = cell_key(driver.identity, digest, seeds)
+    if final:
+        found = find_entry(read_ledger(ledger), key)
+        if found is not None:
+            return Cell(driver, sc, found, "ledger")
+    elif cache_dir is not None and (cache_dir / f"{key}.json").is_file():
+        cached = read_json(cache_dir / f"{key}.json")
+        if cached.get("key") == key and len(cached.get("outcomes", "")) == len(seeds):
+            return Cell(driver, sc, cached, "cache")
+    result = runner.run(driver, config, sc.name, seeds)
+    record = {"key": key, "label": driver.label, "group": driver.group, "identity": driver.identity,
+              "about": driver.about,
+              "scenario": sc.name, "scenario_sha256": digest, "user_seeds": [seeds[0], seeds[-1]],
+              "split": "test" if final else f"validation seed {seed}", **result, "command": command}  # fmt: skip
+    if final:
+        return Cell(driver, sc, append_entry(record, ledger), "ledger+")
+    if cache_dir is not None:
+        write_json(cache_dir / f"{key}.json", {"v": 1, **record})
+    return Cell(driver, sc, record, "run")
+
+
+def identity_digest(identity: dict[str, Any]) -> str:
+    return hashlib.sha256(canonical(identity).encode()).hexdigest()[:12]
+
+
+__all__ = [
+    "BenchDriver",
+    "CallableDriver",
+    "Cell",
+    "Runner",
+    "bench_cell",
+    "episodes_for",
+    "policy_identity",
+    "resolve_driver",
+    "scenario_sha256",
+]
