@@ -67,16 +67,21 @@ def counts(outcomes: str) -> dict[str, Any]:
     return out
 
 
+CODE_PATHS = ("lcsim", "lcdata", "lcmodels", "lccli", "zoo", "pyproject.toml")
+"""What decides an evaluation's figures: a change here since the commit makes an entry ``dirty``."""
+
+
 def git_commit(root: Path | None = None) -> tuple[str | None, bool]:
-    """``(short commit, whether tracked files differ from it)`` of the checkout, ``(None, False)`` outside one."""
+    """``(short commit, whether the code (:data:`CODE_PATHS`) differs from it)`` of the checkout, ``(None,
+    False)`` outside one."""
     cwd = root or CHECKOUT_LEDGER.parents[3]
     try:
         head = subprocess.run(["git", "rev-parse", "--short", "HEAD"], cwd=cwd, capture_output=True, text=True,
                               check=False, timeout=20)  # fmt: skip
         if head.returncode != 0:
             return None, False
-        dirty = subprocess.run(["git", "status", "--porcelain", "--untracked-files=no"], cwd=cwd,
-                               capture_output=True, text=True, check=False, timeout=20)  # fmt: skip
+        dirty = subprocess.run(["git", "status", "--porcelain", "--untracked-files=no", "--", *CODE_PATHS],
+                               cwd=cwd, capture_output=True, text=True, check=False, timeout=20)  # fmt: skip
         return head.stdout.strip() or None, bool(dirty.stdout.strip())
     except (OSError, subprocess.SubprocessError):
         return None, False
