@@ -42,6 +42,8 @@ from lcsim.suite import SuiteScenario, is_sealed
 CALLABLE_SPEC = re.compile(r"^[A-Za-z_][\w.]*:[A-Za-z_]\w*$")
 """``package.module:callable``."""
 POLICY_PREFIXES = ("lookahead:", "lookahead-blind:")
+SHARD_EPISODES = 100
+"""Episodes per shard of a cell run on workers or Ray: progress as shards end, the load balanced."""
 
 
 @dataclass(frozen=True)
@@ -260,7 +262,7 @@ class Runner:
         else:
             summary, results = evaluate_sharded(
                 driver.spec, config, episodes=len(user_seeds), user_seeds=user_seeds,
-                shards=self.workers if self.executor == "local" else max(4, self.workers), executor=self.executor,
+                shards=max(self.workers, -(-len(user_seeds) // SHARD_EPISODES)), executor=self.executor,
                 pool=self._pool, predictor=driver.predictor, lookahead=driver.lookahead or None,
                 follow=driver.follow, scenario=scenario, batch=self.batch, progress=self.progress)  # fmt: skip
             extra = {k: summary[k] for k in ("planner_choices", "planner_overrides") if k in summary}
