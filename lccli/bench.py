@@ -65,7 +65,7 @@ def bench_parser() -> argparse.ArgumentParser:
                    help="with lookahead-blind:POLICY: the driver its imagined futures follow")
     p.add_argument("--batch", type=positive_int, default=20, help="episodes simulated together (default 20)")
     p.add_argument("--threads", type=positive_int, default=1, help="torch threads per process (default 1)")
-    p.add_argument("-q", "--quiet", action="store_true", help="no progress lines")
+    p.add_argument("-q", "--quiet", action="store_true", help="no episode counts while a cell runs (a line per cell stays)")
     where = p.add_argument_group("where the episodes run")
     add_executor_arguments(where, "each cell's episodes cut into Ray tasks", "this machine")
     where.add_argument("--workers", type=positive_int, default=1,
@@ -147,11 +147,11 @@ def main(argv: list[str] | None = None) -> int:
     print(f"lc-bench: {len(drivers)} driver(s) x {len(scenarios)} scenario(s) of suite {args.suite or DEFAULT_SUITE}, "
           f"{split} episodes; ceiling oracle, floor rule" + (f"; ledger {ledger}" if args.final else ""),
           flush=True)  # fmt: skip
-    quiet = args.quiet
-    show = None if quiet else (lambda k, n: print(f"\r  {k}/{n} episodes", end="", flush=True))
+    show = None if args.quiet else (lambda k, n: print(f"\r  {k}/{n} episodes", end="", flush=True))
     runner = Runner(workers=args.workers, executor=args.executor, threads=args.threads, batch=args.batch,
                     ray_address=args.ray_address, progress=show)  # fmt: skip
     cells: dict[tuple[str, str], dict] = {}
+    sources: dict[str, int] = {}
     import torch
 
     torch.set_num_threads(args.threads)
@@ -165,10 +165,10 @@ def main(argv: list[str] | None = None) -> int:
                          "run": "run"}[cell.source]  # fmt: skip
                 if show is not None and cell.source in ("run", "ledger+"):
                     print("\r", end="")
-                if not quiet:
-                    print(f"[{i}/{len(todo)}] {driver.label} on {sc.name}: success {100 * rec['success_rate']:.1f}%, "
-                          f"collision {100 * rec['collision_rate']:.1f}% of {rec['episodes']} ({where}"
-                          + (f", {rec['wall_s']} s" if cell.source in ("run", "ledger+") else "") + ")", flush=True)
+                sources[cell.source] = sources.get(cell.source, 0) + 1
+                print(f"[{i}/{len(todo)}] {driver.label} on {sc.name}: success {100 * rec['success_rate']:.1f}%, "
+                      f"collision {100 * rec['collision_rate']:.1f}% of {rec['episodes']} ({where}"
+                      + (f", {rec['wall_s']} s" if cell.source in ("run", "ledger+") else "") + ")", flush=True)
                 cells[(driver.label, sc.name)] = rec
     except KeyboardInterrupt:
         print("\nlc-bench: interrupted; finished cells are kept (a rerun resumes)", file=sys.stderr)
@@ -184,6 +184,8 @@ def main(argv: list[str] | None = None) -> int:
     (out / "bench.json").write_text(json.dumps(summary, indent=1, sort_keys=True) + "\n")
     print()
     print(markdown)
+    names = {"run": "run", "cache": "cached", "ledger": "from the ledger", "ledger+": "appended to the ledger"}
+    print(f"lc-bench: {len(todo)} cells: " + ", ".join(f"{n} {names[k]}" for k, n in sources.items()))
     print(f"lc-bench: wrote {out / 'BENCH.md'} and {out / 'bench.json'}")
     return 0
 

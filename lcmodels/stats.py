@@ -129,10 +129,17 @@ def aggregate_scores(scores: np.ndarray, *, reps: int = 20_000, seed: int = 0,
     point = func(s)
     intervals: list[list[float] | None] = [None, None]
     if s.shape[0] > 1:
-        with warnings.catch_warnings():
-            warnings.simplefilter("ignore")  # arch's notice about RandomState, which rliable passes
-            _, ci = rly.get_interval_estimates({"m": s}, func, reps=reps, confidence_interval_size=confidence,
-                                               random_state=np.random.RandomState(seed))
+        # rliable's stratified resampling draws from numpy's global generator whatever random_state says:
+        # seed it for this call alone, so the same scores give the same interval, and restore it after
+        state = np.random.get_state()
+        np.random.seed(seed)
+        try:
+            with warnings.catch_warnings():
+                warnings.simplefilter("ignore")  # arch's notice about RandomState, which rliable passes
+                _, ci = rly.get_interval_estimates({"m": s}, func, reps=reps, confidence_interval_size=confidence,
+                                                   random_state=np.random.RandomState(seed))
+        finally:
+            np.random.set_state(state)
         intervals = [[float(ci["m"][0, i]), float(ci["m"][1, i])] for i in range(2)]
     meta = {"runs": int(s.shape[0]), "scenarios": int(s.shape[1]), "reps": reps if s.shape[0] > 1 else 0}
     return {k: {"value": float(point[i]), "ci95": intervals[i], **meta} for i, k in enumerate(AGGREGATES)}

@@ -39,10 +39,11 @@ SEALED_SEED_END = SEALED_SEED_BASE + 1000 * SEALED_BLOCK
 """One past the last sealed user seed (below 2**32, what numpy's seeding takes)."""
 
 
-OBSERVATION_FIELDS = ("render", "history_steps", "num_neighbours", "neighbour_selection", "sensing_range_m",
-                      "observe_acceleration")
-"""The fields of :class:`~lcsim.config.ScenarioConfig` that say what the ego's sensors show rather than what the
-world is: a policy keeps its own when it drives on another road (:func:`observed_by`)."""
+OBSERVATION_FIELDS = ("neighbour_selection", "sensing_range_m")
+"""The fields of :class:`~lcsim.config.ScenarioConfig` that say how the ego's sensors pick and see what they
+show rather than what the world is: a policy keeps its own when it drives on another road
+(:func:`observed_by`). The fields that set the observation's shapes (``num_neighbours``, ``history_steps``,
+``observe_acceleration``, the image's size) come from the road it drives on and must match the policy's."""
 
 
 def observed_by(world: ScenarioConfig, sensors: ScenarioConfig) -> ScenarioConfig:
