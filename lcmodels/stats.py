@@ -131,15 +131,15 @@ def aggregate_scores(scores: np.ndarray, *, reps: int = 20_000, seed: int = 0,
     if s.shape[0] > 1:
         # rliable's stratified resampling draws from numpy's global generator whatever random_state says:
         # seed it for this call alone, so the same scores give the same interval, and restore it after
-        state = np.random.get_state()
-        np.random.seed(seed)
+        state = np.random.get_state()  # noqa: NPY002 (rliable draws from it)
+        np.random.seed(seed)  # noqa: NPY002
         try:
             with warnings.catch_warnings():
                 warnings.simplefilter("ignore")  # arch's notice about RandomState, which rliable passes
                 _, ci = rly.get_interval_estimates({"m": s}, func, reps=reps, confidence_interval_size=confidence,
                                                    random_state=np.random.RandomState(seed))
         finally:
-            np.random.set_state(state)
+            np.random.set_state(state)  # noqa: NPY002
         intervals = [[float(ci["m"][0, i]), float(ci["m"][1, i])] for i in range(2)]
     meta = {"runs": int(s.shape[0]), "scenarios": int(s.shape[1]), "reps": reps if s.shape[0] > 1 else 0}
     return {k: {"value": float(point[i]), "ci95": intervals[i], **meta} for i, k in enumerate(AGGREGATES)}

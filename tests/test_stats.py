@@ -74,10 +74,10 @@ def test_aggregate_scores_iqm_and_bootstrap():
         lo, hi = agg[k]["ci95"]
         assert lo <= agg[k]["value"] <= hi and hi - lo < 0.2
         assert agg[k]["runs"] == 3 and agg[k]["scenarios"] == 8
-    np.random.seed(11)
-    before = np.random.random()
-    np.random.seed(11)
+    np.random.seed(11)  # noqa: NPY002
+    before = np.random.random()  # noqa: NPY002
+    np.random.seed(11)  # noqa: NPY002
     assert aggregate_scores(three, reps=2000, seed=3) == agg  # seeded: the same intervals
-    assert np.random.random() == before  # and numpy's global generator left as it was
+    assert np.random.random() == before  # and numpy's global generator left as it was  # noqa: NPY002
     with pytest.raises(ValueError, match="runs, scenarios"):
         aggregate_scores(np.array([0.5, np.nan]))
