@@ -181,8 +181,9 @@ def follower_mismatches(entries: list[ZooEntry] | None = None) -> list[str]:
 def experiment_card(run: str | os.PathLike[str], recipe_name: str, *, seed: int = 0,
                     commit: str = "") -> tuple[dict[str, Any], Path, bool]:
     """What the ``lc-experiment`` directory ``run`` measured for ``recipe_name`` (training seed ``seed``): the
-    card of its final policy (recipe, commit, training time, validation and test figures, the safety layer's
-    when run, the experiment's command), the policy file, and whether it reads predictions. ``ValueError``
+    card of its final policy (recipe, commit, training time, validation figures and the experiment's held-out
+    ones (``heldout``: its *test* split, validation episodes in the benchmark's sense), the safety layer's when
+    run, the experiment's command; the sealed test figures come from the ledger, ``tools/publish_ledger.py``), the policy file, and whether it reads predictions. ``ValueError``
     when the recipe's evaluation or its policy is missing."""
     from lcmodels.presets import STAGES_DIR, policy_dir
     from lcmodels.recipe import load_recipe
@@ -215,8 +216,8 @@ def experiment_card(run: str | os.PathLike[str], recipe_name: str, *, seed: int 
         "recipe": recipe.name, "recipe_version": recipe.version, "row": recipe.row, "kind": recipe.kind,
         "description": recipe.description, "training_seed": seed, "commit": commit,
         "training_wall_s": round(sum(walls), 1), "stages_wall_s": dict(zip(recipe.stages, walls, strict=True)),
-        "test": figures(ev["test"]), "validation": {k: figures(v) for k, v in ev.get("val", {}).items()},
-        "safety_layer": ({"test": figures(safety["test"]), "config": safety.get("config", {})}
+        "heldout": figures(ev["test"]), "validation": {k: figures(v) for k, v in ev.get("val", {}).items()},
+        "safety_layer": ({"heldout": figures(safety["test"]), "config": safety.get("config", {})}
                          | ({"follow": follow} if follow else {}) if safety and "test" in safety else None),
         "experiment_command": experiment.get("command", ""), "preset": (experiment.get("preset") or {}).get("name"),
     }  # fmt: skip
@@ -231,7 +232,7 @@ def publish_from_experiment(run: str | os.PathLike[str], recipe_name: str, *, se
     time, validation and test figures (and the safety layer's, when run), the experiment's command
     (:func:`experiment_card`), and the outcomes of :data:`CHECK_EPISODES` test episodes re-run now."""
     card, policy, needs = experiment_card(run, recipe_name, seed=seed, commit=commit)
-    test_seed = int(card["test"].get("eval_seed", 0))
+    test_seed = int(card["heldout"].get("eval_seed", 0))
     card["check"] = {"eval_seed": test_seed, "episodes": check_episodes(policy, seed=test_seed)}
     return publish_entry(policy, name or card["recipe"], predictor=Path(run) / "predictor" / "predictor.pt" if needs
                          else None, card=card, root=root, overwrite=overwrite)  # fmt: skip

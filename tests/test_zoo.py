@@ -46,8 +46,8 @@ def test_an_entry_published_from_an_experiment_works_wherever_a_policy_does(
     publish_from_experiment(tiny_run, "pure-ppo", root=root)
     card = json.loads((root / "hybrid-ppo" / "zoo.json").read_text())
     metrics = json.loads((tiny_run / "policies" / "hybrid-ppo" / "seed0" / "eval" / "metrics.json").read_text())
-    assert card["test"]["success_rate"] == metrics["test"]["success_rate"] and card["commit"] == "abc1234"
-    assert card["recipe"] == "hybrid-ppo" and card["training_wall_s"] > 0 and card["safety_layer"]["test"]
+    assert card["heldout"]["success_rate"] == metrics["test"]["success_rate"] and card["commit"] == "abc1234"
+    assert card["recipe"] == "hybrid-ppo" and card["training_wall_s"] > 0 and card["safety_layer"]["heldout"]
     with pytest.raises(ValueError, match="exists"):
         publish_from_experiment(tiny_run, "hybrid-ppo", root=root)  # nothing is replaced silently
     # what a recipe reached, without a zoo entry (the paper-faithful recipes' records): the card's figures
@@ -122,7 +122,7 @@ def test_a_shipped_entry_reproduces_the_episodes_its_card_lists(name: str) -> No
     entry = zoo_entry(name)
     check = entry.card["check"]
     assert check_episodes(entry.policy, seed=check["eval_seed"], episodes=len(check["episodes"])) == check["episodes"]
-    t = entry.card["test"]
+    t = entry.card["heldout"]
     assert t["episodes"] >= 200 and 0.0 <= t["success_rate"] <= 1.0
 
 

@@ -80,14 +80,14 @@ def main(argv: list[str] | None = None) -> int:
         except ValueError as exc:
             print(f"publish_zoo: error: {str(exc).splitlines()[0]}", file=sys.stderr)
             return 2
-        t = card["test"]
+        t = card["heldout"]
         if packaged and own_zoo:  # a packaged recipe records what this checkout ships of it, next to it
             keep = ("recipe_version", "preset", "experiment_command", "commit", "training_seed", "training_wall_s",
-                    "test", "validation", "safety_layer")
+                    "heldout", "validation", "safety_layer")
             write_json(reached, {"recipe": name, "published": time.strftime("%Y-%m-%d"),
                                  **{k: card.get(k) for k in keep}})  # fmt: skip
         where = reached if args.reached_only else f"zoo:{entry.name}: {entry.policy}"
-        print(f"{where} (test success {100 * t['success_rate']:.1f}% of {t['episodes']})")
+        print(f"{where} (held-out success {100 * t['success_rate']:.1f}% of {t['episodes']}; sealed test: lc-bench --final)")
     return 0
 
 

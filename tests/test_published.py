@@ -1,0 +1,105 @@
+"""Every published figure is the one its source holds: the ledger's tables in the README, the results index and
+the zoo's README, the zoo cards' sealed test figures, every other percentage in those documents (found in a
+file the same paragraph links), and recipes that quote no figures."""
+
+from __future__ import annotations
+
+import json
+import re
+from pathlib import Path
+
+import pytest
+
+from lcmodels.bench.ledger import counts, read_ledger
+from lcmodels.bench.published import BLOCK, load_spec, stale_blocks, zoo_card_problems
+from lcmodels.recipe import load_recipe
+from lcmodels.zoo import zoo_entries
+
+ROOT = Path(__file__).resolve().parent.parent
+DOCUMENTS = ("README.md", "docs/results/README.md", "zoo/README.md")
+FIGURE = re.compile(r"(?<![\w.])(\d{1,3}\.\d)(?=\s?%|\s\[\d|\s?/\s?\d{1,3}\.\d)")
+"""A quoted rate: ``77.2%``, ``77.2 [74.5, 79.7]``, ``90.5 / 88.5``."""
+LINK = re.compile(r"\]\(([^)#\s]+)")
+
+
+@pytest.fixture(scope="module")
+def entries() -> list[dict]:
+    return read_ledger()
+
+
+def test_the_ledger_is_well_formed_and_its_counts_are_its_outcomes(entries):
+    assert entries, "the committed ledger is empty"
+    keys = [e["key"] for e in entries]
+    assert len(set(keys)) == len(keys), "an evaluation appears twice"
+    for e in entries:
+        assert e["split"] == "test" and e["commit"] and not e.get("dirty"), e["key"]
+        again = counts(e["outcomes"])
+        for k in ("success", "collision", "off_road", "timeout", "success_rate", "collision_rate"):
+            assert e[k] == again[k], (e["key"], k)
+
+
+@pytest.mark.parametrize("document", DOCUMENTS)
+def test_every_ledger_block_is_what_the_ledger_gives(document: str, entries):
+    path = ROOT / document
+    text = path.read_text()
+    names = [m.group("name") for m in BLOCK.finditer(text)]
+    assert set(names) <= set(load_spec())
+    assert stale_blocks(text, path, entries=entries) == [], "run python tools/publish_ledger.py"
+
+
+def test_a_figure_changed_by_hand_is_caught(entries):
+    path = ROOT / "README.md"
+    text = path.read_text()
+    m = next(BLOCK.finditer(text))
+    body = m.group("body")
+    figure = re.search(r"\d+\.\d \[", body)
+    assert figure, "the README's results block quotes no figure"
+    i = m.start("body") + figure.start()
+    digit = text[i]
+    forged = text[:i] + ("1" if digit != "1" else "2") + text[i + 1 :]
+    assert stale_blocks(forged, path, entries=entries) == [m.group("name")]
+
+
+def test_the_zoo_cards_quote_the_ledger(entries):
+    assert zoo_card_problems(entries) == []
+    for e in zoo_entries():
+        assert "test" not in e.card and "test" not in (e.card.get("safety_layer") or {}), e.name
+        assert e.card["sealed_test"]["alone"] is not None, f"zoo:{e.name} has no sealed test figure"
+
+
+def _paragraphs(text: str) -> list[str]:
+    text = BLOCK.sub("", text)
+    return [p for p in re.split(r"\n\s*\n", text) if p.strip()]
+
+
+@pytest.mark.parametrize("document", DOCUMENTS)
+def test_every_other_figure_is_in_a_file_the_paragraph_links(document: str):
+    path = ROOT / document
+    unsourced = []
+    for para in _paragraphs(path.read_text()):
+        figures = FIGURE.findall(para)
+        if not figures:
+            continue
+        sources = []
+        for link in LINK.findall(para):
+            target = (path.parent / link).resolve()
+            if target.is_dir() and (target / "NOTE.md").is_file():
+                target = target / "NOTE.md"
+            if target.is_file() and target.is_relative_to(ROOT):
+                sources.append(target.read_text(errors="replace"))
+        for fig in figures:
+            if not any(fig in s for s in sources):
+                unsourced.append(f"{fig} in: {para.strip()[:100]}...")
+    assert unsourced == [], "figures no linked file holds:\n" + "\n".join(unsourced)
+
+
+def test_recipes_quote_no_figures():
+    for toml in sorted((ROOT / "lcmodels" / "recipes").glob("*.toml")):
+        desc = load_recipe(str(toml)).description
+        assert not re.search(r"\d+(\.\d+)?\s?%", desc), f"{toml.name}: figures belong in its .reached.json"
+
+
+def test_reached_records_say_what_the_seed_9_figures_are():
+    for rec in sorted((ROOT / "lcmodels" / "recipes").glob("*.reached.json")):
+        data = json.loads(rec.read_text())
+        assert "test" not in data and "heldout" in data, rec.name
