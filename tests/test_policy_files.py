@@ -222,6 +222,24 @@ def test_corrupt_checkpoint_state_names_the_file(run_dir: Path, tmp_path: Path) 
         train_policy(_tiny(timesteps=128), out)
 
 
+@pytest.mark.parametrize("name", ["../../victim.txt", "VICTIM_ABS", "sub/step-64.safetensors", ["x"]])
+def test_a_crafted_resume_record_cannot_name_files_outside_its_folder(run_dir: Path, tmp_path: Path, name) -> None:
+    import json
+    import shutil
+
+    out = tmp_path / "run"
+    shutil.copytree(run_dir, out)
+    victim = tmp_path / "victim.txt"
+    victim.write_text("the user's")
+    state_file = out / "checkpoints" / "latest.json"
+    state = json.loads(state_file.read_text())
+    state["weights"] = str(victim) if name == "VICTIM_ABS" else name
+    state_file.write_text(json.dumps(state))
+    with pytest.raises(ValueError, match="not a checkpoint file name"):
+        train_policy(_tiny(timesteps=128), out)
+    assert victim.read_text() == "the user's"
+
+
 def test_overwrite_refuses_to_start_from_what_it_would_remove(run_dir: Path, tmp_path: Path) -> None:
     import shutil
 

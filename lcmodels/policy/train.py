@@ -32,6 +32,7 @@ import json
 import logging
 import os
 import platform
+import re
 import time
 from collections import deque
 from collections.abc import Callable
@@ -269,6 +270,11 @@ def remove_run_outputs(out: Path) -> tuple[int, list[Path]]:
     return removed, kept
 
 
+_CKPT_WEIGHTS = re.compile(r"step-\d{1,15}\.safetensors")
+_CKPT_OPTIM = re.compile(r"step-\d{1,15}\.optim\.pt")
+"""The names :meth:`checkpoint` gives a checkpoint's files: nothing else is read or deleted from ``latest.json``."""
+
+
 def read_checkpoint_state(path: Path) -> dict[str, Any]:
     """``checkpoints/latest.json``: the step count, wall time, episodes and file names of the last checkpoint
     (``ValueError`` naming the file when it is corrupt or incomplete)."""
@@ -277,6 +283,10 @@ def read_checkpoint_state(path: Path) -> dict[str, Any]:
         missing = [k for k in ("timesteps", "wall_s", "episodes_total", "weights", "optimizer") if k not in state]
         if missing:
             raise KeyError(", ".join(missing))
+        for key, pattern in (("weights", _CKPT_WEIGHTS), ("optimizer", _CKPT_OPTIM)):
+            if not isinstance(state[key], str) or not pattern.fullmatch(state[key]):
+                # the names are joined to the folder and the files later deleted: only this tool's own names
+                raise TypeError(f"{key} {str(state[key])[:80]!r} is not a checkpoint file name of this folder")
         return state
     except (OSError, json.JSONDecodeError, KeyError, TypeError) as exc:
         raise ValueError(f"{path} is corrupt ({type(exc).__name__}: {exc}); remove the checkpoints folder to "
