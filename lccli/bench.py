@@ -42,8 +42,11 @@ the same episodes; per method (a recipe's training seeds) the IQM with rliable's
 
 
 def bench_parser() -> argparse.ArgumentParser:
-    p = argparse.ArgumentParser(prog="lc-bench", description=__doc__.splitlines()[0].split(": ", 1)[1],
-                                epilog=EPILOG, formatter_class=argparse.RawDescriptionHelpFormatter)
+    p = argparse.ArgumentParser(
+        prog="lc-bench", epilog=EPILOG, formatter_class=argparse.RawDescriptionHelpFormatter,
+        description="Any policy or driver on every road of the benchmark suite, next to each road's ceiling (the "
+        "oracle) and floor (the rule-based driver): validation episodes for choices, or the sealed test episodes "
+        "through the ledger (--final).")
     p.add_argument("policies", nargs="*", metavar="POLICY",
                    help="zoo:NAME, a policy.safetensors, a built-in driver (rule, oracle, lookahead, keep, ...), "
                    "lookahead-blind:POLICY (behind the safety layer), or package.module:callable")

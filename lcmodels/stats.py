@@ -76,12 +76,17 @@ class McNemar:
     p_value: float
     """Two-sided exact p-value (binomial test of ``only_a`` out of ``only_a + only_b`` at 1/2)."""
 
+    @property
+    def p_text(self) -> str:
+        """``p = 0.012``, or ``p < 1e-300`` where the p-value underflows."""
+        return "p < 1e-300" if self.p_value < 1e-300 else f"p = {self.p_value:.2g}"
+
     def verdict(self, a: str = "A", b: str = "B", alpha: float = 0.05) -> str:
         """One phrase: which wins at level ``alpha``, or that the difference is not significant."""
         if self.p_value < alpha and self.only_a != self.only_b:
             winner, loser = (a, b) if self.only_a > self.only_b else (b, a)
-            return f"{winner} beats {loser} (McNemar p = {self.p_value:.2g})"
-        return f"no significant difference (McNemar p = {self.p_value:.2g})"
+            return f"{winner} beats {loser} (McNemar {self.p_text})"
+        return f"no significant difference (McNemar {self.p_text})"
 
     def as_dict(self) -> dict[str, Any]:
         return {"n": self.n, "only_a": self.only_a, "only_b": self.only_b, "p_value": self.p_value}

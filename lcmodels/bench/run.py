@@ -68,12 +68,12 @@ class BenchDriver:
 
     @property
     def group(self) -> str:
-        """Runs of the same method (a recipe's training seeds) share a group; anything else is its own."""
+        """Runs of the same method (a recipe's training seeds, by the recipe's name) share a group; anything
+        else is its own."""
         about = self.about
-        if about.get("recipe"):
-            version = f" v{about['recipe_version']}" if about.get("recipe_version") else ""
+        if about.get("recipe"):  # (by name: a zoo card knows the recipe's version, an experiment's folder not)
             layer = " + safety layer" if self.identity.get("kind") == "safety-layer" else ""
-            return f"{about['recipe']}{version}{layer}"
+            return f"{about['recipe']}{layer}"
         return self.label
 
 
