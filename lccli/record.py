@@ -27,7 +27,7 @@ from lcdata.record import DRIVERS, episode_filename, iter_record_episodes
 from lcdata.writer_process import WRITER_MODES
 from lcsim.config import ScenarioConfig
 from lcsim.registry import SCENARIOS, scenario, scenario_label, split_policy_spec
-from lcsim.suite import SEALED_SEED_BASE, is_sealed
+from lcsim.suite import SEALED_SEED_BASE, SEALED_SEED_END, is_sealed
 
 
 def default_driver(scenario_name: str) -> str:
@@ -287,8 +287,8 @@ def record_main(argv: Sequence[str] | None = None) -> int:
         start_ns = start_time_ns(args.start_time)
         seeds = [args.seed + i for i in range(args.episodes)]
         if any(is_sealed(s) for s in (seeds[0], seeds[-1])) or seeds[0] < SEALED_SEED_BASE <= seeds[-1]:
-            raise UsageError(f"seeds {SEALED_SEED_BASE} and above are the benchmark's sealed test episodes, which "
-                             "only lc-bench --final runs; choose seeds below it")
+            raise UsageError(f"seeds {SEALED_SEED_BASE} to {SEALED_SEED_END - 1} are the benchmark's sealed test "
+                             "episodes, which only lc-bench --final runs; choose others")
         name = driver if isinstance(driver, str) else driver.name
         paths = [args.out / episode_filename(label, name, s) for s in seeds]
         flags = record_flags(args, args.driver or default_driver(scenario_name), scenario_name)

@@ -67,8 +67,10 @@ def counts(outcomes: str) -> dict[str, Any]:
     return out
 
 
-CODE_PATHS = ("lcsim", "lcdata", "lcmodels", "lccli", "zoo", "pyproject.toml")
-"""What decides an evaluation's figures: a change here since the commit makes an entry ``dirty``."""
+CODE_PATHS = ("lcsim", "lcdata", "lcmodels", "lccli", "pyproject.toml", ":(glob)zoo/**/*.safetensors",
+              ":(glob)zoo/**/*.pt")
+"""What decides an evaluation's figures: a change here since the commit makes an entry ``dirty`` (the zoo's
+weights, not its cards, which ``tools/publish_ledger.py`` writes)."""
 
 
 def git_commit(root: Path | None = None) -> tuple[str | None, bool]:

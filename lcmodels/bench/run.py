@@ -42,6 +42,8 @@ from lcsim.suite import SuiteScenario, is_sealed
 CALLABLE_SPEC = re.compile(r"^[A-Za-z_][\w.]*:[A-Za-z_]\w*$")
 """``package.module:callable``."""
 POLICY_PREFIXES = ("lookahead:", "lookahead-blind:")
+FINAL_BATCH = 20
+"""Episodes simulated together in every sealed test evaluation."""
 SHARD_EPISODES = 100
 """Episodes per shard of a cell run on workers or Ray: progress as shards end, the load balanced."""
 
@@ -107,13 +109,26 @@ def policy_identity(path: Path) -> tuple[dict[str, Any], dict[str, Any]]:
 
 
 def _lookahead_settings(blind: bool, options: dict[str, Any]) -> dict[str, Any]:
-    """Every setting of the safety layer's planner (defaults filled in: the same layer has one key)."""
+    """The settings of the safety layer's planner that differ from its defaults, each in its field's type: the
+    same layer has one key however its settings were spelt (``1`` or ``1.0``, a default given or left out), and
+    keeps it when the planner gains a setting whose default changes nothing."""
     from lcsim.planning import LookaheadConfig
 
     try:
-        return dataclasses.asdict(LookaheadConfig(blind=blind, **options))
+        config = LookaheadConfig(blind=blind, **options)
     except TypeError as exc:
         raise ValueError(f"lookahead settings: {exc}") from None
+    out: dict[str, Any] = {}
+    for f in dataclasses.fields(LookaheadConfig):
+        default = f.default if f.default is not dataclasses.MISSING else f.default_factory()  # type: ignore[misc]
+        value = getattr(config, f.name)
+        if isinstance(default, bool) or not isinstance(default, int | float):
+            value = list(value) if isinstance(value, tuple) else value
+        else:
+            value = type(default)(value)
+        if value != (list(default) if isinstance(default, tuple) else default):
+            out[f.name] = value
+    return out
 
 
 def resolve_driver(label: str, *, lookahead: dict[str, Any] | None = None, follow: str | None = None,
@@ -145,7 +160,11 @@ def resolve_driver(label: str, *, lookahead: dict[str, Any] | None = None, follo
         what = "is a directory" if path.is_dir() else "does not exist"
         raise ValueError(f"{label}: {path} {what} (expected zoo:NAME, a policy.safetensors, a built-in driver "
                          f"({', '.join(DRIVER_NAMES)}) or package.module:callable)")
-    policy, about = policy_identity(path)
+    try:
+        policy, about = policy_identity(path)
+    except Exception as exc:  # a foreign or corrupt file: whatever safetensors or torch raise, one line
+        raise ValueError(f"{label}: {path} is not a readable policy file ({type(exc).__name__}: "
+                         f"{str(exc).splitlines()[0] if str(exc) else ''})") from None
     if prefix is None:
         if lookahead or follow:
             raise ValueError(f"lookahead settings and a driver to follow apply to lookahead:POLICY, not to {label}")
@@ -172,8 +191,8 @@ def _import_callable(spec: str) -> tuple[Any, Callable[..., Any]]:
     name, _, attr = spec.partition(":")
     try:
         module = importlib.import_module(name)
-    except ImportError as exc:
-        raise ValueError(f"{spec}: cannot import {name} ({exc})") from None
+    except Exception as exc:  # the user's module: a missing one, or one that fails while importing
+        raise ValueError(f"{spec}: cannot import {name} ({type(exc).__name__}: {exc})") from None
     fn = getattr(module, attr, None)
     if not callable(fn):
         raise ValueError(f"{spec}: {name} has no callable {attr}")
@@ -299,7 +318,14 @@ def bench_cell(driver: BenchDriver, sc: SuiteScenario, runner: Runner, *, final:
     seeds = episodes_for(sc, final=final, episodes=episodes, seed=seed)
     if final != all(is_sealed(u) for u in (seeds[0], seeds[-1])):
         raise AssertionError("validation cells never run sealed seeds, final cells only sealed seeds")
-    key = cell_key(driver.identity, digest, seeds)
+    if final and driver.is_callable:
+        raise ValueError(f"{driver.label}: a callable has no weights to key the ledger by (retrained, it would keep "
+                         "its entry); --final takes policy files, zoo entries and built-in drivers")
+    if final and runner.batch != FINAL_BATCH:
+        raise ValueError(f"--final runs {FINAL_BATCH} episodes at a time, as every ledger entry did (a few drivers' "
+                         "draws follow the batch); drop --batch")
+    # a validation cell also depends on the batch (the random driver's and some planners' draws follow it)
+    key = cell_key(driver.identity if final else {**driver.identity, "batch": runner.batch}, digest, seeds)
     if final:
         found = find_entry(read_ledger(ledger), key)
         if found is not None:
@@ -312,7 +338,8 @@ def bench_cell(driver: BenchDriver, sc: SuiteScenario, runner: Runner, *, final:
     record = {"key": key, "label": driver.label, "group": driver.group, "identity": driver.identity,
               "about": driver.about,
               "scenario": sc.name, "scenario_sha256": digest, "user_seeds": [seeds[0], seeds[-1]],
-              "split": "test" if final else f"validation seed {seed}", **result, "command": command}  # fmt: skip
+              "split": "test" if final else f"validation seed {seed}", "batch": runner.batch, **result,
+              "command": command}  # fmt: skip
     if final:
         return Cell(driver, sc, append_entry(record, ledger), "ledger+")
     if cache_dir is not None:
