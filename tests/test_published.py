@@ -16,9 +16,14 @@ from lcmodels.recipe import load_recipe
 from lcmodels.zoo import zoo_entries
 
 ROOT = Path(__file__).resolve().parent.parent
-DOCUMENTS = ("README.md", "docs/results/README.md", "zoo/README.md")
-FIGURE = re.compile(r"(?<![\w.])(\d{1,3}\.\d)(?=\s?%|\s\[\d|\s?/\s?\d{1,3}\.\d)")
-"""A quoted rate: ``77.2%``, ``77.2 [74.5, 79.7]``, ``90.5 / 88.5``."""
+DOCUMENTS = ("README.md", "docs/results/README.md", "zoo/README.md", "docs/results/benchmark/NOTE.md")
+FIGURES = (
+    re.compile(r"(?<![\w.])(\d{1,3}(?:\.\d{1,2})?)(?=\s?%)"),  # 77.2%, 2%
+    re.compile(r"(?<![\w.])(\d{1,3}\.\d)(?= \[\d)"),  # 77.2 [74.5, 79.7]
+    re.compile(r"(?<=\[)(\d{1,3}\.\d)(?=, \d)|(?<=, )(\d{1,3}\.\d)(?=\])"),  # its bounds
+    re.compile(r"(?<![\w.])(\d{1,3}\.\d)(?= ?/ ?\d{1,3}\.\d)|(?<=\d / )(\d{1,3}\.\d)(?![\d.])"),  # 90.5 / 88.5
+)
+"""Quoted rates: percentages, a figure with its interval, and pairs of figures."""
 LINK = re.compile(r"\]\(([^)#\s]+)")
 
 
@@ -67,30 +72,79 @@ def test_the_zoo_cards_quote_the_ledger(entries):
         assert e.card["sealed_test"]["alone"] is not None, f"zoo:{e.name} has no sealed test figure"
 
 
-def _paragraphs(text: str) -> list[str]:
-    text = BLOCK.sub("", text)
-    return [p for p in re.split(r"\n\s*\n", text) if p.strip()]
+def _units(text: str) -> list[str]:
+    """What one figure's source must be linked from: a paragraph, but each table row and list item alone."""
+    units = []
+    for para in re.split(r"\n\s*\n", BLOCK.sub("", text)):
+        current: list[str] = []
+        for line in para.splitlines():
+            if line.startswith("|") or re.match(r"\s*[-*] ", line):
+                if current:
+                    units.append("\n".join(current))
+                current = [line]
+            else:
+                current.append(line)
+        if current:
+            units.append("\n".join(current))
+    return [u for u in units if u.strip()]
+
+
+LEVEL = re.compile(r"\s?%\s*(?:CI|interval|confidence|Wilson|bootstrap|t\b)")
+"""A percentage that names an interval's level (95% interval), not a figure."""
+
+
+def _quoted(unit: str) -> list[str]:
+    found = []
+    for pattern in FIGURES:
+        for m in pattern.finditer(unit):
+            if pattern is FIGURES[0] and LEVEL.match(unit, m.end()):
+                continue
+            found += [g for g in m.groups() if g]
+    return found
+
+
+def _holds(source: str, figure: str) -> bool:
+    return re.search(rf"(?<![\d.]){re.escape(figure)}(?![\d])", source) is not None
+
+
+def unsourced(text: str, path: Path) -> list[str]:
+    """The rates ``text`` (the document at ``path``) quotes outside the ledger's blocks that neither a file its
+    paragraph (table row, list item) links holds, a note or a report rather than raw JSON, nor this document's
+    own ledger blocks, which the tests above check against the ledger."""
+    blocks = "\n".join(m.group("body") for m in BLOCK.finditer(text))
+    missing = []
+    for unit in _units(text):
+        figures = _quoted(unit)
+        if not figures:
+            continue
+        sources = [blocks]
+        for link in LINK.findall(unit):
+            target = (path.parent / link).resolve()
+            if target.is_dir() and (target / "NOTE.md").is_file():
+                target = target / "NOTE.md"
+            if target.is_file() and target.is_relative_to(ROOT) and target.suffix not in (".json", ".jsonl"):
+                sources.append(target.read_text(errors="replace"))
+        missing += [f"{fig} in: {unit.strip()[:110]}" for fig in figures if not any(_holds(s, fig) for s in sources)]
+    return missing
 
 
 @pytest.mark.parametrize("document", DOCUMENTS)
 def test_every_other_figure_is_in_a_file_the_paragraph_links(document: str):
     path = ROOT / document
-    unsourced = []
-    for para in _paragraphs(path.read_text()):
-        figures = FIGURE.findall(para)
-        if not figures:
-            continue
-        sources = []
-        for link in LINK.findall(para):
-            target = (path.parent / link).resolve()
-            if target.is_dir() and (target / "NOTE.md").is_file():
-                target = target / "NOTE.md"
-            if target.is_file() and target.is_relative_to(ROOT):
-                sources.append(target.read_text(errors="replace"))
-        for fig in figures:
-            if not any(fig in s for s in sources):
-                unsourced.append(f"{fig} in: {para.strip()[:100]}...")
-    assert unsourced == [], "figures no linked file holds:\n" + "\n".join(unsourced)
+    text = path.read_text()
+    assert text.count("<!-- ledger:") == len(list(BLOCK.finditer(text))), "a malformed ledger marker"
+    missing = unsourced(text, path)
+    assert missing == [], f"{document}: figures no linked file holds:\n" + "\n".join(missing)
+
+
+def test_a_prose_figure_changed_by_hand_is_caught():
+    path = ROOT / "docs" / "results" / "README.md"
+    text = path.read_text()
+    assert unsourced(text, path) == []
+    row = next(line for line in text.splitlines() if line.startswith("| paper-best |") and "76.5%" in line)
+    assert unsourced(text.replace(row, row.replace("76.5%", "12.3%")), path) == ["12.3 in: " + row.replace(
+        "76.5%", "12.3%")[:110]]  # fmt: skip
+    assert unsourced(text + "\nThe best policy wins 99.9% of the episodes.\n", path)
 
 
 def test_recipes_quote_no_figures():

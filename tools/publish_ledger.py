@@ -19,7 +19,7 @@ from lcmodels.bench.published import ROOT, stale_blocks, update_blocks, zoo_card
 from lcmodels.fileio import read_json, write_json
 from lcmodels.zoo import ENTRY_CARD, zoo_dir, zoo_entries
 
-DOCUMENTS = ("README.md", "docs/results/README.md", "zoo/README.md")
+DOCUMENTS = ("README.md", "docs/results/README.md", "zoo/README.md", "docs/results/benchmark/NOTE.md")
 
 
 def main(argv: list[str] | None = None) -> int:

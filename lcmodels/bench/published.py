@@ -92,17 +92,19 @@ def _rows_table(table: dict[str, Any], entries: list[dict[str, Any]], base: str)
                                   for v in row["reported"])  # fmt: skip
         elif not done:
             success, collision = "not measured yet", ""
-        elif len(runs) == 1:
+        elif len(done) == 1:
             e = done[0].entry
             assert e is not None
             success = _pct(e["success_rate"], e["success_wilson95"])
+            if len(runs) > 1:
+                success += f" ({done[0].note or done[0].spec}; {len(runs) - 1} more not measured yet)"
             collision = _pct(e["collision_rate"], e["collision_wilson95"])
         else:
             rates = [f.entry["success_rate"] for f in done if f.entry]
             lo, hi = t_interval(rates)
             each = "; ".join(f"{f.note or f.spec} {_pct(f.entry['success_rate'], f.entry['success_wilson95'])}"
                              for f in done if f.entry)  # fmt: skip
-            missing = f" ({len(runs) - len(done)} not measured yet)" if len(done) < len(runs) else ""
+            missing = f" ({len(runs) - len(done)} more not measured yet)" if len(done) < len(runs) else ""
             success = (f"**{100 * np.mean(rates):.1f}**, t 95% [{100 * lo:.1f}, {100 * hi:.1f}] over {len(done)} "
                        f"seeds{missing}: {each}")
             collision = f"{100 * np.mean([f.entry['collision_rate'] for f in done if f.entry]):.1f} (mean)"
@@ -114,7 +116,7 @@ def _rows_table(table: dict[str, Any], entries: list[dict[str, Any]], base: str)
             continue
         won = [np.frombuffer(e["outcomes"].encode(), np.uint8) == ord("s") for p in pairs for e in p]
         test = mcnemar(np.concatenate(won[0::2]), np.concatenate(won[1::2]))
-        lines += ["", f"{cmp['a']} against {cmp['b']}, paired episode by episode ({test.n} pairs: "
+        lines += ["", f"{cmp['a']} against {cmp['b']}: these policies paired episode by episode ({test.n} pairs: "
                   f"{len(pairs)} training seed(s) of each, seed with seed): {test.only_a} won by the first alone, "
                   f"{test.only_b} by the second alone; {test.verdict(cmp.get('a_short', 'the first'), cmp.get('b_short', 'the second'))}."]  # fmt: skip
     return "\n".join(lines)
@@ -180,6 +182,37 @@ def _suite_table(table: dict[str, Any], entries: list[dict[str, Any]], base: str
     return "\n".join(lines)
 
 
+def _dig(data: Any, path: str) -> Any:
+    for part in path.split("."):
+        data = data.get(part) if isinstance(data, dict) else None
+    return data
+
+
+def _remeasured_table(table: dict[str, Any], entries: list[dict[str, Any]], base: str) -> str:
+    """Each row's figure as published before (read from the file the row names) next to its sealed test figure
+    from the ledger, and the difference."""
+    from lcmodels.fileio import read_json
+
+    sc = table.get("scenario", "paper")
+    lines = [f"| row | before: {table['before']} | sealed test: {SUITE_SCENARIOS[sc].test_episodes} episodes of "
+             f"`{sc}` | difference, points | before, from |", "|---|---|---|---|---|"]  # fmt: skip
+    for row in table["row"]:
+        found = _runs({"runs": [row["run"]], "follow": [row.get("follow")], "lookahead": row.get("lookahead")},
+                      sc, entries)[0]  # fmt: skip
+        old = read_json(ROOT / row["before"]) or {}
+        rate, ci = _dig(old, row["before_key"] + ".success_rate"), _dig(old, row["before_key"] + ".success_rate_ci95")
+        before = _pct(rate, ci) if rate is not None and ci else "—"
+        source = f"[{Path(row['before']).parent.name}]({base}{row['before']})"
+        if found.entry is None:
+            lines.append(f"| {row['label']} | {before} | not measured yet | | {source} |")
+            continue
+        e = found.entry
+        diff = f"{100 * (e['success_rate'] - rate):+.1f}" if rate is not None else ""
+        lines.append(f"| {row['label']} | {before} | {_pct(e['success_rate'], e['success_wilson95'])} | {diff} "
+                     f"| {source} |")
+    return "\n".join(lines)
+
+
 def load_spec(path: Path = SPEC) -> dict[str, dict[str, Any]]:
     """The published tables by name."""
     data = read_data_file(path, "published tables")
@@ -196,7 +229,8 @@ def render_table(name: str, *, spec: dict[str, dict[str, Any]] | None = None,
         raise ValueError(f"no published table {name!r} (docs/results/benchmark/published.toml has "
                          f"{', '.join(spec)})")
     table = spec[name]
-    return (_suite_table if table.get("kind") == "suite" else _rows_table)(table, entries, base)
+    kinds = {"suite": _suite_table, "remeasured": _remeasured_table}
+    return kinds.get(table.get("kind", ""), _rows_table)(table, entries, base)
 
 
 def link_base(document: Path) -> str:
@@ -241,7 +275,9 @@ def zoo_sealed(name: str, entries: list[dict[str, Any]] | None = None) -> dict[s
     layer = entry.card.get("safety_layer") or {}
     follow = (layer.get("follow") or {}).get("recipe")
     if follow:
-        follower = next((e for e in zoo_entries() if e.card.get("recipe") == follow), None)
+        digest = (layer.get("follow") or {}).get("weights_sha256")
+        follower = next((e for e in zoo_entries() if e.card.get("recipe") == follow
+                         and (digest is None or e.weights_sha256 == digest)), None)  # fmt: skip
         if follower is not None:
             lookahead = (layer.get("config") or {}).get("lookahead") or {}
             drv = resolve_driver(f"lookahead-blind:zoo:{name}", follow=f"zoo:{follower.name}", lookahead=lookahead)
