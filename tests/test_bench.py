@@ -197,3 +197,32 @@ def test_lc_bench_list_and_errors(capsys):
         assert bench_main(argv) == 2
         err = capsys.readouterr().err.strip()
         assert message in err and len(err.splitlines()) == 1, err
+
+
+def test_keys_capture_what_changes_the_driving_and_nothing_else():
+    from lcmodels.bench.run import resolve_driver
+
+    def key(spec, **kw):
+        return resolve_driver(spec, **kw).identity
+
+    base = key("lookahead-blind:zoo:pure-ppo", lookahead={})
+    assert key("lookahead-blind:zoo:pure-ppo", lookahead={"horizon_decisions": 16}) == base  # the default, spelt out
+    assert key("lookahead-blind:zoo:pure-ppo", lookahead={"horizon_decisions": 32}) != base
+    assert key("lookahead-blind:zoo:pure-ppo", lookahead={"margin_m": 1}) == key(
+        "lookahead-blind:zoo:pure-ppo", lookahead={"margin_m": 1.0})  # fmt: skip
+    assert key("lookahead-blind:zoo:pure-ppo", follow="rule") != base
+    assert key("lookahead:zoo:pure-ppo") != base  # not blind
+    # the same weights wherever the file lies: the zoo's copy is the experiment's policy
+    assert key("zoo:pure-ppo") == key(str(ROOT / "docs/results/paper-best/policies/pure-ppo/seed1/train/policy.safetensors"))
+    assert key("zoo:pure-ppo") != key("zoo:pure-ppo-dagger")
+
+
+def test_workers_give_the_cells_of_one_process(tiny_suite: Path, tmp_path: Path):
+    runs = {}
+    for workers in ("1", "2"):
+        out = tmp_path / f"w{workers}"
+        assert bench_main(["rule", "keep", "--suite", "tiny", "--episodes", "6", "--batch", "3", "--workers", workers,
+                           "--out", str(out), "-q"]) == 0  # fmt: skip
+        cells = [json.loads(p.read_text()) for p in (out / "cells").glob("*.json")]
+        runs[workers] = sorted((c["label"], c["scenario"], c["outcomes"]) for c in cells)  # every episode's outcome
+    assert len(runs["1"]) == 6 and runs["1"] == runs["2"]

@@ -11,7 +11,14 @@ from pathlib import Path
 import pytest
 
 from lcmodels.bench.ledger import counts, read_ledger
-from lcmodels.bench.published import BLOCK, load_spec, stale_blocks, zoo_card_problems
+from lcmodels.bench.published import (
+    BLOCK,
+    SUITE_FILE,
+    load_spec,
+    stale_blocks,
+    suite_record,
+    zoo_card_problems,
+)
 from lcmodels.recipe import load_recipe
 from lcmodels.zoo import zoo_entries
 
@@ -70,6 +77,19 @@ def test_the_zoo_cards_quote_the_ledger(entries):
     for e in zoo_entries():
         assert "test" not in e.card and "test" not in (e.card.get("safety_layer") or {}), e.name
         assert e.card["sealed_test"]["alone"] is not None, f"zoo:{e.name} has no sealed test figure"
+
+
+def test_the_suite_is_stored_with_its_ceilings_and_floors(entries):
+    stored = json.loads(SUITE_FILE.read_text())
+    now = suite_record(entries)
+    for name, road in now["roads"].items():
+        assert name in stored["roads"], f"road {name} is new: run python tools/publish_ledger.py"
+        assert road["scenario_sha256"] == stored["roads"][name]["scenario_sha256"], (
+            f"road {name}'s config changed: its sealed entries no longer apply; re-measure with lc-bench --final "
+            "and run python tools/publish_ledger.py")  # fmt: skip
+        assert road["ceiling"] is not None and road["floor"] is not None, f"{name} has no ceiling or floor yet"
+        assert road["ceiling"]["success_rate"] > road["floor"]["success_rate"], name
+    assert stored == now
 
 
 def _units(text: str) -> list[str]:

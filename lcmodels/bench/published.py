@@ -299,5 +299,37 @@ def zoo_card_problems(entries: list[dict[str, Any]] | None = None) -> list[str]:
     return problems
 
 
-__all__ = ["BLOCK", "SPEC", "link_base", "load_spec", "render_table", "stale_blocks", "update_blocks", "zoo_card_problems",
-           "zoo_sealed"]
+SUITE_FILE = ROOT / "docs" / "results" / "benchmark" / "suite.json"
+
+
+def suite_record(entries: list[dict[str, Any]] | None = None) -> dict[str, Any]:
+    """The suite as stored beside the ledger: per road its block of sealed seeds, episode count, config digest,
+    and its ceiling (oracle) and floor (rule-based driver) from the ledger (``None`` until measured)."""
+    entries = read_ledger() if entries is None else entries
+    roads = {}
+    for name, sc in SUITE_SCENARIOS.items():
+        digest, seeds = scenario_sha256(sc.make()), sc.sealed_seeds()
+        refs = {}
+        for role, driver in (("ceiling", "oracle"), ("floor", "rule")):
+            e = find_entry(entries, cell_key({"kind": "driver", "name": driver}, digest, seeds))
+            refs[role] = None if e is None else {"driver": driver, **_figures(e)}
+        roads[name] = {"what": sc.what, "block": sc.block, "test_episodes": sc.test_episodes,
+                       "first_seed": seeds[0], "scenario_sha256": digest, **refs}  # fmt: skip
+    from lcsim.suite import SUITES
+
+    return {"suites": {k: list(v) for k, v in SUITES.items()}, "roads": roads}
+
+
+__all__ = [
+    "BLOCK",
+    "SPEC",
+    "SUITE_FILE",
+    "link_base",
+    "load_spec",
+    "render_table",
+    "stale_blocks",
+    "suite_record",
+    "update_blocks",
+    "zoo_card_problems",
+    "zoo_sealed",
+]
