@@ -4,7 +4,9 @@
 decoded on first access and cached. ``/vehicles`` is decoded straight from the protobuf wire bytes
 into numpy (one ``np.frombuffer`` per column over all messages), the low-rate topics with the
 protobuf runtime. A truncated or ``.partial`` file yields every complete chunk and a
-:class:`TruncatedFileWarning` saying how many messages were recovered.
+:class:`TruncatedFileWarning` saying how many messages were recovered. What one file may cost to read is
+bounded by its size (:class:`lcdata.mcap_scan.Limits`); chunks compressed with zstd, lz4 or not at all read,
+whichever writer made them, and each topic's messages come in log-time order.
 """
 
 from __future__ import annotations
@@ -369,7 +371,9 @@ def read_episode(path: str | os.PathLike[str]) -> Episode:
 
     Raises:
         FileNotFoundError: no such file.
-        ValueError: not an MCAP file, or an MCAP file without lc-toolkit data.
+        ValueError: not an MCAP file, or an MCAP file without lc-toolkit data; a file the scan refuses whole
+            (:class:`lcdata.mcap_scan.McapRefused`: chunks over the limits of :class:`lcdata.mcap_scan.Limits`,
+            a compression the MCAP specification does not define, a message recorded twice, a channel redefined).
     Warns:
         TruncatedFileWarning: the file ended early; the complete chunks were recovered.
     """

@@ -21,6 +21,8 @@ from lcsim.config import paper_scenario
 from lcsim.core import KEEP, LaneChangeCore
 from lcsim.drivers import RuleBasedDriver
 from lcsim.render import PALETTE
+from tests.test_mcap_reader import assemble, rewrite_with_mcap_package, take_apart, zeros_chunk
+from tests.test_mcap_reader import chunk as mcap_chunk
 
 N_TRAFFIC = 6
 HORIZON = 5
@@ -226,6 +228,95 @@ def test_truncated_file_shows_recovered_part(
     boxes = temporal(read_rrd(out)["world/vehicles/boxes"], "LineStrips2D:strips")
     assert 0 < len(boxes["step"]) < len(read_episode(full).ego)
 
+
+
+def _shown(rrd: dict[str, list[tuple[bool, pa.RecordBatch]]]) -> dict[str, int]:
+    """Rows logged over time per entity: what the viewer shows, counted."""
+    return {e: sum(b.num_rows for static, b in chunks if not static) for e, chunks in rrd.items()
+            if not e.startswith("__")}  # fmt: skip
+
+
+@pytest.mark.parametrize("compression", ["lz4", "zstd", ""])
+def test_another_writers_file_shows_what_ours_does(
+    episode_file: pathlib.Path, saved: dict[str, list[tuple[bool, pa.RecordBatch]]], tmp_path: pathlib.Path,
+    capsys: pytest.CaptureFixture[str], compression: str,
+) -> None:  # fmt: skip
+    """The episode written again by the mcap package (each compression of the specification): the same
+    entities with the same rows. An lz4 file gave a "truncated" warning and an .rrd of nothing."""
+    other = rewrite_with_mcap_package(episode_file, tmp_path / "other.mcap", compression)
+    out = tmp_path / "other.rrd"
+    assert main([str(other), "--save", str(out)]) == 0
+    assert "warning" not in capsys.readouterr().err
+    assert _shown(read_rrd(out)) == _shown(saved)
+
+
+def test_hostile_files_are_refused_in_one_line_writing_nothing(
+    episode_file: pathlib.Path, tmp_path: pathlib.Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """A small file whose chunk claims 32 MiB from a few hundred bytes, the same episode twice in one file, and
+    a file of 2,100 steps each with a vehicle of a new id (a grid of 2,100 x 2,100 cells: with 12,000 steps
+    the viewer took 2.6 GB)."""
+    head, defs, messages = take_apart(episode_file)
+    bomb = assemble(tmp_path / "bomb.mcap", [*head, mcap_chunk(b"".join(defs + messages)), zeros_chunk(b"", 32 << 20)])
+    twice = assemble(tmp_path / "twice.mcap", [*head, mcap_chunk(b"".join(defs + messages)), mcap_chunk(b"".join(messages))])
+    sparse = tmp_path / "sparse.mcap"
+    one = np.ones(1)
+    with EpisodeWriter(sparse, metadata={"driver": "crafted"}, start_time_ns=0) as w:
+        for k in range(2100):
+            w.write_vehicles(k, k * 0.05, np.array([k]), one * k, one, one * 0, one, one * 0, np.array([1]),
+                             np.array([1]), one * 4, one * 2)  # fmt: skip
+    for path, why in ((bomb, "more than 1000 to 1"), (twice, "holds the same message twice"),
+                      (sparse, "2,100 steps x 2,100 vehicle ids would make a track grid of 4,410,000 cells")):  # fmt: skip
+        out = tmp_path / f"{path.stem}.rrd"
+        assert main([str(path), "--save", str(out)]) == 2, path
+        err = capsys.readouterr().err
+        assert err.startswith(f"lc-view: error: {path}: ") and err.count("\n") == 1 and why in err, err
+        assert not out.exists()
+
+
+def _two_vehicles(path: pathlib.Path, far_x: float, **road: float) -> pathlib.Path:
+    """20 steps of two vehicles under the paper scenario's config, the second at ``far_x``, the road changed."""
+    config = paper_scenario().to_dict()
+    config["road"] = {**config["road"], **road}
+    two = np.ones(2)
+    with EpisodeWriter(path, metadata={"driver": "crafted", "config": config}, start_time_ns=0) as w:
+        for k in range(20):
+            w.write_vehicles(k, k * 0.05, np.array([0, 1]), np.array([k, far_x]), two, two * 0, two, two * 0,
+                             np.array([1, 1]), np.array([1, 1]), two * 4, two * 2)  # fmt: skip
+    return path
+
+
+@pytest.mark.parametrize(
+    ("far_x", "road", "why"),
+    [
+        (1e9, {}, "the road to draw spans x from -100 to 1e+09 m (the vehicles' positions): 3.33e+08 lane-marking "
+                  "dashes, more than the 1,000,000 drawn"),
+        (10.0, {"num_lanes": 10**8}, "the config's road has 100000000 lanes; 1 to 64 can be drawn"),
+        (10.0, {"dash_length_m": 0.0, "dash_gap_m": 0.0}, "dash and gap not both 0"),
+        (10.0, {"lane_width_m": float("inf")}, "lengths must be finite and >= 0"),
+    ],
+)  # fmt: skip
+def test_a_road_that_cannot_be_drawn_is_refused_in_one_line(
+    tmp_path: pathlib.Path, capsys: pytest.CaptureFixture[str], far_x: float, road: dict[str, float], why: str
+) -> None:
+    """The road is drawn from the file's config and positions: a vehicle at x = 1e9 m asked for 333 million
+    dashes (5 GB), 100 million lanes for 39 GB, dashes of 0 m divided by zero: each a traceback."""
+    path = _two_vehicles(tmp_path / "road.mcap", far_x, **road)
+    out = tmp_path / "road.rrd"
+    assert main([str(path), "--save", str(out)]) == 2
+    err = capsys.readouterr().err
+    assert err.startswith(f"lc-view: error: {path}: ") and why in err and err.count("\n") == 1, err
+    assert not out.exists()
+
+
+def test_positions_that_are_not_numbers_leave_the_road_where_the_others_are(
+    tmp_path: pathlib.Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    path = _two_vehicles(tmp_path / "nan.mcap", float("nan"))
+    assert main([str(path), "--save", str(tmp_path / "nan.rrd")]) == 0
+    (edges,) = [b for static, b in read_rrd(tmp_path / "nan.rrd")["world/road/edges"] if static]
+    strips = np.asarray(edges.column("LineStrips2D:strips").to_pylist()[0], dtype=float)  # (2 edges, 2 ends, xy)
+    assert strips[..., 0].min() == -100.0 and strips[..., 0].max() == 119.0  # 0..19 m, and 100 m around
 
 # -- colours of the plots ---------------------------------------------------------------------------
 BACKGROUNDS = {"light": (255, 255, 255), "dark": (13, 16, 17)}

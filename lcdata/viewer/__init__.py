@@ -35,8 +35,6 @@ from lcdata.viewer.streams import SIM_TIME, STEP, VIEWS, describe, views_with_da
 
 __all__ = ["SIM_TIME", "STEP", "VIEWS", "blueprint", "describe", "episode_views", "log_episode", "views_with_data"]
 
-_ROAD_MARGIN_M = 100.0
-
 
 def log_episode(rec: rr.RecordingStream, episode: Episode, prefix: str = "", index: int = 0) -> None:
     """Log every stream of ``episode`` to ``rec`` under the entity prefix ``prefix``.
@@ -46,12 +44,7 @@ def log_episode(rec: rr.RecordingStream, episode: Episode, prefix: str = "", ind
     """
     rgb = streams.EPISODE_RGB[index % len(streams.EPISODE_RGB)] if prefix else None
     grid, tracks = TrackGrid.from_tracks(episode.tracks)
-    if len(tracks):
-        x = tracks["x"].to_numpy()
-        x_range = (float(x.min()) - _ROAD_MARGIN_M, float(x.max()) + _ROAD_MARGIN_M)
-    else:
-        x_range = (-_ROAD_MARGIN_M, _ROAD_MARGIN_M)
-    streams.log_road(rec, episode, prefix, x_range)
+    streams.log_road(rec, episode, prefix, streams.road_x_range(tracks))
     streams.log_vehicles(rec, episode, prefix, grid, tracks)
     streams.log_ego(rec, episode, prefix, grid, tracks)
     streams.log_predictions(rec, episode, prefix, grid)

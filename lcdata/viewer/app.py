@@ -20,12 +20,13 @@ import rerun as rr
 
 from lcdata.reader import Episode, TruncatedFileWarning, list_episodes, read_episode
 from lcdata.viewer import blueprint, describe, log_episode, views_with_data
+from lcdata.viewer.geometry import check_grid_size
+from lcdata.viewer.streams import road_shape, road_x_range
 
 log = logging.getLogger(__name__)
 
 APPLICATION_ID = "lc-view"
 EXIT_BAD_INPUT = 2
-
 
 
 class ViewError(Exception):
@@ -45,7 +46,9 @@ def open_episodes(paths: Sequence[pathlib.Path]) -> list[Episode]:
     """Read every episode; directories expand to the ``*.mcap`` files under them.
 
     Raises:
-        ViewError: a missing path, an empty directory, or a file that is not an lc-toolkit MCAP file.
+        ViewError: a missing path, an empty directory, a file that is not an lc-toolkit MCAP file or that the
+            reader refuses (over its limits, duplicated messages), tracks no viewer grid could hold, a road
+            that cannot be drawn.
     Truncated files are read up to their last complete chunk, with a warning on stderr.
     """
     files: list[pathlib.Path] = []
@@ -65,7 +68,9 @@ def open_episodes(paths: Sequence[pathlib.Path]) -> list[Episode]:
             warnings.simplefilter("always", TruncatedFileWarning)
             try:
                 episode = read_episode(f)
-                _ = episode.tracks  # decode now, so that a corrupt file fails here with its name
+                tracks = episode.tracks  # decode now, so that a corrupt file fails here with its name
+                check_grid_size(tracks["step"].nunique(), tracks["vehicle_id"].nunique(), len(tracks))
+                road_shape(episode.metadata["config"], road_x_range(tracks))
             except (ValueError, OSError) as exc:
                 raise ViewError(_one_line(exc, f)) from None
         for w in caught:

@@ -15,6 +15,27 @@ import pandas as pd
 
 TRAIL_LAGS = np.arange(0, 41, 5)
 """Steps behind the current one sampled by a history trail (2 s at 20 Hz, one point every 0.25 s)."""
+GRID_CELLS_PER_ROW = 64
+MIN_GRID_CELLS = 1 << 22
+"""A :class:`TrackGrid` may have :data:`GRID_CELLS_PER_ROW` cells per track row, and always
+:data:`MIN_GRID_CELLS` (64 MiB of positions). A simulated episode fills most of its grid, an imported window
+where vehicles come and go a smaller part; a file whose every step holds a new vehicle id would make a grid of
+rows squared (12,000 rows: 2.3 GB)."""
+
+
+def check_grid_size(n_steps: int, n_ids: int, rows: int) -> None:
+    """Refuse a (step, vehicle) grid far larger than the track rows it holds (a crafted file's, not an episode's).
+
+    Raises:
+        ValueError: one line, for a person.
+    """
+    cells, limit = n_steps * n_ids, max(MIN_GRID_CELLS, GRID_CELLS_PER_ROW * rows)
+    if cells > limit:
+        raise ValueError(
+            f"{n_steps:,} steps x {n_ids:,} vehicle ids would make a track grid of {cells:,} cells for "
+            f"{rows:,} track rows, more than the {limit:,} shown ({GRID_CELLS_PER_ROW} per row, at least "
+            f"{MIN_GRID_CELLS:,}): not a plausible episode"
+        )
 
 
 def screen(x: np.ndarray, y: np.ndarray) -> np.ndarray:
@@ -60,15 +81,20 @@ class TrackGrid:
 
     @classmethod
     def from_tracks(cls, tracks: pd.DataFrame) -> tuple[TrackGrid, pd.DataFrame]:
-        """Build the grid; also returns ``tracks`` sorted by (step, vehicle_id) to match ``row``/``col``."""
+        """Build the grid; also returns ``tracks`` sorted by (step, vehicle_id) to match ``row``/``col``.
+
+        Raises:
+            ValueError: the grid would be far larger than the rows (:func:`check_grid_size`).
+        """
         step = tracks["step"].to_numpy()
         vid = tracks["vehicle_id"].to_numpy()
         if len(step) > 1 and (np.any(np.diff(step) < 0) or np.any((np.diff(step) == 0) & (np.diff(vid) < 0))):
             tracks = tracks.iloc[np.lexsort((vid, step))].reset_index(drop=True)
             step, vid = tracks["step"].to_numpy(), tracks["vehicle_id"].to_numpy()
         steps, first, counts = np.unique(step, return_index=True, return_counts=True)
-        row = np.repeat(np.arange(len(steps)), counts)
         ids = np.unique(vid)
+        check_grid_size(len(steps), len(ids), len(step))
+        row = np.repeat(np.arange(len(steps)), counts)
         col = np.searchsorted(ids, vid)
         xy = np.full((len(steps), len(ids), 2), np.nan)
         xy[row, col, 0] = tracks["x"].to_numpy()

@@ -70,16 +70,65 @@ def _series(rec: rr.RecordingStream, entity: str, steps: np.ndarray, t: np.ndarr
 
 
 # -- world ------------------------------------------------------------------------------------------
+ROAD_MARGIN_M = 100.0
+"""The road is drawn this far before the first and past the last vehicle position."""
+MAX_LANES = 64
+MAX_ROAD_DASHES = 1_000_000
+"""The most lane-marking dashes drawn (a 5 km road of 4 lanes has about 1,700)."""
+
+
+def road_x_range(tracks: pd.DataFrame) -> tuple[float, float]:
+    """The x range the road is drawn over: the vehicles' finite positions and :data:`ROAD_MARGIN_M` around them
+    (around 0 without any)."""
+    x = tracks["x"].to_numpy()
+    x = x[np.isfinite(x)]
+    if not len(x):
+        return -ROAD_MARGIN_M, ROAD_MARGIN_M
+    return float(x.min()) - ROAD_MARGIN_M, float(x.max()) + ROAD_MARGIN_M
+
+
+def road_shape(config: Any, x_range: tuple[float, float]) -> tuple[int, float, float, float, float] | None:
+    """The road of an episode's config as :func:`log_road` draws it: ``(num_lanes, lane_width_m,
+    shoulder_width_m, dash_length_m, dash_gap_m)``, or None when the config describes no road.
+
+    Raises:
+        ValueError: a road that cannot be drawn (one line): not numbers, not 1 to :data:`MAX_LANES` lanes,
+            lengths that are not finite and >= 0, or more than :data:`MAX_ROAD_DASHES` dashes over ``x_range``.
+    """
+    if not isinstance(config, dict) or "road" not in config:
+        return None
+    road = config["road"]
+    try:
+        num_lanes = int(road.get("num_lanes", 4))
+        lengths = [float(road.get(key, default)) for key, default in
+                   (("lane_width_m", 3.5), ("shoulder_width_m", 2.5), ("dash_length_m", 3.0), ("dash_gap_m", 6.0))]  # fmt: skip
+    except (AttributeError, TypeError, ValueError, OverflowError):
+        raise ValueError(f"the config's road is not a table of numbers: {str(road)[:80]}") from None
+    w, shoulder, dash, gap = lengths
+    if not 1 <= num_lanes <= MAX_LANES:
+        raise ValueError(f"the config's road has {num_lanes} lanes; 1 to {MAX_LANES} can be drawn")
+    if not all(np.isfinite(v) and v >= 0 for v in lengths) or dash + gap <= 0:
+        raise ValueError(f"the config's road has lane width {w}, shoulder {shoulder}, dashes {dash} m with gaps of "
+                         f"{gap} m: lengths must be finite and >= 0, dash and gap not both 0")  # fmt: skip
+    x0, x1 = x_range
+    dashes = (num_lanes - 1) * ((x1 - x0) / (dash + gap) + 1)
+    if dashes > MAX_ROAD_DASHES:
+        raise ValueError(f"the road to draw spans x from {x0:.4g} to {x1:.4g} m (the vehicles' positions): "
+                         f"{dashes:.3g} lane-marking dashes, more than the {MAX_ROAD_DASHES:,} drawn")  # fmt: skip
+    return num_lanes, w, shoulder, dash, gap
+
+
 def log_road(rec: rr.RecordingStream, episode: Episode, prefix: str, x_range: tuple[float, float]) -> None:
     """Static road: solid edges, broken lane markings (dash by dash), shoulders, faint lane centres. None for an
-    episode whose config describes no road (traffic imported from a SUMO network, which has any shape)."""
-    if "road" not in episode.metadata["config"]:
+    episode whose config describes no road (traffic imported from a SUMO network, which has any shape).
+
+    Raises:
+        ValueError: a road that cannot be drawn (:func:`road_shape`).
+    """
+    shape = road_shape(episode.metadata["config"], x_range)
+    if shape is None:
         return
-    road = episode.metadata["config"]["road"]
-    num_lanes = int(road.get("num_lanes", 4))
-    w = float(road.get("lane_width_m", 3.5))
-    shoulder = float(road.get("shoulder_width_m", 2.5))
-    dash, gap = float(road.get("dash_length_m", 3.0)), float(road.get("dash_gap_m", 6.0))
+    num_lanes, w, shoulder, dash, gap = shape
     x0, x1 = x_range
     edges = [screen(np.array([x0, x1]), np.full(2, y)) for y in (0.0, num_lanes * w)]
     rec.log(path(prefix, "world/road/edges"), rr.LineStrips2D(edges, colors=[(235, 235, 235)], radii=0.1,
