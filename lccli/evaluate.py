@@ -7,7 +7,6 @@ import argparse
 import contextlib
 import dataclasses
 import functools
-import json
 import shlex
 import sys
 import time
@@ -194,6 +193,15 @@ def eval_main(argv: list[str] | None = None) -> int:
                      "episodes, which only lc-bench --final runs")
     if args.json_out is not None and args.json_out.exists() and not args.overwrite:
         return error(f"{args.json_out} already exists; pass --overwrite or choose another --json-out")
+    from lcdata.fileio import check_output_file, check_output_folder
+
+    try:  # the summary is written after the whole evaluation: a place it cannot go is refused first
+        if args.json_out is not None:
+            check_output_file(args.json_out, "--json-out")
+        if args.out is not None and not args.no_record:
+            check_output_folder(args.out)
+    except ValueError as exc:
+        return error(str(exc))
     if args.predictor is not None:
         problem = predictor_unused(args.policy, args.lookahead_follow, args.predictor)
         if problem:
@@ -211,7 +219,7 @@ def eval_main(argv: list[str] | None = None) -> int:
         driver, config = driver_for(args.policy, predictor=str(args.predictor) if args.predictor else None,
                                     lookahead=lookahead_options(args), follow=args.lookahead_follow,
                                     trust_pickle=args.trust_pickle, scenario=target)
-    except ValueError as exc:
+    except (ValueError, OSError) as exc:
         return error(str(exc).splitlines()[0])
     if config is None:
         config = target if target is not None else scenario("paper")
@@ -265,7 +273,11 @@ def eval_main(argv: list[str] | None = None) -> int:
             summary, results = evaluate(driver, config, episodes=args.episodes, seed=args.seed, out_dir=out,
                                         batch=args.batch, overwrite=args.overwrite, train_seeds=train_seeds,
                                         progress=show, hooks=hooks, scenario=scenario_label)  # fmt: skip
-    except (ValueError, OSError) as exc:
+    except OSError as exc:  # a full disk under --out
+        where = f" under {out}" if out is not None else ""
+        return error(f"the evaluation stopped: writing{where} failed: {exc.strerror or exc}; episodes not finished "
+                     "are left as .partial files")
+    except ValueError as exc:
         return error(str(exc).splitlines()[0])
     except KeyboardInterrupt:
         print("lc-eval: interrupted; nothing summarised (episodes recorded so far are kept; --overwrite to redo "
@@ -294,9 +306,20 @@ def eval_main(argv: list[str] | None = None) -> int:
     if out is not None:
         print(f"recorded {args.episodes} episodes in {out}")
     if args.json_out is not None:
-        args.json_out.parent.mkdir(parents=True, exist_ok=True)
-        args.json_out.write_text(json.dumps(summary, indent=2, sort_keys=True) + "\n")
-        print(f"wrote {args.json_out}")
+        return _write_summary(args.json_out, summary, error)
+    return 0
+
+
+def _write_summary(path: Path, data: object, error: Callable[[str], int]) -> int:
+    """Write ``--json-out`` (atomically); a write that fails still (a disk filled during the evaluation) is one
+    line, after the figures were printed."""
+    from lcdata.fileio import write_json
+
+    try:
+        write_json(path, data)
+    except OSError as exc:
+        return error(f"--json-out {path} could not be written: {exc.strerror or exc} (the figures are printed above)")
+    print(f"wrote {path}")
     return 0
 
 
@@ -332,8 +355,6 @@ def _bound_main(args: argparse.Namespace, error: Callable[[str], int]) -> int:
           f"{summary['undecided_episodes'] or 'none'}")
     print(f"search: {summary['nodes_total']} decisions simulated, {summary['cpu_s_total']} s CPU, "
           f"{summary['wall_s']} s wall on {args.workers or 2} workers")
-    if args.json_out is not None:
-        args.json_out.parent.mkdir(parents=True, exist_ok=True)
-        args.json_out.write_text(json.dumps({"summary": summary, "episodes": rows}, indent=1) + "\n")
-        print(f"wrote {args.json_out}")
+    if args.json_out is not None and _write_summary(args.json_out, {"summary": summary, "episodes": rows}, error):
+        return 2
     return 0 if summary["replayed_success"] == won else 1

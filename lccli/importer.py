@@ -118,6 +118,12 @@ def main(argv: Sequence[str] | None = None) -> int:
             bar = tqdm(total=total, unit=unit[0], unit_scale=unit[1], desc=args.file.name, disable=None)
         bar.update(done - bar.n)
 
+    from lcdata.fileio import check_output_folder
+
+    try:
+        check_output_folder(args.out)
+    except ValueError as exc:
+        return error(str(exc))
     if args.format == "highd" and args.meta is None and not args.file.name.endswith("_tracks.csv"):
         return error(f"{args.file}: a highD tracks file is named XX_tracks.csv, its meta file XX_tracksMeta.csv "
                      "beside it; name the meta file with --meta")

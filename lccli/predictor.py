@@ -98,8 +98,13 @@ def train_predictor_main(argv: list[str] | None = None) -> int:
 
     if not args.data.is_dir():
         return error(f"--data {args.data} is not a directory")
+    from lcdata.fileio import check_output_folder
     from lcmodels.predictor.train import METRICS_NAME
 
+    try:  # the predictor is written after the whole training: a folder it cannot go to is refused first
+        check_output_folder(args.out)
+    except ValueError as exc:
+        return error(str(exc))
     existing = [p for p in (args.out / "predictor.pt", args.out / METRICS_NAME) if p.exists()]
     if existing and not args.overwrite:
         return error(f"{existing[0]} already exists; choose another --out or pass --overwrite")

@@ -7,7 +7,6 @@ import collections
 import contextlib
 import dataclasses
 import json
-import os
 import pathlib
 import sys
 import time
@@ -24,6 +23,7 @@ from lccli.common import (
     zoo_spec,
 )
 from lcdata.record import DRIVERS, episode_filename, iter_record_episodes
+from lcdata.writer import MAX_START_TIME_NS
 from lcdata.writer_process import WRITER_MODES
 from lcsim.config import ScenarioConfig
 from lcsim.registry import SCENARIOS, scenario, scenario_label, split_policy_spec
@@ -50,6 +50,8 @@ the same command on an interrupted OUT records only the missing episodes and lea
 as they are; other flags for the same scenario and driver there are refused, naming the difference.
 """
 RECORD_JSON = "record.json"
+LOCK_NAME = ".lc-record.lock"
+"""Held (``flock``) while a recording writes in ``--out``: a second ``lc-record`` there is refused."""
 
 
 class UsageError(Exception):
@@ -134,14 +136,21 @@ def scenario_config(name: str, *, vehicles: int | None = None, steps: int | None
 
 
 def _check_out_dir(out: pathlib.Path) -> None:
-    if out.exists() and not out.is_dir():
-        raise UsageError(f"--out {out} exists and is not a directory")
+    """``UsageError`` when ``--out`` cannot take the recording (the filesystem root, the home directory, a file,
+    a folder nothing can be written in); nothing is created."""
+    from lcdata.fileio import check_output_folder
+
+    try:
+        check_output_folder(out)
+    except ValueError as exc:
+        raise UsageError(str(exc)) from None
+
+
+def _make_out_dir(out: pathlib.Path) -> None:
     try:
         out.mkdir(parents=True, exist_ok=True)
     except OSError as exc:
         raise UsageError(f"cannot create output directory {out}: {exc.strerror or exc}") from None
-    if not os.access(out, os.W_OK | os.X_OK):
-        raise UsageError(f"output directory {out} is not writable")
 
 
 def start_time_ns(text: str) -> int | None:
@@ -163,14 +172,20 @@ def start_time_ns(text: str) -> int | None:
     ns = int(when.timestamp()) * 1_000_000_000 + when.microsecond * 1000
     if ns < 0:
         raise UsageError(f"--start-time {text!r} is before 1970")
+    if ns > MAX_START_TIME_NS:  # a message's time is t = 0 plus the episode's, in 64-bit nanoseconds
+        raise UsageError(f"--start-time {text!r} is after 2262-01-01, the last time a recording's 64-bit "
+                         "nanosecond clock can hold")
     return ns
 
 
-def record_flags(args: argparse.Namespace, driver: str, scenario_name: str) -> dict[str, object]:
+def record_flags(args: argparse.Namespace, driver: str, scenario_name: str,
+                 content: dict[str, object] | None = None) -> dict[str, object]:
     """The flags that decide what the episode files hold (``OUT/record.json``); --seed, --episodes,
-    --workers and --writer only decide which files are written, and how fast."""
+    --workers and --writer only decide which files are written, and how fast. ``content``: the scenario's
+    fields when they come from elsewhere than its name (a policy's card), else read from the name."""
     flags: dict[str, object] = {
-        "scenario": scenario_name, "scenario_config": _scenario_content(scenario_name), "driver": driver,
+        "scenario": scenario_name, "driver": driver,
+        "scenario_config": content if content is not None else _scenario_content(scenario_name),
         "vehicles": args.vehicles, "steps": args.steps,
         "images": not args.no_images, "start_time": args.start_time if args.start_time != "now" else None,
         "lookahead_follow": args.lookahead_follow,
@@ -189,13 +204,13 @@ def record_flags(args: argparse.Namespace, driver: str, scenario_name: str) -> d
 
 def _read_record_json(out: pathlib.Path) -> dict[str, dict[str, object]]:
     """``OUT/record.json``: the flags of each set of episodes there, by file-name prefix (scenario_driver)."""
-    import json
+    from lcdata.fileio import loads_json
 
     record = out / RECORD_JSON
     if not record.exists():
         return {}
     try:
-        runs = json.loads(record.read_text()).get("runs")
+        runs = loads_json(record.read_text()).get("runs")
         if not isinstance(runs, dict) or not all(isinstance(v, dict) for v in runs.values()):
             raise ValueError("no 'runs' object of flags")
     except (OSError, ValueError, AttributeError) as exc:
@@ -274,12 +289,15 @@ def record_main(argv: Sequence[str] | None = None) -> int:
             config = scenario_config(scenario_name, vehicles=args.vehicles, steps=args.steps)
         except ValueError as exc:
             raise UsageError(str(exc)) from None
+        content = None
         if split_policy_spec(driver):
             if args.executor == "ray":
                 raise UsageError("--executor ray records built-in drivers; a policy drives in this process "
                                  "(lc-eval --executor ray shards a policy's episodes)")
             driver, config = _policy_driver(driver, args, config)
             scenario_name = _policy_scenario_label(args.driver)
+            if scenario_name not in SCENARIOS:  # a scenario file's name: its fields are the card's, not the file's
+                content = config.to_dict()
         elif args.lookahead_follow is not None or lookahead_options(args):
             raise UsageError("--lookahead-follow / --lookahead-horizon / --lookahead-samples / --lookahead-perceived "
                              "need --driver lookahead:CKPT or lookahead-blind:CKPT")
@@ -291,20 +309,42 @@ def record_main(argv: Sequence[str] | None = None) -> int:
                              "episodes, which only lc-bench --final runs; choose others")
         name = driver if isinstance(driver, str) else driver.name
         paths = [args.out / episode_filename(label, name, s) for s in seeds]
-        flags = record_flags(args, args.driver or default_driver(scenario_name), scenario_name)
-        if args.out.exists() and not args.out.is_dir():
-            raise UsageError(f"--out {args.out} exists and is not a directory")
-        key = paths[0].name.rsplit("_s", 1)[0]  # the scenario_driver prefix of the file names
-        resume = _check_resume(args.out, key, flags, paths, args.overwrite) if args.out.is_dir() else False
+        flags = record_flags(args, args.driver or default_driver(scenario_name), scenario_name, content)
         _check_out_dir(args.out)
+        key = paths[0].name.rsplit("_s", 1)[0]  # the scenario_driver prefix of the file names
+        if args.out.is_dir():
+            _check_resume(args.out, key, flags, paths, args.overwrite)
     except UsageError as exc:
         print(f"lc-record: error: {exc}", file=sys.stderr)
         return 2
     except SystemExit as exc:  # --help
         return int(exc.code or 0)
-    setup_logging("lc-record", verbose=args.verbose)
+    # Every check has passed: from here on --out is written, by this process alone (a second lc-record there is
+    # refused rather than recording the same files at once).
+    from lcdata.fileio import folder_lock
+
+    try:
+        _make_out_dir(args.out)
+        with folder_lock(args.out, "lc-record", LOCK_NAME):
+            return _record(args, config, driver, label, seeds, paths, key, flags, start_ns)
+    except (UsageError, ValueError) as exc:
+        print(f"lc-record: error: {' '.join(str(exc).split())}", file=sys.stderr)
+        return 2
+    except (OSError, RuntimeError) as exc:  # a full disk, a folder removed while recording, the writer failing
+        why = exc.strerror if isinstance(exc, OSError) and exc.strerror else str(exc).splitlines()[0]
+        print(f"lc-record: error: recording into {args.out} failed: {why}; the episodes not finished are left as "
+              ".partial files: rerun the same command to record them", file=sys.stderr)
+        return 1
+
+
+def _record(args: argparse.Namespace, config: ScenarioConfig, driver: object, label: str, seeds: list[int],
+            paths: list[pathlib.Path], key: str, flags: dict[str, object], start_ns: int | None) -> int:
+    """Record the episodes (``--out`` made and locked): ``record.json``, then the missing episode files."""
     from lcdata.fileio import write_json
 
+    name = driver if isinstance(driver, str) else driver.name  # type: ignore[attr-defined]
+    resume = _check_resume(args.out, key, flags, paths, args.overwrite)  # again: another run may have finished
+    setup_logging("lc-record", verbose=args.verbose)
     write_json(args.out / RECORD_JSON, {"runs": {**_read_record_json(args.out), key: flags}})
     todo = [s for s, p in zip(seeds, paths, strict=True) if args.overwrite or not p.exists()]
     if resume:

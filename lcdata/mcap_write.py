@@ -112,6 +112,14 @@ def _record(opcode: int, body: bytes) -> bytes:
     return struct.pack("<BQ", opcode, len(body)) + body
 
 
+
+def _failure(what: str, error: BaseException) -> Exception:
+    """The writer thread's failure as the caller gets it: an ``OSError`` (a full disk) stays one, with its
+    ``errno`` (a command reports it as a write error, in one line), anything else a ``RuntimeError``."""
+    if isinstance(error, OSError):
+        return OSError(error.errno, f"{what}: {error.strerror or error}", error.filename)
+    return RuntimeError(what)
+
 class McapStreamWriter:
     """Write an MCAP file record by record.
 
@@ -302,7 +310,7 @@ class McapStreamWriter:
         self._stop_worker()
         self._stream.close()
         if self._error is not None:
-            raise RuntimeError("MCAP writing failed") from self._error
+            raise _failure("MCAP writing failed", self._error) from self._error
 
     def abort(self) -> None:
         """Stop without writing the summary (the file stays a recoverable partial file)."""
@@ -319,7 +327,7 @@ class McapStreamWriter:
     # -- I/O side ---------------------------------------------------------------------------------
     def _submit(self, job: Callable[[], None]) -> None:
         if self._error is not None:
-            raise RuntimeError("MCAP writer thread failed") from self._error
+            raise _failure("MCAP writer thread failed", self._error) from self._error
         if self._queue is None:
             job()
         else:
@@ -332,7 +340,8 @@ class McapStreamWriter:
                 try:
                     job()
                 except BaseException as exc:  # reported on the caller's next call
-                    log.exception("MCAP writer thread failed")
+                    if not isinstance(exc, OSError):  # a full disk is the caller's to report, in its words
+                        log.exception("MCAP writer thread failed")
                     self._error = exc
 
     def _stop_worker(self) -> None:

@@ -56,6 +56,10 @@ from lcdata.wire import f_double, f_packed, f_varint
 log = logging.getLogger(__name__)
 
 PARTIAL_SUFFIX = ".partial"
+MAX_START_TIME_NS = 9_214_646_400 * 1_000_000_000
+"""The latest ``t = 0`` of a file: 2262-01-01T00:00:00Z. A message's time, ``t = 0`` plus the episode's, is a
+64-bit count of nanoseconds since 1970 (signed, as most MCAP readers take it), which ends in April 2262; the
+three months between leave room for the longest episode a scenario allows."""
 LOG_LEVELS = {
     "debug": Log.DEBUG,
     "info": Log.INFO,
@@ -112,6 +116,9 @@ class EpisodeSink:
         if self.path.exists() and not overwrite:
             raise FileExistsError(f"{self.path} already exists; pass overwrite=True to replace it")
         self.start_time_ns = time.time_ns() if start_time_ns is None else int(start_time_ns)
+        if not 0 <= self.start_time_ns <= MAX_START_TIME_NS:
+            raise ValueError(f"start_time_ns must be in [0, {MAX_START_TIME_NS}] (1970 to 2262-01-01), got "
+                             f"{self.start_time_ns}")
         self.path.parent.mkdir(parents=True, exist_ok=True)
 
     def write_sim_steps(self, steps: Sequence[int], ts: Sequence[float], vehicles: Sequence[Any],
@@ -478,5 +485,5 @@ class EpisodeWriter(EpisodeSink):
         if not self._closed:
             self._closed = True
             self._mcap.abort()
-            log.warning("episode aborted; partial file left at %s", self.partial_path)
+            log.info("episode aborted; partial file left at %s", self.partial_path)  # the caller says why
 

@@ -384,7 +384,7 @@ class ProcessEpisodeWriter(EpisodeSink):
                 self._svc.request(OP_ABORT, self._wid)
             except RuntimeError as exc:  # the helper is gone or failed: the file stays .partial either way
                 log.warning("%s: %s", self.partial_path, exc)
-            log.warning("episode aborted; partial file left at %s", self.partial_path)
+            log.info("episode aborted; partial file left at %s", self.partial_path)  # the caller says why
 
 
 
@@ -492,7 +492,7 @@ def serve() -> None:
             exc = failed.pop(wid, None) if op != OP_COUNT else failed.get(wid)
             writer = writers.get(wid)
             if exc is not None:
-                answer(False, RuntimeError(f"MCAP writing failed: {type(exc).__name__}: {exc}"))
+                answer(False, _reported(exc))
                 continue
             try:
                 assert writer is not None, f"no open writer {wid}"
@@ -504,7 +504,7 @@ def serve() -> None:
                 answer(True, count)
             except Exception as exc:
                 writers.pop(wid, None)
-                answer(False, RuntimeError(f"MCAP writing failed: {type(exc).__name__}: {exc}"))
+                answer(False, _reported(exc))
             continue
         writer = writers.get(wid)
         if writer is None:
@@ -528,6 +528,14 @@ def serve() -> None:
         except Exception:  # a file we cannot write stays as it is
             pass
         writer.abort()
+
+
+def _reported(exc: BaseException) -> Exception:
+    """A failure of the helper as its caller gets it: an ``OSError`` (a full disk, a folder gone) stays one, with
+    its ``errno``, so that a command reports it like any other write error; anything else a ``RuntimeError``."""
+    if isinstance(exc, OSError):
+        return OSError(exc.errno, f"MCAP writing failed: {exc.strerror or exc}", exc.filename)
+    return RuntimeError(f"MCAP writing failed: {type(exc).__name__}: {exc}")
 
 
 def open_writer(path: str | os.PathLike[str], *, mode: str = "process",

@@ -206,9 +206,11 @@ class Experiment:
         return base.with_suffix(".json"), base.with_suffix(".pending.json")
 
     def check_out(self) -> None:
-        """``ValueError`` when ``out`` is a file or a non-empty directory that is not an experiment."""
-        if self.out.exists() and not self.out.is_dir():
-            raise ValueError(f"--out {self.out} exists and is not a directory")
+        """``ValueError`` when ``out`` is a file, a non-empty directory that is not an experiment, the filesystem
+        root or the home directory, or a folder nothing can be written in."""
+        from lcdata.fileio import check_output_folder
+
+        check_output_folder(self.out)
         if self.out.is_dir() and any(q.name != LOCK_NAME for q in self.out.iterdir()) and not (
                 self.out / MARKER).exists():
             raise ValueError(f"--out {self.out} is a non-empty directory without {MARKER}; "

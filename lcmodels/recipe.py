@@ -54,7 +54,7 @@ import re
 from collections.abc import Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any
+from typing import Any, ClassVar
 
 from lcsim.config import parse_value, read_data_file
 
@@ -87,6 +87,8 @@ def _check_table(table: dict[str, Any], where: str) -> None:
 
 @dataclass(frozen=True, slots=True, kw_only=True)
 class DemoSpec:
+    LIMITS: ClassVar[dict[str, int]] = {"episodes": 100_000, "seed": 100_000_000}
+
     driver: str = "oracle"
     """Who drives the demonstrations (an lcsim driver name)."""
     episodes: int = 400
@@ -96,6 +98,8 @@ class DemoSpec:
 
 @dataclass(frozen=True, slots=True, kw_only=True)
 class DaggerSpec:
+    LIMITS: ClassVar[dict[str, int]] = {"rounds": 1_000, "episodes": 100_000, "epochs": 10_000, "seed": 100_000_000}
+
     rounds: int = 2
     episodes: int = 100
     """Episodes the policy drives per round."""
@@ -107,6 +111,8 @@ class DaggerSpec:
 
 @dataclass(frozen=True, slots=True, kw_only=True)
 class SafetySpec:
+    LIMITS: ClassVar[dict[str, int]] = {"horizon": 1_000, "samples": 1_000}
+
     follow: str = ""
     """The recipe whose final policy (same training seed) the planner's imagined futures follow: one that
     does not read the image. '' with a policy that does not read the image: the policy itself."""
@@ -129,6 +135,8 @@ class SafetySpec:
 
 @dataclass(frozen=True, slots=True, kw_only=True)
 class ShieldedSpec:
+    LIMITS: ClassVar[dict[str, float]] = {"timesteps": 1_000_000_000, "penalty": 1_000_000.0}
+
     timesteps: int = 150_000
     """PPO steps behind the safety layer, from the previous stage's policy with the ``[train]`` settings."""
     penalty: float = 100.0
@@ -194,7 +202,11 @@ class Recipe:
                     if not isinstance(v, want) or (want is not bool and isinstance(v, bool)):
                         raise ValueError(f"{where}: {name}.{f.name} must be of type {f.type}, got {v!r}")
                     if want is int and v < (0 if f.name == "seed" else 1):
-                        raise ValueError(f"{where}: {name}.{f.name} must be >= 1, got {v!r}")
+                        raise ValueError(f"{where}: {name}.{f.name} must be >= {0 if f.name == 'seed' else 1}, "
+                                         f"got {v!r}")
+                    hi = cls.LIMITS.get(f.name)
+                    if want is not str and want is not bool and hi is not None and v > hi:
+                        raise ValueError(f"{where}: {name}.{f.name} must be at most {hi:,}, got {v!r}")
         if not math.isfinite(self.shielded.penalty) or self.shielded.penalty < 0:
             raise ValueError(f"{where}: shielded.penalty must be >= 0, got {self.shielded.penalty!r}")
         if "shielded" in stages and self.safety is not None and self.safety.follow == self.name:
@@ -320,7 +332,7 @@ class Recipe:
                 raise ValueError(f"{where}: {key} must be a string, got {kwargs[key]!r}")
         try:
             return cls(**kwargs)
-        except ValueError as exc:
+        except (ValueError, TypeError) as exc:  # TypeError: a value no check expected (a table in a list)
             msg = str(exc)  # "recipe 'NAME'..." from the checks: name the file instead
             msg = re.sub(r"^recipe '[^']*'", where, msg) if msg.startswith("recipe '") else f"{where}: {msg}"
             raise ValueError(msg) from None

@@ -21,19 +21,42 @@ from collections.abc import Sequence
 from dataclasses import dataclass, field
 from typing import Any, ClassVar, Self
 
+DATA_FILE_MAX_BYTES = 16 << 20
+"""The largest config, scenario, sweep or recipe file read (16 MiB: a hand-written table is a few KiB)."""
+
+
+def loads_data(text: str | bytes, suffix: str = ".json") -> Any:
+    """The value a TOML (``suffix`` ``.toml``) or JSON text holds. ``ValueError`` for text that does not parse,
+    including nesting too deep for the parser (Python's TOML and JSON readers recurse once per level), so that
+    no crafted file ends in a ``RecursionError``."""
+    try:
+        if suffix == ".toml":
+            return tomllib.loads(text.decode() if isinstance(text, bytes) else text)
+        return json.loads(text)
+    except RecursionError:
+        raise ValueError("nested too deeply") from None
+
 
 def read_data_file(path: str | os.PathLike[str], what: str = "file") -> dict[str, Any]:
     """The table a ``.toml`` or ``.json`` file holds (a config, a scenario, a sweep). ``ValueError`` in one line
-    naming the file: another suffix, a missing file, text that does not parse, or no table at the top."""
+    naming the file: another suffix, a missing file, one over :data:`DATA_FILE_MAX_BYTES`, text that does not
+    parse (nesting too deep included), or no table at the top."""
     path = pathlib.Path(path)
     if path.suffix not in (".toml", ".json"):
         raise ValueError(f"{what} {path}: the name must end in .toml or .json")
     try:
+        if path.is_file() and path.stat().st_size > DATA_FILE_MAX_BYTES:
+            raise ValueError(f"{what} {path} is {path.stat().st_size} bytes, more than a {what} can be "
+                             f"({DATA_FILE_MAX_BYTES >> 20} MiB)")
         text = path.read_text()
-        data = tomllib.loads(text) if path.suffix == ".toml" else json.loads(text)
+        data = loads_data(text, path.suffix)
     except FileNotFoundError:
         raise ValueError(f"{what} {path} does not exist") from None
+    except IsADirectoryError:
+        raise ValueError(f"{what} {path} is a directory") from None
     except (OSError, UnicodeDecodeError, ValueError) as exc:  # tomllib's and json's errors are ValueErrors
+        if str(exc).startswith(f"{what} {path}"):
+            raise
         raise ValueError(f"{what} {path} is not valid {path.suffix[1:].upper()}: {exc}") from None
     if not isinstance(data, dict):
         raise ValueError(f"{what} {path} holds no table at the top")
@@ -97,16 +120,51 @@ def parse_value(text: str, like: object, what: str, declared: str = "") -> objec
 
 
 _SCALAR_TYPES: dict[str, tuple[type, ...]] = {"int": (int,), "float": (int, float), "bool": (bool,), "str": (str,)}
+_TUPLE_TYPES: dict[str, tuple[type, ...]] = {"tuple[float, ...]": (int, float), "tuple[int, ...]": (int,),
+                                              "tuple[str, ...]": (str,)}
 
 
 def check_types(obj: object) -> None:
     """``ValueError`` naming the field when a field declared ``int``, ``float``, ``bool`` or ``str`` holds a
-    value of another type (``True`` is no ``int`` here, ``2.5`` no ``int``, ``"no"`` no ``bool``)."""
+    value of another type (``True`` is no ``int`` here, ``2.5`` no ``int``, ``"no"`` no ``bool``), or a field
+    declared ``tuple[float, ...]`` (``int``, ``str``) something else than a tuple of those."""
     for f in dataclasses.fields(obj):  # type: ignore[arg-type]
-        want = _SCALAR_TYPES.get(str(f.type))
         v = getattr(obj, f.name)
+        want = _SCALAR_TYPES.get(str(f.type))
         if want is not None and (not isinstance(v, want) or (isinstance(v, bool) and bool not in want)):
             raise ValueError(f"{type(obj).__name__}.{f.name} must be of type {f.type}, got {v!r}")
+        items = _TUPLE_TYPES.get(str(f.type))
+        if items is not None and (not isinstance(v, tuple) or any(
+                not isinstance(x, items) or isinstance(x, bool) for x in v)):
+            raise ValueError(f"{type(obj).__name__}.{f.name} must be a list of {items[-1].__name__}s, got {v!r}")
+
+
+NUMBER_LIMIT = 1e9
+"""No number in a config is larger in magnitude than this unless its class's ``LIMITS`` says otherwise: a
+value such as 1e308 is a slip or a crafted file, and a loop or an allocation sized by it would not end."""
+
+
+def _shown(limit: float) -> str:
+    return str(int(limit)) if float(limit).is_integer() and abs(limit) < 1e15 else f"{limit:g}"
+
+
+def check_limits(obj: object) -> None:
+    """The types of a config's fields (:func:`check_types`), then its numbers: each finite and, in magnitude, at
+    most its class's ``LIMITS[name]`` (a plausible upper bound), else :data:`NUMBER_LIMIT`; a tuple's items
+    likewise. ``ValueError`` naming ``Class.field``, the bound and the value. Called first by every config's
+    ``__post_init__``, before the rules of the field themselves (which then compare sane numbers)."""
+    check_types(obj)
+    limits: dict[str, float] = getattr(type(obj), "LIMITS", {})
+    for f in dataclasses.fields(obj):  # type: ignore[arg-type]
+        v = getattr(obj, f.name)
+        hi = limits.get(f.name, NUMBER_LIMIT)
+        for x in v if isinstance(v, tuple) else (v,):
+            if isinstance(x, bool) or not isinstance(x, int | float):
+                continue
+            if isinstance(x, float) and not math.isfinite(x):
+                check_field(False, obj, f.name, "must be a finite number", v)
+            check_field(x <= hi, obj, f.name, f"must be at most {_shown(hi)}", v)
+            check_field(x >= -NUMBER_LIMIT, obj, f.name, f"must be at least {_shown(-NUMBER_LIMIT)}", v)
 
 
 def field_type(obj: object, name: str) -> str:
@@ -141,6 +199,8 @@ def require_non_negative(obj: object, *names: str) -> None:
 class JsonConfig:
     """Nested dataclass <-> dict/JSON with unknown keys rejected (a misspelt key is an error)."""
 
+    LIMITS: ClassVar[dict[str, float]] = {}
+    """Plausible upper bounds of number fields (:func:`check_limits`; others: :data:`NUMBER_LIMIT`)."""
     LEGACY_DEFAULTS: ClassVar[dict[str, Any]] = {}
     """Values of fields added after configs were first stored, for stored configs that lack them: what
     the code did before the field existed (so old recordings replay and old checkpoints compare as they
@@ -181,7 +241,7 @@ class JsonConfig:
             kwargs[name] = value
         try:
             return cls(**kwargs)
-        except (TypeError, AttributeError, OverflowError) as exc:  # a value of the wrong type met a check
+        except (TypeError, AttributeError, OverflowError, RecursionError) as exc:  # a value of the wrong type
             raise ValueError(f"{cls.__name__}: a value of the wrong type ({exc})") from None
 
     def to_toml(self, table: str | None = None) -> str:
@@ -239,7 +299,7 @@ class JsonConfig:
     @classmethod
     def from_json(cls, text: str) -> Self:
         """:meth:`from_dict` of a JSON text (``ValueError`` for text that is not JSON, too)."""
-        return cls.from_dict(json.loads(text))
+        return cls.from_dict(loads_data(text))
 
 
 @dataclass(frozen=True, slots=True, kw_only=True)
@@ -253,7 +313,11 @@ class RoadConfig(JsonConfig):
     dash_length_m: float = 3.0
     dash_gap_m: float = 6.0
 
+    LIMITS: ClassVar[dict[str, float]] = {"lane_width_m": 10.0, "shoulder_width_m": 20.0, "marking_width_m": 1.0,
+                                          "dash_length_m": 100.0, "dash_gap_m": 100.0}
+
     def __post_init__(self) -> None:
+        check_limits(self)
         check_field(isinstance(self.num_lanes, int) and 2 <= self.num_lanes <= 6, self, "num_lanes",
                "must be an integer in [2, 6]", self.num_lanes)
         require_positive(self, "lane_width_m", "marking_width_m", "dash_length_m", "dash_gap_m")
@@ -332,8 +396,21 @@ class TrafficConfig(JsonConfig):
     """Per-driver probability of acting on a blocked leader at a check, uniform in [this, 1] (1: always)."""
 
     LEGACY_DEFAULTS: ClassVar[dict[str, Any]] = {"human_like": False}
+    LIMITS: ClassVar[dict[str, float]] = {
+        "num_vehicles": 1_000_000, "speed_kmh": 300.0, "speed_spread_kmh": 100.0, "length_m": 30.0, "width_m": 5.0,
+        "spawn_behind_m": 100_000.0, "spawn_ahead_m": 100_000.0, "min_spawn_gap_m": 1_000.0,
+        "ego_clearance_m": 1_000.0, "idm_time_headway_s": 60.0, "idm_min_gap_m": 1_000.0, "idm_max_accel_mps2": 50.0,
+        "idm_comfort_decel_mps2": 50.0, "idm_delta": 100.0, "max_decel_mps2": 100.0, "lane_change_duration_s": 60.0,
+        "lane_change_check_period_s": 60.0, "blocked_gap_min_m": 10_000.0, "blocked_gap_max_m": 10_000.0,
+        "blocked_speed_margin_kmh": 300.0, "lane_change_front_gap_m": 1_000.0, "lane_change_rear_gap_m": 1_000.0,
+        "lane_change_rear_headway_s": 60.0, "random_lane_change_rate_per_min": 60.0, "driver_spread": 5.0,
+        "accel_noise_mps2": 20.0, "accel_noise_time_s": 3_600.0, "reaction_time_s": 10.0, "lane_wander_m": 10.0,
+        "lane_wander_time_s": 3_600.0, "lane_change_spread": 5.0, "lane_change_eagerness_min": 1.0,
+    }  # fmt: skip
+    """Plausible upper bounds (a highway's speeds, a car's size and accelerations, a human's times)."""
 
     def __post_init__(self) -> None:
+        check_limits(self)
         check_field(isinstance(self.num_vehicles, int) and self.num_vehicles >= 0, self, "num_vehicles",
                "must be an integer >= 0", self.num_vehicles)
         check_field(isinstance(self.human_like, bool), self, "human_like", "must be true or false", self.human_like)
@@ -362,7 +439,10 @@ class PIDGains(JsonConfig):
     kd: float
     dt_s: float = 0.1
 
+    LIMITS: ClassVar[dict[str, float]] = {"kp": 1_000.0, "ki": 1_000.0, "kd": 1_000.0, "dt_s": 10.0}
+
     def __post_init__(self) -> None:
+        check_limits(self)
         require_non_negative(self, "kp", "ki", "kd")
         require_positive(self, "dt_s")
 
@@ -433,7 +513,17 @@ class EgoConfig(JsonConfig):
     acc_time_headway_s: float = 1.5
     acc_min_gap_m: float = 4.0
 
+    LIMITS: ClassVar[dict[str, float]] = {
+        "length_m": 30.0, "width_m": 5.0, "wheelbase_m": 30.0, "target_speed_kmh": 300.0, "initial_speed_kmh": 300.0,
+        "start_lane": 5, "max_accel_mps2": 50.0, "max_brake_decel_mps2": 100.0, "powertrain_lag_s": 10.0,
+        "rolling_resistance_mps2": 10.0, "drag_per_speed2": 1.0, "max_steer_change": 2.0, "pid_window": 10_000,
+        "lane_change_time_s": 60.0, "same_lane_time_s": 3_600.0, "waypoint_spacing_m": 100.0,
+        "base_min_distance_m": 1_000.0, "distance_ratio": 100.0, "lane_change_tolerance_m": 10.0,
+        "acc_time_headway_s": 60.0, "acc_min_gap_m": 1_000.0,
+    }  # fmt: skip
+
     def __post_init__(self) -> None:
+        check_limits(self)
         require_positive(self, "length_m", "width_m", "wheelbase_m", "target_speed_kmh", "max_steer_angle_deg",
                   "max_accel_mps2", "max_brake_decel_mps2", "max_throttle", "max_brake", "max_steer",
                   "max_steer_change", "lane_change_time_s", "waypoint_spacing_m",
@@ -464,7 +554,12 @@ class RewardConfig(JsonConfig):
     """Fractions of the route at which a success reward is paid; reaching 1.0 ends the episode."""
     milestone_rewards: tuple[float, ...] = (100.0, 150.0, 200.0, 1000.0)
 
+    MAX_MILESTONES: ClassVar[int] = 100
+
     def __post_init__(self) -> None:
+        check_limits(self)
+        check_field(len(self.milestones) <= self.MAX_MILESTONES, self, "milestones",
+                    f"must be at most {self.MAX_MILESTONES} fractions", len(self.milestones))
         check_field(len(self.milestones) == len(self.milestone_rewards) and len(self.milestones) > 0, self,
                "milestone_rewards", "must have one reward per milestone", self.milestone_rewards)
         ms = list(self.milestones)
@@ -480,7 +575,11 @@ class RenderConfig(JsonConfig):
     resolution_m_per_px: float = 0.5
     max_vehicles_drawn: int = 32
 
+    LIMITS: ClassVar[dict[str, float]] = {"image_size_px": 1024, "resolution_m_per_px": 100.0,
+                                          "max_vehicles_drawn": 10_000}
+
     def __post_init__(self) -> None:
+        check_limits(self)
         check_field(isinstance(self.image_size_px, int) and 16 <= self.image_size_px <= 1024, self,
                "image_size_px", "must be an integer in [16, 1024]", self.image_size_px)
         require_positive(self, "resolution_m_per_px")
@@ -528,8 +627,25 @@ class ScenarioConfig(JsonConfig):
     the episode goes on: CARLA's agent finds no waypoint there, and the paper's outcomes have no off-road)
     or ``leave_road`` (carried out; the ego leaves the road and the episode ends ``off_road``)."""
 
+    LIMITS: ClassVar[dict[str, float]] = {"dt_s": 1.0, "decision_period_s": 60.0, "route_length_m": 100_000.0,
+                                          "time_limit_s": 86_400.0, "history_steps": 1_000, "num_neighbours": 64,
+                                          "sensing_range_m": 10_000.0}
+    """Plausible upper bounds: a day-long episode, a 100 km route, 1000 steps of history, 64 vehicles shown."""
+    MIN_DT_S: ClassVar[float] = 1e-3
+    MAX_STEPS: ClassVar[int] = 1_000_000
+    """The most simulation steps an episode may have (``time_limit_s / dt_s``): 14 hours at 20 Hz."""
+
     def __post_init__(self) -> None:
+        check_limits(self)
+        for name in ("road", "traffic", "ego", "reward", "render"):
+            want = _NESTED[("ScenarioConfig", name)]
+            check_field(isinstance(getattr(self, name), want), self, name, f"must be a {want.__name__}",
+                        getattr(self, name))
         require_positive(self, "dt_s", "decision_period_s", "route_length_m", "time_limit_s", "sensing_range_m")
+        check_field(self.dt_s >= self.MIN_DT_S, self, "dt_s", f"must be >= {self.MIN_DT_S}", self.dt_s)
+        check_field(self.time_limit_s / self.dt_s <= self.MAX_STEPS, self, "time_limit_s",
+                    f"must be at most {self.MAX_STEPS} steps of dt_s ({self.MAX_STEPS * self.dt_s:g} s)",
+                    self.time_limit_s)
         tc = self.traffic
         if tc.human_like:  # the wander (clipped) must keep a car (the ego too, on autopilot) and the neighbour
             # index's margin strictly inside its lane

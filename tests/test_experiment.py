@@ -467,7 +467,7 @@ def check_a_folder_published_with_weights_resumes_as_the_run(run_dir: Path, tmp_
     # a policy of the copy whose card names a predictor no longer there reads the copy's own, found by SHA-256
     policy = resumed / "policies" / "hybrid-ppo" / "seed0" / "train" / "policy.safetensors"
     meta = read_meta(policy)
-    assert Path(meta["predictor"]["path"]).is_relative_to(run_dir.resolve())  # where it was trained
+    assert not Path(meta["predictor"]["path"]).is_absolute()  # no path of the machine it was trained on
     gone = meta | {"predictor": meta["predictor"] | {"path": str(tmp_path / "gone" / "predictor.pt")}}
     assert find_predictor(gone, policy) == (resumed / "predictor" / "predictor.pt").resolve()
     other = gone | {"predictor": gone["predictor"] | {"sha256": "0" * 64}}

@@ -381,3 +381,15 @@ def test_view_and_train_predictor_run_on_imported_episodes(highd_out: pathlib.Pa
                                  "-q"]) == 0  # fmt: skip
     metrics = json.loads((out / "metrics.json").read_text())
     assert metrics["constant_velocity"]["ade"] >= 0 and metrics["model"]["ade"] >= 0
+
+
+def test_the_root_and_the_home_directory_are_no_output_folder(tmp_path: pathlib.Path, monkeypatch, capsys) -> None:
+    home = tmp_path / "home"
+    home.mkdir()
+    monkeypatch.setenv("HOME", str(home))
+    fcd = write_fcd(tmp_path / "fcd.xml")
+    for out, why in (("/", "filesystem root"), (str(home), "home directory")):
+        assert main(["sumo-fcd", str(fcd), "--out", out, "-q"]) == 2
+        err = capsys.readouterr().err
+        assert why in err and err.count("\n") == 1
+    assert not list(home.iterdir())

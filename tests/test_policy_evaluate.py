@@ -194,3 +194,36 @@ def test_lc_eval_workers_give_the_same_figures_and_files(
     assert eval_main(["rule", "--scenario", "tiny", "--episodes", "2", "--workers", "2", "--breakdown",
                       "--no-record"]) == 2  # fmt: skip
     assert "--breakdown runs in this process only" in capsys.readouterr().err
+
+
+def test_a_json_out_that_cannot_be_written_is_refused_before_the_evaluation(
+        tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    """--json-out is written after the whole evaluation: where it cannot go is refused first, in one line."""
+    a_file = tmp_path / "a_file"
+    a_file.write_text("not a directory")
+    for target, why in ((tmp_path, "is a directory"), (a_file / "summary.json", "not a directory"),
+                        (Path("/proc/lc-test-summary.json"), "cannot be written")):
+        assert eval_main(["rule", "--scenario", "tiny", "--episodes", "1", "--no-record", "--overwrite",
+                          "--json-out", str(target)]) == 2
+        captured = capsys.readouterr()
+        assert why in captured.err and captured.err.count("\n") == 1
+        assert "held-out evaluation" not in captured.out  # refused before evaluating
+
+
+def test_a_full_disk_under_lc_eval_is_one_line(tmp_path: Path) -> None:
+    """Recording the episodes on a disk that fills up (a file-size limit) ends in one line, not a traceback."""
+    import resource
+    import subprocess
+    import sys
+
+    argv = ["rule", "--scenario", "tiny", "--episodes", "2", "--out", str(tmp_path / "eval"), "-q"]
+    code = f"import sys; sys.argv[0] = 'lc-eval'; from lccli.evaluate import eval_main; sys.exit(eval_main({argv!r}))"
+
+    def small_disk() -> None:
+        resource.setrlimit(resource.RLIMIT_FSIZE, (16 << 10, resource.getrlimit(resource.RLIMIT_FSIZE)[1]))
+
+    proc = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, preexec_fn=small_disk,
+                          timeout=300)
+    err = [line for line in proc.stderr.splitlines() if line.strip()]
+    assert proc.returncode == 2 and "Traceback" not in proc.stderr, proc.stderr
+    assert len(err) == 1 and err[0].startswith("lc-eval: error:") and "File too large" in err[0], err

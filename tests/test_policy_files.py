@@ -270,3 +270,232 @@ def test_overwrite_leaves_none_of_the_previous_runs_tensorboard(run_dir: Path, t
     assert old
     train_policy(_tiny(seed=2), out, overwrite=True)
     assert not old & {p.name for p in (out / "tb").rglob("events.out.tfevents.*")}
+
+
+# -- crafted cards: every field's type and range is checked before a network is built ------------------------
+def _recard(src: Path, dest: Path, change=None, text: str | None = None) -> Path:
+    """A copy of the policy file ``src`` whose card ``change`` edited (or whose card is the raw ``text``)."""
+    from safetensors import safe_open
+    from safetensors.torch import load_file, save_file
+
+    with safe_open(str(src), framework="pt") as f:
+        header = dict(f.metadata() or {})
+    card = json.loads(header["lc_card"])
+    if change is not None:
+        change(card)
+    dest.parent.mkdir(parents=True, exist_ok=True)
+    save_file(load_file(str(src)), str(dest), metadata={**header, "lc_card": text or json.dumps(card)})
+    return dest
+
+
+def _set(*keys_and_value):
+    *keys, value = keys_and_value
+
+    def change(card: dict) -> None:
+        node = card
+        for k in keys[:-1]:
+            node = node[k]
+        node[keys[-1]] = value
+    return change
+
+
+CRAFTED_CARDS = {
+    "history of 1e9 steps": _set("scenario", "history_steps", 10**9),
+    "1e308 km/h": _set("scenario", "traffic", "speed_kmh", 1e308),
+    "speed as text": _set("scenario", "traffic", "speed_kmh", "fast"),
+    "image of 1e6 pixels a side": _set("scenario", "render", "image_size_px", 10**6),
+    "n_steps a list": _set("train_config", "n_steps", [128, 128]),
+    "1e9 image features": _set("train_config", "image_features", 10**9),
+    "1e9 environments": _set("train_config", "n_envs", 10**9),
+    "learning rate as text": _set("train_config", "learning_rate", "fast"),
+    "scenario a string": _set("scenario", "paper"),
+    "no train_config": lambda card: card.pop("train_config"),
+    "timesteps a list": _set("timesteps", [64]),
+    "timesteps 1e30": _set("timesteps", 1e30),
+    "algo a list": _set("algo", ["ppo"]),
+    "obs_mode an object": _set("obs_mode", {}),
+    "predictor a list": _set("predictor", [1]),
+    "predictor file with a folder": _set("predictor", {"file": "../../etc/passwd", "sha256": "0" * 64}),
+    "predictor digest not hex": _set("predictor", {"file": "p.pt", "sha256": "zz"}),
+    "tensor aliases a list": _set("tensor_aliases", ["a"]),
+    "training form a number": _set("training_form", 5),
+}
+
+
+@pytest.mark.parametrize("what", sorted(CRAFTED_CARDS))
+def test_a_crafted_card_is_refused_in_one_line_before_any_network_is_built(run_dir: Path, tmp_path: Path,
+                                                                            capsys: pytest.CaptureFixture[str],
+                                                                            what: str) -> None:
+    bad = _recard(run_dir / "policy.safetensors", tmp_path / "bad.safetensors", CRAFTED_CARDS[what])
+    for load in (read_meta, load_policy):
+        with pytest.raises(ValueError) as exc:
+            load(bad)
+        assert str(bad) in str(exc.value) and "\n" not in str(exc.value)
+    assert eval_main([str(bad), "--episodes", "1", "--no-record"]) == 2
+    err = capsys.readouterr().err
+    assert err.startswith("lc-eval: error:") and err.count("\n") == 1
+
+
+def test_a_card_nested_too_deeply_is_one_line(run_dir: Path, tmp_path: Path) -> None:
+    card = (run_dir / "policy.card.json").read_text().strip()
+    text = card[:-1] + ', "notes": ' + "[" * 5000 + "]" * 5000 + "}"
+    bad = _recard(run_dir / "policy.safetensors", tmp_path / "deep.safetensors", text=text)
+    with pytest.raises(ValueError, match="nested too deeply"):
+        read_meta(bad)
+
+
+def test_loading_a_card_sized_for_a_huge_rollout_allocates_nothing_for_it(run_dir: Path, tmp_path: Path) -> None:
+    """The card's training sizes (rollout, replay buffer) are not what inference needs: loading builds none."""
+    big = _recard(run_dir / "policy.safetensors", tmp_path / "big.safetensors",
+                  _set("train_config", "n_steps", 100_000))
+    loaded = load_policy(big)
+    assert loaded.model.rollout_buffer.buffer_size == 1
+
+
+# -- a policy is not tied to the folder it was trained from ------------------------------------------------------
+MY_SCENARIO = {"route_length_m": 150.0, "time_limit_s": 25.0,
+               "traffic": {"num_vehicles": 6, "spawn_behind_m": 40.0, "spawn_ahead_m": 80.0}}
+
+
+def test_a_policy_trained_with_a_relative_scenario_file_loads_from_any_folder(tmp_path: Path, monkeypatch,
+                                                                             capsys: pytest.CaptureFixture[str]) -> None:
+    from lcsim.config import ScenarioConfig
+
+    proj, elsewhere = tmp_path / "proj", tmp_path / "elsewhere"
+    proj.mkdir()
+    elsewhere.mkdir()
+    (proj / "my.json").write_text(json.dumps(MY_SCENARIO))
+    monkeypatch.chdir(proj)
+    train_policy(_tiny(scenario="my.json"), "run")
+    policy = proj / "run" / "policy.safetensors"
+    card = read_meta(policy)
+    assert card["train_config"]["scenario"] == "my.json" and card["scenario"]["route_length_m"] == 150.0
+    monkeypatch.chdir(elsewhere)
+    loaded = load_policy(policy)
+    assert loaded.scenario == ScenarioConfig.from_dict(card["scenario"])
+    # a file of that name here, with other content, is not read: the card's fields are the scenario
+    (elsewhere / "my.json").write_text(json.dumps({**MY_SCENARIO, "route_length_m": 400.0}))
+    assert load_policy(policy).scenario.route_length_m == 150.0
+    (elsewhere / "my.json").unlink()
+    (proj / "my.json").unlink()
+    copy = elsewhere / "copy" / "policy.safetensors"
+    copy.parent.mkdir()
+    copy.write_bytes(policy.read_bytes())
+    assert eval_main([str(copy), "--episodes", "1", "--no-record"]) == 0
+    capsys.readouterr()
+    assert record_main(["--driver", f"policy:{copy}", "--no-images", "--out", str(elsewhere / "rec")]) == 0
+    assert len(list((elsewhere / "rec").glob("my_*.mcap"))) == 1
+
+
+@pytest.fixture(scope="module")
+def prediction_run(tmp_path_factory: pytest.TempPathFactory, predictor_path: Path) -> tuple[Path, Path]:
+    """A prediction-mode policy trained with a predictor of its own name in a folder of its own."""
+    root = tmp_path_factory.mktemp("prediction")
+    own = root / "models" / "my-predictor.pt"
+    own.parent.mkdir()
+    own.write_bytes(predictor_path.read_bytes())
+    train_policy(_tiny(obs="prediction"), root / "run", predictor=own)
+    return root / "run" / "policy.safetensors", own
+
+
+def test_a_card_names_its_predictor_by_name_and_digest_and_the_copy_finds_it_beside_it(
+        prediction_run: tuple[Path, Path], tmp_path: Path) -> None:
+    from lcmodels.fileio import file_sha256
+
+    policy, own = prediction_run
+    card = read_meta(policy)
+    # its name and digest, and where it lay relative to the policy (a hint): no absolute path of this machine
+    assert card["predictor"] == {"file": "my-predictor.pt", "sha256": file_sha256(own),
+                                 "path": "../models/my-predictor.pt"}
+    run_json = json.loads((policy.parent / "run.json").read_text())
+    assert run_json["predictor"]["path"] == str(own.resolve())  # the run's own record keeps where it came from
+    moved = tmp_path / "moved"
+    moved.mkdir()
+    (moved / "policy.safetensors").write_bytes(policy.read_bytes())
+    (moved / "my-predictor.pt").write_bytes(own.read_bytes())
+    loaded = load_policy(moved / "policy.safetensors")
+    assert loaded.predictor_path == moved / "my-predictor.pt" and loaded.predictor is not None
+    # the experiment / zoo layout: predictor/predictor.pt in a folder above
+    (moved / "my-predictor.pt").unlink()
+    deeper = moved / "seed0" / "policy.safetensors"
+    deeper.parent.mkdir()
+    deeper.write_bytes(policy.read_bytes())
+    (moved / "predictor").mkdir()
+    (moved / "predictor" / "predictor.pt").write_bytes(own.read_bytes())
+    assert load_policy(deeper).predictor_path == moved / "predictor" / "predictor.pt"
+    # a file of that name with other weights is not taken for it
+    (moved / "predictor" / "predictor.pt").unlink()
+    (moved / "seed0" / "my-predictor.pt").write_bytes(b"other weights")
+    with pytest.raises(ValueError, match=r"my-predictor\.pt, sha256 [0-9a-f]{12}\).*--predictor"):
+        load_policy(deeper)
+
+
+def test_a_card_naming_a_file_that_is_no_predictor_shows_nothing_of_it(prediction_run: tuple[Path, Path],
+                                                                      tmp_path: Path,
+                                                                      capsys: pytest.CaptureFixture[str]) -> None:
+    from lcmodels.fileio import file_sha256
+
+    policy, _ = prediction_run
+    secret = tmp_path / "secret.txt"
+    secret.write_text("password=hunter2\n")
+    bad = _recard(policy, tmp_path / "bad" / "policy.safetensors", _set("predictor", {
+        "file": "secret.txt", "path": str(secret), "sha256": file_sha256(secret)}))
+    with pytest.raises(ValueError, match="not a usable predictor file") as exc:
+        load_policy(bad)
+    assert "hunter2" not in str(exc.value)
+    assert eval_main([str(bad), "--episodes", "1", "--no-record"]) == 2
+    captured = capsys.readouterr()
+    assert "hunter2" not in captured.err + captured.out and captured.err.count("\n") == 1
+
+
+# -- bad values are refused before anything is written ----------------------------------------------------------
+@pytest.mark.parametrize("extra", [
+    ["--set", "n_envs=999999"],
+    ["--timesteps", str(10**23)],
+    ["--set", f"timesteps={10**23}"],
+    ["--set", "eval_seed=99999999"],
+    ["--set", "eval_episodes=10000000"],
+    ["--algo", "dqn", "--set", "buffer_size=1000000000000"],
+    ["--set", "n_steps=1000000000"],
+    ["--set", "batch_size=1"],
+    ["--set", "learning_rate=1e300"],
+])
+def test_absurd_training_values_are_refused_before_run_json(tmp_path: Path, capsys: pytest.CaptureFixture[str],
+                                                            extra: list[str]) -> None:
+    out = tmp_path / "run"
+    assert train_policy_main(["--obs", "pure", "--scenario", "tiny", "--out", str(out), "-q", *extra]) == 2
+    err = capsys.readouterr().err
+    assert err.startswith("lc-train-policy: error:") and err.count("\n") == 1 and not out.exists()
+
+
+def test_the_root_and_the_home_directory_are_no_run_directory(tmp_path: Path, monkeypatch,
+                                                              capsys: pytest.CaptureFixture[str]) -> None:
+    monkeypatch.setenv("HOME", str(tmp_path))
+    for out in ("/", str(tmp_path)):
+        assert train_policy_main(["--obs", "pure", "--scenario", "tiny", "--out", out, "--overwrite", "-q"]) == 2
+        err = capsys.readouterr().err
+        assert ("filesystem root" in err or "home directory" in err) and err.count("\n") == 1
+    assert not list(tmp_path.iterdir())
+
+
+@pytest.mark.parametrize("state", [
+    [1, 2],
+    {"timesteps": "64", "wall_s": 1.0, "episodes_total": 1, "weights": "step-64.safetensors",
+     "optimizer": "step-64.optim.pt"},
+    {"timesteps": 64, "wall_s": [1.0], "episodes_total": 1, "weights": "step-64.safetensors",
+     "optimizer": "step-64.optim.pt"},
+    {"timesteps": 10**30, "wall_s": 1.0, "episodes_total": 1, "weights": "step-64.safetensors",
+     "optimizer": "step-64.optim.pt"},
+    {"timesteps": 64, "wall_s": 1.0, "episodes_total": -1, "weights": "step-64.safetensors",
+     "optimizer": "step-64.optim.pt"},
+    {"timesteps": 64, "wall_s": 1.0, "episodes_total": 1, "weights": "step-64.safetensors",
+     "optimizer": "step-64.optim.pt", "n_updates": None},
+])
+def test_a_resume_record_of_the_wrong_types_is_corrupt(run_dir: Path, tmp_path: Path, state) -> None:
+    import shutil
+
+    out = tmp_path / "run"
+    shutil.copytree(run_dir, out)
+    (out / "checkpoints" / "latest.json").write_text(json.dumps(state))
+    with pytest.raises(ValueError, match=r"checkpoints/latest\.json is corrupt"):
+        train_policy(_tiny(timesteps=128), out)

@@ -240,3 +240,72 @@ def test_gate_closes_on_motion_unlike_the_training_windows() -> None:
     cv = torch.from_numpy(constant_velocity_fit(noisy[:, 0].double().numpy(), cfg.future_steps,
                                               window=cfg.velocity_window)).float()  # the base
     torch.testing.assert_close(pred, cv, atol=1e-5, rtol=0)
+
+
+# -- crafted predictor files: sizes and types checked before a weight is allocated -------------------------------
+@pytest.mark.parametrize(("fields", "message"), [
+    ({"ff_dim": 10**10}, "ff_dim must be at most"),
+    ({"d_model": 10**6, "num_heads": 1}, "d_model must be at most"),
+    ({"num_layers": 10**9}, "num_layers must be at most"),
+    ({"history_steps": 10**9}, "history_steps must be at most"),
+    ({"num_layers": [2]}, "num_layers must be an int"),
+    ({"dropout": "none"}, "dropout"),
+    ({"correction": ["plain"]}, "correction must be one of"),
+    ({"dt_s": 1e308}, "dt_s must be at most"),
+    ({"d_model": 4096, "ff_dim": 16384, "num_layers": 64, "num_heads": 64}, "weights, more than"),
+])
+def test_absurd_predictor_configs_are_refused_before_building(fields: dict, message: str) -> None:
+    with pytest.raises(ValueError, match=message):
+        PredictorConfig.from_dict({**PredictorConfig(d_model=16, ff_dim=32).to_dict(), **fields})
+
+
+def _crafted(tmp_path: Path, name: str, change) -> Path:
+    path = tmp_path / "good.pt"
+    if not path.exists():
+        torch.manual_seed(0)
+        save_model(TrajectoryTransformer(PredictorConfig(d_model=16, ff_dim=32, num_layers=1)), path)
+    payload = torch.load(path, weights_only=True)
+    change(payload)
+    torch.save(payload, tmp_path / name)
+    return tmp_path / name
+
+
+def _config(**fields):
+    def change(payload: dict) -> None:
+        payload["config"] = json.dumps({**json.loads(payload["config"]), **fields})
+    return change
+
+
+@pytest.mark.parametrize(("change", "message"), [
+    (_config(ff_dim=10**10), "ff_dim must be at most"),
+    (_config(num_layers=[2]), "num_layers must be an int"),
+    (_config(bogus=1), "unknown PredictorConfig fields"),
+    (lambda p: p.__setitem__("config", "[" * 5000 + "]" * 5000), "nested too deeply"),
+    (lambda p: p.__setitem__("config", json.dumps([1, 2])), "JSON object"),
+    (lambda p: p.__setitem__("config", 5), "wrong type"),
+    (lambda p: p.__setitem__("state_dict", [1, 2]), "wrong type"),
+    (lambda p: p.__setitem__("extra", "[1]"), "not a JSON object"),
+    (lambda p: p["state_dict"].__setitem__("head.0.weight", torch.zeros(3)), "do not match the stored config"),
+])
+def test_a_crafted_predictor_file_is_one_line(tmp_path: Path, change, message: str) -> None:
+    path = _crafted(tmp_path, "bad.pt", change)
+    with pytest.raises(ValueError, match=message) as exc:
+        load_model(path)
+    assert str(path) in str(exc.value) and "\n" not in str(exc.value)
+
+
+def test_a_file_larger_than_any_predictor_is_not_read(tmp_path: Path) -> None:
+    from lcmodels.predictor.checkpoint import MAX_FILE_BYTES
+
+    path = tmp_path / "huge.pt"
+    with open(path, "wb") as f:  # sparse: nothing is written to the disk
+        f.truncate(MAX_FILE_BYTES + 1)
+    with pytest.raises(ValueError, match="more than a predictor checkpoint can be"):
+        load_model(path)
+
+
+def test_the_parameter_estimate_is_close_to_the_network() -> None:
+    for config in (PredictorConfig(), PredictorConfig(d_model=16, ff_dim=32, num_layers=1, correction="plain"),
+                   PredictorConfig(d_model=128, ff_dim=512, num_layers=3, num_context_layers=1, history_steps=30)):
+        built = sum(p.numel() for p in TrajectoryTransformer(config).parameters())
+        assert built <= config.parameter_estimate() <= 1.2 * built

@@ -130,7 +130,7 @@ def test_what_a_recipe_reached_is_recorded_next_to_it_for_its_version() -> None:
         reached = json.loads(path.read_text())
         recipe = load_recipe(path.name.removesuffix(".reached.json"))
         assert reached["recipe"] == recipe.name and reached["recipe_version"] == recipe.version
-        assert reached["experiment_command"].startswith("lc-experiment ") and reached["test"]["episodes"] >= 200
+        assert reached["experiment_command"].startswith("lc-experiment ") and reached["heldout"]["episodes"] >= 200
 
 
 def test_safety_layers_whose_followers_loop_are_one_line_errors(
@@ -149,3 +149,42 @@ def test_safety_layers_whose_followers_loop_are_one_line_errors(
     assert experiment_main([*args, "--out", str(tmp_path / "run"), "--dry-run"]) == 2
     err = capsys.readouterr().err.strip()
     assert len(err.splitlines()) == 1 and "loop-a -> loop-b -> loop-a" in err and "Traceback" not in err
+
+
+@pytest.mark.parametrize(("text", "message"), [
+    ('stages = ["clone", "train"]\n[demos]\nepisodes = 1000000000000\n', "demos.episodes must be at most"),
+    ("[train]\ntimesteps = 1000000000000000\n", "timesteps must be at most"),
+    ("[policy]\nn_envs = 999999\n", "n_envs must be at most"),
+    ('stages = ["clone", "dagger", "train"]\n[dagger]\nrounds = 1000000000\n', "dagger.rounds must be at most"),
+    ('stages = ["clone", "dagger", "train"]\n[dagger]\nepochs = 1000000000\n', "dagger.epochs must be at most"),
+    ('stages = ["train", "shielded"]\n[safety]\nfollow = "pure-ppo"\n[shielded]\ntimesteps = 10000000000000\n',
+     "shielded.timesteps must be at most"),
+    ("[shielded]\npenalty = 1e300\n", "shielded.penalty must be at most"),
+    ("[safety]\nhorizon = 1000000000\n", "safety.horizon must be at most"),
+    ('stages = [{a = 1}]\n', "stages"),
+    ("x = " + "[" * 5000 + "]" * 5000 + "\n", "nested too deeply"),
+])
+def test_a_recipe_with_absurd_budgets_is_one_line(tmp_path: Path, text: str, message: str) -> None:
+    """A recipe asking for 1e12 episodes or 1e15 steps would run for ever: refused when read, before any stage."""
+    path = write(tmp_path, text)
+    with pytest.raises(ValueError) as exc:
+        load_recipe(path)
+    assert message in str(exc.value) and str(path) in str(exc.value) and "\n" not in str(exc.value)
+
+
+def test_lc_experiment_refuses_an_absurd_recipe_and_the_home_directory(tmp_path: Path, monkeypatch,
+                                                                       capsys: pytest.CaptureFixture[str]) -> None:
+    from lccli.experiment import experiment_main
+
+    path = write(tmp_path, '[policy]\nobs = "pure"\n[train]\ntimesteps = 1000000000000000\n')
+    assert experiment_main(["--preset", "tiny", "--recipe", str(path), "--out", str(tmp_path / "x")]) == 2
+    err = capsys.readouterr().err
+    assert "timesteps must be at most" in err and err.count("\n") == 1 and not (tmp_path / "x").exists()
+    home = tmp_path / "home"
+    home.mkdir()
+    monkeypatch.setenv("HOME", str(home))
+    for out in (str(home), "/"):
+        assert experiment_main(["--preset", "tiny", "--out", out]) == 2
+        err = capsys.readouterr().err
+        assert ("home directory" in err or "filesystem root" in err) and err.count("\n") == 1
+    assert not list(home.iterdir())

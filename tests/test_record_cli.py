@@ -134,3 +134,77 @@ def test_resume_sees_an_edited_scenario_file_and_overwrite_leaves_no_mixed_flags
     assert record_main([*common, "--episodes", "2", "--overwrite"]) == 0
     assert record_main([*common, "--episodes", "3"]) == 0  # resumes, with one set of flags
     assert names(out) == [f"s_rule_s000000{i}.mcap" for i in range(3)]
+
+
+# -- large values, refusals before any write, the machine's errors ------------------------------------------------
+@pytest.mark.parametrize(("argv", "message"), [
+    (["--start-time", "9999-12-31T23:59:59Z"], "after 2262-01-01"),
+    (["--start-time", "2300-01-01T00:00:00Z"], "after 2262-01-01"),
+    (["--scenario", "SCENARIO:history_steps = 100000000000000000000"], "history_steps must be at most"),
+    (["--scenario", "SCENARIO:[traffic]\nspeed_kmh = 1e308"], "speed_kmh must be at most"),
+    (["--scenario", "SCENARIO:time_limit_s = 1e9"], "time_limit_s must be at most"),
+    (["--scenario", "SCENARIO:dt_s = 1e-12\ndecision_period_s = 5e-12"], "dt_s must be >="),
+    (["--scenario", "SCENARIO:x = " + "[" * 5000 + "]" * 5000], "nested too deeply"),
+])
+def test_absurd_values_are_refused_before_anything_is_written(tmp_path: pathlib.Path,
+                                                              capsys: pytest.CaptureFixture[str],
+                                                              argv: list[str], message: str) -> None:
+    if argv[1].startswith("SCENARIO:"):
+        (tmp_path / "s.toml").write_text(argv[1].removeprefix("SCENARIO:") + "\n")
+        argv = [argv[0], str(tmp_path / "s.toml")]
+    out = tmp_path / "out"
+    assert record_main(["--out", str(out), *TINY, *argv]) == 2
+    err = capsys.readouterr().err
+    assert err.startswith("lc-record: error:") and message in err and err.count("\n") == 1
+    assert not out.exists()
+
+
+def test_the_last_start_time_a_file_can_hold_records(tmp_path: pathlib.Path) -> None:
+    assert record_main(["--out", str(tmp_path), *TINY, "--no-images", "--start-time", "2261-12-31T00:00:00Z"]) == 0
+    assert names(tmp_path) == ["paper_rule_s0000000.mcap"] and not list(tmp_path.glob("*.partial"))
+
+
+def test_the_root_and_the_home_directory_are_refused(tmp_path: pathlib.Path, monkeypatch,
+                                                     capsys: pytest.CaptureFixture[str]) -> None:
+    monkeypatch.setenv("HOME", str(tmp_path))
+    for out, why in (("/", "filesystem root"), (str(tmp_path), "home directory"), (f"{tmp_path}/.", "home")):
+        assert record_main(["--out", out, *TINY]) == 2
+        err = capsys.readouterr().err
+        assert why in err and err.count("\n") == 1
+    assert not list(tmp_path.iterdir()) and not pathlib.Path("/record.json").exists()
+
+
+def test_a_second_recording_into_the_same_out_is_refused(tmp_path: pathlib.Path,
+                                                         capsys: pytest.CaptureFixture[str]) -> None:
+    """While one lc-record writes in --out (it holds the folder's lock), another one there is refused in one
+    line instead of recording the same files at once."""
+    from lccli.record import LOCK_NAME
+    from lcdata.fileio import folder_lock
+
+    with folder_lock(tmp_path, "lc-record", LOCK_NAME):  # what the first process holds while it records
+        assert record_main(["--out", str(tmp_path), *TINY]) == 2
+    err = capsys.readouterr().err
+    assert "another lc-record" in err and "is writing in" in err and err.count("\n") == 1
+    assert names(tmp_path) == [] and not (tmp_path / "record.json").exists()
+    assert record_main(["--out", str(tmp_path), *TINY]) == 0  # the lock is gone with its holder
+
+
+def test_a_full_disk_is_one_line(tmp_path: pathlib.Path) -> None:
+    """A disk that fills up while recording (a file-size limit: writes past it fail like ENOSPC) ends in one
+    line, not a traceback; rerunning the same command on room records the missing episode."""
+    import resource
+    import subprocess
+    import sys
+
+    argv = ["--out", str(tmp_path / "out"), *TINY]
+    code = f"import sys; sys.argv[0] = 'lc-record'; from lccli.record import record_main; sys.exit(record_main({argv!r}))"
+
+    def small_disk() -> None:
+        resource.setrlimit(resource.RLIMIT_FSIZE, (16 << 10, resource.getrlimit(resource.RLIMIT_FSIZE)[1]))
+
+    proc = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, preexec_fn=small_disk,
+                          timeout=300)
+    err = [line for line in proc.stderr.splitlines() if line.strip()]
+    assert proc.returncode == 1 and "Traceback" not in proc.stderr, proc.stderr
+    assert err[-1].startswith("lc-record: error: recording into") and "File too large" in err[-1]
+    assert record_main(argv) == 0 and names(tmp_path / "out") == ["paper_rule_s0000000.mcap"]

@@ -46,3 +46,24 @@ def test_bad_inputs_give_one_line_errors(tmp_path, capsys):
     assert err.startswith("lc-train-predictor: error:") and err.count("\n") == 1
     with pytest.raises(SystemExit):
         train_predictor_main(["--data", str(tmp_path), "--history", "0"])
+
+
+def test_absurd_sizes_and_unfit_folders_are_refused_before_training(corpus_dir, tmp_path, monkeypatch, capsys):
+    """The predictor is written after the whole training: an --out it cannot go to (the filesystem root, the
+    home directory, under a file) and sizes no network can have are refused first, in one line."""
+    home = tmp_path / "home"
+    home.mkdir()
+    monkeypatch.setenv("HOME", str(home))
+    (tmp_path / "a_file").write_text("x")
+    cases = [
+        (["--history", str(10**9), "--out", str(tmp_path / "p1")], "history_steps must be at most"),
+        (["--future", str(10**9), "--out", str(tmp_path / "p1")], "future_steps must be at most"),
+        (["--out", "/"], "filesystem root"),
+        (["--out", str(home)], "home directory"),
+        (["--out", str(tmp_path / "a_file" / "p")], "cannot create output directory"),
+    ]
+    for argv, message in cases:
+        assert train_predictor_main(["--data", str(corpus_dir), "-q", *argv]) == 2, argv
+        err = capsys.readouterr().err
+        assert err.startswith("lc-train-predictor: error:") and message in err and err.count("\n") == 1, err
+    assert not (tmp_path / "p1").exists() and not list(home.iterdir())

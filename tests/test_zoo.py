@@ -185,3 +185,21 @@ def test_publish_zoo_refuses_zoo_options_with_reached_only(tmp_path: Path) -> No
         assert out.returncode == 2 and "Traceback" not in out.stderr
         assert out.stderr.strip().splitlines()[-1].endswith("--reached-only writes none")
     assert not (tmp_path / "z").exists()
+
+
+def test_every_shipped_card_passes_the_card_checks_and_finds_its_predictor_by_digest(tmp_path: Path) -> None:
+    """The shipped cards hold only what a loader accepts, and each entry's predictor is found from its card alone
+    (the relative path the zoo writes, else by SHA-256 in a folder above), also in a copy of the zoo elsewhere."""
+    import shutil
+
+    from lcmodels.policy.checkpoint import card_problem, find_predictor, read_meta
+    from lcmodels.zoo import CHECKOUT_ZOO
+
+    copy = tmp_path / "zoo"
+    shutil.copytree(CHECKOUT_ZOO, copy)
+    for card_file in sorted(copy.glob("*/policy.safetensors")):
+        meta = read_meta(card_file)
+        assert card_problem(meta) == ""
+        if meta.get("predictor"):
+            found = find_predictor(meta, card_file)
+            assert found is not None and found.resolve() == (copy / "predictor" / "predictor.pt").resolve()

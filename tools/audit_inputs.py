@@ -17,6 +17,7 @@ import argparse
 import base64
 import dataclasses
 import hashlib
+import importlib
 import json
 import os
 import pickle
@@ -29,6 +30,8 @@ import time
 import zipfile
 from collections.abc import Callable
 from pathlib import Path
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))  # the case modules beside this script
 
 ENTRY = {
     "lc-record": "lccli.record:record_main",
@@ -137,6 +140,7 @@ def build_cases(root: Path) -> list[Case]:
                                           ":serialized:": base64.b64encode(pickle.dumps(WritesMarker())).decode()}
                 data = json.dumps(record).encode()
             zout.writestr(item, data)
+    (root / "six_neighbours.toml").write_text("num_neighbours = 6\n")
     random_bytes = os.urandom(4096)
     (root / "random.safetensors").write_bytes(random_bytes)
     (root / "random.pt").write_bytes(random_bytes)
@@ -273,7 +277,13 @@ def build_cases(root: Path) -> list[Case]:
         Case("lc-eval: zero episodes", ["lc-eval", "rule", "--episodes", "0", "--no-record"]),
         Case("lc-eval: --json-out exists", ["lc-eval", "rule", "--episodes", "1", "--no-record", "--json-out",
                                             f"{r}/existing.json"], **unchanged(root / "existing.json")),
-        Case("lc-eval: --scenario for a policy", ["lc-eval", str(pure), "--scenario", "tiny", "--no-record"]),
+        Case("lc-eval: a policy on another road", ["lc-eval", str(pure), "--scenario", "light", "--episodes", "2",
+                                                   "--no-record"], expect="ok"),
+        Case("lc-eval: a road whose observation does not fit the policy", ["lc-eval", str(pure), "--scenario",
+                                                                           f"{r}/six_neighbours.toml", "--no-record"]),
+        Case("lc-eval: a sealed test seed", ["lc-eval", "rule", "--seed", "20000", "--episodes", "2", "--no-record"]),
+        Case("lc-record: a sealed test seed", [*rec, "--seed", "3000000000", "--out", f"{r}/r9"],
+             check=not_written(root / "r9")),
         Case("lc-eval: follow option without planner", ["lc-eval", str(pure), "--lookahead-follow", "rule",
                                                         "--no-record"]),
         # lc-view
@@ -327,6 +337,10 @@ def main(argv: list[str] | None = None) -> int:
     with tempfile.TemporaryDirectory(prefix="lc-audit-") as tmp:
         root = Path(tmp)
         cases = [c for c in build_cases(root) if args.k in c.what]
+        for extra in ("audit_cases_files", "audit_cases_mcap"):  # the second round's cases, by class of input
+            module = importlib.import_module(extra)
+            (root / extra).mkdir()
+            cases += [c for c in module.build(root / extra, Case) if args.k in c.what]
         outcomes = []
         for i, case in enumerate(cases, 1):
             out = run_case(case, root)

@@ -32,6 +32,7 @@ from safetensors import SafetensorError, safe_open
 from safetensors.torch import load_file, save_file
 from stable_baselines3.common.base_class import BaseAlgorithm
 
+from lcdata.fileio import loads_json, write_atomically
 from lcmodels.fileio import file_sha256, write_json
 from lcmodels.policy.network import ALGOS
 from lcmodels.predictor.inference import Predictor
@@ -55,7 +56,8 @@ def card_path(path: str | os.PathLike[str]) -> Path:
 
 def save_policy(model: BaseAlgorithm, path: str | os.PathLike[str], meta: dict[str, Any]) -> Path:
     """Save ``model``'s policy network with the card ``meta`` to ``path`` (a ``.safetensors``), atomically
-    (``.partial`` then rename), and the card's copy beside it. Returns ``path``."""
+    (``.partial`` then rename), and the card's copy beside it. Returns ``path``. ``OSError`` when the file
+    cannot be written (a full disk): no ``.partial`` stays, the file there is as it was."""
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
     card = {**{k: v for k, v in meta.items() if k not in ("format", "version", "legacy_pickle", "tensor_aliases")},
@@ -66,8 +68,9 @@ def save_policy(model: BaseAlgorithm, path: str | os.PathLike[str], meta: dict[s
     tmp = path.with_name(path.name + ".partial")
     # One metadata entry: safetensors writes the metadata map in no fixed order, so one key keeps the bytes
     # of the same policy the same.
-    save_file(tensors, str(tmp), metadata={CARD_KEY: json.dumps(card, sort_keys=True)})
-    tmp.replace(path)
+    text = json.dumps(card, sort_keys=True)
+    write_atomically(tmp, path, lambda: save_file(tensors, str(tmp), metadata={CARD_KEY: text}),
+                     errors=(SafetensorError,))
     write_json(card_path(path), card)
     return path
 
@@ -112,27 +115,109 @@ def read_meta(path: str | os.PathLike[str]) -> dict[str, Any]:
     if CARD_KEY not in header:
         raise ValueError(f"{path} is a safetensors file but not an lc-toolkit policy (no {CARD_KEY} card)")
     try:
-        meta = json.loads(header[CARD_KEY])
-    except json.JSONDecodeError as exc:
+        meta = loads_json(header[CARD_KEY])
+    except ValueError as exc:
         raise ValueError(f"{path}: its policy card is not valid JSON ({exc})") from None
     if not isinstance(meta, dict) or meta.get("format") != META_FORMAT:
         raise ValueError(f"{path}: its card is not an lc-toolkit policy card")
     if meta.get("version") != META_VERSION:
-        raise ValueError(f"{path}: unsupported policy file version {meta.get('version')!r}")
+        raise ValueError(f"{path}: unsupported policy file version {str(meta.get('version'))[:40]!r}")
+    problem = card_problem(meta)
+    if problem:
+        raise ValueError(f"{path}: its policy card is unusable: {problem}")
     return meta
+
+
+_SHA256 = re.compile(r"[0-9a-f]{64}")
+MAX_CARD_TIMESTEPS = 10**12
+"""The largest step count a card may state (a run's is at most ``PolicyConfig``'s bound plus a rollout)."""
+
+
+def _plain_name(value: Any) -> bool:
+    """Whether ``value`` is a file name without a folder (what a card may name beside the policy)."""
+    return (isinstance(value, str) and 0 < len(value) <= 255 and not {"/", "\\", "\0"} & set(value)
+            and value not in (".", ".."))
+
+
+def card_problem(meta: dict[str, Any], *, legacy: bool = False) -> str:
+    """What makes a policy card unusable (``""`` when nothing does): the schema of every field a loader reads,
+    checked before any network is built. ``algo`` and ``obs_mode`` known names; ``scenario`` a
+    :class:`~lcsim.config.ScenarioConfig` (every field's type and plausible range, ``from_dict``);
+    ``train_config`` a :class:`~lcmodels.policy.config.PolicyConfig` validated against that scenario
+    (``from_card``: the scenario file it names is not read); ``predictor`` none or a file name with a SHA-256;
+    ``timesteps`` a count; ``tensor_aliases`` names. ``legacy``: a stable-baselines3 ``.zip``'s record, which
+    may predate ``scenario`` (checked when there) and whose ``train_config`` builds nothing (an object)."""
+    from lcmodels.policy.config import ALGORITHMS, PolicyConfig
+    from lcmodels.policy.extractor import IMAGE_FEATURES, IMAGE_NETS
+    from lcmodels.policy.obs import OBS_MODES
+
+    if meta.get("algo") not in ALGORITHMS:
+        return f"algo must be one of {', '.join(ALGORITHMS)}, got {str(meta.get('algo'))[:40]!r}"
+    if meta.get("obs_mode") not in OBS_MODES:
+        return f"obs_mode must be one of {', '.join(OBS_MODES)}, got {str(meta.get('obs_mode'))[:40]!r}"
+    if "image_net" in meta and meta["image_net"] not in IMAGE_NETS:
+        return f"image_net must be one of {', '.join(IMAGE_NETS)}, got {str(meta['image_net'])[:40]!r}"
+    for key in ("scenario_name", "converted_from"):
+        if key in meta and not (isinstance(meta[key], str) and len(meta[key]) <= 4096):
+            return f"{key} must be a string, got {str(meta[key])[:40]!r}"
+    steps = meta.get("timesteps", 0)
+    if not isinstance(steps, int) or isinstance(steps, bool) or not 0 <= steps <= MAX_CARD_TIMESTEPS:
+        return f"timesteps must be an integer in [0, {MAX_CARD_TIMESTEPS}], got {str(steps)[:40]!r}"
+    if meta.get("training_form") not in (None, IMAGE_FEATURES):
+        return f"training_form must be {IMAGE_FEATURES!r}, got {str(meta['training_form'])[:40]!r}"
+    aliases = meta.get("tensor_aliases", {})
+    if not isinstance(aliases, dict) or not all(isinstance(k, str) and isinstance(v, str) for k, v in aliases.items()):
+        return "tensor_aliases must map tensor names to tensor names"
+    pred = meta.get("predictor")
+    if pred is not None:
+        if not isinstance(pred, dict):
+            return f"predictor must be an object or null, got {type(pred).__name__}"
+        if "file" in pred and not _plain_name(pred["file"]):
+            return f"predictor.file must be a file name, got {str(pred['file'])[:40]!r}"
+        if pred.get("sha256") is not None and not (isinstance(pred["sha256"], str) and _SHA256.fullmatch(pred["sha256"])):
+            return "predictor.sha256 must be 64 hexadecimal digits"
+        if "path" in pred and not (isinstance(pred["path"], str) and 0 < len(pred["path"]) <= 4096):
+            return "predictor.path must be a path"
+    if legacy and "scenario" not in meta:
+        return ""
+    try:
+        scenario = ScenarioConfig.from_dict(meta.get("scenario"))
+    except ValueError as exc:
+        return f"scenario: {_short(exc)}"
+    if legacy:  # stable-baselines3 rebuilds its network from its own record: the config is only carried along
+        return "" if isinstance(meta.get("train_config", {}), dict) else "train_config must be an object"
+    try:
+        PolicyConfig.from_card(meta.get("train_config"), scenario)
+    except ValueError as exc:
+        return f"train_config: {_short(exc)}"
+    return ""
+
+
+def _short(exc: BaseException) -> str:
+    return " ".join(str(exc).split())[:300]
+
+
+LEGACY_DATA_MAX_BYTES = 64 << 20
+"""The largest JSON record of a stable-baselines3 ``.zip`` read (its ``data``: a few hundred KiB)."""
 
 
 def _read_legacy_meta(path: Path) -> dict[str, Any]:
     try:
         with zipfile.ZipFile(path) as zf:
-            data = json.loads(zf.read("data"))
-    except (zipfile.BadZipFile, KeyError, json.JSONDecodeError, OSError, EOFError, UnicodeDecodeError) as exc:
+            info = zf.getinfo("data")
+            if info.file_size > LEGACY_DATA_MAX_BYTES:
+                raise ValueError(f"its data record is {info.file_size} bytes")
+            data = loads_json(zf.read("data"))
+    except (zipfile.BadZipFile, KeyError, ValueError, OSError, EOFError) as exc:
         raise ValueError(f"{path} is not a readable policy checkpoint (corrupt or truncated?): {exc}") from None
     meta = data.get("lc_meta") if isinstance(data, dict) else None
     if not isinstance(meta, dict) or meta.get("format") != META_FORMAT:
         raise ValueError(f"{path} is a stable-baselines3 file but not an lc-toolkit policy checkpoint")
     if meta.get("version") != LEGACY_VERSION:
-        raise ValueError(f"{path}: unsupported policy checkpoint version {meta.get('version')!r}")
+        raise ValueError(f"{path}: unsupported policy checkpoint version {str(meta.get('version'))[:40]!r}")
+    problem = card_problem(meta, legacy=True)
+    if problem:
+        raise ValueError(f"{path}: its policy record is unusable: {problem}")
     return {**meta, "legacy_pickle": True}
 
 
@@ -242,10 +327,10 @@ def policy_model(meta: dict[str, Any], *, future_steps: int = 10, device: str = 
     from lcmodels.policy.obs import policy_observation_space
 
     try:
-        cfg = PolicyConfig.from_dict(meta["train_config"])
         scenario = ScenarioConfig.from_dict(meta["scenario"])
+        cfg = PolicyConfig.from_card(meta["train_config"], scenario)  # the card's scenario, not the file it names
     except (KeyError, TypeError, ValueError) as exc:
-        raise ValueError(f"the policy card's training config or scenario is unusable: {exc}") from None
+        raise ValueError(f"the policy card's training config or scenario is unusable: {_short(exc)}") from None
     space = policy_observation_space(scenario, str(meta["obs_mode"]), future_steps,
                                      cfg.image_features if meta.get("training_form") else None)
     return build_model(cfg, None, None, device, observation_space=space)
@@ -256,23 +341,40 @@ PREDICTOR_FILE = Path("predictor") / "predictor.pt"
 
 
 def find_predictor(meta: dict[str, Any], policy: str | os.PathLike[str]) -> Path | None:
-    """The predictor a policy's card names: its path (relative to the policy file in a zoo entry) when the file
-    there has the card's SHA-256, else, when the directory has moved since training (a published experiment,
-    another checkout) or the file there was replaced, the ``predictor/predictor.pt`` of the nearest folder above
-    the policy whose SHA-256 is the card's. A card without a SHA-256 gets its path only. ``None`` when none fits."""
+    """The predictor a policy's card names, found by its SHA-256 (the card carries the digest, so a policy copied
+    anywhere finds the predictor copied with it): the card's ``path`` when the file there has that digest (a path
+    relative to the policy file, as in a zoo entry; an absolute one, from an older card, only as a hint that is
+    never required), else, in the policy's folder and each folder above it, a file of the card's name, a
+    ``predictor.pt``, or a ``predictor/predictor.pt`` (an experiment's and the zoo's layout) with that digest. A
+    card without a SHA-256 (older files) gets its relative ``path`` inside the policy's folder only. ``None``
+    when none fits."""
     info = meta.get("predictor") or {}
-    stored, sha = info.get("path"), info.get("sha256")
-    policy = Path(policy)
-    if stored:
-        p = Path(stored) if Path(stored).is_absolute() else policy.parent / stored
-        if p.is_file() and (sha is None or file_sha256(p) == sha):
-            return p
-    if sha is None:
+    if not isinstance(info, dict):
         return None
+    stored, sha, name = info.get("path"), info.get("sha256"), info.get("file")
+    policy = Path(policy)
+    if sha is None:  # nothing to check a file against: only a relative path that stays inside the policy's folder
+        if isinstance(stored, str) and stored and not Path(stored).is_absolute() and ".." not in Path(stored).parts:
+            p = policy.parent / stored
+            return p if p.is_file() else None
+        return None
+    candidates: list[Path] = []
+    if isinstance(stored, str) and stored:
+        candidates.append(Path(stored) if Path(stored).is_absolute() else policy.parent / stored)
+    names = [n for n in (name, "predictor.pt") if _plain_name(n)]
     for folder in policy.resolve().parents:
-        candidate = folder / PREDICTOR_FILE
-        if candidate.is_file() and file_sha256(candidate) == sha:
-            return candidate
+        candidates += [folder / n for n in dict.fromkeys(names)] + [folder / PREDICTOR_FILE]
+    seen: set[Path] = set()
+    for candidate in candidates:
+        try:
+            key = candidate.resolve()
+            if key in seen or not candidate.is_file():
+                continue
+            seen.add(key)
+            if file_sha256(candidate) == sha:
+                return candidate
+        except OSError:  # unreadable: not it
+            continue
     return None
 
 
@@ -307,26 +409,37 @@ def load_policy(path: str | os.PathLike[str], *, obs_mode: str | None = None,
     sha = None
     pred_path: Path | None = None
     if needs_predictor(str(meta.get("obs_mode"))):
-        stored = (meta.get("predictor") or {}).get("path")
+        info = meta.get("predictor") or {}
+        named = info.get("file") or (Path(info["path"]).name if info.get("path") else "unknown")
         pred_path = Path(predictor) if predictor is not None else find_predictor(meta, path)
         if pred_path is None or not pred_path.is_file():
+            digest = f", sha256 {info['sha256'][:12]}" if info.get("sha256") else ""
             raise ValueError(
-                f"{path} needs the predictor it was trained with ({stored or 'unknown'}), which is not there; "
-                "pass its path with --predictor"
+                f"{path} needs the predictor it was trained with ({named}{digest}), which is neither beside it nor "
+                "in a folder above it; pass its path with --predictor"
             )
         card_sha = (meta.get("predictor") or {}).get("sha256")  # find_predictor took only a file of that hash
         sha = card_sha if predictor is None and card_sha else file_sha256(pred_path)
     problems = compatibility_problems(meta, obs_mode=obs_mode, predictor_sha256=sha, scenario=scenario)
     if problems:
         raise ValueError(f"{path} does not match: " + "; ".join(problems))
-    loaded_predictor = Predictor.load(pred_path) if pred_path is not None else None
+    loaded_predictor = None
+    if pred_path is not None:
+        if predictor is not None:
+            loaded_predictor = Predictor.load(pred_path)
+        else:  # a file the card named: nothing about its content is shown, only that it is no predictor
+            try:
+                loaded_predictor = Predictor.load(pred_path)
+            except ValueError:
+                raise ValueError(f"{path}: the predictor its card names ({pred_path}) is not a usable predictor "
+                                 "file; pass the right one with --predictor") from None
     if meta.get("legacy_pickle"):
         model = _load_legacy(path, algo, device)
     else:
         future = loaded_predictor.future_steps if loaded_predictor is not None else 10
         model = policy_model(meta, future_steps=future, device=device)
         load_weights(model, path, device, meta)
-        model.num_timesteps = int(meta.get("timesteps", 0))
+        model.num_timesteps = meta.get("timesteps", 0)
     return LoadedPolicy(model, meta, loaded_predictor, ScenarioConfig.from_dict(meta["scenario"]), pred_path)
 
 

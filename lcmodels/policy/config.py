@@ -6,6 +6,7 @@ config without importing training.
 
 from __future__ import annotations
 
+import contextvars
 import dataclasses
 from dataclasses import dataclass
 from pathlib import Path
@@ -18,11 +19,12 @@ from lcsim.config import (
     JsonConfig,
     ScenarioConfig,
     check_field,
-    check_types,
+    check_limits,
     require_non_negative,
     require_positive,
 )
 from lcsim.registry import SCENARIO_FILE_SUFFIXES, TASK_SCENARIOS, scenario
+from lcsim.suite import MAX_VALIDATION_SEED, SEED_STRIDE
 
 ALGORITHMS: tuple[str, ...] = ("ppo", "a2c", "dqn")
 """The learning algorithms a policy can be trained with (stable-baselines3's PPO, A2C and DQN)."""
@@ -44,11 +46,30 @@ def default_learning_rate(algo: str, fine_tune: bool = False) -> float:
     return FINE_TUNE_LEARNING_RATES.get(algo, _LEARNING_RATES[algo]) if fine_tune else _LEARNING_RATES[algo]
 
 
+_CARD_SCENARIO: contextvars.ContextVar[ScenarioConfig | None] = contextvars.ContextVar("card_scenario", default=None)
+"""The scenario a policy card stores, while :meth:`PolicyConfig.from_card` validates the card's training config
+against it (instead of reading the scenario file the config names, which need not exist where the policy is)."""
+
+MAX_TIMESTEPS = 1_000_000_000
+"""The most online decisions a run may ask for (a billion decisions: 15 years of driving at 2 per second)."""
+
+
 @dataclass(frozen=True, slots=True, kw_only=True)
 class PolicyConfig(JsonConfig):
     """Everything that defines a policy training run (stored in ``run.json``)."""
 
     LEGACY_DEFAULTS: ClassVar[dict[str, Any]] = {"contact_features": False, "freeze_image": False}
+    LIMITS: ClassVar[dict[str, float]] = {
+        "timesteps": MAX_TIMESTEPS, "n_envs": 1_024, "slots": 64, "image_features": 1_024,
+        "learning_rate": 1.0, "n_steps": 100_000, "batch_size": 1_000_000, "n_epochs": 1_000,
+        "ent_coef": 10.0, "reward_scale": 1_000.0, "collision_weight": 1_000.0, "buffer_size": 10_000_000,
+        "learning_starts": MAX_TIMESTEPS, "target_update_interval": MAX_TIMESTEPS,
+        "checkpoint_every": MAX_TIMESTEPS, "eval_episodes": SEED_STRIDE, "eval_seed": MAX_VALIDATION_SEED - 1,
+        "eval_batch": 10_000, "warm_start_epochs": 10_000,
+    }  # fmt: skip
+    """Plausible upper bounds, checked before anything is built or written: a run of 999999 environments, a
+    replay buffer of 1e12 transitions or 1e23 decisions is a slip, not a plan. ``eval_episodes`` and
+    ``eval_seed`` as evaluation takes them (:func:`lcmodels.policy.evaluate.eval_user_seeds`)."""
 
     algo: str = "ppo"
     obs: str = "hybrid"
@@ -114,7 +135,7 @@ class PolicyConfig(JsonConfig):
     included; ``checkpoints/latest.json`` is in the training form, for resuming only."""
 
     def __post_init__(self) -> None:
-        check_types(self)
+        check_limits(self)
         check_field(self.algo in ALGORITHMS, self, "algo", f"must be one of {', '.join(ALGORITHMS)}", self.algo)
         check_field(self.obs in OBS_MODES, self, "obs", f"must be one of {', '.join(OBS_MODES)}", self.obs)
         check_field(self.scenario in TASK_SCENARIOS or Path(self.scenario).suffix in SCENARIO_FILE_SUFFIXES, self,
@@ -138,19 +159,34 @@ class PolicyConfig(JsonConfig):
                f"needs an observation mode with the image (image, hybrid), not {self.obs!r}", self.freeze_image)
         check_field(self.timesteps > 0 or bool(self.warm_start), self, "timesteps",
                "must be > 0 without a warm start (0 with one: behaviour cloning only)", self.timesteps)  # fmt: skip
+        check_field(self.algo != "ppo" or self.batch_size > 1, self, "batch_size", "must be > 1 for ppo",
+                    self.batch_size)
         check_field(0 < self.gamma <= 1, self, "gamma", "must be in (0, 1]", self.gamma)
         check_field(0 < self.exploration_fraction <= 1, self, "exploration_fraction", "must be in (0, 1]",
                self.exploration_fraction)  # fmt: skip
         check_field(self.seed < 1_000_000, self, "seed", "must be < 1000000 (keeps training seeds off evaluation's)",
                self.seed)  # fmt: skip
+        base = _CARD_SCENARIO.get()
         try:
-            base = scenario(self.scenario)
+            base = base if base is not None else scenario(self.scenario)
         except ValueError as exc:
             raise ValueError(f"PolicyConfig.scenario: {exc}") from None
         try:  # slots (and neighbours) as the scenario itself validates them
             self.scenario_config(base)
         except ValueError as exc:
             raise ValueError(f"PolicyConfig.slots {self.slots} does not fit the scenario: {exc}") from None
+
+    @classmethod
+    def from_card(cls, data: dict[str, Any], scenario: ScenarioConfig) -> PolicyConfig:
+        """The training config a policy card stores (``train_config``), validated against the scenario the card
+        stores too (``scenario``) rather than the scenario file its ``scenario`` field names: a policy trained
+        with ``--scenario my.toml`` loads from any folder, the file there or not. ``ValueError`` as
+        :meth:`from_dict`."""
+        token = _CARD_SCENARIO.set(scenario)
+        try:
+            return cls.from_dict(data)
+        finally:
+            _CARD_SCENARIO.reset(token)
 
     def scenario_config(self, base: ScenarioConfig | None = None) -> ScenarioConfig:
         """The scenario the policy sees: its ``scenario`` with this config's view of the traffic."""

@@ -3,7 +3,6 @@
 
 from __future__ import annotations
 
-import dataclasses
 from typing import Any
 
 from gymnasium import spaces
@@ -27,11 +26,14 @@ def build_model(cfg: PolicyConfig, env: VecEnv | None, tensorboard: str | None =
             alone (how a policy file is loaded: the network rebuilt from its card, then filled with its
             tensors; a DQN gets a one-transition replay buffer).
     """
+    n_steps, buffer_size = cfg.n_steps, cfg.buffer_size
     if env is None:
         if observation_space is None:
             raise ValueError("build_model needs an environment or an observation space")
-        if cfg.algo == "dqn":
-            cfg = dataclasses.replace(cfg, buffer_size=1)
+        # Nothing is collected for inference: a one-step rollout buffer, a one-transition replay buffer (the
+        # card's sizes, untrusted, allocate nothing; not dataclasses.replace, which would validate the config
+        # again, its scenario file included).
+        n_steps, buffer_size = 1, 1
     policy_kwargs: dict[str, Any] = {
         "features_extractor_class": HybridExtractor,
         "features_extractor_kwargs": {"image_net": cfg.image_net, "image_features": cfg.image_features,
@@ -44,13 +46,13 @@ def build_model(cfg: PolicyConfig, env: VecEnv | None, tensorboard: str | None =
     if env is None:
         common["_init_setup_model"] = False
     if cfg.algo == "ppo":
-        model = ALGOS["ppo"]("MultiInputPolicy", env, learning_rate=cfg.learning_rate, n_steps=cfg.n_steps,
+        model = ALGOS["ppo"]("MultiInputPolicy", env, learning_rate=cfg.learning_rate, n_steps=n_steps,
                              batch_size=cfg.batch_size, n_epochs=cfg.n_epochs, ent_coef=cfg.ent_coef, **common)
     elif cfg.algo == "a2c":
-        model = ALGOS["a2c"]("MultiInputPolicy", env, learning_rate=cfg.learning_rate, n_steps=cfg.n_steps,
+        model = ALGOS["a2c"]("MultiInputPolicy", env, learning_rate=cfg.learning_rate, n_steps=n_steps,
                              ent_coef=cfg.ent_coef, **common)
     else:
-        model = ALGOS["dqn"]("MultiInputPolicy", env, learning_rate=cfg.learning_rate, buffer_size=cfg.buffer_size,
+        model = ALGOS["dqn"]("MultiInputPolicy", env, learning_rate=cfg.learning_rate, buffer_size=buffer_size,
                              learning_starts=cfg.learning_starts, batch_size=cfg.batch_size,
                              train_freq=1, gradient_steps=1,  # one minibatch per vector step (n_envs transitions)
                              target_update_interval=cfg.target_update_interval,

@@ -47,8 +47,10 @@ from stable_baselines3.common.callbacks import BaseCallback
 from stable_baselines3.common.logger import configure
 from stable_baselines3.common.vec_env import VecEnv
 
+from lcdata.fileio import check_output_folder, loads_json, write_atomically
 from lcmodels.fileio import POLICY_FILE, file_sha256, write_json
 from lcmodels.policy.checkpoint import (
+    MAX_CARD_TIMESTEPS,
     LoadedPolicy,
     card_path,
     load_policy,
@@ -148,9 +150,16 @@ class _Run:
                  progress: Callable[[dict[str, Any]], None] | None) -> None:
         self.cfg, self.out, self.progress = cfg, out, progress
         self.predictor: dict[str, str] | None = None
+        """The predictor as the policy's card names it: its file name and SHA-256, which find it beside the
+        policy or in a folder above it wherever the policy is copied (``find_predictor``), and where it lay
+        relative to the policy file (a hint, checked by the digest), never an absolute path of this machine."""
+        self.predictor_path: str | None = None
+        """Where it was read from, for ``run.json`` (this run's own record)."""
         if predictor_path is not None:
-            self.predictor = {"path": str(predictor_path.resolve()), "file": predictor_path.name,
-                              "sha256": str(predictor_sha256)}  # fmt: skip
+            self.predictor = {"file": predictor_path.name, "sha256": str(predictor_sha256)}
+            self.predictor_path = str(predictor_path.resolve())
+        self.scenario = cfg.scenario_config()
+        """The scenario every card of the run stores (read once: a file edited meanwhile changes none)."""
         self.ckpt_state = out / "checkpoints" / "latest.json"
         self.start_timesteps = 0
         self.episodes_total = 0
@@ -163,12 +172,16 @@ class _Run:
     def wall_s(self) -> float:
         return self.wall_before + time.perf_counter() - self.t_start
 
-    def meta(self, timesteps: int, training_form: bool = False) -> dict[str, Any]:
-        """The checkpoint metadata; ``training_form``: a frozen-image run's checkpoint, which sees the image
-        branch's features in place of the image (resumable, not loadable as a policy)."""
+    def meta(self, timesteps: int, folder: Path, training_form: bool = False) -> dict[str, Any]:
+        """The card of a policy file saved in ``folder``; ``training_form``: a frozen-image run's checkpoint,
+        which sees the image branch's features in place of the image (resumable, not loadable as a policy)."""
+        predictor = self.predictor
+        if predictor is not None and self.predictor_path is not None:
+            with contextlib.suppress(ValueError):  # no relative path between two drives: name and digest only
+                predictor = {**predictor, "path": os.path.relpath(self.predictor_path, Path(folder).resolve())}
         meta = {"algo": self.cfg.algo, "obs_mode": self.cfg.obs, "image_net": self.cfg.image_net,
-                "scenario_name": self.cfg.scenario, "scenario": self.cfg.scenario_config().to_dict(),
-                "predictor": self.predictor, "train_config": self.cfg.to_dict(), "timesteps": timesteps}  # fmt: skip
+                "scenario_name": self.cfg.scenario, "scenario": self.scenario.to_dict(),
+                "predictor": predictor, "train_config": self.cfg.to_dict(), "timesteps": timesteps}  # fmt: skip
         if training_form:
             meta["training_form"] = IMAGE_FEATURES
         return meta
@@ -183,10 +196,9 @@ class _Run:
         folder = self.ckpt_state.parent
         previous = read_checkpoint_state(self.ckpt_state) if self.ckpt_state.exists() else None
         weights, optim = f"step-{t}.safetensors", f"step-{t}.optim.pt"
-        save_policy(model, folder / weights, self.meta(t, training_form=self.cfg.freeze_image))
+        save_policy(model, folder / weights, self.meta(t, folder, training_form=self.cfg.freeze_image))
         tmp = folder / (optim + ".partial")
-        torch.save(model.policy.optimizer.state_dict(), tmp)
-        tmp.replace(folder / optim)
+        write_atomically(tmp, folder / optim, lambda: torch.save(model.policy.optimizer.state_dict(), tmp))
         seeds_tmp = self.seeds_path.with_name(self.seeds_path.name + ".partial.npy")
         np.save(seeds_tmp, self.all_seeds())
         seeds_tmp.replace(self.seeds_path)
@@ -279,7 +291,11 @@ def read_checkpoint_state(path: Path) -> dict[str, Any]:
     """``checkpoints/latest.json``: the step count, wall time, episodes and file names of the last checkpoint
     (``ValueError`` naming the file when it is corrupt or incomplete)."""
     try:
-        state = json.loads(path.read_text())
+        if path.stat().st_size > 1 << 20:
+            raise OSError(f"{path.stat().st_size} bytes, not a checkpoint record")
+        state = loads_json(path.read_text())
+        if not isinstance(state, dict):
+            raise TypeError(f"a JSON {type(state).__name__}, not an object")
         missing = [k for k in ("timesteps", "wall_s", "episodes_total", "weights", "optimizer") if k not in state]
         if missing:
             raise KeyError(", ".join(missing))
@@ -287,8 +303,15 @@ def read_checkpoint_state(path: Path) -> dict[str, Any]:
             if not isinstance(state[key], str) or not pattern.fullmatch(state[key]):
                 # the names are joined to the folder and the files later deleted: only this tool's own names
                 raise TypeError(f"{key} {str(state[key])[:80]!r} is not a checkpoint file name of this folder")
+        for key in ("timesteps", "episodes_total", "n_updates", "n_calls"):  # counts the resumed run continues
+            v = state.get(key, 0)
+            if not isinstance(v, int) or isinstance(v, bool) or not 0 <= v <= MAX_CARD_TIMESTEPS:
+                raise TypeError(f"{key} {str(v)[:40]!r} is not a count in [0, {MAX_CARD_TIMESTEPS}]")
+        wall = state["wall_s"]
+        if not isinstance(wall, int | float) or isinstance(wall, bool) or not 0 <= wall < 1e10:
+            raise TypeError(f"wall_s {str(wall)[:40]!r} is not a number of seconds")
         return state
-    except (OSError, json.JSONDecodeError, KeyError, TypeError) as exc:
+    except (OSError, ValueError, KeyError, TypeError) as exc:
         raise ValueError(f"{path} is corrupt ({type(exc).__name__}: {exc}); remove the checkpoints folder to "
                          "restart training from step 0") from None
 
@@ -306,9 +329,11 @@ def check_run_dir(cfg: PolicyConfig, out: Path, predictor_sha256: str | None, *,
                              "(--overwrite only replaces a run this tool wrote)")
         return False
     try:
-        prev = json.loads(run_json.read_text())
+        prev = loads_json(run_json.read_text())
         prev_cfg = stored_config(prev["config"])
-    except (json.JSONDecodeError, KeyError, AttributeError, TypeError) as exc:
+        if not isinstance(prev.get("predictor") or {}, dict):
+            raise TypeError("its predictor is not an object")
+    except (OSError, ValueError, KeyError, AttributeError, TypeError) as exc:
         if overwrite:
             return True
         raise ValueError(f"{run_json} is corrupt ({type(exc).__name__}: {exc}); pass --overwrite to replace "
@@ -365,10 +390,12 @@ def train_policy(
             penalised (:mod:`lcmodels.policy.shield`); what it did goes to ``shield.json``.
 
     Raises:
-        ValueError: bad input (missing predictor, a different run in ``out``, an unusable initial policy or
-            warm-start directory); nothing has been written then.
+        ValueError: bad input (missing predictor, a different run in ``out``, an ``out`` that cannot be written
+            or is the filesystem root or the home directory, an unusable initial policy or warm-start
+            directory); nothing has been written then.
     """
     out = Path(out)
+    check_output_folder(out)
     pred_path = Path(predictor) if predictor is not None and needs_predictor(cfg.obs) else None
     if needs_predictor(cfg.obs) and pred_path is None:
         raise ValueError(f"observation mode {cfg.obs!r} needs a trained predictor (--predictor)")
@@ -385,15 +412,16 @@ def train_policy(
                                  "elsewhere first, or use another --out")
     initial = None
     if cfg.init_policy and (replace or not run.ckpt_state.exists()):
-        initial = _load_init_policy(cfg, run, cfg.scenario_config(), device, trust_pickle)
+        initial = _load_init_policy(cfg, run, run.scenario, device, trust_pickle)
     # Every check has passed: from here on the directory is written.
     if replace:
         removed, kept = remove_run_outputs(out)
         log.info("--overwrite: removed the %d files of the previous run in %s%s", removed, out,
                  f"; kept {len(kept)} files it did not write" if kept else "")
     out.mkdir(parents=True, exist_ok=True)
-    write_json(out / "run.json", {"config": cfg.to_dict(), "predictor": run.predictor,
-                                   "scenario": cfg.scenario_config().to_dict(), "versions": versions()})  # fmt: skip
+    run_predictor = None if run.predictor is None else {**run.predictor, "path": run.predictor_path}
+    write_json(out / "run.json", {"config": cfg.to_dict(), "predictor": run_predictor,
+                                   "scenario": run.scenario.to_dict(), "versions": versions()})  # fmt: skip
     final = out / POLICY_FILE
     train_info: dict[str, Any] = {}
     if (out / "metrics.json").exists():
@@ -406,7 +434,7 @@ def train_policy(
             write_json(out / "shield.json", shield.counts() | {"penalty": shield.penalty,
                                                                "from_step": run.start_timesteps,
                                                                "to_step": int(train_info.get("timesteps", 0))})
-    config = cfg.scenario_config()
+    config = run.scenario
     metrics: dict[str, Any] = {"config": cfg.to_dict(), "train": train_info}
     eval_json = out / "eval" / "metrics.json"
     if cfg.eval_episodes > 0:
@@ -461,7 +489,7 @@ def _train(cfg: PolicyConfig, run: _Run, pred: Predictor | None, device: str, lo
     for f in run.ckpt_state.parent.glob("step-*"):
         if f.name not in keep:
             f.unlink()
-    config = cfg.scenario_config()
+    config = run.scenario
     base = LaneChangeSB3VecEnv(cfg.n_envs, config) if shield is None else ShieldedSB3VecEnv(cfg.n_envs, config, shield)
     # The initial policy (loaded once, before anything was written): its weights start the model, its image
     # branch (when frozen) the wrapper.
@@ -496,7 +524,7 @@ def _train(cfg: PolicyConfig, run: _Run, pred: Predictor | None, device: str, lo
     run.checkpoint(model, t, callback.episodes_total)
     if encoder is not None:
         model = _with_image_branch(cfg, model, encoder, ObservationModeVecEnv(base, cfg.obs, pred), device)
-    save_policy(model, final, run.meta(t))
+    save_policy(model, final, run.meta(t, final.parent))
     info = {"timesteps": t, "wall_s": run.wall_s(), "episodes": callback.episodes_total,
             "resumed_from": run.start_timesteps, "warm_start": warm}  # fmt: skip
     env.close()
@@ -532,7 +560,7 @@ def _load_init_policy(cfg: PolicyConfig, run: _Run, config: ScenarioConfig, devi
     if not path.is_file():
         raise ValueError(f"init_policy {path} does not exist")
     loaded = load_policy(path, obs_mode=cfg.obs, scenario=config, device=device, trust_pickle=trust_pickle,
-                         predictor=run.predictor["path"] if run.predictor else None)  # fmt: skip
+                         predictor=run.predictor_path)  # fmt: skip
     if loaded.meta.get("algo") != cfg.algo:
         raise ValueError(f"init_policy {path} is a {loaded.meta.get('algo')} policy, this run trains {cfg.algo}")
     return loaded
@@ -574,8 +602,7 @@ def _frozen_image_encoder(cfg: PolicyConfig, run: _Run, config: ScenarioConfig,
             raise ValueError(f"init_policy {cfg.init_policy} has no image branch to freeze")
         state = {k: v.detach().cpu() for k, v in extractor.branches["image"].state_dict().items()}
         tmp = path.with_suffix(".partial")
-        torch.save(state, tmp)
-        tmp.replace(path)
+        write_atomically(tmp, path, lambda: torch.save(state, tmp))
     net = make_image_net(cfg.image_net, 3, config.render.image_size_px, cfg.image_features)
     try:
         net.load_state_dict(state)

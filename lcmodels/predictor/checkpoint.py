@@ -15,12 +15,16 @@ from typing import Any
 
 import torch
 
-from lcmodels.predictor.model import PredictorConfig, TrajectoryTransformer
+from lcdata.fileio import loads_json, write_atomically
+from lcmodels.predictor.model import MAX_PARAMETERS, PredictorConfig, TrajectoryTransformer
 
 __all__ = ["CHECKPOINT_FORMAT", "load_model", "save_model"]
 
 CHECKPOINT_FORMAT = "lc-toolkit/predictor"
 CHECKPOINT_VERSION = 1
+MAX_FILE_BYTES = 4 * MAX_PARAMETERS + (64 << 20)
+"""The largest file read as a predictor: the most weights a config may describe as float32, plus room for the
+normalisation buffers and the archive (a larger file is refused before it is read)."""
 
 
 def save_model(
@@ -37,8 +41,7 @@ def save_model(
         "extra": json.dumps(extra or {}, sort_keys=True),
     }
     tmp = path.with_name(path.name + ".partial")
-    torch.save(payload, tmp)
-    tmp.replace(path)
+    write_atomically(tmp, path, lambda: torch.save(payload, tmp))
     return path
 
 
@@ -61,23 +64,34 @@ def load_model(
     path = Path(path)
     if not path.is_file():
         raise ValueError(f"predictor checkpoint {path} does not exist")
+    size = path.stat().st_size
+    if size > MAX_FILE_BYTES:
+        raise ValueError(f"{path} is {size} bytes, more than a predictor checkpoint can be "
+                         f"({MAX_FILE_BYTES >> 20} MiB); not a predictor.pt")
     try:
         payload = torch.load(path, map_location="cpu", weights_only=True)
     except Exception as exc:  # torch raises many types for truncated / foreign files
         # torch's own message advises weights_only=False, which would run code from the file: not shown
         raise ValueError(
-            f"{path} is not a readable predictor checkpoint ({path.stat().st_size} bytes; truncated, corrupt or "
+            f"{path} is not a readable predictor checkpoint ({size} bytes; truncated, corrupt or "
             f"not a predictor.pt: {type(exc).__name__})"
         ) from None
     if not isinstance(payload, dict) or payload.get("format") != CHECKPOINT_FORMAT:
         raise ValueError(f"{path} is not an lc-toolkit predictor checkpoint")
     if payload.get("version") != CHECKPOINT_VERSION:
-        raise ValueError(f"{path}: unsupported checkpoint version {payload.get('version')!r}")
+        raise ValueError(f"{path}: unsupported checkpoint version {str(payload.get('version'))[:40]!r}")
+    state = payload.get("state_dict")
+    if not isinstance(payload.get("config"), str) or not isinstance(payload.get("extra", "{}"), str) or not (
+            isinstance(state, dict) and all(isinstance(k, str) and isinstance(v, torch.Tensor)
+                                            for k, v in state.items())):
+        raise ValueError(f"{path}: checkpoint is corrupt (its config, extra or state_dict has the wrong type)")
     try:
-        config = PredictorConfig.from_dict(json.loads(payload["config"]))
-        extra = json.loads(payload.get("extra", "{}"))
-    except (KeyError, TypeError, json.JSONDecodeError) as exc:
-        raise ValueError(f"{path}: checkpoint config is corrupt: {exc}") from exc
+        config = PredictorConfig.from_dict(loads_json(payload["config"]))
+        extra = loads_json(payload.get("extra", "{}"))
+    except ValueError as exc:
+        raise ValueError(f"{path}: checkpoint config is corrupt: {' '.join(str(exc).split())[:200]}") from None
+    if not isinstance(extra, dict):
+        raise ValueError(f"{path}: checkpoint config is corrupt: its extra record is not a JSON object")
     for name, wanted in (("history_steps", history_steps), ("future_steps", future_steps)):
         have = getattr(config, name)
         if wanted is not None and wanted != have:
@@ -87,8 +101,9 @@ def load_model(
             )
     model = TrajectoryTransformer(config)
     try:
-        model.load_state_dict(payload["state_dict"])
+        model.load_state_dict(state)
     except (KeyError, RuntimeError) as exc:
-        raise ValueError(f"{path}: weights do not match the stored config: {exc}") from exc
+        detail = " ".join(str(exc).split())[:200]
+        raise ValueError(f"{path}: weights do not match the stored config: {detail}") from None
     model.eval()
     return model, extra

@@ -65,6 +65,15 @@ CLIP = 50.0
 CORRECTIONS = ("plain", "bounded", "gated", "bounded-gated")
 #: Share of training windows whose motion counts as familiar to a gated model (the gate's full-trust limit).
 FAMILIAR_QUANTILE = 0.999
+#: Plausible upper bounds of the sizes and constants of a config: a stored or crafted config beyond them is
+#: refused before any weight is allocated (a feed-forward width of 1e10 would ask for terabytes).
+LIMITS: dict[str, Any] = {
+    "history_steps": 1_000, "future_steps": 1_000, "num_neighbours": 64, "d_model": 4_096, "num_heads": 64,
+    "num_layers": 64, "num_context_layers": 64, "ff_dim": 16_384, "velocity_window": 1_000,
+    "correction_speed_mps": 100.0, "correction_accel_mps2": 100.0, "dt_s": 10.0,
+}  # fmt: skip
+#: The most weights a predictor may have (about 400 MB of float32).
+MAX_PARAMETERS = 100_000_000
 #: Values of fields a stored config may lack: what a checkpoint from before the field existed was.
 LEGACY_VALUES: dict[str, Any] = {"correction": "plain", "velocity_window": 1}
 
@@ -120,6 +129,8 @@ class PredictorConfig:
             value = getattr(self, name)
             if not isinstance(value, int) or isinstance(value, bool):
                 raise ValueError(f"{name} must be an int, got {value!r}")
+            if value > LIMITS[name]:
+                raise ValueError(f"{name} must be at most {LIMITS[name]}, got {value}")
         if self.history_steps < 3:
             raise ValueError(f"history_steps must be >= 3, got {self.history_steps}")
         for name in ("future_steps", "d_model", "num_heads", "num_layers", "ff_dim"):
@@ -131,16 +142,33 @@ class PredictorConfig:
             raise ValueError(f"num_neighbours must be >= 0, got {self.num_neighbours}")
         if self.d_model % self.num_heads:
             raise ValueError(f"num_heads ({self.num_heads}) must divide d_model ({self.d_model})")
-        if not 0.0 <= self.dropout < 1.0:
-            raise ValueError(f"dropout must be in [0, 1), got {self.dropout}")
+        if not isinstance(self.dropout, int | float) or isinstance(self.dropout, bool) or not 0.0 <= self.dropout < 1.0:
+            raise ValueError(f"dropout must be in [0, 1), got {self.dropout!r}")
         if not isinstance(self.velocity_window, int) or isinstance(self.velocity_window, bool) or self.velocity_window < 1:
             raise ValueError(f"velocity_window must be an int >= 1, got {self.velocity_window!r}")
-        if self.correction not in CORRECTIONS:
+        if self.velocity_window > LIMITS["velocity_window"]:
+            raise ValueError(f"velocity_window must be at most {LIMITS['velocity_window']}, got {self.velocity_window}")
+        if not isinstance(self.correction, str) or self.correction not in CORRECTIONS:
             raise ValueError(f"correction must be one of {', '.join(CORRECTIONS)}; got {self.correction!r}")
         for name in ("correction_speed_mps", "correction_accel_mps2", "dt_s"):
             value = getattr(self, name)
             if not (isinstance(value, int | float) and not isinstance(value, bool) and math.isfinite(value) and value > 0):
                 raise ValueError(f"{name} must be a number > 0, got {value!r}")
+            if value > LIMITS[name]:
+                raise ValueError(f"{name} must be at most {LIMITS[name]}, got {value!r}")
+        params = self.parameter_estimate()
+        if params > MAX_PARAMETERS:
+            raise ValueError(f"the network these sizes describe has about {params:.3g} weights, more than "
+                             f"{MAX_PARAMETERS:.0e}; lower d_model, ff_dim or the layer counts")
+
+    def parameter_estimate(self) -> int:
+        """About how many weights a network of these sizes has (the token MLP, every layer's attention and
+        feed-forward, the head): what :data:`MAX_PARAMETERS` bounds before any is allocated."""
+        d, ff = self.d_model, self.ff_dim
+        token_in = self.history_steps * (FEATURES_PER_STEP + 1)
+        layer = 4 * d * d + 2 * d * ff + 9 * d + ff
+        head_out = 2 * self.future_steps * 2
+        return token_in * d + 3 * d * d + (self.num_layers + self.num_context_layers) * layer + d * head_out
 
     @property
     def bounded(self) -> bool:
@@ -167,11 +195,16 @@ class PredictorConfig:
     def from_dict(cls, data: dict[str, Any]) -> PredictorConfig:
         """A stored config: a field it lacks gets the value it had before the field existed
         (:data:`LEGACY_VALUES`, so an old checkpoint computes what it always did), else the default."""
+        if not isinstance(data, dict):
+            raise ValueError(f"a PredictorConfig is a JSON object, got {type(data).__name__}")
         names = {f.name for f in dataclasses.fields(cls)}
         unknown = set(data) - names
         if unknown:
-            raise ValueError(f"unknown PredictorConfig fields: {sorted(unknown)}")
-        return cls(**{**{k: v for k, v in LEGACY_VALUES.items() if k not in data}, **data})
+            raise ValueError(f"unknown PredictorConfig fields: {sorted(map(str, unknown))[:5]}")
+        try:
+            return cls(**{**{k: v for k, v in LEGACY_VALUES.items() if k not in data}, **data})
+        except TypeError as exc:  # a value of a type no check expected
+            raise ValueError(f"PredictorConfig: a value of the wrong type ({exc})") from None
 
 
 def token_features(pos: torch.Tensor, mask: torch.Tensor) -> torch.Tensor:
