@@ -77,6 +77,8 @@ def test_the_zoo_cards_quote_the_ledger(entries):
     for e in zoo_entries():
         assert "test" not in e.card and "test" not in (e.card.get("safety_layer") or {}), e.name
         assert e.card["sealed_test"]["alone"] is not None, f"zoo:{e.name} has no sealed test figure"
+        if (e.card.get("safety_layer") or {}).get("follow"):  # measured behind its layer: that figure too
+            assert e.card["sealed_test"]["safety_layer"] is not None, f"zoo:{e.name}: no sealed figure behind its layer"
 
 
 def test_the_suite_is_stored_with_its_ceilings_and_floors(entries):

@@ -275,9 +275,9 @@ def zoo_sealed(name: str, entries: list[dict[str, Any]] | None = None) -> dict[s
     layer = entry.card.get("safety_layer") or {}
     follow = (layer.get("follow") or {}).get("recipe")
     if follow:
-        digest = (layer.get("follow") or {}).get("weights_sha256")
+        weights = (layer.get("follow") or {}).get("weights_sha256")
         follower = next((e for e in zoo_entries() if e.card.get("recipe") == follow
-                         and (digest is None or e.weights_sha256 == digest)), None)  # fmt: skip
+                         and (weights is None or e.weights_sha256 == weights)), None)  # fmt: skip
         if follower is not None:
             lookahead = (layer.get("config") or {}).get("lookahead") or {}
             drv = resolve_driver(f"lookahead-blind:zoo:{name}", follow=f"zoo:{follower.name}", lookahead=lookahead)
