@@ -151,7 +151,7 @@ def test_frozen_image_branch_trains_faster_form_and_saves_a_plain_policy(tmp_pat
     cfg = tiny_policy(obs="hybrid", timesteps=128, init_policy=str(start), freeze_image=True)
     res = train_policy(cfg, out, predictor=predictor_path)
     assert EVAL_KEYS <= set(res.metrics["eval"]) and res.timesteps == 128
-    before = load_policy(start).model.policy.state_dict()
+    before = load_policy(start, predictor=predictor_path).model.policy.state_dict()  # moved away from its predictor
     plain = load_policy(out / "policy.safetensors")
     after = plain.model.policy.state_dict()
     image_keys = [k for k in before if ".branches.image." in k]

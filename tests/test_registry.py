@@ -11,11 +11,14 @@ from lcdata import read_episode
 from lcmodels.policy import PolicyConfig
 from lcsim.config import corpus_scenario, light_scenario, paper_scenario, tiny_scenario
 from lcsim.registry import DRIVER_NAMES, SCENARIOS, TASK_SCENARIOS, make_driver, scenario, split_policy_spec
+from lcsim.suite import SUITE_SCENARIOS
 
 
 def test_every_name_means_one_scenario_everywhere():
+    suite = {name: road.make for name, road in SUITE_SCENARIOS.items() if name != "paper"}
     assert SCENARIOS == {"paper": paper_scenario, "light": light_scenario, "tiny": tiny_scenario,
-                         "corpus": corpus_scenario}
+                         "corpus": corpus_scenario, **suite}  # and the benchmark suite's roads
+    assert SUITE_SCENARIOS["paper"].make is paper_scenario
     assert set(TASK_SCENARIOS) == set(SCENARIOS) - {"corpus"}
     assert set(lcsim.ENV_IDS.values()) <= set(SCENARIOS)
     assert PolicyConfig(scenario="light").scenario_config().traffic == light_scenario().traffic
