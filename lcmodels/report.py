@@ -255,6 +255,16 @@ def sealed_test_table(exp: ReportInput) -> str:
         entry = find_entry(entries, cell_key(identity, digest, seeds))
         if entry is not None:
             found.append((label, entry))
+    if zoo.is_dir():  # a zoo entry behind its safety layer, as its card describes it
+        from lcmodels.bench.published import zoo_sealed
+
+        for d in sorted(zoo.iterdir()):
+            try:
+                layer = zoo_sealed(d.name, entries)["safety_layer"]
+            except (ValueError, OSError):
+                continue
+            if layer is not None:
+                found.append((f"zoo:{d.name} behind its safety layer", {**layer, "key": layer["ledger_key"]}))
     for label, path in candidates:
         if not path.is_file():
             continue
