@@ -136,7 +136,8 @@ def check_output_file(path: str | os.PathLike[str], flag: str) -> None:
 
 
 @contextlib.contextmanager
-def folder_lock(folder: str | os.PathLike[str], what: str, name: str = ".lock") -> Iterator[None]:
+def folder_lock(folder: str | os.PathLike[str], what: str, name: str = ".lock",
+                doing: str = "is writing in") -> Iterator[None]:
     """Hold ``folder/name`` (an advisory ``flock``, released however the process ends) while a command writes in
     ``folder``: a second command there gets a one-line ``ValueError`` naming the holder's pid instead of two
     writers interleaving their files. ``folder`` must exist. Not POSIX: no lock."""
@@ -151,7 +152,7 @@ def folder_lock(folder: str | os.PathLike[str], what: str, name: str = ".lock") 
         except BlockingIOError:
             fh.seek(0)
             holder = fh.read(32).strip() or "unknown"
-            raise ValueError(f"another {what} (pid {holder}) is writing in {folder}; wait for it to finish or stop "
+            raise ValueError(f"another {what} (pid {holder}) {doing} {folder}; wait for it to finish or stop "
                              "it first") from None
         fh.seek(0)
         fh.truncate()

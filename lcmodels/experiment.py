@@ -681,29 +681,10 @@ class Experiment:
 
         ``ValueError`` when another process holds it: two runs in one directory would overwrite each other.
         """
-        try:
-            import fcntl
-        except ImportError:  # not POSIX: no lock
+        from lcdata.fileio import folder_lock
+
+        with folder_lock(self.out, "lc-experiment", LOCK_NAME, doing="is running in"):
             yield
-            return
-        with open(self.out / LOCK_NAME, "a+") as fh:
-            try:
-                fcntl.flock(fh, fcntl.LOCK_EX | fcntl.LOCK_NB)
-            except BlockingIOError:
-                fh.seek(0)
-                holder = fh.read().strip() or "unknown"
-                raise ValueError(f"another lc-experiment (pid {holder}) is running in {self.out}; "
-                                 "wait for it or stop it first") from None  # fmt: skip
-            fh.seek(0)
-            fh.truncate()
-            fh.write(str(os.getpid()))
-            fh.flush()
-            try:
-                yield
-            finally:
-                fh.seek(0)
-                fh.truncate()
-                fcntl.flock(fh, fcntl.LOCK_UN)
 
     def recipes(self) -> list[Recipe]:
         """The preset's recipes (capped), and any recipe a safety layer follows that the preset leaves out."""
