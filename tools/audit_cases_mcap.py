@@ -26,14 +26,17 @@ from typing import Any
 
 import zstandard
 
-MAGIC = b"\x89MCAP0\r\n"
-OP_FOOTER = 0x02
-OP_SCHEMA = 0x03
-OP_CHANNEL = 0x04
-OP_MESSAGE = 0x05
-OP_CHUNK = 0x06
-OP_MESSAGE_INDEX = 0x07
-OP_DATA_END = 0x0F
+from lcdata.mcap_write import (
+    MAGIC,
+    OP_CHANNEL,
+    OP_CHUNK,
+    OP_DATA_END,
+    OP_FOOTER,
+    OP_MESSAGE,
+    OP_MESSAGE_INDEX,
+    OP_SCHEMA,
+)
+
 _CHUNK_HEAD = struct.Struct("<QQQI")
 MIB = 1 << 20
 
