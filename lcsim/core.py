@@ -15,6 +15,7 @@ from lcsim import kernel
 from lcsim.config import LANE_SLOTS, ScenarioConfig
 from lcsim.render import BevRenderer
 from lcsim.sim import HighwaySim
+from lcsim.threads import run_shards, shard_count
 
 # Outcomes (info["outcome"]); "" while the episode runs.
 RUNNING, SUCCESS, COLLISION, OFF_ROAD, TIMEOUT = "", "success", "collision", "off_road", "timeout"
@@ -57,9 +58,13 @@ class StepResult:
 class LaneChangeCore:
     """E lane-change episodes: apply decisions, run ``steps_per_decision`` simulation steps, score them."""
 
-    def __init__(self, config: ScenarioConfig, num_envs: int, *, autopilot_ego: bool = False) -> None:
+    def __init__(self, config: ScenarioConfig, num_envs: int, *, autopilot_ego: bool = False,
+                 threads: int | None = None) -> None:
+        """``threads``: how many threads simulate, observe and draw the batch, each a contiguous shard of
+        environments (the same bits however many); None: the process's default (:mod:`lcsim.threads`), 1: the
+        calling thread only."""
         self.config = config
-        self.sim = HighwaySim(config, num_envs, autopilot_ego=autopilot_ego)
+        self.sim = HighwaySim(config, num_envs, autopilot_ego=autopilot_ego, threads=threads)
         self.num_envs = num_envs
         self.renderer = None
         if config.render_image:
@@ -158,17 +163,32 @@ class LaneChangeCore:
         """
         return self._observe(np.asarray(ids, dtype=np.int64))[0]
 
-    def _observe(self, ids: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        """The slots' vehicles, ``current`` and ``history`` of environments ``ids`` (one compiled call)."""
+    def _observe(self, ids: np.ndarray, image: bool = False
+                 ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray | None]:
+        """The slots' vehicles, ``current``, ``history`` and (``image`` and a renderer) the images of environments
+        ``ids``, in contiguous shards of environments on the simulator's threads (one compiled call per shard)."""
         sim, b = self.sim, len(ids)
         if b and (ids.min() < 0 or ids.max() >= self.num_envs):
             raise IndexError(f"environment ids must be in [0, {self.num_envs}), got {ids.tolist()}")
         nb = np.empty((b, self.k), dtype=np.int64)
         cur = np.empty((b, 1 + self.k, self._num_features), dtype=np.float32)
         hist = np.empty((b, self.k, sim.history_len, 3), dtype=np.float32)
-        kernel.observe(ids, self._nearest_mode, self._slots, self._range2, self.config.observe_acceleration,
-                       sim.road.num_lanes, sim.vf, sim.vi, sim.hist, sim.hist_ptr, sim.hist_count, nb, cur, hist)
-        return nb, cur, hist
+        renderer = self.renderer if image else None
+        if renderer is not None:
+            every = b == self.num_envs and ids is _vehicle_range(self.num_envs)
+            poses = tuple(a if every else a[ids] for a in (sim.x, sim.y, sim.yaw, sim.length, sim.width))
+            images = renderer.empty(b)
+            extent = renderer.extent(poses[3], poses[4])
+
+        def shard(i: int, j: int) -> None:
+            kernel.observe(ids[i:j], self._nearest_mode, self._slots, self._range2, self.config.observe_acceleration,
+                           sim.road.num_lanes, sim.vf, sim.vi, sim.hist, sim.hist_ptr, sim.hist_count, nb[i:j],
+                           cur[i:j], hist[i:j])
+            if renderer is not None:
+                renderer.draw(images[i:j], *(a[i:j] for a in poses), extent)
+
+        run_shards(shard, b, shard_count(b, sim.threads))
+        return nb, cur, hist, images if renderer is not None else None
 
     def observe(self, ids: np.ndarray | None = None) -> dict[str, np.ndarray]:
         """Batched observation of environments ``ids`` (all by default), B = len(ids).
@@ -179,15 +199,9 @@ class LaneChangeCore:
         the last H positions of the same K vehicles in the ego frame of the current step, oldest first,
         with a validity flag, and ``image`` (B, 3, S, S) uint8 when rendering is on.
         """
-        sim = self.sim
-        every = ids is None
-        ids = _vehicle_range(self.num_envs) if every else np.asarray(ids, dtype=np.int64)
-        _, cur, hist = self._observe(ids)
+        ids = _vehicle_range(self.num_envs) if ids is None else np.asarray(ids, dtype=np.int64)
+        _, cur, hist, image = self._observe(ids, image=True)
         obs = {"current": cur, "history": hist}
-        if self.renderer is not None:
-            if every:
-                obs["image"] = self.renderer.render(sim.x, sim.y, sim.yaw, sim.length, sim.width)
-            else:
-                obs["image"] = self.renderer.render(sim.x[ids], sim.y[ids], sim.yaw[ids], sim.length[ids],
-                                                    sim.width[ids])
+        if image is not None:
+            obs["image"] = image
         return obs

@@ -111,16 +111,22 @@ class LaneChangeEnv(gym.Env):
 
 
 class LaneChangeVectorEnv(VectorEnv):
-    """E lane-change episodes advanced together in numpy (not a loop over single environments)."""
+    """E lane-change episodes advanced together in numpy (not a loop over single environments).
+
+    ``threads``: how many threads step the batch, each a contiguous shard of environments (the same bytes however
+    many); None: the process's default (:mod:`lcsim.threads`: ``LC_THREADS``, else every core for batches of 16 or
+    more on two cores), 1: the calling thread only.
+    """
 
     metadata: ClassVar[dict[str, Any]] = {"autoreset_mode": AutoresetMode.SAME_STEP, "render_modes": []}
 
-    def __init__(self, num_envs: int = 8, config: ScenarioConfig | None = None, **kwargs: Any) -> None:
+    def __init__(self, num_envs: int = 8, config: ScenarioConfig | None = None, *, threads: int | None = None,
+                 **kwargs: Any) -> None:
         if kwargs:
             raise TypeError(f"unexpected arguments {sorted(kwargs)}")
         self.config = config or ScenarioConfig()
         self.num_envs = num_envs
-        self.core = LaneChangeCore(self.config, num_envs)
+        self.core = LaneChangeCore(self.config, num_envs, threads=threads)
         self.single_observation_space = observation_space(self.config)
         self.single_action_space = spaces.Discrete(3)
         self.observation_space = batch_space(self.single_observation_space, num_envs)
@@ -154,12 +160,13 @@ class LaneChangeVectorEnv(VectorEnv):
             "reward_components": res.components,
             "_reward_components": np.ones(self.num_envs, bool),
         }
-        done = np.flatnonzero(res.terminated | res.truncated)
+        ended = res.terminated | res.truncated
+        done = np.flatnonzero(ended)
         if done.size:
             final_obs = np.full(self.num_envs, None, dtype=object)
             for i in done:
                 final_obs[i] = {k: v[i].copy() for k, v in obs.items()}
-            infos["final_obs"], infos["_final_obs"] = final_obs, np.isin(np.arange(self.num_envs), done)
+            infos["final_obs"], infos["_final_obs"] = final_obs, ended
             self.core.reset(done, [_episode_seed(self._rngs[i]) for i in done])
             fresh = self.core.observe(done)
             for k in obs:

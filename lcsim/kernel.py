@@ -262,6 +262,74 @@ def uniform_draws(bases, steps, n):
     return out
 
 
+# ---------------------------------------------------------------------------------------------------------- spawn
+SPAWN_NAMES = ("spacing", "half_spacing", "lo_w", "zone_lo", "zone", "speed_kmh", "speed_spread_kmh",
+               "ego_target_speed", "ego_initial_speed", "lane_width")
+"""The constants of :func:`spawn_env` (:meth:`lcsim.sim.HighwaySim._spawn` computes them once)."""
+
+
+@njit(cache=True)
+def spawn_env(e, ego_lane, lane_of, counts, draws, spread_z, key, sp, autopilot_ego, vf, vi, vb, ef, ei, eb, keys):
+    """A new episode's state in environment ``e``, from its random draws (made in this order by the caller):
+    traffic vehicle ``i`` in lane ``lane_of[i]`` (``counts`` per lane); ``draws``, lane after lane, a uniform draw
+    in the lane's free length per vehicle in it; ``spread_z`` ``(N,)`` standard normal draws of the desired
+    speeds; ``key`` the random streams' key. In a lane, the sorted draws plus one vehicle's spacing each give the
+    vehicles' places in index order, those past the ego's spot moved beyond its clearance (the ego's lane). The
+    same operations in the same order as the numpy code it replaced, so the same bits."""
+    spacing, half_spacing, lo_w, zone_lo, zone = sp[0], sp[1], sp[2], sp[3], sp[4]
+    speed_kmh, spread_kmh, lw = sp[5], sp[6], sp[9]
+    n = vf.shape[2]
+    x, y = vf[X, e], vf[Y, e]
+    x[0] = 0.0
+    start = 0
+    for lane in range(counts.shape[0]):
+        k = counts[lane]
+        if k == 0:
+            continue
+        pos = np.sort(draws[start:start + k])
+        start += k
+        shift = zone if lane == ego_lane else 0.0
+        j = 0
+        for i in range(n - 1):
+            if lane_of[i] == lane:
+                p = ((lo_w + pos[j]) + float(j) * spacing) + half_spacing
+                if shift != 0.0 and p >= zone_lo:
+                    p = p + shift
+                x[1 + i] = p
+                j += 1
+    for v in range(n):
+        z = min(max(spread_z[v], -2.5), 2.5) * spread_kmh
+        v0 = max((speed_kmh + z) / 3.6, 1.0)
+        if v == 0 and not autopilot_ego:
+            v0 = sp[7]
+        ln = ego_lane if v == 0 else lane_of[v - 1]
+        vi[LANE, e, v] = ln
+        vi[TARGET, e, v] = ln
+        yv = (ln + 0.5) * lw
+        y[v] = yv
+        vf[YAW, e, v] = 0.0
+        vf[V0, e, v] = v0
+        vf[SPEED, e, v] = v0
+        vf[ACCEL, e, v] = 0.0
+        vb[LC_ACTIVE, e, v] = False
+        vf[LC_T0, e, v] = 0.0
+        vf[LC_Y0, e, v] = yv
+        vf[LC_Y1, e, v] = yv
+    if not autopilot_ego:
+        vf[SPEED, e, 0] = sp[8]
+    y_c = (ego_lane + 0.5) * lw
+    ef[PATH_X0, e], ef[PATH_LEN, e], ef[PATH_Y0, e], ef[PATH_Y1, e] = 0.0, 1.0, y_c, y_c
+    eb[EGO_LC_ACTIVE, e] = False
+    ef[STEER, e] = ef[THROTTLE, e] = ef[BRAKE, e] = ef[EGO_ACCEL, e] = 0.0
+    ei[STEP, e] = 0
+    ef[T_S, e] = 0.0
+    keys[KEY, e] = key
+    ei[COLLISION_WITH, e] = -1
+    ei[LANE_INVASION, e] = -1
+    eb[OFF_ROAD, e] = False
+    ei[TRAFFIC_COLLISIONS, e] = 0
+
+
 # ------------------------------------------------------------------------------------------------ neighbour index
 @njit(cache=True)
 def _build_index_env(e, p, ip, vf, vi, vb, scratch_lanes):
@@ -338,6 +406,22 @@ def build_index(envs, p, ip, vf, vi, vb, fresh):
             for i in range(n):
                 vi[ORDER, e, i] = i
         _build_index_env(e, p, ip, vf, vi, vb, scratch)
+
+
+@njit(cache=True)
+def finish_spawn(envs, p, ip, vf, vi, vb, ei, eb, hist, pid_err, pid_count):
+    """After :func:`spawn_env` of environments ``envs``: unfreeze them, clear their PID windows, build their
+    neighbour index afresh and fill their position history with the spawn positions (one entry)."""
+    build_index(envs, p, ip, vf, vi, vb, True)
+    for e in envs:
+        eb[FROZEN, e] = False
+        pid_err[e] = 0.0
+        pid_count[e] = 0
+        for t in range(hist.shape[1]):
+            for v in range(hist.shape[2]):
+                hist[e, t, v, 0] = vf[X, e, v]
+                hist[e, t, v, 1] = vf[Y, e, v]
+        ei[HIST_COUNT, e] = 1
 
 
 @njit(cache=True, inline="always")
@@ -588,21 +672,23 @@ def _substep_env(e, p, ip, vf, vi, vb, ef, ei, eb, keys, pid_err, pid_count, pid
     _sensors_env(e, p, vf, vi, ei, eb, ego_y_prev)
 
 
-@njit(cache=True)
-def advance(steps, stop_on_event, p, ip, vf, vi, vb, ef, ei, eb, keys, hist, hist_ptr, pid_err, pid_count, pid_ptr):
-    """Advance every environment not frozen (``eb[FROZEN]``) by ``steps`` simulation steps.
+@njit(cache=True, nogil=True)
+def advance(steps, stop_on_event, p, ip, vf, vi, vb, ef, ei, eb, keys, hist, hist_ptr, pid_err, pid_count, pid_ptr,
+            e0, e1):
+    """Advance environments ``e0 .. e1 - 1`` not frozen (``eb[FROZEN]``) by ``steps`` simulation steps.
 
     With ``stop_on_event``, an environment that meets an event (its ego in contact, off the road, or past the route's
     end) is frozen from there for the rest of the call. A frozen environment keeps its state; its history ring is
     written all the same (its position repeats). ``hist_ptr`` and ``pid_ptr`` are the shared ring positions before
-    the call; each advances by ``steps``.
+    the call; each advances by ``steps``. Nothing outside those environments' own state is read or written, so
+    threads may advance disjoint ranges of one batch at the same time (the Python lock is released).
     """
-    num_envs, n = vf.shape[1], vf.shape[2]
+    n = vf.shape[2]
     h, w = hist.shape[1], pid_err.shape[1]
     new = np.empty((5, n))
     scratch = np.empty(max(ip[NUM_LANES], 1), dtype=np.int64)
     route = p[ROUTE]
-    for e in range(num_envs):
+    for e in range(e0, e1):
         frozen = eb[FROZEN, e]
         for s in range(steps):
             if not frozen:
@@ -657,7 +743,7 @@ def _nearest_neighbours(vf, e, range2, out):
             out[j] = -1
 
 
-@njit(cache=True)
+@njit(cache=True, nogil=True)
 def observe(ids, nearest_mode, slots, range2, with_accel, num_lanes, vf, vi, hist, hist_ptr, hist_count, neighbours,
             current, history):
     """The ``current`` and ``history`` observations of environments ``ids`` (see

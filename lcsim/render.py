@@ -19,6 +19,7 @@ import numpy as np
 from numba import njit
 
 from lcsim.config import RenderConfig, RoadConfig
+from lcsim.threads import run_shards
 
 # Class ids and colours (CARLA semantic palette; CARLA has no ego class, so the ego gets its own).
 OFF_ROAD, ROAD, MARKING, VEHICLE, EGO = 0, 1, 2, 3, 4
@@ -67,44 +68,71 @@ class BevRenderer:
         self.rgb_table = np.ascontiguousarray(PALETTE[table])  # (lateral class, dash_on, channel)
 
     def render(self, x: np.ndarray, y: np.ndarray, yaw: np.ndarray, length: np.ndarray,
-               width: np.ndarray) -> np.ndarray:
+               width: np.ndarray, *, shards: int = 1) -> np.ndarray:
         """Render one image per environment around vehicle 0 (the ego).
 
         The ego and its nearest ``max_vehicles_drawn`` vehicles are drawn (ties by index).
 
         Args:
             x, y, yaw, length, width: ``(E, N)`` vehicle poses and sizes (float64); column 0 is the ego.
+            shards: threads that draw contiguous shards of the images at the same time
+                (:func:`lcsim.threads.run_shards`; the same bytes however many).
 
         Returns:
             ``(E, 3, S, S)`` uint8 in the palette :data:`PALETTE`; row 0 is ahead, column 0 left.
         """
         x, y, yaw, length, width = (np.ascontiguousarray(a, dtype=np.float64) for a in (x, y, yaw, length, width))
-        extent = -1.0 if self.vehicle_extent_m is None else float(self.vehicle_extent_m)
-        return _render_batch(x, y, yaw, length, width, extent, self.size, self.res, self.half_extent,
-                             self.max_vehicles, self.offsets, self.lut, self.lut_lo, self.period,
-                             self.road.dash_length_m, self.rgb_table)
+        out = self.empty(x.shape[0])
+        extent = self.extent(length, width)
+        run_shards(lambda a, b: self.draw(out[a:b], x[a:b], y[a:b], yaw[a:b], length[a:b], width[a:b], extent),
+                   x.shape[0], shards)
+        return out
+
+    def empty(self, num: int) -> np.ndarray:
+        """``(num, 3, S, S)`` uint8, uninitialised: for :meth:`draw`."""
+        return np.empty((num, 3, self.size, self.size), dtype=np.uint8)
+
+    def extent(self, length: np.ndarray, width: np.ndarray) -> float:
+        """The bound of a vehicle's length + width that :meth:`draw` takes: ``vehicle_extent_m``, or the longest
+        length plus the widest width of ``(E, N)`` float64 arrays."""
+        return _vehicle_extent(length, width) if self.vehicle_extent_m is None else float(self.vehicle_extent_m)
+
+    def draw(self, out: np.ndarray, x: np.ndarray, y: np.ndarray, yaw: np.ndarray, length: np.ndarray,
+             width: np.ndarray, extent: float) -> None:
+        """:meth:`render` into ``out`` ``(E, 3, S, S)`` uint8 (C-contiguous), from C-contiguous ``(E, N)`` float64
+        arrays and :meth:`extent` (of the whole batch: the bound only limits which vehicles are tried, so any
+        bound gives the same image). Each image depends on its own environment only: threads may draw disjoint
+        rows of one batch at the same time."""
+        e, s = out.shape[0], self.size
+        _render_batch(out.reshape((e, 3, s * s)), x, y, yaw, length, width, extent, s, self.res, self.half_extent,
+                      self.max_vehicles, self.offsets, self.lut, self.lut_lo, self.period, self.road.dash_length_m,
+                      self.rgb_table)
 
 
 @njit(cache=True)
-def _render_batch(x, y, yaw, length, width, extent, s, res, half_extent, max_vehicles, offsets, lut, lut_lo,
-                  period, dash_length, rgb_table):
-    """The images of :meth:`BevRenderer.render`: ``(E, N)`` float64 arrays in, ``(E, 3, S, S)`` uint8 out.
+def _vehicle_extent(length, width):
+    """The longest vehicle's length plus the widest one's width (m), of ``(E, N)`` arrays."""
+    longest = 0.0
+    widest = 0.0
+    for i in range(length.shape[0]):
+        for j in range(length.shape[1]):
+            longest = max(longest, length[i, j])
+            widest = max(widest, width[i, j])
+    return longest + widest
 
-    ``extent`` is an upper bound of any vehicle's length + width (m), or negative to take it from the
-    arrays; ``offsets`` ``(S,)`` the pixel centres in metres from the ego (ahead for a row, left for a
-    column); ``lut`` the lateral class every ``_LUT_RES_M`` from ``lut_lo``; ``rgb_table``
-    ``(class, dash_on, 3)`` the colour of a lateral class in a row with broken markings off or on.
+
+@njit(cache=True, nogil=True)
+def _render_batch(out, x, y, yaw, length, width, extent, s, res, half_extent, max_vehicles, offsets, lut, lut_lo,
+                  period, dash_length, rgb_table):
+    """The images of :meth:`BevRenderer.render` into ``out`` ``(E, 3, S * S)`` uint8, from ``(E, N)`` float64 arrays.
+
+    ``extent`` is an upper bound of any vehicle's length + width (m); ``offsets`` ``(S,)`` the pixel centres in
+    metres from the ego (ahead for a row, left for a column); ``lut`` the lateral class every ``_LUT_RES_M`` from
+    ``lut_lo``; ``rgb_table`` ``(class, dash_on, 3)`` the colour of a lateral class in a row with broken markings
+    off or on. Each image depends on its own environment only, so threads may draw disjoint shards at once (the
+    Python lock is released).
     """
     e, n = x.shape
-    out = np.empty((e, 3, s * s), dtype=np.uint8)
-    if extent < 0.0:
-        longest = 0.0
-        widest = 0.0
-        for i in range(e):
-            for j in range(n):
-                longest = max(longest, length[i, j])
-                widest = max(widest, width[i, j])
-        extent = longest + widest
     # A vehicle whose centre is farther than this from the ego cannot reach the image.
     reach = math.sqrt(2.0) * (half_extent + extent) + 1.0
     reach2 = reach * reach
@@ -138,7 +166,6 @@ def _render_batch(x, y, yaw, length, width, extent, s, res, half_extent, max_veh
                               width[i, j], PALETTE[VEHICLE])
         _fill_vehicle(out[i], s, res, centre_px, ex, ey, ex, ey, yaw[i, 0], length[i, 0], width[i, 0],
                       PALETTE[EGO])
-    return out.reshape((e, 3, s, s))
 
 
 @njit(cache=True)

@@ -23,8 +23,9 @@ class LaneChangeSB3VecEnv(VecEnv):
 
     render_mode = None
 
-    def __init__(self, num_envs: int = 8, config: ScenarioConfig | None = None) -> None:
-        self.venv = LaneChangeVectorEnv(num_envs, config)
+    def __init__(self, num_envs: int = 8, config: ScenarioConfig | None = None, *, threads: int | None = None) -> None:
+        """``threads``: as :class:`~lcsim.envs.LaneChangeVectorEnv`'s (None: the process's default)."""
+        self.venv = LaneChangeVectorEnv(num_envs, config, threads=threads)
         super().__init__(num_envs, self.venv.single_observation_space, self.venv.single_action_space)
         self._actions: np.ndarray | None = None
 

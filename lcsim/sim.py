@@ -21,6 +21,7 @@ from lcsim.config import ScenarioConfig
 from lcsim.control import PIDBank
 from lcsim.neighbours import LaneIndex
 from lcsim.road import StraightRoad
+from lcsim.threads import check_threads, run_shards, shard_count
 from lcsim.traffic import WANDER_CLIP_SIGMAS, DriverParams
 
 _LANE_CHANGE_STREAM = 1  # the random-number stream of the traffic's spontaneous lane changes
@@ -56,16 +57,20 @@ class HighwaySim:
         num_envs: E.
         autopilot_ego: drive the ego with the traffic's autopilot instead of the PID controller
             (the corpus scenario records 20 autopilot vehicles).
+        threads: the threads that advance the batch, each a contiguous shard of environments (the same bits
+            however many); None: the process's default (:mod:`lcsim.threads`), 1: the calling thread only.
 
     The state arrays (``x``, ``y``, ``yaw``, ``speed``, ``accel``, ``lane``, ``target_lane``, ``lc_active``, ...;
     :data:`lcsim.kernel.VF_NAMES` and the other name lists) are views of a few blocks; assigning to one writes into
     it. ``frozen`` environments keep their state through :meth:`substep` and :meth:`advance`.
     """
 
-    def __init__(self, config: ScenarioConfig, num_envs: int, *, autopilot_ego: bool = False) -> None:
+    def __init__(self, config: ScenarioConfig, num_envs: int, *, autopilot_ego: bool = False,
+                 threads: int | None = None) -> None:
         if num_envs < 1:
             raise ValueError(f"num_envs must be >= 1, got {num_envs}")
         self.config = config
+        self.threads = check_threads(threads)
         self.road = StraightRoad(config.road)
         self.autopilot_ego = autopilot_ego
         self.num_envs = e = num_envs
@@ -91,6 +96,15 @@ class HighwaySim:
         for name in _DRIVER_ROWS:
             getattr(self.drivers, name)[...] = getattr(nominal, name)[0]
         self.index.order[:] = self.ids
+        # Spawning: the traffic's lanes before the shuffle, and the constants of kernel.spawn_env.
+        self._lane_cycle = np.arange(n - 1) % config.road.num_lanes
+        spacing = tc.length_m + tc.min_spawn_gap_m
+        spawn = {"spacing": spacing, "half_spacing": 0.5 * spacing, "lo_w": -tc.spawn_behind_m,
+                 "zone_lo": -0.5 * tc.ego_clearance_m - 0.5 * (ec.length_m + tc.length_m),
+                 "zone": 1.5 * tc.ego_clearance_m + ec.length_m + tc.length_m, "speed_kmh": tc.speed_kmh,
+                 "speed_spread_kmh": tc.speed_spread_kmh, "ego_target_speed": ec.target_speed_kmh / 3.6,
+                 "ego_initial_speed": ec.initial_speed_kmh / 3.6, "lane_width": config.road.lane_width_m}
+        self._spawn_params = np.array([spawn[k] for k in K.SPAWN_NAMES], dtype=np.float64)
         self.pid = PIDBank(e, 2, ec.pid_window)  # longitudinal, lateral
         self.collision_with[:] = self.lane_invasion[:] = -1
         # Position history ring buffer (E, H, N, 2) with a global write pointer.
@@ -125,11 +139,8 @@ class HighwaySim:
         env_ids = np.asarray(env_ids, dtype=np.int64)
         for e, seed in zip(env_ids, seeds, strict=True):
             self._spawn(int(e), np.random.default_rng(int(seed)))
-        self.frozen[env_ids] = False
-        self.pid.reset(env_ids)
-        K.build_index(env_ids, self.params, self.iparams, self.vf, self.vi, self.vb, True)
-        self.hist[env_ids] = np.stack([self.x[env_ids], self.y[env_ids]], axis=-1)[:, None]
-        self.hist_count[env_ids] = 1
+        K.finish_spawn(env_ids, self.params, self.iparams, self.vf, self.vi, self.vb, self.ei, self.eb, self.hist,
+                       self.pid.errors, self.pid.count)
         self._derive_stream_bases()
 
     def _derive_stream_bases(self) -> None:
@@ -164,56 +175,28 @@ class HighwaySim:
         return new
 
     def _spawn(self, e: int, gen: np.random.Generator) -> None:
-        _cfg, tc, ec, road = self.config, self.config.traffic, self.config.ego, self.road
-        lanes = road.num_lanes
+        """A new episode in environment ``e``: the random draws here, in their order; the state from them in one
+        compiled call (:func:`lcsim.kernel.spawn_env`)."""
+        tc, ec = self.config.traffic, self.config.ego
+        lanes = self.road.num_lanes
         ego_lane = ec.start_lane if ec.start_lane >= 0 else int(gen.integers(lanes))
-        n_traffic = self.num_vehicles - 1
-        lane_of = gen.permutation(np.arange(n_traffic) % lanes)
-        xs = np.empty(n_traffic)
-        spacing = tc.length_m + tc.min_spawn_gap_m
-        lo_w, hi_w = -tc.spawn_behind_m, tc.spawn_ahead_m
+        lane_of = gen.permutation(self._lane_cycle)
+        counts = np.bincount(lane_of, minlength=lanes)
+        sp = self._spawn_params
+        spacing, span, zone = sp[0], tc.spawn_ahead_m - sp[2], sp[4]
+        draws = []
         for lane in range(lanes):
-            sel = np.flatnonzero(lane_of == lane)
-            k = sel.size
+            k = int(counts[lane])
             if k == 0:
                 continue
-            zone = 0.0
-            if lane == ego_lane:  # keep the ego's spot free: half the clearance behind, all of it ahead
-                zone_lo = -0.5 * tc.ego_clearance_m - 0.5 * (ec.length_m + tc.length_m)
-                zone = 1.5 * tc.ego_clearance_m + ec.length_m + tc.length_m
-            free = (hi_w - lo_w) - zone - k * spacing
+            free = span - (zone if lane == ego_lane else 0.0) - k * spacing
             if free < 0:
                 raise ValueError(f"TrafficConfig: {k} vehicles do not fit in lane {lane}; lower num_vehicles")
-            pos = lo_w + np.sort(gen.uniform(0.0, free, k)) + np.arange(k) * spacing + 0.5 * spacing
-            if zone:
-                pos = np.where(pos >= zone_lo, pos + zone, pos)
-            xs[sel] = pos
-        spread = np.clip(gen.standard_normal(self.num_vehicles), -2.5, 2.5) * tc.speed_spread_kmh
-        v0 = (tc.speed_kmh + spread) / 3.6
-        v0 = np.maximum(v0, 1.0)
-        if not self.autopilot_ego:
-            v0[0] = ec.target_speed_kmh / 3.6
-        self.x[e, 0], self.x[e, 1:] = 0.0, xs
-        all_lanes = np.concatenate([[ego_lane], lane_of]).astype(np.int64)
-        self.lane[e] = self.target_lane[e] = all_lanes
-        self.y[e] = road.lane_center(all_lanes)
-        self.yaw[e] = 0.0
-        self.v0[e] = v0
-        self.speed[e] = v0
-        if not self.autopilot_ego:
-            self.speed[e, 0] = ec.initial_speed_kmh / 3.6
-        self.accel[e] = 0.0
-        self.lc_active[e] = False
-        self.lc_t0[e] = 0.0
-        self.lc_y0[e] = self.lc_y1[e] = self.y[e]
-        y_c = float(road.lane_center(ego_lane))
-        self.path_x0[e], self.path_len[e], self.path_y0[e], self.path_y1[e] = 0.0, 1.0, y_c, y_c
-        self.ego_lc_active[e] = False
-        self.steer[e] = self.throttle[e] = self.brake[e] = self.ego_accel[e] = 0.0
-        self.step[e], self.t_s[e] = 0, 0.0
-        self.key[e] = np.uint64(gen.integers(0, 2**63 - 1))
-        self.collision_with[e], self.lane_invasion[e], self.off_road[e] = -1, -1, False
-        self.traffic_collisions[e] = 0
+            draws.append(gen.uniform(0.0, free, k))
+        spread_z = gen.standard_normal(self.num_vehicles)
+        key = np.uint64(gen.integers(0, 2**63 - 1))
+        K.spawn_env(e, ego_lane, lane_of, counts, np.concatenate(draws) if draws else np.empty(0), spread_z, key, sp,
+                    self.autopilot_ego, self.vf, self.vi, self.vb, self.ef, self.ei, self.eb, self.keys)
         if self.human:  # (drawn after everything else: the rest of the episode is as without them)
             self._spawn_drivers(e, gen)
 
@@ -265,11 +248,20 @@ class HighwaySim:
 
     def _advance(self, steps: int, stop_on_event: bool) -> None:
         pid = self.pid
-        K.advance(steps, stop_on_event, self.params, self.iparams, self.vf, self.vi, self.vb, self.ef, self.ei,
-                  self.eb, self.keys, self.hist, self.hist_ptr, pid.errors, pid.count, pid.ptr)
+
+        def shard(e0: int, e1: int) -> None:
+            K.advance(steps, stop_on_event, self.params, self.iparams, self.vf, self.vi, self.vb, self.ef, self.ei,
+                      self.eb, self.keys, self.hist, self.hist_ptr, pid.errors, pid.count, pid.ptr, e0, e1)
+
+        run_shards(shard, self.num_envs, self.shards)
         self.hist_ptr = (self.hist_ptr + steps) % self.history_len
         if not self.autopilot_ego:
             pid.ptr = (pid.ptr + steps) % pid.window
+
+    @property
+    def shards(self) -> int:
+        """How many threads step this batch now (:func:`lcsim.threads.shard_count` of ``threads``)."""
+        return shard_count(self.num_envs, self.threads)
 
     def rebuild_index(self) -> None:
         """Rebuild the neighbour index: call it after editing the state arrays by hand (the simulator itself keeps

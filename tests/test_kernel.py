@@ -18,7 +18,7 @@ _ROLLOUT = textwrap.dedent("""
                                                  observe_acceleration=True, invalid_lane_change="leave_road",
                                                  ego=EgoConfig(adaptive_cruise=True),
                                                  traffic=TrafficConfig(human_like=False))):
-        env = LaneChangeVectorEnv(3, cfg)
+        env = LaneChangeVectorEnv(3, cfg, threads=2)  # (two threads: the shards' ranges are checked too)
         obs, info = env.reset(seed=1)
         for _ in range(250):  # several episodes end (autoreset) within it
             actions = np.where(rng.random(3) < 0.3, rng.integers(0, 3, 3), 1)

@@ -13,10 +13,16 @@ controller, sensors or observation) compiled with numba, for one environment and
 times the bare sub-step's speed the whole simulator is from). The simulator itself is compiled too
 (:mod:`lcsim.kernel`); its first call compiles once per machine (``tools/bench_compile.py`` times it).
 
+Batches step on the process's default threads (:mod:`lcsim.threads`: ``LC_THREADS``, else every core for batches
+of at least 8 environments per thread) unless ``--threads`` says how many. With ``--serial-vs-parallel``, the
+batches of 8, 64 and 256 with the image are measured on one thread and on ``--threads`` (default: every core),
+interleaved, and printed side by side with their ratio (the figures of both are the same bytes).
+
     python tools/bench_sim.py            # human-readable
     python tools/bench_sim.py --json     # one JSON object
     python tools/bench_sim.py --repeat 5 # median of 5 measurements each (for a busy machine)
     python tools/bench_sim.py --full --seconds 5   # every size, with and without the image, planner, floor
+    python tools/bench_sim.py --serial-vs-parallel --repeat 3   # batches on one thread and on every core
 """
 
 from __future__ import annotations
@@ -31,6 +37,7 @@ import numpy as np
 
 from lcsim.config import ScenarioConfig
 from lcsim.envs import LaneChangeEnv, LaneChangeVectorEnv
+from lcsim.threads import default_threads, shard_count
 
 
 def _actions(rng: np.random.Generator, mask: np.ndarray) -> np.ndarray:
@@ -57,8 +64,8 @@ def bench_single(seconds: float, config: ScenarioConfig) -> float:
     return decisions * config.decision_period_s / (time.perf_counter() - t0)
 
 
-def bench_batch(seconds: float, config: ScenarioConfig, num_envs: int = 64) -> float:
-    env = LaneChangeVectorEnv(num_envs, config)
+def bench_batch(seconds: float, config: ScenarioConfig, num_envs: int = 64, threads: int | None = None) -> float:
+    env = LaneChangeVectorEnv(num_envs, config, threads=threads)
     rng = np.random.default_rng(0)
     _, info = env.reset(seed=0)
     for _ in range(3):
@@ -170,19 +177,32 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--full", action="store_true",
                         help="also batches of 8 and 256, every size without the image, the planner's cost per "
                         "decision and the numba floor (pip install numba)")
+    parser.add_argument("--threads", type=int, default=None,
+                        help="threads that step a batch (default: lcsim's default, LC_THREADS or every core)")
+    parser.add_argument("--serial-vs-parallel", action="store_true",
+                        help="also the batches of 8, 64 and 256 with the image on one thread and on --threads "
+                        "(default every core), interleaved, side by side")
     args = parser.parse_args(argv)
     if args.seconds <= 0:
         parser.error("--seconds must be > 0")
     if args.repeat < 1:
         parser.error("--repeat must be >= 1")
+    if args.threads is not None and args.threads < 1:
+        parser.error("--threads must be >= 1")
+    try:
+        default = default_threads()
+    except ValueError as exc:
+        parser.error(str(exc))
+    threads = args.threads
     config = ScenarioConfig()
     singles, batches = [], []
     for _ in range(args.repeat):
         singles.append(bench_single(args.seconds, config))
-        batches.append(bench_batch(args.seconds, config))
+        batches.append(bench_batch(args.seconds, config, threads=threads))
     single, batch = statistics.median(singles), statistics.median(batches)
     hwy = None if args.no_highway_env else bench_highway_env(args.seconds)
     result = {
+        "batch_threads": shard_count(64, threads),
         "single_env_sim_s_per_s": round(single, 1),
         "batch64_sim_s_per_s": round(batch, 1),
         "highway_env_sim_s_per_s": None if hwy is None else round(hwy, 2),
@@ -198,7 +218,8 @@ def main(argv: list[str] | None = None) -> int:
                 elif images and size == 64:
                     result[key] = result["batch64_sim_s_per_s"]
                 else:
-                    fig = bench_single(args.seconds, cfg) if size == 1 else bench_batch(args.seconds, cfg, size)
+                    fig = (bench_single(args.seconds, cfg) if size == 1
+                           else bench_batch(args.seconds, cfg, size, threads))
                     result[key] = round(fig, 1)
         result["planner_perceived_ms_per_decision"] = round(bench_planner(args.seconds), 1)
         for size in (1, 64):
@@ -207,11 +228,24 @@ def main(argv: list[str] | None = None) -> int:
         floor64 = result["numba_floor_envs64_sim_s_per_s"]
         result["floor_over_image_envs64"] = None if not floor64 else round(floor64 / batch, 2)
         result["ratio_single_vs_highway_env"] = None if hwy is None else round(single / hwy, 1)
+    if args.serial_vs_parallel:
+        parallel = args.threads or max(default, 2)
+        result["parallel_threads"] = parallel
+        for size in (8, 64, 256):
+            serial_runs, parallel_runs = [], []
+            for _ in range(args.repeat):  # interleaved: a drift of the host's speed touches both alike
+                serial_runs.append(bench_batch(args.seconds, config, size, 1))
+                parallel_runs.append(bench_batch(args.seconds, config, size, parallel))
+            s, p = statistics.median(serial_runs), statistics.median(parallel_runs)
+            result[f"image_envs{size}_serial_sim_s_per_s"] = round(s, 1)
+            result[f"image_envs{size}_parallel_sim_s_per_s"] = round(p, 1)
+            result[f"image_envs{size}_parallel_over_serial"] = round(p / s, 2)
     if args.json:
         print(json.dumps(result))
     else:
         print(f"lcsim, 100 vehicles, image every decision, one env : {single:8.1f} simulated s per wall s")
-        print(f"lcsim, 100 vehicles, image every decision, batch 64: {batch:8.1f} simulated s per wall s")
+        print(f"lcsim, 100 vehicles, image every decision, batch 64: {batch:8.1f} simulated s per wall s "
+              f"({result['batch_threads']} thread{'s' if result['batch_threads'] > 1 else ''})")
         if hwy is None:
             print("highway-env not installed (pip install -e '.[bench]') - no comparison")
         else:
@@ -221,6 +255,13 @@ def main(argv: list[str] | None = None) -> int:
             for key, value in result.items():
                 if key.startswith(("image_", "no_image_", "numba_", "planner_", "floor_", "ratio_single")):
                     print(f"{key:42s}: {'numba not installed' if value is None else value}")
+        if args.serial_vs_parallel:
+            print(f"batch with the image, simulated s per wall s: one thread | {result['parallel_threads']} threads "
+                  "| ratio")
+            for size in (8, 64, 256):
+                print(f"  batch {size:3d}: {result[f'image_envs{size}_serial_sim_s_per_s']:9.1f} | "
+                      f"{result[f'image_envs{size}_parallel_sim_s_per_s']:9.1f} | "
+                      f"x{result[f'image_envs{size}_parallel_over_serial']:.2f}")
     return 0
 
 
