@@ -27,9 +27,10 @@ ENV_VAR = "LC_THREADS"
 """The environment variable that sets the process's default thread count (``LC_THREADS=1``: serial)."""
 MIN_ENVS_PER_THREAD = 8
 """Under the default thread count, each thread gets at least this many environments of a batch."""
-CHUNKS_PER_THREAD = 4
-""":func:`run_shards` cuts a batch into this many chunks per thread, of at least :data:`MIN_CHUNK` environments."""
+CHUNKS_PER_THREAD = 2
+""":func:`run_shards` hands out a share ``1 / (CHUNKS_PER_THREAD x threads)`` of what is left of a batch at a time."""
 MIN_CHUNK = 2
+"""... and at least this many environments at a time."""
 
 _setting: int | None = None
 _from_environment: tuple[int, int] | None = None  # (pid, threads): what the environment said in this process
@@ -106,23 +107,15 @@ def _executor(workers: int) -> ThreadPoolExecutor:
         return _pool
 
 
-def bounds(num: int, parts: int) -> list[tuple[int, int]]:
-    """``range(num)`` cut into ``parts`` contiguous ``(start, stop)`` pieces, nearly equal, in order."""
-    size, extra = divmod(num, parts)
-    out, start = [], 0
-    for i in range(parts):
-        stop = start + size + (i < extra)
-        out.append((start, stop))
-        start = stop
-    return out
-
-
 class _Chunks:
-    """Chunks of a range handed out one at a time to whichever thread asks first."""
+    """A range handed out in contiguous chunks to whichever thread asks first: each chunk a share of what is left
+    (``1 / (CHUNKS_PER_THREAD x threads)``, at least :data:`MIN_CHUNK`), so the chunks shrink towards the end and
+    the threads finish close together."""
 
-    def __init__(self, fn: Callable[[int, int], None], parts: list[tuple[int, int]]) -> None:
-        self.fn, self.parts = fn, parts
+    def __init__(self, fn: Callable[[int, int], None], num: int, threads: int) -> None:
+        self.fn, self.num, self.parts = fn, num, CHUNKS_PER_THREAD * threads
         self.cond = threading.Condition(threading.Lock())
+        self.next = 0  # the first index not handed out
         self.claimed = self.finished = 0
         self.error: BaseException | None = None
 
@@ -130,19 +123,22 @@ class _Chunks:
         """Compute chunks until none is left (or one failed)."""
         while True:
             with self.cond:
-                if self.claimed >= len(self.parts) or self.error is not None:
+                start = self.next
+                if start >= self.num or self.error is not None:
                     return
-                i = self.claimed
+                stop = min(self.num, start + max(MIN_CHUNK, -(-(self.num - start) // self.parts)))
+                self.next = stop
                 self.claimed += 1
             try:
-                self.fn(*self.parts[i])
+                self.fn(start, stop)
             except BaseException as exc:  # (re-raised by the caller's thread)
                 with self.cond:
                     self.error = self.error or exc
             finally:
                 with self.cond:
                     self.finished += 1
-                    self.cond.notify_all()
+                    if self.finished == self.claimed:
+                        self.cond.notify_all()
 
     def wait(self) -> None:
         """Until every chunk taken is computed (a thread that starts later finds none left and takes none)."""
@@ -156,15 +152,15 @@ def run_shards(fn: Callable[[int, int], None], num: int, shards: int) -> None:
     same time: this thread and ``shards - 1`` of the pool; returns when every chunk is done, and raises the first
     exception of any. With one shard, just ``fn(0, num)``.
 
-    The range is cut into :data:`CHUNKS_PER_THREAD` chunks per thread, handed out as the threads ask for them, so
-    a thread that the system leaves waiting (a busy machine) slows the call by at most its chunk in progress: the
-    calling thread computes whatever is left, and never waits for a thread that has not started.
+    The range is handed out in chunks as the threads ask for them (:class:`_Chunks`), so a thread that the system
+    leaves waiting (a busy machine) slows the call by at most its chunk in progress: the calling thread computes
+    whatever is left, and never waits for a thread that has not started.
     """
     if shards <= 1 or num <= 1:
         fn(0, num)
         return
     shards = min(shards, num)
-    chunks = _Chunks(fn, bounds(num, max(shards, min(shards * CHUNKS_PER_THREAD, num // MIN_CHUNK))))
+    chunks = _Chunks(fn, num, shards)
     pool = _executor(shards - 1)
     for _ in range(shards - 1):
         pool.submit(chunks.work)

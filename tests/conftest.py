@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import os
 import time
 
 import pytest
@@ -24,10 +25,15 @@ def small() -> ScenarioConfig:
 
 @pytest.fixture(autouse=True, scope="session")
 def _one_torch_thread_per_worker():
-    """pytest -n 2 runs two workers on two cores: one torch thread each avoids oversubscription (3x slower)."""
+    """pytest -n 2 runs two workers on two cores: one torch thread each avoids oversubscription (3x slower), and
+    one simulator thread each (tests that step batches on threads say so)."""
     import torch
 
+    from lcsim.threads import set_threads
+
     torch.set_num_threads(1)
+    if os.environ.get("PYTEST_XDIST_WORKER"):
+        set_threads(1)
     yield
 
 
