@@ -525,7 +525,9 @@ def _sensors_env(e, p, vf, vi, ei, eb, ego_y_prev):
     lw = p[LW]
     k_prev, k_new = math.floor(ego_y_prev / lw), math.floor(y[0] / lw)
     ei[LANE_INVASION, e] = int(max(k_prev, k_new)) if k_prev != k_new else -1
-    eb[OFF_ROAD, e] = y[0] < 0.0 or y[0] > p[ROAD_W]
+    off_road = y[0] < 0.0 or y[0] > p[ROAD_W]
+    if eb[OFF_ROAD, e] != off_road:  # (written only when it changes: threads share this row's cache lines)
+        eb[OFF_ROAD, e] = off_road
 
 
 # ------------------------------------------------------------------------------------------------- one sim step

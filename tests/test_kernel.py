@@ -13,6 +13,8 @@ _ROLLOUT = textwrap.dedent("""
     from lcsim.envs import LaneChangeVectorEnv
     from lcsim.planning import LookaheadConfig, LookaheadDriver
 
+    import lcsim.threads
+    lcsim.threads.CHUNK_ALIGN = 1  # (chunks of one environment: three environments on two threads)
     rng = np.random.default_rng(0)
     for cfg in (ScenarioConfig(), ScenarioConfig(render_image=False, neighbour_selection="nearest",
                                                  observe_acceleration=True, invalid_lane_change="leave_road",

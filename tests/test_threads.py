@@ -56,8 +56,8 @@ def test_a_batch_on_threads_gives_the_same_bytes_as_on_one(threads):
     """Observations (the image too), rewards, endings, infos (final observations of the autoresets included) and
     the whole state agree byte for byte, for even and uneven shards."""
     config = small_config()
-    serial_env, serial, serial_state = _rollout(1, config, 7, 80, seed=5)
-    env, parallel, state = _rollout(threads, config, 7, 80, seed=5)
+    serial_env, serial, serial_state = _rollout(1, config, 21, 80, seed=5)
+    env, parallel, state = _rollout(threads, config, 21, 80, seed=5)
     assert serial_env.core.sim.shards == 1 and env.core.sim.shards == threads
     assert any(step[2].any() or step[3].any() for step in serial[1:])  # episodes ended, and were reset, inside
     assert len(serial) == len(parallel)
@@ -70,8 +70,8 @@ def test_a_batch_on_threads_gives_the_same_bytes_as_on_one(threads):
 def test_the_exact_traffic_on_threads_gives_the_same_bytes_as_on_one():
     config = small_config(traffic=TrafficConfig(num_vehicles=6, spawn_behind_m=40.0, spawn_ahead_m=80.0,
                                                 human_like=False))
-    _, serial, serial_state = _rollout(1, config, 5, 40, seed=9)
-    _, parallel, state = _rollout(2, config, 5, 40, seed=9)
+    _, serial, serial_state = _rollout(1, config, 12, 40, seed=9)
+    _, parallel, state = _rollout(2, config, 12, 40, seed=9)
     for t, (a, b) in enumerate(zip(serial, parallel, strict=True)):
         for k, (x, y) in enumerate(zip(a, b, strict=True)):
             _assert_same(x, y, f"step {t} item {k}")
