@@ -330,6 +330,40 @@ def spawn_env(e, ego_lane, lane_of, counts, draws, spread_z, key, sp, autopilot_
     ei[TRAFFIC_COLLISIONS, e] = 0
 
 
+@njit(cache=True)
+def driver_values(e_headway, e_accel, e_decel, e_reaction, e_duration, eagerness, dp):
+    """``(6, n)`` human-like drivers' parameters (:class:`lcsim.traffic.DriverParams` fields, in order) from the
+    exponentials of their scaled normal draws (numpy's ``exp``, made by the caller) and the medians ``dp``:
+    headway, accel, decel, reaction time, lane-change duration, ``dt``; the numpy code's operations in its order."""
+    n = e_headway.shape[0]
+    out = np.empty((6, n))
+    for v in range(n):
+        a = dp[1] * e_accel[v]
+        b = dp[2] * e_decel[v]
+        out[0, v] = dp[0] * e_headway[v]
+        out[1, v] = a
+        out[2, v] = 0.5 / math.sqrt(a * b)
+        out[3, v] = min(1.0, dp[5] / max(dp[3] * e_reaction[v], 1e-9)) if dp[3] > 0 else 1.0
+        out[4, v] = 1.0 / (dp[4] * e_duration[v])
+        out[5, v] = eagerness[v]
+    return out
+
+
+@njit(cache=True)
+def spawn_noise(e, noise_z, wander_z, accel_noise, lane_wander, vf, vb):
+    """The human-like drivers' acceleration noise and lane wander of environment ``e`` at spawn (from standard
+    normal draws ``(N,)``; none for a vehicle that is not traffic), the wander added to ``y``."""
+    traffic = vb[IS_TRAFFIC, e]
+    for v in range(vf.shape[2]):
+        tr = 1.0 if traffic[v] else 0.0
+        vf[NOISE, e, v] = (accel_noise * noise_z[v]) * tr
+        w = (min(max(wander_z[v], -WANDER_CLIP_SIGMAS), WANDER_CLIP_SIGMAS) * lane_wander) * tr
+        vf[W_BASE, e, v] = w
+        vf[W_NEXT, e, v] = w
+        vf[W_STEP, e, v] = 0.0
+        vf[Y, e, v] = vf[Y, e, v] + w
+
+
 # ------------------------------------------------------------------------------------------------ neighbour index
 @njit(cache=True)
 def _build_index_env(e, p, ip, vf, vi, vb, scratch_lanes):

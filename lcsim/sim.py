@@ -22,7 +22,7 @@ from lcsim.control import PIDBank
 from lcsim.neighbours import LaneIndex
 from lcsim.road import StraightRoad
 from lcsim.threads import check_threads, run_shards, shard_count
-from lcsim.traffic import WANDER_CLIP_SIGMAS, DriverParams
+from lcsim.traffic import DriverParams
 
 _LANE_CHANGE_STREAM = 1  # the random-number stream of the traffic's spontaneous lane changes
 _REDRAW_STREAM = 2  # mixes the salt of rekey into the keys
@@ -205,12 +205,8 @@ class HighwaySim:
         from their stationary distributions (the ego, unless on autopilot, neither wanders nor has noise)."""
         tc, n = self.config.traffic, self.num_vehicles
         self.drivers.draw(e, gen, tc, self.dt, n)
-        traffic = self.is_traffic[e]
-        self.noise[e] = tc.accel_noise_mps2 * gen.standard_normal(n) * traffic
-        self.wander_base[e] = self.wander_next[e] = np.clip(gen.standard_normal(n), -WANDER_CLIP_SIGMAS,
-                                                           WANDER_CLIP_SIGMAS) * tc.lane_wander_m * traffic
-        self.wander_step[e] = 0.0
-        self.y[e] = self.y[e] + self.wander_base[e]
+        noise_z = gen.standard_normal(n)
+        K.spawn_noise(e, noise_z, gen.standard_normal(n), tc.accel_noise_mps2, tc.lane_wander_m, self.vf, self.vb)
 
     # --------------------------------------------------------------- decisions
     def start_lane_change(self, env_mask: np.ndarray, direction: np.ndarray) -> None:

@@ -44,17 +44,14 @@ class DriverParams:
              n: int) -> None:
         """Draw ``n`` drivers into ``rows`` of the arrays (an episode's reset), from ``gen``."""
         z = np.clip(gen.standard_normal((5, n)), -2.5, 2.5) * cfg.driver_spread
-        a = cfg.idm_max_accel_mps2 * np.exp(z[1])
-        b = cfg.idm_comfort_decel_mps2 * np.exp(z[2])
-        self.time_headway[rows] = cfg.idm_time_headway_s * np.exp(z[0])
-        self.max_accel[rows] = a
-        self.inv_2sqrt_ab[rows] = 0.5 / np.sqrt(a * b)
-        reaction = cfg.reaction_time_s * np.exp(z[3])
-        self.lag[rows] = np.minimum(1.0, dt / np.maximum(reaction, 1e-9)) if cfg.reaction_time_s > 0 else 1.0
-        duration = cfg.lane_change_duration_s * np.exp(np.clip(gen.standard_normal(n), -2.5, 2.5)
-                                                      * cfg.lane_change_spread)
-        self.lc_inv_duration[rows] = 1.0 / duration
-        self.eagerness[rows] = gen.uniform(cfg.lane_change_eagerness_min, 1.0, n)
+        e_duration = np.exp(np.clip(gen.standard_normal(n), -2.5, 2.5) * cfg.lane_change_spread)
+        eagerness = gen.uniform(cfg.lane_change_eagerness_min, 1.0, n)
+        medians = np.array([cfg.idm_time_headway_s, cfg.idm_max_accel_mps2, cfg.idm_comfort_decel_mps2,
+                            cfg.reaction_time_s, cfg.lane_change_duration_s, dt])
+        values = kernel.driver_values(np.exp(z[0]), np.exp(z[1]), np.exp(z[2]), np.exp(z[3]), e_duration,
+                                      eagerness, medians)
+        for name, row in zip(self.__slots__, values, strict=True):
+            getattr(self, name)[rows] = row
 
     def set_nominal(self, mask: np.ndarray, cfg: TrafficConfig, dt: float) -> None:
         """Put the drivers where ``mask`` is set at the medians (what a planner that cannot see them assumes)."""
