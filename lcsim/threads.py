@@ -30,6 +30,9 @@ MIN_ENVS_PER_THREAD = 8
 CHUNKS_PER_THREAD = 2
 """:func:`run_shards` hands out a share ``1 / (CHUNKS_PER_THREAD x threads)`` of what is left of a batch at a time,
 rounded up to a multiple of :data:`CHUNK_ALIGN` environments."""
+MAX_CHUNK = 16
+"""... and at most this many: a thread that a busy machine leaves waiting holds up the others by one chunk at most,
+so a chunk is kept short (16 environments: about a millisecond of a decision's simulation)."""
 CHUNK_ALIGN = 8
 """Chunks start at multiples of this many environments: 64 bytes of a per-environment float64 or int64 row (the
 step, the clock, the sensors), so two threads rarely write into one cache line (which would cost both)."""
@@ -111,8 +114,8 @@ def _executor(workers: int) -> ThreadPoolExecutor:
 
 class _Chunks:
     """A range handed out in contiguous chunks to whichever thread asks first: each chunk a share of what is left
-    (``1 / (CHUNKS_PER_THREAD x threads)``, rounded up to a multiple of :data:`CHUNK_ALIGN`), so the chunks shrink
-    towards the end and the threads finish close together."""
+    (``1 / (CHUNKS_PER_THREAD x threads)``, at most :data:`MAX_CHUNK`, rounded up to a multiple of
+    :data:`CHUNK_ALIGN`), so the chunks shrink towards the end and the threads finish close together."""
 
     def __init__(self, fn: Callable[[int, int], None], num: int, threads: int) -> None:
         self.fn, self.num, self.parts = fn, num, CHUNKS_PER_THREAD * threads
@@ -128,7 +131,7 @@ class _Chunks:
                 start = self.next
                 if start >= self.num or self.error is not None:
                     return
-                size = -(-(self.num - start) // self.parts)
+                size = min(MAX_CHUNK, -(-(self.num - start) // self.parts))
                 stop = min(self.num, start + -(-size // CHUNK_ALIGN) * CHUNK_ALIGN)
                 self.next = stop
                 self.claimed += 1

@@ -254,7 +254,8 @@ def main(argv: list[str] | None = None) -> int:
         if args.full:
             for key, value in result.items():
                 if key.startswith(("image_", "no_image_", "numba_", "planner_", "floor_", "ratio_single")):
-                    print(f"{key:42s}: {'numba not installed' if value is None else value}")
+                    missing = "numba not installed" if key.startswith(("numba_", "floor_")) else "n/a"
+                    print(f"{key:42s}: {missing if value is None else value}")
         if args.serial_vs_parallel:
             print(f"batch with the image, simulated s per wall s: one thread | {result['parallel_threads']} threads "
                   "| ratio")
