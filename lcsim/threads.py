@@ -156,16 +156,16 @@ class _Chunks:
 def run_shards(fn: Callable[[int, int], None], num: int, shards: int) -> None:
     """Call ``fn(start, stop)`` on contiguous chunks that cover ``range(num)`` once, on ``shards`` threads at the
     same time: this thread and ``shards - 1`` of the pool; returns when every chunk is done, and raises the first
-    exception of any. With one shard, just ``fn(0, num)``.
+    exception of any. With one shard, or no more than :data:`CHUNK_ALIGN` items, just ``fn(0, num)``.
 
     The range is handed out in chunks as the threads ask for them (:class:`_Chunks`), so a thread that the system
     leaves waiting (a busy machine) slows the call by at most its chunk in progress: the calling thread computes
     whatever is left, and never waits for a thread that has not started.
     """
-    if shards <= 1 or num <= 1:
+    shards = min(shards, -(-num // CHUNK_ALIGN))  # (no more threads than chunks)
+    if shards <= 1:
         fn(0, num)
         return
-    shards = min(shards, num)
     chunks = _Chunks(fn, num, shards)
     pool = _executor(shards - 1)
     for _ in range(shards - 1):
