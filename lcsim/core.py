@@ -6,6 +6,7 @@ the stable-baselines3 adapter, so all three run the same code and agree bit for 
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from dataclasses import dataclass
 from functools import lru_cache
 
@@ -122,6 +123,19 @@ class LaneChangeCore:
         ``invalid_lane_change="leave_road"``, carried out: the ego leaves the road and the episode ends.
         Environments whose episode ends inside the decision period are frozen at that simulation step.
         """
+        return self._step(actions, None)
+
+    def step_observe(self, actions: np.ndarray) -> tuple[StepResult, dict[str, np.ndarray]]:
+        """:meth:`step`, then :meth:`observe` of every environment: the same results, in one pass of the threads
+        (each shard of environments is observed by the thread that simulated it, as soon as it has)."""
+        _, cur, hist, image, observe = self._observe_plan(_vehicle_range(self.num_envs), image=True)
+        res = self._step(actions, observe)
+        obs = {"current": cur, "history": hist}
+        if image is not None:
+            obs["image"] = image
+        return res, obs
+
+    def _step(self, actions: np.ndarray, then: Callable[[int, int], None] | None) -> StepResult:
         sim, cfg, e = self.sim, self.config, self.num_envs
         actions = np.asarray(actions, dtype=np.int64).reshape(e)
         if actions.min() < 0 or actions.max() > 2:
@@ -131,8 +145,9 @@ class LaneChangeCore:
         kernel.begin_decision(actions, self._refuse_invalid, code, sim.params, sim.iparams, sim.vf, sim.vi, sim.ef,
                               sim.eb, x_before, refused)
         # Every environment runs to the next decision or to its first event (contact, road edge, route's end),
-        # where it is frozen for the rest of the period; environments already finished stay frozen.
-        sim.advance(cfg.steps_per_decision, stop_on_event=True)
+        # where it is frozen for the rest of the period; environments already finished stay frozen. (The
+        # observation reads none of what the scoring below writes, so it may come first.)
+        sim.advance(cfg.steps_per_decision, stop_on_event=True, then=then)
         components, reward = np.empty((len(REWARD_COMPONENTS), e)), np.empty(e)
         terminated, truncated = np.empty(e, dtype=bool), np.empty(e, dtype=bool)
         kernel.end_decision(code, refused, x_before, self.next_milestone, self._milestone_x, self.milestone_r,
@@ -167,6 +182,14 @@ class LaneChangeCore:
                  ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray | None]:
         """The slots' vehicles, ``current``, ``history`` and (``image`` and a renderer) the images of environments
         ``ids``, in contiguous shards of environments on the simulator's threads (one compiled call per shard)."""
+        *out, shard = self._observe_plan(ids, image)
+        run_shards(shard, len(ids), shard_count(len(ids), self.sim.threads))
+        return tuple(out)  # type: ignore[return-value]
+
+    def _observe_plan(self, ids: np.ndarray, image: bool
+                      ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray | None, Callable[[int, int], None]]:
+        """The arrays :meth:`_observe` fills, and ``shard(i, j)`` that fills their rows ``i .. j - 1`` (environments
+        ``ids[i:j]``) from the present state."""
         sim, b = self.sim, len(ids)
         if b and (ids.min() < 0 or ids.max() >= self.num_envs):
             raise IndexError(f"environment ids must be in [0, {self.num_envs}), got {ids.tolist()}")
@@ -174,6 +197,7 @@ class LaneChangeCore:
         cur = np.empty((b, 1 + self.k, self._num_features), dtype=np.float32)
         hist = np.empty((b, self.k, sim.history_len, 3), dtype=np.float32)
         renderer = self.renderer if image else None
+        images = None
         if renderer is not None:
             every = b == self.num_envs and ids is _vehicle_range(self.num_envs)
             poses = tuple(a if every else a[ids] for a in (sim.x, sim.y, sim.yaw, sim.length, sim.width))
@@ -187,8 +211,7 @@ class LaneChangeCore:
             if renderer is not None:
                 renderer.draw(images[i:j], *(a[i:j] for a in poses), extent)
 
-        run_shards(shard, b, shard_count(b, sim.threads))
-        return nb, cur, hist, images if renderer is not None else None
+        return nb, cur, hist, images, shard
 
     def observe(self, ids: np.ndarray | None = None) -> dict[str, np.ndarray]:
         """Batched observation of environments ``ids`` (all by default), B = len(ids).

@@ -153,8 +153,7 @@ class LaneChangeVectorEnv(VectorEnv):
     def step(self, actions: Any):
         if not self._started:
             raise RuntimeError("call reset() before step()")
-        res = self.core.step(np.asarray(actions))
-        obs = self.core.observe()
+        res, obs = self.core.step_observe(np.asarray(actions))
         infos: dict[str, Any] = {
             "outcome": res.outcome, "_outcome": np.ones(self.num_envs, bool),
             "reward_components": res.components,

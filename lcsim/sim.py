@@ -227,32 +227,44 @@ class HighwaySim:
         for hook in self.hooks:
             hook(self)
 
-    def advance(self, steps: int, *, stop_on_event: bool = False) -> None:
+    def advance(self, steps: int, *, stop_on_event: bool = False,
+                then: Callable[[int, int], None] | None = None) -> None:
         """Advance every environment by ``steps`` simulation steps in one compiled call (frozen ones stay).
 
         With ``stop_on_event``, an environment whose ego touches a vehicle, leaves the road or passes the route's
         end is frozen from there (``frozen`` is set) for the rest of the steps. With hooks attached, the steps run
-        one by one, each followed by the hooks (and the events are checked the same way).
+        one by one, each followed by the hooks (and the events are checked the same way). ``then(e0, e1)`` is
+        called for each shard of environments as soon as it has advanced, on the thread that advanced it (with the
+        ring pointers already moved on): a reader of those environments' state, such as the observation.
         """
         if not self.hooks:
-            self._advance(steps, stop_on_event)
+            self._advance(steps, stop_on_event, then)
             return
         for _ in range(steps):  # (the hooks see the event's step before it freezes the environment)
             self.substep()
             if stop_on_event:
                 self.frozen |= (self.collision_with >= 0) | self.off_road | (self.x[:, 0] >= self.config.route_length_m)
+        if then is not None:
+            then(0, self.num_envs)
 
-    def _advance(self, steps: int, stop_on_event: bool) -> None:
+    def _advance(self, steps: int, stop_on_event: bool, then: Callable[[int, int], None] | None = None) -> None:
         pid = self.pid
+        hist_ptr, pid_ptr = self.hist_ptr, pid.ptr
 
         def shard(e0: int, e1: int) -> None:
             K.advance(steps, stop_on_event, self.params, self.iparams, self.vf, self.vi, self.vb, self.ef, self.ei,
-                      self.eb, self.keys, self.hist, self.hist_ptr, pid.errors, pid.count, pid.ptr, e0, e1)
+                      self.eb, self.keys, self.hist, hist_ptr, pid.errors, pid.count, pid_ptr, e0, e1)
+            if then is not None:
+                then(e0, e1)
 
-        run_shards(shard, self.num_envs, self.shards)
-        self.hist_ptr = (self.hist_ptr + steps) % self.history_len
+        self.hist_ptr = (hist_ptr + steps) % self.history_len
         if not self.autopilot_ego:
-            pid.ptr = (pid.ptr + steps) % pid.window
+            pid.ptr = (pid_ptr + steps) % pid.window
+        try:
+            run_shards(shard, self.num_envs, self.shards)
+        except BaseException:
+            self.hist_ptr, pid.ptr = hist_ptr, pid_ptr
+            raise
 
     @property
     def shards(self) -> int:
