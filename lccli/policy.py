@@ -84,8 +84,8 @@ def policy_config_of(args: argparse.Namespace) -> Any:
     rate, whether the run starts from a warm start or an initial policy). ``ValueError`` naming the problem."""
     import dataclasses
 
+    from lckit.config import read_data_file
     from lcmodels.policy.config import PolicyConfig, default_learning_rate
-    from lcsim.config import read_data_file
 
     data: dict[str, Any] = {}
     if args.config is not None:

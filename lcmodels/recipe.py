@@ -56,7 +56,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, ClassVar
 
-from lcsim.config import parse_value, read_data_file
+from lckit.config import parse_value, read_data_file
 
 RECIPES_DIR = Path(__file__).parent / "recipes"
 STAGE_KINDS: tuple[str, ...] = ("clone", "dagger", "train", "shielded")
@@ -338,7 +338,7 @@ class Recipe:
             raise ValueError(msg) from None
 
     def to_toml(self) -> str:
-        from lcsim.config import toml_text
+        from lckit.config import toml_text
 
         return toml_text(self.to_dict())
 

@@ -18,12 +18,12 @@ from __future__ import annotations
 from collections.abc import Callable
 from pathlib import Path
 
+from lckit.config import read_data_file
 from lcsim.config import (
     ScenarioConfig,
     corpus_scenario,
     light_scenario,
     paper_scenario,
-    read_data_file,
     tiny_scenario,
 )
 from lcsim.drivers import Driver, KeepLaneDriver, RandomDriver, RuleBasedDriver

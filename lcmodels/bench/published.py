@@ -17,10 +17,10 @@ from typing import Any
 
 import numpy as np
 
+from lckit.config import read_data_file
 from lcmodels.bench.ledger import cell_key, find_entry, read_ledger
 from lcmodels.bench.run import resolve_driver, scenario_sha256
 from lcmodels.stats import mcnemar, t_interval
-from lcsim.config import read_data_file
 from lcsim.suite import SUITE_SCENARIOS, suite
 
 BLOCK = re.compile(r"(<!-- ledger:(?P<name>[a-z0-9-]+) -->\n)(?P<body>.*?)(<!-- /ledger -->)", re.S)

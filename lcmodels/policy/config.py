@@ -12,17 +12,10 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, ClassVar
 
+from lckit.config import JsonConfig, check_field, check_limits, require_non_negative, require_positive
 from lcmodels.policy.extractor import IMAGE_NETS
 from lcmodels.policy.obs import OBS_MODES, ObsMode, scenario_for_mode
-from lcsim.config import (
-    NEIGHBOUR_SELECTIONS,
-    JsonConfig,
-    ScenarioConfig,
-    check_field,
-    check_limits,
-    require_non_negative,
-    require_positive,
-)
+from lcsim.config import NEIGHBOUR_SELECTIONS, ScenarioConfig
 from lcsim.registry import SCENARIO_FILE_SUFFIXES, TASK_SCENARIOS, scenario
 from lcsim.suite import MAX_VALIDATION_SEED, SEED_STRIDE
 
