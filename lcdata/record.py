@@ -30,11 +30,9 @@ steps are pending: :meth:`~EpisodeRecorder.after_step` and :meth:`~EpisodeRecord
 from __future__ import annotations
 
 import logging
-import multiprocessing
 import os
 import pathlib
 from collections.abc import Callable, Iterator, Mapping, Sequence
-from concurrent.futures import ProcessPoolExecutor, as_completed
 from dataclasses import dataclass
 from typing import Any
 
@@ -42,9 +40,9 @@ import numpy as np
 
 from lcdata.corpus import from_frame
 from lcdata.executors import EXECUTORS, ray_map
-from lcdata.procs import die_with_parent
 from lcdata.writer import EpisodeWriter, package_version
 from lcdata.writer_process import WRITER_MODES, ProcessEpisodeWriter, open_writer
+from lckit.pool import WorkerPool
 from lcsim import kernel
 from lcsim.config import ScenarioConfig
 from lcsim.core import KEEP, RUNNING, SUCCESS, LaneChangeCore, StepResult
@@ -464,8 +462,8 @@ def iter_record_episodes(
     takes an idle core) and ``thread`` with several (the cores are taken; a helper process per
     worker would cost more CPU in all). ``skip_existing``: leave the finished files there as they are and
     record only the missing episodes (a resumed run). ``start_time_ns``: every file's ``t = 0`` (default:
-    derived from each seed, :func:`seed_start_time_ns`). Worker processes die with this process
-    (:func:`lcdata.procs.die_with_parent`): a killed run leaves no orphan writing on. ``executor="ray"``
+    derived from each seed, :func:`seed_start_time_ns`). Worker processes (:class:`lckit.pool.WorkerPool`) die
+    with this process: a killed run leaves no orphan writing on. ``executor="ray"``
     records each episode as a Ray task in the open :func:`lcdata.executors.ray_session` (a driver name only:
     an object is not shipped); the files are the same.
     """
@@ -496,16 +494,8 @@ def iter_record_episodes(
         for a in args:
             yield _record_one(*a)
         return
-    ctx = multiprocessing.get_context("spawn")  # no fork of a process that may hold writer threads
-    with ProcessPoolExecutor(max_workers=min(workers, len(args)), mp_context=ctx, initializer=die_with_parent,
-                             initargs=(os.getpid(),)) as pool:  # fmt: skip
-        futures = [pool.submit(_record_one, *a) for a in args]
-        try:
-            for future in as_completed(futures):
-                yield future.result()
-        finally:
-            for future in futures:
-                future.cancel()
+    with WorkerPool(min(workers, len(args))) as pool:  # spawned: no fork of a process that may hold writer threads
+        yield from pool.map(_record_one, args, star=True, ordered=False)
 
 
 def record_episodes(config: ScenarioConfig, seeds: Sequence[int], driver: str | Driver,

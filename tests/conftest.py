@@ -80,12 +80,19 @@ class CountingPool:
     def __init__(self, pool) -> None:
         self.pool, self.submitted = pool, 0
 
-    def submit(self, *args, **kwargs):
-        self.submitted += 1
-        return self.pool.submit(*args, **kwargs)
+    def map(self, fn, jobs, **kwargs):
+        jobs = list(jobs)
+        self.submitted += len(jobs)
+        return self.pool.map(fn, jobs, **kwargs)
 
-    def shutdown(self, *args, **kwargs) -> None:
-        self.pool.shutdown(*args, **kwargs)
+    def close(self, **kwargs) -> None:
+        self.pool.close(**kwargs)
+
+    def __enter__(self) -> CountingPool:
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self.pool.__exit__(*exc)
 
 
 @pytest.fixture

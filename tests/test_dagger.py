@@ -48,6 +48,11 @@ def test_dagger_round_labels_the_policys_states_with_the_oracle_and_saves_a_load
     assert set(records[0]["eval"]) >= {"success_rate", "collision_rate"}
     loaded = load_policy(tmp_path / "dg" / "round1" / "policy.safetensors")
     assert loaded.meta["dagger"]["round"] == 1
+    cut = dagger(tmp_path / "bc", tmp_path / "dg-workers", rounds=1, episodes=2, epochs=1, seed=7, workers=2,
+                 eval_episodes=0)  # the episodes collected in two processes: the same states, in the same order
+    assert cut[0]["states_labelled"] == records[0]["states_labelled"]
+    with np.load(tmp_path / "dg" / "round1" / "states.npz") as a, np.load(tmp_path / "dg-workers" / "round1" / "states.npz") as b:
+        assert np.array_equal(a["labels"], b["labels"]) and np.array_equal(a["current"], b["current"])
     with pytest.raises(FileExistsError):
         dagger(tmp_path / "bc", tmp_path / "dg", rounds=1, episodes=1, epochs=1)
     # the demonstrations moved (a published experiment resumed elsewhere): named, they are found; else one line

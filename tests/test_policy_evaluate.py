@@ -150,7 +150,6 @@ def test_a_lookahead_follows_a_policy_without_image_and_refuses_one_with(tmp_pat
 
 
 def test_an_evaluation_cut_over_processes_gives_the_serial_figures_episode_for_episode() -> None:
-    from lcdata.procs import closing_pool
     from lcmodels.policy.evaluate import evaluate_sharded, shard_pool
     from lcmodels.zoo import zoo_entry
 
@@ -159,8 +158,7 @@ def test_an_evaluation_cut_over_processes_gives_the_serial_figures_episode_for_e
     options = {"predictor": str(hybrid.predictor), "follow": str(pure.policy), "batch": 3,
                "lookahead": {"horizon_decisions": 4, "perceived": True, "samples": 2}}  # the zoo's layer, shorter
     serial, rows = evaluate_sharded(spec, None, episodes=6, seed=3, shards=1, **options)
-    with closing_pool(shard_pool(2)) as real:
-        pool = CountingPool(real)
+    with CountingPool(shard_pool(2)) as pool:
         cut, cut_rows = evaluate_sharded(spec, None, episodes=6, seed=3, shards=2, pool=pool, **options)
     assert pool.submitted == 2  # both shards ran in the pool's processes
     assert cut_rows == rows and serial["planner_choices"] > 0

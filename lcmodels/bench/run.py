@@ -243,14 +243,13 @@ class Runner:
     def session(self) -> Iterator[Runner]:
         """Open the pool or the Ray session for the whole run, and close it after."""
         from lcdata.executors import ray_session
-        from lcdata.procs import closing_pool
         from lcmodels.policy.evaluate import shard_pool
 
         if self.executor == "ray":
             with ray_session(self.ray_address):
                 yield self
         elif self.workers > 1:
-            with closing_pool(shard_pool(self.workers, self.threads)) as pool:
+            with shard_pool(self.workers, self.threads) as pool:
                 self._pool = pool
                 try:
                     yield self

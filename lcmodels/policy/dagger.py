@@ -24,11 +24,9 @@ the future rewards in states like the ones the policy reaches.
 from __future__ import annotations
 
 import json
-import multiprocessing
 import os
 import time
 from collections.abc import Callable, Sequence
-from concurrent.futures import ProcessPoolExecutor
 from dataclasses import dataclass, replace
 from pathlib import Path
 from typing import Any
@@ -37,6 +35,7 @@ import numpy as np
 import torch
 
 from lcdata.fileio import file_sha256
+from lckit.pool import WorkerPool
 from lcmodels.fileio import POLICY_FILE, write_json
 from lcmodels.policy.checkpoint import load_policy, save_policy
 from lcmodels.policy.evaluate import PolicyDriver, evaluate
@@ -346,7 +345,6 @@ def dagger(
     elif done:
         model = load_policy(current, predictor=predictor).model
         say(f"resuming after round {len(done)}: {sum(len(t) for t in targets)} states, policy {current}")
-    ctx = multiprocessing.get_context("spawn")
     for r in range(len(done) + 1, rounds + 1):
         t0 = time.perf_counter()
         seeds = [seed + (r - 1) * episodes + i for i in range(episodes)]
@@ -355,7 +353,7 @@ def dagger(
         if len(jobs) == 1:  # in this process: it may itself be a worker of a pool (lc-experiment --jobs 2)
             got = [_collect_job(jobs[0])]
         else:
-            with ProcessPoolExecutor(len(parts), mp_context=ctx) as pool:
+            with WorkerPool(len(parts)) as pool:
                 got = list(pool.map(_collect_job, jobs))
         kept = [g for g in got if len(g.labels)]
         states = sum(len(g.labels) for g in kept)

@@ -15,13 +15,14 @@ from __future__ import annotations
 
 import dataclasses
 import os
-from collections.abc import Callable, Iterable, Iterator, Sequence
+from collections.abc import Callable, Iterable, Sequence
 from pathlib import Path
-from typing import TYPE_CHECKING, Any
+from typing import Any
 
 import numpy as np
 
 from lcdata.record import RecordingHook, episode_filename, episode_metadata
+from lckit.pool import WorkerPool
 from lcmodels.policy.checkpoint import LoadedPolicy
 from lcmodels.policy.obs import EpisodeStats, ObsMode, build_observation, scenario_for_mode, summarize
 from lcmodels.stats import normal_interval as mean_interval
@@ -32,9 +33,6 @@ from lcsim.drivers import Driver
 from lcsim.episodes import EpisodeHook, run_episodes
 from lcsim.registry import split_policy_spec
 from lcsim.suite import MAX_VALIDATION_SEED, SEED_STRIDE, VALIDATION_SEED_BASE, observed_by
-
-if TYPE_CHECKING:
-    from concurrent.futures import Executor
 
 EVAL_SEED_BASE = VALIDATION_SEED_BASE
 EVAL_SEED_STRIDE = SEED_STRIDE
@@ -297,46 +295,10 @@ def _evaluate_shard_task(*args: Any) -> tuple[int, str, list[dict[str, Any]], in
     return _evaluate_shard(*args)
 
 
-def _shard_worker_init(parent: int, threads: int) -> None:
-    """A process of :func:`shard_pool`: ``threads`` torch threads, ended with its parent, deaf to Ctrl-C
-    (the parent stops it: a shard under way is cut, and an interrupted evaluation is run again)."""
-    import signal
-
-    import torch
-
-    from lcdata.procs import die_with_parent
-
-    die_with_parent(parent)
-    signal.signal(signal.SIGINT, signal.SIG_IGN)
-    torch.set_num_threads(threads)
-
-
-def shard_pool(workers: int, threads: int = 1) -> Executor:
-    """``workers`` spawned processes for :func:`evaluate_sharded`'s ``pool`` (``threads`` torch threads each).
-    Stop it with :func:`lcdata.procs.stop_pool` (or hold it in :func:`lcdata.procs.closing_pool`)."""
-    import multiprocessing as mp
-    from concurrent.futures import ProcessPoolExecutor
-
-    return ProcessPoolExecutor(workers, mp_context=mp.get_context("spawn"), initializer=_shard_worker_init,
-                               initargs=(os.getpid(), threads))  # fmt: skip
-
-
-def _pool_results(pool: Executor, calls: list[tuple[Any, ...]]) -> Iterator[tuple[Any, ...]]:
-    """The shards ``calls`` at once in the processes of ``pool``, as each ends; a worker that dies is a
-    :class:`ChildProcessError` (an ``OSError``: the commands end it in one line)."""
-    from concurrent.futures import as_completed
-    from concurrent.futures.process import BrokenProcessPool
-
-    futures = [pool.submit(_evaluate_shard, *c) for c in calls]
-    try:
-        for fut in as_completed(futures):
-            yield fut.result()
-    except BrokenProcessPool:
-        raise ChildProcessError("an evaluation worker process died (killed, or out of memory?); "
-                                "a rerun resumes") from None  # fmt: skip
-    finally:
-        for fut in futures:
-            fut.cancel()
+def shard_pool(workers: int, threads: int = 1) -> WorkerPool:
+    """``workers`` processes for :func:`evaluate_sharded`'s ``pool``, ``threads`` torch threads each (a
+    :class:`lckit.pool.WorkerPool`: hold it in a ``with`` block)."""
+    return WorkerPool(workers, threads=threads)
 
 
 def evaluate_sharded(spec: str, config: ScenarioConfig | None, *, episodes: int = 200, seed: int = 0,
@@ -345,7 +307,7 @@ def evaluate_sharded(spec: str, config: ScenarioConfig | None, *, episodes: int 
                      out_dir: str | os.PathLike[str] | None = None, scenario: str = "paper", batch: int = 16,
                      overwrite: bool = False, train_seeds: np.ndarray | None = None,
                      progress: Callable[[int, int], None] | None = None,
-                     driver_name: str | None = None, pool: Executor | None = None,
+                     driver_name: str | None = None, pool: WorkerPool | None = None,
                      user_seeds: Sequence[int] | None = None) -> tuple[dict[str, Any], list[EpisodeStats]]:
     """:func:`evaluate` of the driver spec ``spec`` (as :func:`driver_for` takes it) with the episodes cut into
     ``shards`` parts, each run where ``executor`` says (``local``: one after the other here, or at once in the
@@ -389,7 +351,7 @@ def evaluate_sharded(spec: str, config: ScenarioConfig | None, *, episodes: int 
     if executor == "ray":
         runner: Iterable[tuple[Any, ...]] = ray_map(_evaluate_shard_task, calls)
     elif pool is not None and len(calls) > 1:
-        runner = _pool_results(pool, calls)
+        runner = pool.map(_evaluate_shard, calls, star=True, ordered=False)
     else:
         runner = (_evaluate_shard(*c) for c in calls)
     for index, *out in runner:
