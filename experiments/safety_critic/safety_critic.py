@@ -29,10 +29,8 @@ from __future__ import annotations
 
 import argparse
 import json
-import multiprocessing
 import sys
 import time
-from concurrent.futures import ProcessPoolExecutor
 from pathlib import Path
 from typing import Any
 
@@ -42,6 +40,7 @@ from torch import nn
 
 from lccli.common import fail, int_at_least, positive_int
 from lccli.evaluate import add_heldout_arguments, heldout_driver
+from lckit.pool import WorkerPool
 from lcmodels.fileio import write_json
 from lcmodels.policy.extractor import (
     CURRENT_SCALE,
@@ -294,7 +293,7 @@ def train_main(args: argparse.Namespace, prog: str) -> int:
             flush=True,
         )
         try:
-            with ProcessPoolExecutor(len(parts), mp_context=multiprocessing.get_context("spawn")) as pool:
+            with WorkerPool(len(parts)) as pool:
                 got = []
                 for k, g in enumerate(
                     pool.map(_collect_job, [(k + 1, str(args.policy), p, args.expert, lookahead) for k, p in enumerate(parts)])
