@@ -36,8 +36,7 @@ evaluation), metrics.json (training summary + evaluation), run.json (the full co
 
 
 def train_policy_parser() -> argparse.ArgumentParser:
-    from lcmodels.policy.config import ALGORITHMS
-    from lcmodels.policy.obs import OBS_MODES
+    from lcmodels.policy.names import ALGORITHMS, OBS_MODES
 
     p = argparse.ArgumentParser(
         prog="lc-train-policy",
@@ -124,7 +123,7 @@ def train_policy_main(argv: list[str] | None = None) -> int:
     import torch
 
     from lcmodels.fileio import POLICY_FILE
-    from lcmodels.policy.obs import needs_predictor
+    from lcmodels.policy.names import needs_predictor
     from lcmodels.policy.train import train_policy
 
     if args.predictor is not None and not args.predictor.is_file():

@@ -117,7 +117,7 @@ def _trial(name: str, cfg_json: str, out: str, predictor: str | None, threads: i
 
 
 def _needs(cfg: PolicyConfig) -> bool:
-    from lcmodels.policy.obs import needs_predictor
+    from lcmodels.policy.names import needs_predictor
 
     return needs_predictor(cfg.obs)
 

@@ -147,9 +147,8 @@ def card_problem(meta: dict[str, Any], *, legacy: bool = False) -> str:
     (``from_card``: the scenario file it names is not read); ``predictor`` none or a file name with a SHA-256;
     ``timesteps`` a count; ``tensor_aliases`` names. ``legacy``: a stable-baselines3 ``.zip``'s record, which
     may predate ``scenario`` (checked when there) and whose ``train_config`` builds nothing (an object)."""
-    from lcmodels.policy.config import ALGORITHMS, PolicyConfig
-    from lcmodels.policy.extractor import IMAGE_FEATURES, IMAGE_NETS
-    from lcmodels.policy.obs import OBS_MODES
+    from lcmodels.policy.config import PolicyConfig
+    from lcmodels.policy.names import ALGORITHMS, IMAGE_FEATURES, IMAGE_NETS, OBS_MODES
 
     if meta.get("algo") not in ALGORITHMS:
         return f"algo must be one of {', '.join(ALGORITHMS)}, got {str(meta.get('algo'))[:40]!r}"
@@ -394,7 +393,7 @@ def load_policy(path: str | os.PathLike[str], *, obs_mode: str | None = None,
         ValueError: unreadable file, a legacy file without ``trust_pickle``, or an incompatibility (the
             message lists every difference).
     """
-    from lcmodels.policy.obs import needs_predictor
+    from lcmodels.policy.names import needs_predictor
 
     path = Path(path)
     meta = read_meta(path)

@@ -13,15 +13,10 @@ from pathlib import Path
 from typing import Any, ClassVar
 
 from lckit.config import JsonConfig, check_field, check_limits, require_non_negative, require_positive
-from lcmodels.policy.extractor import IMAGE_NETS
-from lcmodels.policy.obs import OBS_MODES, ObsMode, scenario_for_mode
+from lcmodels.policy.names import ALGORITHMS, IMAGE_NETS, OBS_MODES, ObsMode, scenario_for_mode
 from lcsim.config import NEIGHBOUR_SELECTIONS, ScenarioConfig
 from lcsim.registry import SCENARIO_FILE_SUFFIXES, TASK_SCENARIOS, scenario
 from lcsim.suite import MAX_VALIDATION_SEED, SEED_STRIDE
-
-ALGORITHMS: tuple[str, ...] = ("ppo", "a2c", "dqn")
-"""The learning algorithms a policy can be trained with (stable-baselines3's PPO, A2C and DQN)."""
-
 
 _LEARNING_RATES = {"ppo": 3e-4, "a2c": 7e-4, "dqn": 1e-4}
 FINE_TUNE_LEARNING_RATES = {"ppo": 3e-5}

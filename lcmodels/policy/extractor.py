@@ -24,7 +24,6 @@ and value heads adapt to whichever keys the observation mode keeps.
 from __future__ import annotations
 
 import math
-from typing import Literal
 
 import numba
 import numpy as np
@@ -33,11 +32,9 @@ from gymnasium import spaces
 from stable_baselines3.common.torch_layers import BaseFeaturesExtractor
 from torch import nn
 
+from lcmodels.policy.names import IMAGE_FEATURES, IMAGE_NETS
 from lcsim.config import LANE_SLOTS
 from lcsim.core import CURRENT_FEATURES
-
-ImageNet = Literal["compact", "strided", "vgg16"]
-IMAGE_NETS: tuple[str, ...] = ("compact", "strided", "vgg16")
 
 # Scales of the `current` columns x, y, vx, vy, yaw, speed, lane, target_lane, present (and accel_mps2,
 # with ScenarioConfig.observe_acceleration).
@@ -206,11 +203,6 @@ def make_image_net(name: str, in_channels: int, size: int, out_features: int) ->
     if name == "vgg16":
         return VGG16(in_channels, size, out_features)
     raise ValueError(f"unknown image network {name!r}; choose one of {', '.join(IMAGE_NETS)}")
-
-
-IMAGE_FEATURES = "image_features"
-"""The observation key that replaces ``image`` when the image branch is frozen and run by the environment
-wrapper (:class:`ImageEncoder`): what the branch would output, so the extractor passes it through."""
 
 
 class ImageEncoder:
