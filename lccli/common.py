@@ -94,13 +94,6 @@ def lookahead_options(args: argparse.Namespace) -> dict[str, int | float]:
     return {k: v for k, v in given.items() if v is not None}
 
 
-def add_trust_pickle_argument(p: argparse.ArgumentParser, what: str = "policies") -> None:
-    """``--trust-pickle``: accept legacy stable-baselines3 ``.zip`` files, which run code when loaded."""
-    p.add_argument("--trust-pickle", action="store_true",
-                   help=f"accept legacy stable-baselines3 .zip {what}; loading one runs code stored in it, so only "
-                   "for files from a source you trust")
-
-
 def add_executor_arguments(p: argparse.ArgumentParser | argparse._ArgumentGroup, ray_does: str,
                            local_does: str = "this machine") -> None:
     """``--executor {local,ray}`` and ``--ray-address``: where a command's independent work runs

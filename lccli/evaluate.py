@@ -66,7 +66,7 @@ def heldout_driver(args: argparse.Namespace) -> tuple[Any, ScenarioConfig]:
 
     try:
         driver, config = driver_for(args.policy, predictor=args.predictor, lookahead=lookahead_options(args),
-                                    follow=args.lookahead_follow, trust_pickle=args.trust_pickle)
+                                    follow=args.lookahead_follow)
     except (ValueError, OSError) as exc:
         raise ValueError(str(exc).splitlines()[0]) from exc
     return driver, config or paper_scenario(render_image=False)
@@ -113,9 +113,6 @@ def add_heldout_arguments(p: argparse.ArgumentParser, episodes: int = 200) -> No
                    help="with lookahead:POLICY / lookahead-blind:POLICY: the policy proposes each decision and the "
                    "imagined futures follow DRIVER (a built-in driver or a policy.safetensors without image), which "
                    "lets the lookahead guard a policy that reads the image (default: the policy itself)")
-    p.add_argument("--trust-pickle", action="store_true",
-                   help="accept legacy stable-baselines3 .zip policies; loading one runs code stored in it, so only "
-                   "for files from a source you trust")
 
 
 def eval_parser() -> argparse.ArgumentParser:
@@ -218,7 +215,7 @@ def eval_main(argv: list[str] | None = None) -> int:
     try:
         driver, config = driver_for(args.policy, predictor=str(args.predictor) if args.predictor else None,
                                     lookahead=lookahead_options(args), follow=args.lookahead_follow,
-                                    trust_pickle=args.trust_pickle, scenario=target)
+                                    scenario=target)
     except (ValueError, OSError) as exc:
         return error(str(exc).splitlines()[0])
     if config is None:
@@ -266,7 +263,7 @@ def eval_main(argv: list[str] | None = None) -> int:
                     shards=args.shards if args.executor == "ray" else args.workers, executor=args.executor,
                     pool=pool, predictor=str(args.predictor) if args.predictor else None,
                     lookahead=lookahead_options(args), follow=args.lookahead_follow,
-                    trust_pickle=args.trust_pickle, out_dir=out, scenario=scenario_label, batch=args.batch,
+                    out_dir=out, scenario=scenario_label, batch=args.batch,
                     overwrite=args.overwrite, train_seeds=train_seeds, progress=show,
                     driver_name=str(getattr(driver, "name", type(driver).__name__)))  # fmt: skip
         else:

@@ -7,7 +7,7 @@ import functools
 from pathlib import Path
 from typing import Any
 
-from lccli.common import add_trust_pickle_argument, fail, int_at_least, positive_int, setup_logging
+from lccli.common import fail, int_at_least, positive_int, setup_logging
 from lccli.evaluate import format_eval
 
 TRAIN_POLICY_EPILOG = """examples:
@@ -72,7 +72,6 @@ def train_policy_parser() -> argparse.ArgumentParser:
     p.add_argument("--threads", type=positive_int, default=1,
                    help="torch threads (default 1: more collapse when another process shares the cores)")
     p.add_argument("--device", default="cpu", help="torch device (default cpu; cuda for the GPU)")
-    add_trust_pickle_argument(p, "initial policies")
     p.add_argument("-q", "--quiet", action="store_true", help="no progress lines")
     return p
 
@@ -146,8 +145,7 @@ def train_policy_main(argv: list[str] | None = None) -> int:
     show_eval = None if args.quiet else (lambda k, n: print(f"evaluating: {k}/{n} episodes", flush=True))
     try:
         res = train_policy(cfg, args.out, predictor=args.predictor, device=args.device, progress=show,
-                           eval_progress=show_eval, overwrite=args.overwrite,
-                           trust_pickle=args.trust_pickle)  # fmt: skip
+                           eval_progress=show_eval, overwrite=args.overwrite)
     except (ValueError, OSError) as exc:
         return error(str(exc).splitlines()[0])
     ev = res.metrics.get("eval")

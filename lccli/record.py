@@ -100,9 +100,6 @@ def build_parser() -> argparse.ArgumentParser:
                    "decision and the imagined futures follow DRIVER (a built-in driver or a policy.safetensors that "
                    "does not read the image), so the planner can guard a policy that reads the image")
     add_lookahead_arguments(p)
-    p.add_argument("--trust-pickle", action="store_true",
-                   help="accept a legacy stable-baselines3 .zip policy; loading one runs code stored in it, so only "
-                   "for files from a source you trust")
     p.add_argument("--out", type=pathlib.Path, required=True, help="output directory (created if missing)")
     p.add_argument("--workers", type=positive_int, default=1, help="parallel processes (default: 1)")
     p.add_argument("--overwrite", action="store_true", help="replace episode files that already exist")
@@ -265,7 +262,7 @@ def _policy_driver(spec: str, args: argparse.Namespace, config: ScenarioConfig):
 
     try:
         policy, policy_config = driver_for(f"{prefix}{path}", follow=args.lookahead_follow,
-                                           lookahead=lookahead_options(args), trust_pickle=args.trust_pickle)
+                                           lookahead=lookahead_options(args))
     except ValueError as exc:
         raise UsageError(str(exc).splitlines()[0]) from None
     return policy, dataclasses.replace(policy_config, render_image=policy_config.render_image or not args.no_images)

@@ -176,7 +176,7 @@ def transfer_problems(policy: LoadedPolicy, target: ScenarioConfig) -> list[str]
 
 def driver_for(spec: str, *, predictor: str | None = None, device: str = "cpu",
                lookahead: dict[str, int] | None = None, follow: str | None = None,
-               trust_pickle: bool = False, scenario: ScenarioConfig | None = None) -> tuple[Any, ScenarioConfig | None]:
+               scenario: ScenarioConfig | None = None) -> tuple[Any, ScenarioConfig | None]:
     """A driver from a built-in name (:data:`lcsim.drivers.DRIVER_NAMES`), a policy checkpoint path (``policy:``
     prefix optional), or ``lookahead:PATH`` / ``lookahead-blind:PATH``: :class:`lcsim.planning.LookaheadDriver`
     following that policy in its imagined futures (blind: with the traffic's random draws redrawn). The
@@ -185,7 +185,6 @@ def driver_for(spec: str, *, predictor: str | None = None, device: str = "cpu",
     does not read the image): then the policy proposes and the lookahead vetoes. ``lookahead``: fields of
     :class:`lcsim.planning.LookaheadConfig` (``horizon_decisions``, ``samples``) for a lookahead driver.
     ``ValueError`` when ``lookahead`` or ``follow`` is given for a driver they do not apply to.
-    ``trust_pickle``: accept legacy stable-baselines3 ``.zip`` policies (loading one runs code stored in it).
     ``scenario``: run a policy on that road instead of the one it was trained on, observed with the policy's
     own sensor settings (:func:`lcsim.suite.observed_by`; ``ValueError`` naming what differs when its
     observation would not have the shapes the policy was trained on).
@@ -201,7 +200,7 @@ def driver_for(spec: str, *, predictor: str | None = None, device: str = "cpu",
         driver, config = make_driver(spec), None
     else:
         path = Path(name)
-        policy = load_policy(path, predictor=predictor, device=device, trust_pickle=trust_pickle)
+        policy = load_policy(path, predictor=predictor, device=device)
         driver = PolicyDriver(policy)
         config = driver.config
         trained = policy.scenario
@@ -215,7 +214,7 @@ def driver_for(spec: str, *, predictor: str | None = None, device: str = "cpu",
         if prefix != "policy:":
             planner = LookaheadConfig(blind=prefix == "lookahead-blind:")
             if follow is not None:
-                driver = LookaheadDriver(planner, rule=_follower(follow, trained, predictor, device, trust_pickle),
+                driver = LookaheadDriver(planner, rule=_follower(follow, trained, predictor, device),
                                          proposer=driver)
             elif ObsMode.of(policy.obs_mode).reads_image:
                 raise ValueError(f"{path}: a lookahead cannot follow a policy that reads the image (mode "
@@ -232,8 +231,7 @@ def driver_for(spec: str, *, predictor: str | None = None, device: str = "cpu",
     return driver, config
 
 
-def _follower(spec: str, scenario: ScenarioConfig, predictor: str | None, device: str,
-              trust_pickle: bool = False) -> Any:
+def _follower(spec: str, scenario: ScenarioConfig, predictor: str | None, device: str) -> Any:
     """The driver a lookahead's imagined futures follow: a built-in driver, or a policy trained on ``scenario``
     (the proposer's) that does not read the image."""
     from lcmodels.policy.checkpoint import load_policy
@@ -243,7 +241,7 @@ def _follower(spec: str, scenario: ScenarioConfig, predictor: str | None, device
         return make_driver(spec)
     path = policy_path_of(spec)
     try:
-        policy = load_policy(path, predictor=predictor, scenario=scenario, device=device, trust_pickle=trust_pickle)
+        policy = load_policy(path, predictor=predictor, scenario=scenario, device=device)
     except ValueError as exc:
         raise ValueError(f"driver to follow: {exc}") from exc
     if ObsMode.of(policy.obs_mode).reads_image:
@@ -276,7 +274,7 @@ def _evaluate_shard(index: int, spec: str, scenario_json: str | None, user_seeds
 
     target = None if scenario_json is None else ScenarioConfig.from_json(scenario_json)
     driver, config = driver_for(spec, predictor=options["predictor"], lookahead=options["lookahead"],
-                                follow=options["follow"], trust_pickle=options["trust_pickle"], scenario=target)
+                                follow=options["follow"], scenario=target)
     if config is None:
         config = target
     out_dir = options["out_dir"]
@@ -303,7 +301,7 @@ def shard_pool(workers: int, threads: int = 1) -> WorkerPool:
 
 def evaluate_sharded(spec: str, config: ScenarioConfig | None, *, episodes: int = 200, seed: int = 0,
                      shards: int = 4, executor: str = "local", predictor: str | None = None,
-                     lookahead: dict[str, int] | None = None, follow: str | None = None, trust_pickle: bool = False,
+                     lookahead: dict[str, int] | None = None, follow: str | None = None,
                      out_dir: str | os.PathLike[str] | None = None, scenario: str = "paper", batch: int = 16,
                      overwrite: bool = False, train_seeds: np.ndarray | None = None,
                      progress: Callable[[int, int], None] | None = None,
@@ -331,14 +329,13 @@ def evaluate_sharded(spec: str, config: ScenarioConfig | None, *, episodes: int 
     if out_dir is not None and not overwrite:  # refuse before any shard writes, as evaluate() does
         name = driver_name
         if name is None:  # (the name the files carry: build the driver once here to learn it)
-            driver, _ = driver_for(spec, predictor=predictor, lookahead=lookahead, follow=follow,
-                                   trust_pickle=trust_pickle, scenario=config)
+            driver, _ = driver_for(spec, predictor=predictor, lookahead=lookahead, follow=follow, scenario=config)
             name = str(getattr(driver, "name", type(driver).__name__))
         existing = [p for u in user_seeds if (p := Path(out_dir) / episode_filename(scenario, name, u)).exists()]
         if existing:
             raise FileExistsError(f"{existing[0]} exists ({len(existing)} evaluation files); use --overwrite "
                                   "or another output directory")
-    options = {"predictor": predictor, "lookahead": lookahead, "follow": follow, "trust_pickle": trust_pickle,
+    options = {"predictor": predictor, "lookahead": lookahead, "follow": follow,
                "out_dir": None if out_dir is None else str(out_dir), "scenario": scenario, "batch": batch,
                "overwrite": overwrite}  # fmt: skip
     scenario_json = None if config is None else config.to_json()

@@ -373,7 +373,6 @@ def train_policy(
     eval_progress: Callable[[int, int], None] | None = None,
     log_every: int | None = None,
     overwrite: bool = False,
-    trust_pickle: bool = False,
     shield: Shield | None = None,
 ) -> TrainResult:
     """Train (or resume, or just finish evaluating) the run in ``out``; see the module docstring.
@@ -385,7 +384,6 @@ def train_policy(
         log_every: timesteps between progress rows (default: one PPO/A2C rollout, 2048 for DQN).
         overwrite: replace a run of another configuration in ``out`` (only its own files go, and only
             after every other check has passed).
-        trust_pickle: let ``cfg.init_policy`` be a legacy stable-baselines3 ``.zip`` (loading one runs code).
         shield: a safety layer that executes the policy's decisions during training, each overridden proposal
             penalised (:mod:`lcmodels.policy.shield`); what it did goes to ``shield.json``.
 
@@ -412,7 +410,7 @@ def train_policy(
                                  "elsewhere first, or use another --out")
     initial = None
     if cfg.init_policy and (replace or not run.ckpt_state.exists()):
-        initial = _load_init_policy(cfg, run, run.scenario, device, trust_pickle)
+        initial = _load_init_policy(cfg, run, run.scenario, device)
     # Every check has passed: from here on the directory is written.
     if replace:
         removed, kept = remove_run_outputs(out)
@@ -553,14 +551,12 @@ def _resume_model(cfg: PolicyConfig, env: VecEnv, tb: str, device: str, folder: 
     return model
 
 
-def _load_init_policy(cfg: PolicyConfig, run: _Run, config: ScenarioConfig, device: str,
-                      trust_pickle: bool = False) -> LoadedPolicy:
+def _load_init_policy(cfg: PolicyConfig, run: _Run, config: ScenarioConfig, device: str) -> LoadedPolicy:
     """``cfg.init_policy``, after checking that it fits this run (mode, predictor, scenario, algorithm)."""
     path = Path(cfg.init_policy)
     if not path.is_file():
         raise ValueError(f"init_policy {path} does not exist")
-    loaded = load_policy(path, obs_mode=cfg.obs, scenario=config, device=device, trust_pickle=trust_pickle,
-                         predictor=run.predictor_path)  # fmt: skip
+    loaded = load_policy(path, obs_mode=cfg.obs, scenario=config, device=device, predictor=run.predictor_path)
     if loaded.meta.get("algo") != cfg.algo:
         raise ValueError(f"init_policy {path} is a {loaded.meta.get('algo')} policy, this run trains {cfg.algo}")
     return loaded
