@@ -238,7 +238,7 @@ def encode_image(time_ns: int, chw: np.ndarray, frame_id: str = EGO_FRAME) -> by
 class ImageEncoder:
     """:func:`encode_image` into a buffer kept between calls (one per writer): the fields after the
     timestamp are written once per image size; each call copies the pixels in (channel by channel:
-    ~4x faster than a transposed copy), puts the timestamp in front and takes the bytes."""
+    faster than a transposed copy), puts the timestamp in front and takes the bytes."""
 
     HEAD_ROOM = 32
     """Bytes before the fixed fields, for the timestamp field (<= 24 bytes)."""

@@ -27,7 +27,7 @@ it in a helper process instead (what :func:`lcdata.record_episode` uses by defau
 Every ``/scene`` message is a whole scene: once :meth:`EpisodeWriter.write_lane_markings` has run, each
 message carries the entity ``lanes`` next to ``vehicles``. Foxglove's 3D panel clears on a seek and
 shows the latest message of each topic, so markings written once would vanish after the first seek;
-repeating them adds 0.15-0.4 % to a file (zstd sees the same bytes every time) and no measurable time.
+repeating them adds little to a file (zstd sees the same bytes every time) and little time.
 """
 
 from __future__ import annotations

@@ -2,7 +2,7 @@
 whose encoding, chunking, compression and file I/O run in a helper process.
 
 Why: on a 2-core machine the simulator uses one core and the other sits idle, while recording in
-the simulator's process costs about a quarter of its time (the per-step ``/vehicles`` encoding, the
+the simulator's process costs a good share of its time (``tools/bench_mcap.py``; the per-step ``/vehicles`` encoding, the
 per-decision image and scene encoding, and the GIL hand-offs with the compression thread). Here the
 simulator's process only copies the raw values of each call into a buffer for a pipe, and a persistent
 helper process (one per recording process, started on first use and reused for every episode) runs

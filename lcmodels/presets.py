@@ -56,8 +56,8 @@ BEST_RECIPES = ("hybrid-ppo", "pure-ppo", "pure-ppo-dagger", "prediction-ppo", "
 """The project's best recipe for each method."""
 OPTIONAL_RECIPES = ("hybrid-ppo-dagger",)
 """Recipes the ``paper`` preset runs only when named (``--recipe``): ``hybrid-ppo-dagger`` trains the image network
-on every state of its six DAgger rounds, several CPU hours (each round adds about 26,000 states), for a route
-that moved the pure policy by 1.6 points, inside the noise (docs/results/human-traffic)."""
+on every state of its six DAgger rounds, several CPU hours (each round adds tens of thousands of states), for a
+route that did not move the pure policy beyond the noise (docs/results/human-traffic)."""
 
 
 # ------------------------------------------------------------------------------------------------ presets
@@ -143,7 +143,7 @@ PRESETS: dict[str, Preset] = {
         caps=_TINY_CAPS,
         val_episodes=4, val_seeds=(0,), test_episodes=4, oracle=True,
     ),
-    # make demo (about 10 minutes on 2 cores): the corpus and predictor at small budgets, the zoo's policies on
+    # make demo (minutes; the README says how long): the corpus and predictor at small budgets, the zoo's policies on
     # fresh held-out episodes, one quick recipe trained from scratch, a few episodes of the best zoo policy.
     "quick": Preset(
         name="quick", scenario="paper", corpus_episodes=6, corpus_steps=1000, predictor_epochs=20,

@@ -20,10 +20,9 @@ from lcsim.suite import MAX_VALIDATION_SEED, SEED_STRIDE
 
 _LEARNING_RATES = {"ppo": 3e-4, "a2c": 7e-4, "dqn": 1e-4}
 FINE_TUNE_LEARNING_RATES = {"ppo": 3e-5}
-"""PPO from a warm start or an initial policy learns at a tenth of its default rate: from the same clone
-(69.5% held-out success), 300k steps at 3e-4 fell to 61.0% and at 3e-5 rose to 75.5%
-(docs/results/lanes/NOTE.md); PPO from DAgger at 3e-5 gave the project's best policy (docs/results/contact).
-A2C and DQN were not measured that way and keep their rates."""
+"""PPO from a warm start or an initial policy learns at a tenth of its default rate: from the same clone, PPO
+at 3e-4 lost held-out success and at 3e-5 gained it (docs/results/lanes/NOTE.md); PPO from DAgger at 3e-5 gave
+the project's best policy (docs/results/contact). A2C and DQN were not compared that way and keep their rates."""
 
 
 def default_learning_rate(algo: str, fine_tune: bool = False) -> float:
@@ -77,8 +76,8 @@ class PolicyConfig(JsonConfig):
     image_features: int = 10
     contact_features: bool = True
     """The sensor branch also gets each slot's time to contact, gap and proximity
-    (``lcmodels.policy.extractor.ContactFeatures``). Cloning the oracle in ``pure`` mode: 69.5% held-out
-    success without, 77.0% with (docs/results/contact). Runs stored before the option existed read as off."""
+    (``lcmodels.policy.extractor.ContactFeatures``). A clone of the oracle in ``pure`` mode wins more held-out
+    episodes with them (docs/results/contact). Runs stored before the option existed read as off."""
     window_features: bool = False
     """The sensor branch also gets, per side lane, when over the next 16 s the ego could change into it,
     against when its own leader traps it (``lcmodels.policy.extractor.WindowFeatures``; lane slots only)."""
@@ -87,8 +86,8 @@ class PolicyConfig(JsonConfig):
     with ``window_features`` the sensor branch also looks at the side lanes with those accelerations kept."""
     learning_rate: float = _LEARNING_RATES["ppo"]
     gamma: float = 0.95
-    """0.95 (a 10 s horizon at 2 decisions/s): PPO pure reached 24% held-out success in 150k steps with
-    0.95 and no entropy bonus, 7% with 0.99 and 0.01 in 100k (measured, 200 episodes)."""
+    """0.95 (a 10 s horizon at 2 decisions/s): PPO on ``pure`` observations learned far sooner with it and no
+    entropy bonus than with 0.99 and 0.01."""
     n_steps: int = 128
     """PPO / A2C rollout length per environment (A2C default 8)."""
     batch_size: int = 256

@@ -60,7 +60,7 @@ class Demonstrations:
 class RowChunks:
     """Arrays of one dtype and trailing shape read as their concatenation by row indices (``chunks[rows]``),
     never copied into one: DAgger's training set grows by a round at a time, and a concatenation of image
-    observations would hold it twice (about 9 GB each at six rounds of 200 episodes)."""
+    observations would hold it twice (gigabytes each at six rounds of 200 episodes)."""
 
     def __init__(self, parts: list[np.ndarray]) -> None:
         if not parts:
@@ -212,7 +212,7 @@ def pretrain(
     gen = np.random.default_rng(seed)
     n = len(demos)
     is_dqn = isinstance(model, DQN)
-    # Lane changes are rare in driving data (about 2% of a rule driver's decisions): weight each action
+    # Lane changes are rare in driving data (a few of a rule driver's decisions in a hundred): weight each action
     # by the inverse square root of its frequency, or cloning learns "always keep" (which collides).
     counts = np.bincount(demos.actions, minlength=3).astype(np.float64)
     weights = np.where(counts > 0, 1.0 / np.sqrt(np.maximum(counts, 1.0) / n), 0.0)
