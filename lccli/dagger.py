@@ -10,7 +10,7 @@ episodes. See lcmodels.policy.dagger.
     lc-dagger runs/bc --rounds 2 --episodes 100 --out runs/bc-dagger
     lc-dagger runs/bc --rounds 4 --episodes 100 --out runs/bc-dagger --resume   # rounds 3 and 4
     lc-dagger runs/ppo --expert safety-layer:runs/ppo/policy.safetensors --out runs/ppo-improved
-    lc-dagger runs/ppo --expert safety-layer:runs/ppo/policy.safetensors --set safety.horizon_decisions=32 \
+    lc-dagger runs/ppo --expert safety-layer:runs/ppo/policy.safetensors --set safety.horizon_decisions=32 \\
         --out runs/ppo-improved-16s    # the safety layer imagining 16 s instead of 8 s
     lc-eval runs/bc-dagger/round4/policy.safetensors --episodes 200
 

@@ -375,7 +375,7 @@ def eval_main(argv: list[str] | None = None) -> int:
     if isinstance(driver, LookaheadDriver) and opts.executor != "ray" and not sharded:  # how often it overrode
         summary["planner_choices"], summary["planner_overrides"] = driver.choices, driver.overrides
     if isinstance(driver, LookaheadDriver):  # how the safety layer imagined: the file says how it was made
-        summary["safety_layer"] = driver.config.to_dict() | {"follow": layer.follow if layer else ""}
+        summary["safety_layer"] = driver.config.to_dict()
     summary["command"] = command
     print(format_eval(summary))
     processes = f", {args.workers} processes" if sharded else ""
