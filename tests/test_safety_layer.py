@@ -91,3 +91,31 @@ def test_the_config_round_trips_through_json_and_toml():
     assert SafetyLayerConfig.from_json(layer.to_json()) == layer
     assert SafetyLayerConfig.from_table(tomllib.loads(layer.to_toml())) == layer
     assert dataclasses.replace(layer, follow="") != layer
+
+
+def test_lc_eval_takes_the_layer_from_a_config_file_as_from_the_flags_and_the_older_spellings(tmp_path):
+    """The same safety layer three ways (a [safety] table in --config, --set, the older flags): the same figures."""
+    import json
+
+    from lccli.evaluate import eval_main
+
+    config = tmp_path / "eval.toml"
+    config.write_text('batch = 2\n[safety]\nhorizon_decisions = 2\nsamples = 2\nperceived = false\n')
+    common = ["--scenario", "tiny", "--episodes", "2", "--no-record", "-q"]
+    runs = {
+        "file": ["safety-layer:rule", "--config", str(config)],
+        "set": ["safety-layer:rule", "--set", "batch=2", "--set", "safety.horizon_decisions=2",
+                "--set", "safety.samples=2", "--set", "safety.perceived=false"],
+        "older": ["lookahead-blind", "--batch", "2", "--lookahead-horizon", "2", "--lookahead-samples", "2"],
+    }  # fmt: skip
+    out = {}
+    for name, argv in runs.items():
+        assert eval_main([*argv, *common, "--json-out", str(tmp_path / f"{name}.json")]) == 0, name
+        summary = json.loads((tmp_path / f"{name}.json").read_text())
+        out[name] = {k: v for k, v in summary.items() if k not in ("command", "wall_s")}
+    assert out["file"] == out["set"] == out["older"]
+    assert out["file"]["safety_layer"] == SafetyLayerConfig(horizon_decisions=2, samples=2, perceived=False).to_dict()
+    assert out["file"]["driver"] == "lookahead-blind"
+    bad = tmp_path / "bad.toml"
+    bad.write_text("[safety]\nmargin_m = 1.0\n")
+    assert eval_main(["safety-layer:rule", "--config", str(bad), *common]) == 2

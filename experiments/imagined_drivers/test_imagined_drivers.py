@@ -173,3 +173,31 @@ def test_the_script_runs_a_variant_and_names_bad_input_in_one_line(capsys):
                           "--known-drivers", "lag,reaction"], capture_output=True, text=True)  # fmt: skip
     assert bad.returncode == 2 and "Traceback" not in bad.stderr
     assert "'reaction' is not a driver parameter" in bad.stderr.strip().splitlines()[-1]
+
+
+def test_a_perceived_copy_can_draw_plausible_drivers_instead():
+    """Drawn, the copy's unseen drivers come from the traffic's distribution: the same state and salt give the same
+    drivers, another salt others, and the ego keeps its own parameters."""
+    from lcsim.planning import imagined_copy, perceive, redraw_future
+
+    from .imagined_drivers import draw_drivers
+
+    core = LaneChangeCore(ScenarioConfig(render_image=False, traffic=TrafficConfig(human_like=True)), 2)
+    core.reset([0, 1], [5, 6])
+    drawn = []
+    for salt in (1, 1, 2):
+        copy_ = imagined_copy(core)
+        redraw_future(copy_.sim, salt)
+        perceive(copy_.sim, 1000.0)
+        traffic = copy_.sim.is_traffic.copy()
+        traffic[:, 0] = False
+        draw_drivers(copy_.sim, traffic)
+        drawn.append(copy_.sim.drivers.time_headway.copy())
+        assert np.array_equal(copy_.sim.drivers.max_accel[:, 0], core.sim.drivers.max_accel[:, 0])
+    assert np.array_equal(drawn[0], drawn[1])
+    assert not np.array_equal(drawn[0][:, 1:], drawn[2][:, 1:])
+    assert drawn[0][:, 1:].std() > 0  # not the median driver
+    assert not np.array_equal(drawn[0][:, 1:], core.sim.drivers.time_headway[:, 1:])  # nor the true ones
+    tc = core.config.traffic
+    spread = np.log(drawn[0][:, 1:] / tc.idm_time_headway_s)
+    assert np.abs(spread).max() <= 2.5 * tc.driver_spread + 1e-9  # within the distribution's clipped range
