@@ -16,7 +16,7 @@ EXPERIMENT_EPILOG = """stages (each skipped when complete, redone when missing o
   demos       demonstrations a recipe clones, shared between recipes    DIR/demos/<driver>-s<seed>-n<episodes>/
   recipes     per recipe and training seed: clone, dagger, train, shielded (as the recipe says; shielded:
               more PPO behind the safety layer, once the policy it follows is trained), then eval on the
-              validation and test episodes, and safety (behind the lookahead planner) where it asks
+              validation and test episodes, and safety (behind the safety layer) where it asks
                                                                         DIR/policies/<recipe>/seed<k>/<stage>/
   rule, oracle  the references on the same episodes                    DIR/rule/, DIR/oracle/
   zoo         (quick) the shipped policies on the test episodes (and behind their safety layer), a few

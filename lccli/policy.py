@@ -78,33 +78,24 @@ def train_policy_parser() -> argparse.ArgumentParser:
 
 def policy_config_of(args: argparse.Namespace) -> Any:
     """The :class:`~lcmodels.policy.PolicyConfig` of the command line: defaults, ``--config``, the flags
-    given, ``--set``. A learning rate and rollout length nobody gave follow the algorithm (and, for the
-    rate, whether the run starts from a warm start or an initial policy). ``ValueError`` naming the problem."""
-    import dataclasses
-
+    given, ``--set`` (:meth:`PolicyConfig.of <lcmodels.policy.PolicyConfig.of>`, which gives a learning rate and
+    rollout length nobody gave the algorithm's, and for the rate whether the run starts from a warm start or an
+    initial policy). ``ValueError`` naming the problem."""
     from lckit.config import read_data_file
-    from lcmodels.policy.config import PolicyConfig, default_learning_rate
+    from lcmodels.policy.config import PolicyConfig
 
     data: dict[str, Any] = {}
     if args.config is not None:
         data = read_data_file(args.config, "config file")
         data = data["policy"] if isinstance(data.get("policy"), dict) else data
-    try:
-        cfg = PolicyConfig.from_dict(data, stored=False)
-    except ValueError as exc:
-        raise ValueError(f"{args.config}: {exc}") from None
+        try:
+            PolicyConfig.from_dict(data, stored=False)
+        except ValueError as exc:
+            raise ValueError(f"{args.config}: {exc}") from None
     given = {"algo": args.algo, "obs": args.obs, "scenario": args.scenario, "timesteps": args.timesteps,
              "seed": args.seed, "warm_start": None if args.warm_start is None else str(args.warm_start),
              "init_policy": None if args.init_policy is None else str(args.init_policy)}  # fmt: skip
-    cfg = dataclasses.replace(cfg, **{k: v for k, v in given.items() if v is not None})
-    chosen = set(data) | {s.partition("=")[0].strip() for s in args.settings}
-    final = cfg.with_settings(args.settings)  # the algorithm and the start the run ends up with
-    defaults: dict[str, Any] = {}
-    if "learning_rate" not in chosen:
-        defaults["learning_rate"] = default_learning_rate(final.algo, bool(final.warm_start or final.init_policy))
-    if "n_steps" not in chosen:
-        defaults["n_steps"] = 8 if final.algo == "a2c" else 128
-    return dataclasses.replace(cfg, **defaults).with_settings(args.settings)
+    return PolicyConfig.of({**data, **{k: v for k, v in given.items() if v is not None}}, args.settings)
 
 
 def _fmt_row(row: dict) -> str:

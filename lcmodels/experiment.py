@@ -116,17 +116,9 @@ def _stored_stage_config(data: dict[str, Any]) -> dict[str, Any]:
 
 
 def lookahead_settings(s: Any) -> dict[str, Any]:
-    """The :class:`lcsim.planning.LookaheadConfig` fields of a recipe's ``[safety]`` table (a
-    :class:`lcmodels.recipe.SafetySpec`); the optional ones named only when set, so that stages measured before
-    a field existed stay complete."""
-    look: dict[str, Any] = {"horizon_decisions": s.horizon, "samples": s.samples, "perceived": s.perceived}
-    if s.driver_draws:
-        look["driver_draws"] = True
-    if s.estimate_drivers:
-        look["estimate_drivers"] = True
-    if s.margin_m:
-        look["margin_m"] = float(s.margin_m)
-    return look
+    """The settings of a recipe's safety layer (a :class:`lcsim.planning.SafetyLayerConfig`, blind) as its stages
+    record them, so that stages measured before stay complete."""
+    return {"horizon_decisions": s.horizon_decisions, "samples": s.samples, "perceived": s.perceived}
 
 
 def _evaluated(done: Sequence[StageResult]) -> bool:
@@ -390,6 +382,7 @@ class Experiment:
 
         def run_split(split: str, seed: int, episodes: int, done: Path) -> dict[str, Any]:
             from lcmodels.policy.evaluate import evaluate_sharded
+            from lcsim.planning import safety_layer_of
 
             t0 = time.perf_counter()
             rec = p.record_eval and split == "test"
@@ -398,7 +391,7 @@ class Experiment:
                 spec, scenario, episodes=episodes, seed=seed, pool=pool,
                 shards=RAY_SHARDS if self.executor == "ray" else self.jobs if pool is not None else 1,
                 executor=self.executor,
-                predictor=str(predictor) if predictor else None, follow=follow, lookahead=lookahead,
+                predictor=str(predictor) if predictor else None, safety=safety_layer_of(spec, lookahead, follow),
                 out_dir=path / "episodes" if rec else None, scenario=p.scenario, overwrite=True)  # fmt: skip
             summary["wall_s"] = time.perf_counter() - t0
             write_json(done, summary)  # kept before anything else can interrupt the stage
@@ -466,8 +459,10 @@ class Experiment:
                 from lcmodels.policy.shield import shield_for
 
                 assert follow is not None
-                shield = shield_for(shield_cfg["lookahead"], str(previous_policy(follow)), shield_cfg["penalty"],
-                                    cfg.scenario_config(), str(pred_path) if pred_path else None)  # fmt: skip
+                assert recipe.safety is not None
+                shield = shield_for(dataclasses.replace(recipe.safety, follow=str(previous_policy(follow))),
+                                    shield_cfg["penalty"], cfg.scenario_config(),
+                                    str(pred_path) if pred_path else None)  # fmt: skip
             try:
                 res = train_policy(cfg, path, predictor=pred_path, progress=show, shield=shield)
             except ValueError as exc:  # the directory holds another run (e.g. moved --out): start over

@@ -90,7 +90,7 @@ class Preset:
     safety layer follows gets as many seeds as the recipe it serves."""
     caps: tuple[tuple[str, int], ...] = ()
     """Upper bounds on the recipes' integer settings, ``(name, cap)`` (``timesteps``, ``episodes``, ``epochs``,
-    ``warm_start_epochs``, ``rounds``, ``n_envs``, ``horizon``...): the small presets' budgets."""
+    ``warm_start_epochs``, ``rounds``, ``n_envs``, ``horizon_decisions``...): the small presets' budgets."""
     val_episodes: int = 200
     val_seeds: tuple[int, ...] = (0, 1)
     """Validation: the evaluation seeds every recipe was chosen on (``lc-eval --seed``)."""
@@ -132,7 +132,7 @@ class Preset:
 
 _TINY_CAPS = (("timesteps", 128), ("episodes", 2), ("warm_start_epochs", 1), ("epochs", 1), ("rounds", 1),
               ("n_envs", 4), ("n_steps", 32), ("batch_size", 64), ("n_epochs", 2), ("learning_starts", 32),
-              ("buffer_size", 1_000), ("target_update_interval", 64), ("checkpoint_every", 10_000), ("horizon", 2))
+              ("buffer_size", 1_000), ("target_update_interval", 64), ("checkpoint_every", 10_000), ("horizon_decisions", 2))
 PRESETS: dict[str, Preset] = {
     # Seconds: exercises every recipe and stage for the tests; the numbers mean nothing.
     "tiny": Preset(

@@ -12,9 +12,12 @@ from __future__ import annotations
 import os
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 from lcmodels.fileio import POLICY_FILE, file_sha256, read_json
+
+if TYPE_CHECKING:
+    from lcsim.planning import SafetyLayerConfig
 
 ZOO_PREFIX = "zoo:"
 ENTRY_CARD = "zoo.json"
@@ -45,6 +48,17 @@ class ZooEntry:
     @property
     def weights_sha256(self) -> str:
         return weights_sha256(self.policy)
+
+    def safety_layer(self, follow: str = "") -> SafetyLayerConfig | None:
+        """The safety layer the card's figure behind the layer was measured with (its recorded driver's spelling
+        and settings), its imagined futures following ``follow``; None when the card has none."""
+        from lcsim.planning import safety_layer_of
+
+        config = (self.card.get("safety_layer") or {}).get("config") or {}
+        if not config.get("lookahead"):
+            return None
+        spelling = str(config.get("driver") or "safety-layer:policy")
+        return safety_layer_of(spelling, config["lookahead"], follow or None, where=f"zoo:{self.name}'s card")
 
 
 def weights_sha256(policy: str | os.PathLike[str]) -> str:
@@ -239,7 +253,7 @@ def publish_from_experiment(run: str | os.PathLike[str], recipe_name: str, *, se
 
 
 def resolve_policy_spec(spec: str) -> tuple[str, str | None]:
-    """``(spec, predictor)`` with a ``zoo:NAME`` part (also after ``lookahead:``-style prefixes) replaced by the
+    """``(spec, predictor)`` with a ``zoo:NAME`` part (also after a prefix such as ``safety-layer:``) replaced by the
     entry's policy file, and the zoo's predictor when that policy reads predictions (else None)."""
     prefix, sep, rest = spec.partition(":")
     if spec.startswith(ZOO_PREFIX):

@@ -11,7 +11,7 @@ _ROLLOUT = textwrap.dedent("""
     from lcsim.config import EgoConfig, ScenarioConfig, TrafficConfig
     from lcsim.core import LaneChangeCore
     from lcsim.envs import LaneChangeVectorEnv
-    from lcsim.planning import LookaheadConfig, LookaheadDriver
+    from lcsim.planning import LookaheadDriver, SafetyLayerConfig
 
     rng = np.random.default_rng(0)
     for cfg in (ScenarioConfig(), ScenarioConfig(render_image=False, neighbour_selection="nearest",
@@ -29,7 +29,7 @@ _ROLLOUT = textwrap.dedent("""
         core.step(np.ones(2, dtype=np.int64))
     env = LaneChangeVectorEnv(1, ScenarioConfig(render_image=False))
     obs, info = env.reset(seed=2)
-    driver = LookaheadDriver(LookaheadConfig(blind=True, perceived=True, samples=2))
+    driver = LookaheadDriver(SafetyLayerConfig(samples=2))
     for _ in range(3):
         obs, *_, info = env.step(driver(obs, info["action_mask"], env.core))
     index = env.core.sim.index

@@ -214,29 +214,6 @@ def test_a_perceived_copy_sees_the_median_driver():
     assert core.sim.drivers.time_headway[:, 1:].std() > 0  # the original keeps its drivers
 
 
-def test_a_perceived_copy_can_draw_plausible_drivers_instead():
-    """With ``draw_drivers`` the copy's unseen drivers come from the traffic's distribution: the same state and
-    salt give the same drivers, another salt others, and the ego keeps its own parameters."""
-    from lcsim.planning.perception import imagined_copy, perceive, redraw_future
-
-    core = LaneChangeCore(_traffic(True), 2)
-    core.reset([0, 1], [5, 6])
-    drawn = []
-    for salt in (1, 1, 2):
-        copy_ = imagined_copy(core)
-        redraw_future(copy_.sim, salt)
-        perceive(copy_.sim, 1000.0, draw_drivers=True)
-        drawn.append(copy_.sim.drivers.time_headway.copy())
-        assert np.array_equal(copy_.sim.drivers.max_accel[:, 0], core.sim.drivers.max_accel[:, 0])
-    assert np.array_equal(drawn[0], drawn[1])
-    assert not np.array_equal(drawn[0][:, 1:], drawn[2][:, 1:])
-    assert drawn[0][:, 1:].std() > 0  # not the median driver
-    assert not np.array_equal(drawn[0][:, 1:], core.sim.drivers.time_headway[:, 1:])  # nor the true ones
-    tc = core.config.traffic
-    spread = np.log(drawn[0][:, 1:] / tc.idm_time_headway_s)
-    assert np.abs(spread).max() <= 2.5 * tc.driver_spread + 1e-9  # within the distribution's clipped range
-
-
 def test_a_perceived_copy_keeps_the_pace_of_lane_changes_under_way():
     """A change under way shows: the copy's changers go on at their own pace (no sideways jump)."""
     from lcsim.planning.perception import imagined_copy, perceive

@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import contextvars
 import dataclasses
+from collections.abc import Sequence
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, ClassVar
@@ -23,6 +24,14 @@ FINE_TUNE_LEARNING_RATES = {"ppo": 3e-5}
 """PPO from a warm start or an initial policy learns at a tenth of its default rate: from the same clone, PPO
 at 3e-4 lost held-out success and at 3e-5 gained it (docs/results/lanes/NOTE.md); PPO from DAgger at 3e-5 gave
 the project's best policy (docs/results/contact). A2C and DQN were not compared that way and keep their rates."""
+
+
+_ROLLOUT_STEPS = {"a2c": 8}
+"""PPO / A2C rollout length per environment where it is not PolicyConfig's default (A2C's own default)."""
+
+
+def _field_default(cls: type, name: str) -> Any:
+    return next(f.default for f in dataclasses.fields(cls) if f.name == name)
 
 
 def default_learning_rate(algo: str, fine_tune: bool = False) -> float:
@@ -89,7 +98,7 @@ class PolicyConfig(JsonConfig):
     """0.95 (a 10 s horizon at 2 decisions/s): PPO on ``pure`` observations learned far sooner with it and no
     entropy bonus than with 0.99 and 0.01."""
     n_steps: int = 128
-    """PPO / A2C rollout length per environment (A2C default 8)."""
+    """PPO / A2C rollout length per environment (A2C default 8, filled by :meth:`of`)."""
     batch_size: int = 256
     n_epochs: int = 10
     ent_coef: float = 0.0
@@ -162,6 +171,22 @@ class PolicyConfig(JsonConfig):
             self.scenario_config(base)
         except ValueError as exc:
             raise ValueError(f"PolicyConfig.slots {self.slots} does not fit the scenario: {exc}") from None
+
+    @classmethod
+    def of(cls, given: dict[str, Any], settings: Sequence[str] = (), *, fine_tune: bool | None = None) -> PolicyConfig:
+        """The config of the fields ``given`` (a file's, a recipe's, the flags'), then the ``KEY=VALUE``
+        ``settings`` in order, with each field whose default follows the algorithm and that neither gives filled
+        here, the one place that fills them: ``learning_rate`` (:func:`default_learning_rate`, fine-tuning when
+        ``fine_tune``, by default when the run starts from a warm start or an initial policy) and ``n_steps``
+        (A2C 8, else 128). ``ValueError`` naming the problem."""
+        final = cls.from_dict(given, stored=False).with_settings(settings)
+        chosen = set(given) | {s.partition("=")[0].strip() for s in settings}
+        if fine_tune is None:
+            fine_tune = bool(final.warm_start or final.init_policy)
+        filled = {"learning_rate": default_learning_rate(final.algo, fine_tune),
+                  "n_steps": _ROLLOUT_STEPS.get(final.algo, _field_default(cls, "n_steps"))}  # fmt: skip
+        filled = {k: v for k, v in filled.items() if k not in chosen}
+        return dataclasses.replace(final, **filled) if filled else final
 
     @classmethod
     def from_card(cls, data: dict[str, Any], scenario: ScenarioConfig) -> PolicyConfig:
