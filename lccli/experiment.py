@@ -70,7 +70,7 @@ def experiment_parser() -> argparse.ArgumentParser:
     p.add_argument("--skip-train", action="store_true",
                    help="do not train policies; report what the directory already holds")
     p.add_argument("--dry-run", action="store_true",
-                   help="only say which stages are complete and which would run (and why)")
+                   help="only say which stages are complete and which would run (and why, or after which stage)")
     p.add_argument("-q", "--quiet", action="store_true", help="no progress lines")
     return p
 
@@ -109,7 +109,7 @@ def experiment_main(argv: list[str] | None = None) -> int:
                      ray_address=args.ray_address)  # fmt: skip
     try:
         exp.check_out()
-        exp.recipes()  # every recipe and follower reads, before anything is written
+        exp.graph()  # every recipe and follower reads and no stages wait on each other, before anything is written
     except ValueError as exc:
         return error(str(exc).splitlines()[0])
     setup_logging("lc-experiment", verbose=False)
