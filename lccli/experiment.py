@@ -22,6 +22,8 @@ EXPERIMENT_EPILOG = """stages (each skipped when complete, redone when missing o
   zoo         (quick) the shipped policies on the test episodes (and behind their safety layer), a few
               recorded                                          DIR/zoo/, DIR/zoo-safety/, DIR/showcase/
   report      DIR/REPORT.md, DIR/fig5_safe_forward.png, DIR/fig6_total_reward.png
+A stage runs once the stages it reads are complete; --dry-run lists every stage: complete, would run (why), or
+would run after a stage it reads.
 
 recipes: lcmodels/recipes/*.toml (paper-*: the paper's methods as it trains them; hybrid-ppo, pure-ppo, ...:
 the project's best per method; quick-pure: make demo's), or a .toml file of your own (--recipe FILE).
@@ -62,10 +64,10 @@ def experiment_parser() -> argparse.ArgumentParser:
                    help="torch threads (default 1: on a shared 2-core machine 1 is often fastest; results do "
                    "not depend on it beyond float rounding, and changing it does not make stages stale)")
     p.add_argument("--jobs", type=positive_int, default=1,
-                   help="recipes trained at once, each in its own process with --threads torch threads, and "
+                   help="training stages at once, each in its own process with --threads torch threads, and "
                    "processes an evaluation's episodes are cut over (default 1; on 2 cores --jobs 2 --threads 1 "
                    "keeps both busy; results do not depend on it)")
-    add_executor_arguments(p, "every independent stage a Ray task (each policy x seed, each evaluation shard, "
+    add_executor_arguments(p, "every independent stage a Ray task (each training stage, each evaluation shard, "
                            "each recorded episode)", "this machine, --jobs processes")
     p.add_argument("--skip-train", action="store_true",
                    help="do not train policies; report what the directory already holds")

@@ -52,7 +52,7 @@ class Stage:
     recipe: Recipe | None = None
     demos: DemoSpec | None = None
     zoo: Any = None
-    """The :class:`lcmodels.zoo.ZooEntry` of a ``zoo`` or ``zoo-safety`` stage."""
+    """The :class:`lcmodels.zoo.ZooEntry` of a ``zoo`` or ``zoo-safety`` stage; the showcase's candidates."""
     follow_zoo: Any = None
     """The zoo entry a ``zoo-safety`` stage's layer follows (None: the policy itself)."""
 
@@ -301,4 +301,4 @@ def _zoo_stages(add: Any, prio: Any, entries: Sequence[Any], showcase_episodes: 
         add(Stage(StageKey.of("zoo-safety", entry.name), group="zoo", priority=prio("zoo", 1, i), zoo=entry,
                   follow_zoo=by_name[f] if f else None))  # fmt: skip
     if evals and showcase_episodes >= 1:
-        add(Stage(StageKey.of("showcase"), tuple(evals), "zoo", prio("zoo", 2)))
+        add(Stage(StageKey.of("showcase"), tuple(evals), "zoo", prio("zoo", 2), zoo=tuple(entries)))

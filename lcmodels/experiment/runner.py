@@ -12,6 +12,7 @@ follows first), then the references and the zoo.
 
 from __future__ import annotations
 
+import contextlib
 import logging
 import threading
 import time
@@ -25,7 +26,7 @@ from typing import Any
 from lcmodels.experiment.graph import Stage, StageGraph
 from lcmodels.experiment.keys import StageKey
 from lcmodels.experiment.stages import StageContext, StageJob, stage_job
-from lcmodels.experiment.store import Attempt, StageStore
+from lcmodels.experiment.store import Attempt, StageStore, Verdict
 from lcmodels.presets import Preset, StageResult
 
 log = logging.getLogger("lcmodels.experiment")
@@ -80,15 +81,30 @@ def _work_on_ray(req: WorkRequest) -> float | None:
 
 
 class _Here:
-    """Every stage in this process."""
+    """Every stage in this process (the base of the backends that hand training stages elsewhere)."""
 
     concurrent = False
+    error: BaseException | None = None
+    """An exception raised while relaying a worker's progress line (by the progress callback)."""
 
     def room(self, busy: int) -> bool:
+        """Whether a training stage can be handed over while ``busy`` ones run."""
         return False
 
     def pool(self) -> Executor | None:
+        """The processes an evaluation of this process cuts its episodes over."""
         return None
+
+    def submit(self, req: WorkRequest) -> Any:
+        raise NotImplementedError
+
+    def wait(self, handles: list[Any]) -> list[Any]:
+        """The handles among ``handles`` that have finished (at least one)."""
+        raise NotImplementedError
+
+    def result(self, handle: Any) -> float | None:
+        """The finished work's return value (its exception raised)."""
+        raise NotImplementedError
 
     def close(self, pending: Collection[Any], *, kill: bool = False) -> None:
         pass
@@ -117,7 +133,11 @@ class _Pool(_Here):
 
             def pump() -> None:
                 while (msg := recv.recv()) is not None:
-                    self.emit(msg)
+                    if self.error is None:  # after an error, the lines are drained so that no worker blocks
+                        try:
+                            self.emit(msg)
+                        except BaseException as exc:  # raised in the runner's thread
+                            self.error = exc
                 recv.close()
 
             self._pump = threading.Thread(target=pump, name="worker-progress", daemon=True)
@@ -128,12 +148,10 @@ class _Pool(_Here):
     def submit(self, req: WorkRequest) -> Future[float | None]:
         return self.pool().submit(_work_in_process, req, self._lines)
 
-    @staticmethod
-    def wait(handles: list[Any]) -> list[Any]:
+    def wait(self, handles: list[Any]) -> list[Any]:
         return list(wait(handles, return_when=FIRST_COMPLETED).done)
 
-    @staticmethod
-    def result(handle: Any) -> float | None:
+    def result(self, handle: Any) -> float | None:
         return handle.result()
 
     def close(self, pending: Collection[Any], *, kill: bool = False) -> None:
@@ -176,10 +194,8 @@ class _Ray(_Here):
 
     def close(self, pending: Collection[Any], *, kill: bool = False) -> None:
         for ref in pending:
-            try:
+            with contextlib.suppress(Exception):  # a task that ended meanwhile
                 self.ray.cancel(ref, force=True)
-            except Exception:  # noqa: BLE001 - a task that ended meanwhile
-                pass
 
 
 @dataclass
@@ -210,7 +226,9 @@ class Runner:
         else:
             self.backend = _Here()
         self.ctx = replace(ctx, pool=self.backend.pool, jobs=jobs)
-        self._waiting: dict[StageKey, tuple[StageJob, Any]] = {}
+        self._waiting: dict[StageKey, tuple[StageJob, Verdict]] = {}
+        self._here: StageKey | None = None
+        """The stage running in this process."""
 
     def run(self, keys: Collection[StageKey] | None = None,
             given: dict[StageKey, StageResult] | None = None) -> list[StageResult]:  # fmt: skip
@@ -219,16 +237,13 @@ class Runner:
         want = set(self.graph.keys() if keys is None else keys)
         results: dict[StageKey, StageResult] = dict(given or {})
         running: dict[Any, _Running] = {}
-        here: StageKey | None = None
         try:
             while not want <= results.keys():
                 ready = [k for k in self.graph.ready(results, {r.key for r in running.values()}) if k in want]
                 for key in ready:
-                    settle = self._try(key, results, running)
-                    if settle is not None:
-                        here = key
-                        results[key] = settle()
-                        here = None
+                    res = self._settle(key, results, running)
+                    if res is not None:
+                        results[key] = res
                         break  # the stages that waited on it may come before the rest
                 else:
                     if not running:
@@ -237,21 +252,23 @@ class Runner:
                     for handle in self.backend.wait(list(running)):
                         r = running.pop(handle)
                         results[r.key] = self._finish(r.attempt, r.job, self.backend.result(handle), r.t0)
+                if self.backend.error is not None:
+                    raise self.backend.error
         except BaseException as exc:
             self.backend.close(list(running), kill=True)
             if isinstance(exc, BrokenProcessPool | ChildProcessError):
-                left = [r.key.name for r in running.values()] + ([here.name] if here is not None else [])
+                left = [r.key.name for r in running.values()] + ([self._here.name] if self._here else [])
                 raise ChildProcessError(f"a worker process died (killed, or out of memory?) with {', '.join(left)} "
                                         "unfinished; what finished is kept and a rerun resumes the rest") from None
             raise
         self.backend.close([])
         return [res for k, res in results.items() if k in want]
 
-    def _try(self, key: StageKey, results: dict[StageKey, StageResult],
-             running: dict[Any, _Running]) -> Callable[[], StageResult] | None:  # fmt: skip
-        """Settle stage ``key`` if it can be settled now: a result that needs no work (returned as a thunk), a
-        stage handed to the backend (None), or work to do here (a thunk that does it). None also when it must
-        wait for room in the backend."""
+    def _settle(self, key: StageKey, results: dict[StageKey, StageResult],
+                running: dict[Any, _Running]) -> StageResult | None:  # fmt: skip
+        """Stage ``key``'s result, when it can be had now: complete (skipped), waiting for a stage it reads,
+        planned, looked at only, or run here. None when it is handed to the backend (``running``) or waits for
+        room there."""
         t0 = time.perf_counter()
         stage = self.graph[key]
         path = key.path(self.store.out)
@@ -259,36 +276,34 @@ class Runner:
         blocked = next((r for r in got.values() if r.status not in COMPLETE), None)
         if blocked is not None:  # a stage it reads would run or is not run: its inputs are not known
             status = f"would run (after {blocked.name})" if blocked.status.startswith("would run") else "not run"
-            return lambda: self._say(StageResult(key.name, status, path, 0.0), status)
+            return self._say(StageResult(key.name, status, path, 0.0), status)
         if key in self._waiting:  # checked before, and waiting for room since
-            job, verdict = self._waiting[key]
+            job, verdict = self._waiting.pop(key)
         else:
             job = stage_job(self.ctx, stage, got)
             verdict = self.store.check(key, job.config, job.inputs, upgrade=job.upgrade, resumable=job.resumable)
         if verdict.complete:
-            return lambda: self._say(self.store.skipped(key, verdict, t0), "complete, skipped")
+            return self._say(self.store.skipped(key, verdict, t0), "complete, skipped")
         if self.dry_run:
             status = f"would run ({verdict.why})"
-            return lambda: self._say(StageResult(key.name, status, path, 0.0, time.perf_counter() - t0), status)
+            return self._say(StageResult(key.name, status, path, 0.0, time.perf_counter() - t0), status)
         if self.look_only(stage):
-            return lambda: self._say(StageResult(key.name, "not run", path, 0.0), "not run")
+            return self._say(StageResult(key.name, "not run", path, 0.0), "not run")
         if stage.trains and self.backend.concurrent:
             if not self.backend.room(len(running)):
                 self._waiting[key] = (job, verdict)
                 return None
-            self._waiting.pop(key, None)
             attempt = self.store.begin(key, verdict, job.config, job.inputs)
             req = WorkRequest(self.ctx.preset, self.ctx.out, self.ctx.threads, stage, got, attempt.keep)
-            running[self.backend.submit(req)] = _Running(key, attempt, job, t0)  # type: ignore[attr-defined]
+            running[self.backend.submit(req)] = _Running(key, attempt, job, t0)
             self.ctx.emit(f"[{key}] running ({verdict.why})")  # once a process has it
             return None
-
-        def work() -> StageResult:
-            attempt = self.store.begin(key, verdict, job.config, job.inputs)
-            self.ctx.emit(f"[{key}] running ({verdict.why})")
-            return self._finish(attempt, job, job.work(attempt.keep, attempt.save_wall), t0)
-
-        return work
+        attempt = self.store.begin(key, verdict, job.config, job.inputs)
+        self.ctx.emit(f"[{key}] running ({verdict.why})")
+        self._here = key
+        wall = job.work(attempt.keep, attempt.save_wall)
+        self._here = None
+        return self._finish(attempt, job, wall, t0)
 
     def _finish(self, attempt: Attempt, job: StageJob, wall: float | None, t0: float) -> StageResult:
         res = self.store.finish(attempt, job.outputs(), wall, t0)

@@ -75,7 +75,7 @@ class Attempt:
     def __init__(self, key: StageKey, path: Path, pending_path: Path, pending: dict[str, Any], before: float,
                  keep: bool) -> None:  # fmt: skip
         self.key, self.path, self.keep = key, path, keep
-        self._pending_path, self._pending, self._before = pending_path, pending, before
+        self._pending_path, self.pending, self._before = pending_path, pending, before
         self.t0 = time.perf_counter()
 
     def elapsed(self) -> float:
@@ -84,7 +84,7 @@ class Attempt:
 
     def save_wall(self) -> None:
         """Put the time spent so far into the pending record (an interrupted stage keeps the time of its parts)."""
-        write_json(self._pending_path, self._pending | {"wall_s_parts": self.elapsed()})
+        write_json(self._pending_path, self.pending | {"wall_s_parts": self.elapsed()})
 
 
 class StageStore:
@@ -186,7 +186,7 @@ class StageStore:
         if hashes is None:
             raise RuntimeError(f"stage {attempt.key.name} finished without all of its outputs in {attempt.path}")
         rec_path, pend_path = record_paths(self.out, attempt.key)
-        write_json(rec_path, {**attempt._pending, "outputs": hashes, "wall_s": wall,
+        write_json(rec_path, {**attempt.pending, "outputs": hashes, "wall_s": wall,
                               "finished": time.strftime("%Y-%m-%dT%H:%M:%S%z")})  # fmt: skip
         pend_path.unlink(missing_ok=True)
         return StageResult(attempt.key.name, "done", attempt.path, wall, time.perf_counter() - t0, hashes)
