@@ -292,6 +292,27 @@ def test_a_worker_that_dies_ends_the_run_in_one_line_and_a_rerun_resumes(tmp_pat
         assert stage_metrics(tmp_path / "run", name)["test"]["episodes"] == preset.test_episodes
 
 
+def test_a_progress_callback_that_fails_on_a_workers_line_stops_the_run_and_a_rerun_resumes(tmp_path: Path) -> None:
+    """A training step's line comes from a ``--jobs`` worker process; the callback's exception on it ends the run
+    (no worker left behind, none blocked on its progress lines), and the same run then completes."""
+    import multiprocessing
+
+    class Stop(Exception):
+        pass
+
+    def stop_at_a_training_step(msg: str) -> None:
+        if "/train] step " in msg:
+            raise Stop
+
+    preset = dataclasses.replace(PRESETS["tiny"], recipes=("paper-ppo-pure", "paper-a2c"), oracle=False)
+    with pytest.raises(Stop):
+        Experiment(preset, tmp_path / "run", progress=stop_at_a_training_step).run(jobs=2)
+    assert not multiprocessing.active_children()
+    Experiment(preset, tmp_path / "run").run(jobs=2)
+    for name in preset.recipes:
+        assert stage_metrics(tmp_path / "run", name)["test"]["episodes"] == preset.test_episodes
+
+
 def test_a_second_run_in_a_directory_in_use_is_refused(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
     import fcntl
 

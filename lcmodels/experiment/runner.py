@@ -262,6 +262,8 @@ class Runner:
                                         "unfinished; what finished is kept and a rerun resumes the rest") from None
             raise
         self.backend.close([])
+        if self.backend.error is not None:  # a line relayed after the last stage ended
+            raise self.backend.error
         return [res for k, res in results.items() if k in want]
 
     def _settle(self, key: StageKey, results: dict[StageKey, StageResult],
