@@ -37,7 +37,6 @@ evaluates nothing there: the report looks up the policies of the graph's final s
 from lcmodels.experiment.core import Experiment, ExperimentResult, Progress, run_experiment
 from lcmodels.experiment.graph import GraphCycle, Stage, StageGraph, build_graph, recipe_ranks
 from lcmodels.experiment.keys import StageKey
-from lcmodels.experiment.layer import lookahead_settings
 from lcmodels.experiment.stages import RAY_SHARDS
 from lcmodels.presets import (  # re-exported: the experiment's vocabulary
     FIG5_NAME,
@@ -59,7 +58,6 @@ from lcmodels.presets import (  # re-exported: the experiment's vocabulary
     TABLE4_ROWS,
     Preset,
     StageResult,
-    canonical,
     demos_key,
     outputs_digest,
     policy_dir,
@@ -95,9 +93,7 @@ __all__ = [
     "StageKey",
     "StageResult",
     "build_graph",
-    "canonical",
     "demos_key",
-    "lookahead_settings",
     "outputs_digest",
     "policy_dir",
     "previous_policy",

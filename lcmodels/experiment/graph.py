@@ -3,11 +3,11 @@ each naming the stages it reads.
 
 ::
 
-    corpus ─► predictor ─────────────────────┐
-    demos/<key> ─► <recipe>/seed<k>/clone ─► dagger ─► train ─► shielded ─► eval
-                                                          │        ▲   └──► safety
-                     <followed recipe>/seed<k>/<final> ───┴────────┘  (the layer's imagined futures follow it)
-    rule, oracle; zoo/<entry>, zoo-safety/<entry> ─► showcase
+    corpus ──► predictor ──────────────────────────────► every stage whose policy reads predictions
+    demos/<key> ──► <recipe>/seed<k>/clone ──► dagger ──► train ──► shielded ──► eval
+                                                                        └──────► safety
+    <followed recipe>/seed<k>/<its final stage> ───────► shielded, safety
+    rule, oracle    zoo/<entry>, zoo-safety/<entry>    zoo/* ──► showcase
 
 A recipe's ``shielded`` and ``safety`` stages read the final stage of the recipe its safety layer follows (same
 training seed), so a loop of recipes whose shielded stages follow each other is a cycle, refused in one line
@@ -60,9 +60,6 @@ class Stage:
     def trains(self) -> bool:
         """A training stage (clone, dagger, train, shielded): one process of its own when stages run at once."""
         return self.key.recipe is not None and self.key.stage in TRAINING_STAGES
-
-    def need(self, role: str) -> StageKey | None:
-        return next((k for r, k in self.needs if r == role), None)
 
 
 @dataclass
