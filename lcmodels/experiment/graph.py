@@ -10,8 +10,9 @@ each naming the stages it reads.
     rule, oracle    zoo/<entry>, zoo-safety/<entry>    zoo/* ──► showcase
 
 A recipe's ``shielded`` and ``safety`` stages read the final stage of the recipe its safety layer follows (same
-training seed), so a loop of recipes whose shielded stages follow each other is a cycle, refused in one line
-(:class:`GraphCycle`). Plans, dry runs and the stages the report reads are queries of the graph.
+training seed). Recipes whose layers follow each other in a loop are refused in one line (:class:`GraphCycle`), as
+are stages that would wait on each other. Plans, dry runs and the stages the report reads are queries of the
+graph.
 """
 
 from __future__ import annotations
@@ -34,7 +35,7 @@ TRAINING_STAGES = ("clone", "dagger", "train", "shielded")
 
 
 class GraphCycle(ValueError):
-    """Stages that wait on each other (recipes whose shielded stages' layers follow each other)."""
+    """Recipes whose safety layers follow each other in a loop, or stages that wait on each other."""
 
 
 @dataclass(frozen=True)
@@ -179,6 +180,18 @@ def follow_closure(recipes: Sequence[Recipe], load: Any) -> list[Recipe]:
     return out
 
 
+def check_follows(recipes: Sequence[Recipe]) -> None:
+    """:class:`GraphCycle` when the recipes' safety layers follow each other in a loop (a layer may follow its
+    own recipe): the followed policies of a loop would have no first one to train."""
+    graph = {r.name: f for r in recipes if (f := follows(r)) and f != r.name}
+    for name in graph:
+        chain = [name]
+        while (nxt := graph.get(chain[-1])) and nxt not in chain:
+            chain.append(nxt)
+        if nxt == name:
+            raise GraphCycle(f"the safety layers' followers form a loop: {' -> '.join([*chain, name])} (safety.follow)")
+
+
 def recipe_seeds(recipes: Sequence[Recipe], seeds: int, asked: Mapping[str, int]) -> dict[str, int]:
     """Training seeds of each recipe: ``seeds``, or more where ``asked`` says, and a followed recipe as many as
     the recipes whose safety layers follow it (same seed, same follower)."""
@@ -216,6 +229,7 @@ def build_graph(preset: Preset, recipes: Sequence[Recipe], seeds: Mapping[str, i
     seeds each, and the ``zoo`` entries to evaluate (with ``preset.zoo``). :class:`GraphCycle` for a cycle."""
     from lcmodels.policy.obs import needs_predictor
 
+    check_follows(recipes)
     stages: dict[StageKey, Stage] = {}
 
     def add(st: Stage) -> StageKey:

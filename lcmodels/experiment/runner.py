@@ -146,7 +146,10 @@ class _Pool(_Here):
         return self._pool
 
     def submit(self, req: WorkRequest) -> Future[float | None]:
-        return self.pool().submit(_work_in_process, req, self._lines)
+        try:
+            return self.pool().submit(_work_in_process, req, self._lines)
+        except OSError as exc:  # a worker died while another was being started: the pool is broken
+            raise BrokenProcessPool(str(exc)) from exc
 
     def wait(self, handles: list[Any]) -> list[Any]:
         return list(wait(handles, return_when=FIRST_COMPLETED).done)
@@ -229,6 +232,7 @@ class Runner:
         self._waiting: dict[StageKey, tuple[StageJob, Verdict]] = {}
         self._here: StageKey | None = None
         """The stage running in this process."""
+        self._position = {k: i for i, k in enumerate(graph.keys())}
 
     def run(self, keys: Collection[StageKey] | None = None,
             given: dict[StageKey, StageResult] | None = None) -> list[StageResult]:  # fmt: skip
@@ -275,8 +279,9 @@ class Runner:
         stage = self.graph[key]
         path = key.path(self.store.out)
         got = {role: results[k] for role, k in stage.needs}
-        blocked = next((r for r in got.values() if r.status not in COMPLETE), None)
-        if blocked is not None:  # a stage it reads would run or is not run: its inputs are not known
+        waits = [k for _, k in stage.needs if results[k].status not in COMPLETE]
+        if waits:  # a stage it reads would run or is not run: its inputs are not known
+            blocked = results[max(waits, key=self._position.__getitem__)]  # the last of them to come
             status = f"would run (after {blocked.name})" if blocked.status.startswith("would run") else "not run"
             return self._say(StageResult(key.name, status, path, 0.0), status)
         if key in self._waiting:  # checked before, and waiting for room since
