@@ -337,11 +337,10 @@ def eval_main(argv: list[str] | None = None) -> int:
             if hooks:
                 return error("breakdown runs in this process only (no executor ray, no --workers)")
             from lcdata.executors import ray_session
-            from lcdata.procs import closing_pool
             from lcmodels.policy.evaluate import evaluate_sharded, shard_pool
 
             where = ray_session(opts.ray_address or None) if opts.executor == "ray" else contextlib.nullcontext()
-            pooled = closing_pool(shard_pool(args.workers, opts.threads)) if sharded else contextlib.nullcontext()
+            pooled = shard_pool(args.workers, opts.threads) if sharded else contextlib.nullcontext()
             with pooled as pool, where:
                 summary, results = evaluate_sharded(
                     args.policy, config if is_driver or target is not None else None, episodes=args.episodes, seed=args.seed,
