@@ -81,8 +81,9 @@ def build_parser() -> argparse.ArgumentParser:
                    "each simulates --episodes x --seconds")
     p.add_argument("--episodes", type=int_at_least(1), default=d.episodes, metavar="N",
                    help=f"environments simulated side by side per evaluation (default {d.episodes})")
-    p.add_argument("--seconds", type=positive_float, default=d.seconds, metavar="S",
-                   help=f"simulated seconds per episode, the first 5 left out (default {d.seconds:g})")
+    p.add_argument("--seconds", type=positive_float, default=None, metavar="S",
+                   help="simulated seconds per episode, the first 5 left out (default: the base scenario's time limit, "
+                   "75 s for paper)")
     p.add_argument("--report-episodes", type=int_at_least(1), default=d.report_episodes, metavar="N",
                    help=f"episodes of the final measurement of the default and the result, on other seeds than the "
                    f"search's (default {d.report_episodes})")
@@ -170,9 +171,9 @@ def main(argv: Sequence[str] | None = None) -> int:
     setup_logging(PROG, verbose=args.verbose)
     from lcdata.fileio import check_output_file, write_atomically, write_json
     from lcdata.recorded import recorded_traffic
-    from lcsim.calibrate import COLLISION_PENALTY, CalibrationOptions, RecordedRoad, calibrate
+    from lcsim.calibrate import CalibrationOptions, RecordedRoad, calibrate, distance, tolerances
     from lcsim.registry import scenario, scenario_label
-    from lcsim.stats import WARMUP_S, sampling_intervals, traffic_samples
+    from lcsim.stats import WARMUP_S, sampling_intervals, summarise, traffic_samples
 
     def say(text: str) -> None:
         if not args.quiet:
@@ -189,7 +190,7 @@ def main(argv: Sequence[str] | None = None) -> int:
                 raise ValueError(f"{flag} {path} already exists; pass --overwrite to replace it")
         if args.json is not None and args.json.resolve() == args.out.resolve():
             raise ValueError("--json and --out name the same file")
-        if not args.seconds > WARMUP_S + 5.0:
+        if args.seconds is not None and not args.seconds > WARMUP_S + 5.0:
             raise ValueError(f"--seconds must be more than {WARMUP_S + 5.0:g} (the first {WARMUP_S:g} are left out)")
         base = scenario(args.base)
         options = CalibrationOptions(iterations=args.iterations, episodes=args.episodes, seconds=args.seconds,
@@ -205,12 +206,16 @@ def main(argv: Sequence[str] | None = None) -> int:
             f"{rec.lane_width_m:.2f} m, {rec.density_per_lane_km:.1f} vehicles per lane-km; bootstrap of the "
             f"recorded statistics ({args.bootstrap} draws) ...")  # fmt: skip
         intervals = sampling_intervals(samples, reps=args.bootstrap, seed=args.seed)
+        samples_stats = summarise(samples)
+        tol = tolerances(samples_stats, intervals)
         size = RecordedRoad(num_lanes=rec.num_lanes, lane_width_m=rec.lane_width_m, length_m=rec.length_m,
                             width_m=rec.width_m, density_per_lane_km=rec.density_per_lane_km)  # fmt: skip
 
-        def progress(it: int, total: int, dist: float, stats: dict[str, float]) -> None:
+        def progress(it: int, total: int, cost: float, stats: dict[str, float]) -> None:
+            within = sum(abs(stats[k] - samples_stats[k]) <= tol[k] for k in tol)
             crash = f", {stats['traffic_collisions']} traffic collisions" if stats["traffic_collisions"] else ""
-            say(f"iteration {it}/{total}: distance {dist - (COLLISION_PENALTY if crash else 0.0):.3g}{crash}")
+            say(f"iteration {it}/{total}: {within} of {len(tol)} statistics within tolerance, distance "
+                f"{distance(stats, samples_stats, tol):.3g}{crash}")
 
         result = calibrate(samples, intervals, size, base, options, progress)
     except (ValueError, FileNotFoundError, OSError) as exc:
@@ -218,9 +223,10 @@ def main(argv: Sequence[str] | None = None) -> int:
     except KeyboardInterrupt:
         print(f"{PROG}: interrupted; nothing was written", file=sys.stderr)
         return 130
+    seconds = options.seconds_for(base)
     header = [f"lc-calibrate: the {scenario_label(args.base)} scenario with its traffic fitted to {args.data}",
               f"({len(rec.tracks)} episodes, {rec.seconds:.0f} s of traffic; seed {args.seed}, "
-              f"{args.iterations} iterations of {args.episodes} x {args.seconds:g} s)"]  # fmt: skip
+              f"{args.iterations} iterations of {args.episodes} x {seconds:g} s)"]  # fmt: skip
     text = scenario_text(result, args.out, header)
     report = {
         "data": str(args.data), "base": args.base, "options": dataclasses.asdict(options), "bootstrap": args.bootstrap,

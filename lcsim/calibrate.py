@@ -3,7 +3,8 @@
 The recorded statistics (:func:`lcsim.stats.summarise` of the recorded tracks) are the targets; the simulator's
 traffic is measured by the same code. What the tracks show directly sets the start: the road (lanes, lane width),
 the vehicles' size, the density, the desired speeds (free-flow speeds), the desired time gap (the 15th percentile of
-the time gaps), the acceleration noise (the acceleration's sd), the lane-change duration and its spread, the
+the time gaps), the acceleration noise (the acceleration's 5th to 95th percentile, as a normal distribution's sd:
+robust to the hard braking of a few), the lane-change duration and its spread, the
 lateral wander (the offset from the lane centre). Then a deterministic search: every iteration simulates the same
 episodes (fixed seeds: common random numbers), measures them, and moves each parameter towards the statistic it
 governs most, a damped Newton step of the moment equations with a diagonal Jacobian, each pair seen in coordinates
@@ -17,7 +18,7 @@ parameter (coordinate)                  statistic (coordinate)
 density (log; ``num_vehicles``)         time gap, median (minus log)
 ``idm_time_headway_s`` (log)            time gap, 15th percentile (log)
 ``driver_spread`` (log)                 time gaps under 1 s, share (log of share + 0.01)
-``accel_noise_mps2`` (log)              acceleration, sd (log)
+``accel_noise_mps2`` (log)              acceleration, p5 to p95 (log; the sd, too, for "close")
 ``lane_change_duration_s`` (log)        lane-change duration, mean (log)
 ``lane_change_spread`` (log)            lane-change duration, coefficient of variation (log)
 ``lane_wander_m`` (log)                 lateral offset, sd (log)
@@ -29,11 +30,13 @@ spontaneous rate ``r0`` and blocked-leader margin ``m0``, ``random_lane_change_r
 ``blocked_speed_margin_kmh = m0 + max(0, -u - 1) * 2 * max(speed_spread_kmh, 2)`` (fewer changes: the
 spontaneous ones fade first, then a leader must be slower to count as blocking).
 
-The iterate with the smallest distance (the sum over :data:`lcsim.stats.COMPARED` of
-``((sim - recorded) / tolerance)^2``, plus a penalty if the traffic collided) is the result. Each step starts from
+The iterate with the smallest cost (:func:`search_cost`: the distance, the sum over :data:`lcsim.stats.COMPARED` of
+``((sim - recorded) / tolerance)^2``, plus a penalty for each statistic not well within its tolerance and one if
+the traffic collided) is the result. Each step starts from
 the best iterate so far and moves every parameter whose statistic is not already close (:data:`DEAD_BAND`); once
-that makes things worse, the search goes on one parameter at a time (a coordinate search), the one with the worst
-statistic first, and when none helps, with steps half as long. Each parameter's slope (how far its statistic moves per unit of it)
+that makes things worse, the search goes on one parameter at a time (a coordinate search: passes over the
+parameters whose statistics are not close, the worst first), each parameter's step halved after it made things
+worse and doubled back (up to the full step) after it helped. Each parameter's slope (how far its statistic moves per unit of it)
 is re-estimated from its own steps that improved the distance, so that a statistic that responds weakly gets longer
 steps. The search ends after its iterations, or earlier when every statistic is close. The result is measured again
 on other seeds for the report.
@@ -70,7 +73,9 @@ ABSOLUTE_TOLERANCE: dict[str, float] = {
 centimetre of offset, a tenth of a second of duration), whichever is widest."""
 MAX_SPEED_KMH = 200.0
 COLLISION_PENALTY = 100.0
-"""Added to the distance of an evaluation whose traffic collided (recorded traffic does not)."""
+"""Added to the search's cost of an evaluation whose traffic collided (recorded traffic does not)."""
+OUTSIDE_PENALTY, SEARCH_MARGIN = 4.0, 0.8
+"""Added to the search's cost for each statistic further than ``SEARCH_MARGIN`` tolerances from the recorded one."""
 
 
 @dataclass(frozen=True, slots=True, kw_only=True)
@@ -88,13 +93,15 @@ class RecordedRoad:
 class CalibrationOptions:
     """How hard to search (every evaluation simulates ``episodes`` x ``seconds`` with the same seeds)."""
 
-    iterations: int = 20
+    iterations: int = 30
     """Simulated evaluations of the search (the first is the start)."""
-    episodes: int = 16
-    seconds: float = 60.0
+    episodes: int = 32
+    seconds: float | None = None
+    """Simulated seconds per episode (the first :data:`lcsim.stats.WARMUP_S` left out); None: the base scenario's
+    time limit, the traffic as an episode of it sees it (the traffic's statistics drift as platoons form)."""
     seed: int = 0
     """Seed of the search's episodes; the report measures the result (and the base) on ``seed + 1``."""
-    report_episodes: int = 16
+    report_episodes: int = 32
     damping: float = 0.8
     """Share of each step taken (1: the full fixed-point step)."""
     keep_road: bool = False
@@ -105,11 +112,15 @@ class CalibrationOptions:
             value = getattr(self, name)
             if not isinstance(value, int) or isinstance(value, bool) or value < 1:
                 raise ValueError(f"{name} must be an integer >= 1, got {value!r}")
-        if not (math.isfinite(self.seconds) and self.seconds > WARMUP_S + 5.0):
+        if self.seconds is not None and not (math.isfinite(self.seconds) and self.seconds > WARMUP_S + 5.0):
             raise ValueError(f"seconds must be more than {WARMUP_S + 5.0:g} (the first {WARMUP_S:g} are left out), "
                              f"got {self.seconds!r}")  # fmt: skip
         if not 0.0 < self.damping <= 1.0:
             raise ValueError(f"damping must be in (0, 1], got {self.damping!r}")
+
+    def seconds_for(self, base: ScenarioConfig) -> float:
+        """The simulated seconds per episode with ``base`` as the base scenario."""
+        return self.seconds if self.seconds is not None else max(base.time_limit_s, WARMUP_S + 10.0)
 
 
 @dataclass(frozen=True, slots=True)
@@ -174,6 +185,16 @@ def distance(stats: dict[str, float], recorded: dict[str, float], tolerance: dic
     return total
 
 
+def search_cost(stats: dict[str, float], recorded: dict[str, float], tolerance: dict[str, float]) -> float:
+    """What the search minimises: the :func:`distance`, plus :data:`OUTSIDE_PENALTY` for every statistic further
+    than :data:`SEARCH_MARGIN` of its tolerance from the recorded one (the aim is every statistic within its
+    tolerance, also on episodes the search did not see), plus :data:`COLLISION_PENALTY` if the traffic collided."""
+    outside = sum(not abs(stats[k] - recorded[k]) <= SEARCH_MARGIN * tolerance[k] for k in COMPARED
+                  if math.isfinite(recorded[k]))  # fmt: skip
+    crashed = COLLISION_PENALTY if stats.get("traffic_collisions", 0) else 0.0
+    return distance(stats, recorded, tolerance) + OUTSIDE_PENALTY * outside + crashed
+
+
 def max_wander(base: ScenarioConfig, road: RoadConfig, width_m: float) -> float:
     """The largest lane wander the scenario accepts (the clipped wander keeps the widest car inside its lane)."""
     widest = max(width_m, base.ego.width_m)
@@ -229,7 +250,8 @@ def start(recorded: dict[str, float], base: ScenarioConfig, size: RecordedRoad) 
     return Params(
         speed_kmh=speed, speed_spread_kmh=spread, density=max(size.density_per_lane_km, 1.0),
         idm_time_headway_s=gap if math.isfinite(gap) else t0.idm_time_headway_s, driver_spread=t0.driver_spread,
-        accel_noise_mps2=recorded["accel_sd_mps2"], lane_change_duration_s=duration,
+        accel_noise_mps2=(recorded["accel_p95_mps2"] - recorded["accel_p05_mps2"]) / (2 * 1.6449),
+        lane_change_duration_s=duration,
         lane_change_spread=max(lc_spread, 1e-3), lane_wander_m=max(recorded["lateral_offset_sd_m"], 1e-4),
         propensity=0.0,
     )  # fmt: skip
@@ -245,10 +267,15 @@ def _cv(stats: dict[str, float]) -> float:
 
 @dataclass(frozen=True, slots=True)
 class Coordinate:
-    """How one parameter is searched: its statistic, both seen in the coordinates where one moves the other about
-    one for one (``x`` of the parameter, ``y`` of the statistics), and the longest step in ``x``."""
+    """How one parameter is searched: the statistics it governs, the parameter and those statistics seen in
+    coordinates where one moves the other about one for one (``x`` of the parameter, ``y`` of the statistics), and
+    the longest step in ``x``."""
 
-    stat: str
+    def off(self, stats: dict[str, float], rec: dict[str, float], tolerance: dict[str, float]) -> float:
+        """How far ``stats`` are from the recorded ones, in tolerances (the worst of this parameter's statistics)."""
+        return max(abs(stats[k] - rec[k]) / tolerance[k] for k in self.stats)
+
+    stats: tuple[str, ...]
     x: Callable[[float], float]
     from_x: Callable[[float], float]
     y: Callable[[dict[str, float]], float]
@@ -257,19 +284,20 @@ class Coordinate:
 
 _LOG3 = math.log(3.0)
 COORDINATES: dict[str, Coordinate] = {
-    "speed_kmh": Coordinate("speed_mean_kmh", float, float, lambda s: s["speed_mean_kmh"], 20.0),
-    "speed_spread_kmh": Coordinate("speed_sd_kmh", lambda v: v * v, lambda x: math.sqrt(max(x, 0.0)),
+    "speed_kmh": Coordinate(("speed_mean_kmh",), float, float, lambda s: s["speed_mean_kmh"], 20.0),
+    "speed_spread_kmh": Coordinate(("speed_sd_kmh",), lambda v: v * v, lambda x: math.sqrt(max(x, 0.0)),
                                    lambda s: s["speed_sd_kmh"] ** 2, 400.0),
-    "density": Coordinate("time_gap_median_s", _log, math.exp, lambda s: -_log(s["time_gap_median_s"]), _LOG3),
-    "idm_time_headway_s": Coordinate("time_gap_p15_s", _log, math.exp, lambda s: _log(s["time_gap_p15_s"]), _LOG3),
-    "driver_spread": Coordinate("time_gap_under_1s", _log, math.exp,
+    "density": Coordinate(("time_gap_median_s",), _log, math.exp, lambda s: -_log(s["time_gap_median_s"]), _LOG3),
+    "idm_time_headway_s": Coordinate(("time_gap_p15_s",), _log, math.exp, lambda s: _log(s["time_gap_p15_s"]), _LOG3),
+    "driver_spread": Coordinate(("time_gap_under_1s",), _log, math.exp,
                                 lambda s: _log(s["time_gap_under_1s"] + 0.01), _LOG3),
-    "accel_noise_mps2": Coordinate("accel_sd_mps2", _log, math.exp, lambda s: _log(s["accel_sd_mps2"]), _LOG3),
-    "lane_change_duration_s": Coordinate("lane_change_duration_mean_s", _log, math.exp,
+    "accel_noise_mps2": Coordinate(("accel_p05_mps2", "accel_p95_mps2", "accel_sd_mps2"), _log, math.exp,
+                                   lambda s: _log(s["accel_p95_mps2"] - s["accel_p05_mps2"]), _LOG3),
+    "lane_change_duration_s": Coordinate(("lane_change_duration_mean_s",), _log, math.exp,
                                          lambda s: _log(s["lane_change_duration_mean_s"]), _LOG3),
-    "lane_change_spread": Coordinate("lane_change_duration_sd_s", _log, math.exp, lambda s: _log(_cv(s)), _LOG3),
-    "lane_wander_m": Coordinate("lateral_offset_sd_m", _log, math.exp, lambda s: _log(s["lateral_offset_sd_m"]), _LOG3),
-    "propensity": Coordinate("lane_changes_per_vehicle_km", float, float,
+    "lane_change_spread": Coordinate(("lane_change_duration_sd_s",), _log, math.exp, lambda s: _log(_cv(s)), _LOG3),
+    "lane_wander_m": Coordinate(("lateral_offset_sd_m",), _log, math.exp, lambda s: _log(s["lateral_offset_sd_m"]), _LOG3),
+    "propensity": Coordinate(("lane_changes_per_vehicle_km",), float, float,
                              lambda s: _log(s["lane_changes_per_vehicle_km"]), 1.0),
 }  # fmt: skip
 """Each parameter, the statistic it moves towards (the table of the module's docstring), and their coordinates."""
@@ -288,7 +316,7 @@ def step(p: Params, sim: dict[str, float], rec: dict[str, float], tolerance: dic
     for name, c in COORDINATES.items():
         value = getattr(p, name)
         gap = c.y(rec) - c.y(sim)
-        if only not in (None, name) or abs(sim[c.stat] - rec[c.stat]) <= DEAD_BAND * tolerance[c.stat] or \
+        if only not in (None, name) or c.off(sim, rec, tolerance) <= DEAD_BAND or \
                 not math.isfinite(gap):  # fmt: skip
             out[name] = value
             continue
@@ -317,10 +345,11 @@ def calibrate(recorded: TrafficSamples | dict[str, float], intervals: dict[str, 
     """Fit ``base``'s traffic to the recorded statistics (``recorded``: the samples or their summary, ``intervals``:
     their sampling intervals, :func:`lcsim.stats.sampling_intervals`).
 
-    ``progress(iteration, iterations, distance, stats)`` after each evaluation. ``ValueError`` when the recording has
+    ``progress(iteration, iterations, cost, stats)`` after each evaluation (:func:`search_cost`). ``ValueError`` when the recording has
     no time gaps, no speeds or no lane changes with a duration to match, or a road the simulator cannot build.
     """
     options = options or CalibrationOptions()
+    seconds = options.seconds_for(base)
     rec = summarise(recorded) if isinstance(recorded, TrafficSamples) else dict(recorded)
     for key, what in (("speed_mean_kmh", "speeds"), ("time_gap_median_s", "vehicles following one another")):
         if not math.isfinite(rec[key]):
@@ -337,42 +366,49 @@ def calibrate(recorded: TrafficSamples | dict[str, float], intervals: dict[str, 
     tol = tolerances(rec, intervals)
     params = start(rec, base, size)
     best: tuple[float, Params, dict[str, float]] | None = None
-    damping = options.damping
     slopes = dict.fromkeys(COORDINATES, 1.0)
+    scale = dict.fromkeys(COORDINATES, 1.0)  # each parameter's step alone, as a share of the damped Newton step
     alone = False  # True once a step of every parameter together made things worse: from then on one at a time
-    pending: list[str] = []  # the parameters still to try alone from the best, the one with the worst statistic first
+    pending: list[str] = []  # this pass's parameters still to try alone, the one with the worst statistic first
+    tried: str | None = None  # the parameter the last evaluation stepped alone
     history: list[dict[str, float]] = []
 
     def worst_first(stats: dict[str, float]) -> list[str]:
-        z = {n: abs(stats[c.stat] - rec[c.stat]) / tol[c.stat] for n, c in COORDINATES.items()}
+        z = {n: c.off(stats, rec, tol) for n, c in COORDINATES.items()}
         return sorted((n for n in COORDINATES if z[n] > DEAD_BAND), key=lambda n: -z[n])
 
     for it in range(options.iterations):
         config = scenario_of(params, base, road, size)
-        sim = traffic_statistics(config, options.episodes, options.seconds, options.seed)
-        d = distance(sim, rec, tol) + (COLLISION_PENALTY if sim["traffic_collisions"] else 0.0)
-        history.append({**dataclasses.asdict(params), "num_vehicles": config.traffic.num_vehicles, "distance": d})
+        sim = traffic_statistics(config, options.episodes, seconds, options.seed)
+        d = search_cost(sim, rec, tol)
+        history.append({**dataclasses.asdict(params), "num_vehicles": config.traffic.num_vehicles,
+                        "distance": distance(sim, rec, tol), "cost": d})
         log.debug("iteration %d: distance %.3g, %s", it + 1, d, params)
         if progress is not None:
             progress(it + 1, options.iterations, d, sim)
         if best is None or d < best[0]:
-            if best is not None and alone:  # (a step of one parameter: its statistic's move is its own)
+            if best is not None and tried is not None:  # (a step of one parameter: its statistic's move is its own)
                 slopes = update_slopes(slopes, best[1:], (params, sim))
-            best, damping = (d, params, sim), options.damping
-            pending = worst_first(sim)
-        elif not alone:
-            alone, pending = True, worst_first(best[2])
-        elif not pending:  # no parameter helped alone: shorter steps
-            damping, pending = damping * 0.5, worst_first(best[2])
-        if alone and pending:
-            params = step(best[1], best[2], rec, tol, damping, slopes, only=pending.pop(0))
+                scale[tried] = min(1.0, 2.0 * scale[tried])
+            best = (d, params, sim)
+        elif tried is not None:
+            scale[tried] *= 0.5
         else:
-            params = step(best[1], best[2], rec, tol, damping, slopes)
-        if params == best[1]:
-            break  # every statistic within the dead band: nothing left to move
+            alone = True
+        if not alone:
+            params, tried = step(best[1], best[2], rec, tol, options.damping, slopes), None
+            if params == best[1]:
+                break  # every statistic within the dead band: nothing left to move
+            continue
+        if not pending:
+            pending = worst_first(best[2])
+            if not pending:
+                break
+        tried = pending.pop(0)
+        params = step(best[1], best[2], rec, tol, options.damping * scale[tried], slopes, only=tried)
     assert best is not None
     scenario = scenario_of(best[1], base, road, size)
     report_seed = options.seed + 1
-    default = traffic_statistics(base, options.report_episodes, options.seconds, report_seed)
-    calibrated = traffic_statistics(scenario, options.report_episodes, options.seconds, report_seed)
+    default = traffic_statistics(base, options.report_episodes, seconds, report_seed)
+    calibrated = traffic_statistics(scenario, options.report_episodes, seconds, report_seed)
     return CalibrationResult(scenario, rec, default, calibrated, tol, intervals, history)
