@@ -229,7 +229,8 @@ def main(argv: Sequence[str] | None = None) -> int:
               f"{args.iterations} iterations of {args.episodes} x {seconds:g} s)"]  # fmt: skip
     text = scenario_text(result, args.out, header)
     report = {
-        "data": str(args.data), "base": args.base, "options": dataclasses.asdict(options), "bootstrap": args.bootstrap,
+        "data": str(args.data), "base": args.base, "options": dataclasses.asdict(options), "seconds": seconds,
+        "bootstrap": args.bootstrap,
         "recorded_road": {"num_lanes": rec.num_lanes, "lane_width_m": rec.lane_width_m, "length_m": rec.length_m,
                           "width_m": rec.width_m, "density_per_lane_km": rec.density_per_lane_km,
                           "episodes": len(rec.tracks), "seconds": rec.seconds},
