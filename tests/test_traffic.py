@@ -163,9 +163,13 @@ def test_human_like_drivers_differ_wander_within_their_lane_and_vary_their_accel
     tc = TrafficConfig()
     assert 0.6 * tc.lane_wander_m < human["lateral_offset_sd_m"] < 1.2 * tc.lane_wander_m
     assert human["lateral_offset_max_m"] <= 2.5 * tc.lane_wander_m + 1e-9
-    assert exact["lateral_offset_sd_m"] == exact["lateral_offset_max_m"] == 0.0
+    # exact IDM keeps the lane centre; only a lane change begun in the last moments, before it has covered a tenth
+    # of a lane width (which the statistics cannot tell from lane keeping), shows at all
+    assert exact["lateral_offset_sd_m"] < 0.02 and exact["lateral_offset_max_m"] < 0.1 * 3.5
     assert human["accel_sd_mps2"] > 2.0 * exact["accel_sd_mps2"]
     assert human["lane_change_duration_sd_s"] > 0.5 > exact["lane_change_duration_sd_s"]
+    # the durations measured on the lateral position are the configured ones
+    assert exact["lane_change_duration_mean_s"] == pytest.approx(tc.lane_change_duration_s, abs=0.02)
     assert human["lane_changes"] > 20 and human["traffic_collisions"] == exact["traffic_collisions"] == 0
     sim = LaneChangeCore(_traffic(True), 2).sim
     sim.reset([0, 1], [3, 4])
