@@ -156,7 +156,7 @@ def given_safety_settings(args: argparse.Namespace) -> dict[str, object]:
     """The safety layer's settings the command line gave (``--set safety.KEY=VALUE`` and the older flags), each
     by its field's name with the value read as its type, the last one given winning (what a recording's flags
     keep, so that a rerun of the same command resumes it)."""
-    from lcsim.config import field_type, parse_value
+    from lckit.config import field_type, parse_value
     from lcsim.planning import SafetyLayerConfig
     from lcsim.planning.safety import LEGACY_KEYS
 

@@ -22,7 +22,7 @@ from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
 from typing import Any, ClassVar
 
-from lcsim.config import JsonConfig, check_field, check_limits, field_type, parse_value
+from lckit.config import JsonConfig, check_field, check_limits, field_type, parse_value
 
 SAFETY_LAYER_PREFIX = "safety-layer:"
 """A driver spec ``safety-layer:DRIVER``: DRIVER behind the safety layer."""
