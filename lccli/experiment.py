@@ -29,8 +29,8 @@ recipes: lcmodels/recipes/*.toml (paper-*: the paper's methods as it trains them
 the project's best per method; quick-pure: make demo's), or a .toml file of your own (--recipe FILE).
 
 presets: tiny (seconds, for tests: every recipe with tiny budgets), quick (make demo: the zoo, one quick
-recipe, minutes on 2 cores), paper (every recipe at its own budget but hybrid-ppo-dagger, which runs when named,
-hybrid-ppo with 2 training seeds, 1000 test episodes: hours).
+recipe, minutes on 2 cores), paper (every recipe at its own budget but hybrid-ppo-dagger and attention-ppo,
+which run when named, hybrid-ppo with 2 training seeds, 1000 test episodes: hours).
 
 examples:
   lc-experiment --preset quick --out runs/demo

@@ -14,7 +14,14 @@ from pathlib import Path
 from typing import Any, ClassVar
 
 from lckit.config import JsonConfig, check_field, check_limits, require_non_negative, require_positive
-from lcmodels.policy.names import ALGORITHMS, IMAGE_NETS, OBS_MODES, ObsMode, scenario_for_mode
+from lcmodels.policy.names import (
+    ALGORITHMS,
+    IMAGE_NETS,
+    OBS_MODES,
+    SENSOR_ENCODERS,
+    ObsMode,
+    scenario_for_mode,
+)
 from lcsim.config import NEIGHBOUR_SELECTIONS, ScenarioConfig
 from lcsim.registry import SCENARIO_FILE_SUFFIXES, TASK_SCENARIOS, scenario
 from lcsim.suite import MAX_VALIDATION_SEED, SEED_STRIDE
@@ -90,6 +97,9 @@ class PolicyConfig(JsonConfig):
     window_features: bool = False
     """The sensor branch also gets, per side lane, when over the next 16 s the ego could change into it,
     against when its own leader traps it (``lcmodels.policy.extractor.WindowFeatures``; lane slots only)."""
+    sensor_encoder: str = "mlp"
+    """How the sensor branch reads the vehicles: ``mlp`` (the slots' rows flattened) or ``attention`` (the ego
+    attends to the set of sensed vehicles: ``lcmodels.policy.extractor.EgoAttention``)."""
     accel_features: bool = False
     """The observation also shows each vehicle's acceleration (``ScenarioConfig.observe_acceleration``), and
     with ``window_features`` the sensor branch also looks at the side lanes with those accelerations kept."""
@@ -140,6 +150,8 @@ class PolicyConfig(JsonConfig):
                f"must be one of {', '.join(NEIGHBOUR_SELECTIONS)}", self.neighbours)
         check_field(not self.window_features or self.neighbours == "lanes", self, "window_features",
                "needs neighbours='lanes' (which vehicle is in which lane)", self.window_features)
+        check_field(self.sensor_encoder in SENSOR_ENCODERS, self, "sensor_encoder",
+                    f"must be one of {', '.join(SENSOR_ENCODERS)}", self.sensor_encoder)
         check_field(self.image_net in IMAGE_NETS, self, "image_net", f"must be one of {', '.join(IMAGE_NETS)}",
                self.image_net)  # fmt: skip
         require_positive(self, "n_envs", "image_features", "learning_rate", "n_steps", "batch_size",

@@ -20,6 +20,10 @@ ALGORITHMS: tuple[str, ...] = ("ppo", "a2c", "dqn")
 IMAGE_NETS: tuple[str, ...] = ("compact", "strided", "vgg16")
 """The image branches (:func:`lcmodels.policy.extractor.make_image_net`)."""
 
+SENSOR_ENCODERS: tuple[str, ...] = ("mlp", "attention")
+"""How the sensor branch reads ``current``: the rows flattened into an MLP, or as a set
+(:class:`lcmodels.policy.extractor.EgoAttention`)."""
+
 IMAGE_FEATURES = "image_features"
 """The observation key that replaces ``image`` when the image branch is frozen and run by the environment
 wrapper (:class:`lcmodels.policy.extractor.ImageEncoder`): what the branch would output, so the extractor
