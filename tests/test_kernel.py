@@ -96,12 +96,12 @@ def test_log_hooks_see_the_rows_of_every_step_the_per_step_hooks_see():
         seen: list[list[np.ndarray]] = [[], [], []]
         logged: list[list[np.ndarray]] = [[], [], []]
 
-        def per_step(sim) -> None:
+        def per_step(sim, seen=seen) -> None:
             for e in range(3):
                 if not sim.frozen[e]:
                     seen[e].append(sim.log_row(e))
 
-        def per_call(sim, log, counts) -> None:
+        def per_call(sim, log, counts, logged=logged) -> None:
             for e in range(3):
                 logged[e] += list(log[e, : counts[e]].copy())
 
