@@ -87,19 +87,20 @@ def run_episodes(driver: Callable[..., np.ndarray], config: ScenarioConfig, user
             for hook in hooks:
                 hook.start(core, chunk, driver)
                 started.append(hook)
-            while (core.outcome == RUNNING).any():
-                running = core.outcome == RUNNING
+            running = core.outcome == RUNNING
+            while running.any():
                 obs = core.observe()
                 mask = core.action_mask()
                 actions = np.asarray(driver(obs, mask, core), dtype=np.int64).reshape(e)
                 for hook in hooks:
                     hook.before_step(core, obs, mask, actions, running)
                 res = core.step(actions)
-                ret += np.where(running, res.reward, 0.0)
-                fwd += np.where(running, res.components["forward"], 0.0)
+                np.add(ret, res.reward, out=ret, where=running)  # (ended episodes add nothing)
+                np.add(fwd, res.components["forward"], out=fwd, where=running)
                 decisions += running
                 for hook in hooks:
                     hook.after_step(core, res, running)
+                running = core.outcome == RUNNING
             failed = False
         finally:
             for hook in started:

@@ -105,7 +105,7 @@ class HighwaySim:
         self.hooks: list[SubstepHook] = []
         # Called with the step log after every compiled call that ran steps (see advance).
         self.log_hooks: list[StepLogHook] = []
-        self._log = np.zeros((0, 0, 0))
+        self._log = self._log_spare = np.zeros((0, 0, 0))
         self._log_count = np.zeros(e, dtype=np.int64)
 
     def _bind(self) -> None:
@@ -164,7 +164,8 @@ class HighwaySim:
             state[name] = np.ascontiguousarray(state[name][:, rows])
         state["hist"] = self.hist[rows]
         state["num_envs"], state["hooks"], state["log_hooks"] = len(rows), [], []
-        state["_log"], state["_log_count"] = np.zeros((0, 0, 0)), np.zeros(len(rows), dtype=np.int64)
+        state["_log"] = state["_log_spare"] = np.zeros((0, 0, 0))
+        state["_log_count"] = np.zeros(len(rows), dtype=np.int64)
         pid = object.__new__(PIDBank)
         pid.__dict__.update(self.pid.__dict__)
         pid.errors, pid.count = self.pid.errors[rows], self.pid.count[rows]
@@ -269,7 +270,8 @@ class HighwaySim:
         Log hooks (:attr:`log_hooks`, ``hook(sim, log, counts)``) see the steps without a Python call per step: the
         compiled call (at most :data:`LOG_STEPS` steps) writes a row per environment and step it ran into ``log``
         ``(E, S, kernel.log_width(N))`` float64 (:func:`lcsim.kernel.log_state`), environment e's in
-        ``log[e, :counts[e]]``. Both are reused by the next call: a hook copies what it keeps.
+        ``log[e, :counts[e]]``. Two logs take turns: the rows stay as they are until the hooks of the next call
+        return (a hook may hold on to them until then); ``counts`` is the next call's.
         """
         if not self.hooks:
             if not self.log_hooks:
@@ -286,10 +288,11 @@ class HighwaySim:
 
     def _advance(self, steps: int, stop_on_event: bool, logged: bool = False) -> None:
         pid = self.pid
-        if logged:
-            log = self._log
+        if logged:  # two logs in turn: a hook may hold on to the rows of a call until the next call's hooks run
+            self._log, log = self._log_spare, self._log
             if log.shape[:2] != (self.num_envs, LOG_STEPS):
-                log = self._log = np.zeros((self.num_envs, LOG_STEPS, K.log_width(self.num_vehicles)))
+                log = np.zeros((self.num_envs, LOG_STEPS, K.log_width(self.num_vehicles)))
+            self._log_spare = log
             K.advance_logged(steps, stop_on_event, self.params, self.iparams, self.vf, self.vi, self.vb, self.ef,
                              self.ei, self.eb, self.keys, self.hist, self.hist_ptr, pid.errors, pid.count, pid.ptr,
                              log, self._log_count)  # fmt: skip
@@ -301,7 +304,7 @@ class HighwaySim:
             pid.ptr = (pid.ptr + steps) % pid.window
 
     def _call_log_hooks(self) -> None:
-        log, counts = self._log, self._log_count
+        log, counts = self._log_spare, self._log_count
         for hook in tuple(self.log_hooks):
             hook(self, log, counts)
 
