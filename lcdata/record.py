@@ -215,11 +215,10 @@ class EpisodeRecorder:
         outcome = str(result.outcome[e])
         reward = result.reward.item(e)
         c = result.components
-        mask = np.asarray(action_mask).reshape(-1, 3)[e]
-        rl = np.array((self.decisions, np.asarray(actions).item(e), mask.item(0), mask.item(1), mask.item(2), reward,
-                       c["collision"].item(e), c["off_road"].item(e), c["forward"].item(e), c["success"].item(e),
-                       result.terminated.item(e), result.truncated.item(e), OUTCOME_CODES[outcome]),
-                      dtype=np.float64)  # fmt: skip
+        mask = np.asarray(action_mask).reshape(-1, 3)[e].tolist()
+        rl = (self.decisions, np.asarray(actions).item(e), *mask, reward, c["collision"].item(e), c["off_road"].item(e),
+              c["forward"].item(e), c["success"].item(e), result.terminated.item(e), result.truncated.item(e),
+              OUTCOME_CODES[outcome])  # fmt: skip
         pose, image = self._view if self._view is not None else (None, None)
         rows = self._stash if self._stash is not None else self._no_steps
         assert self._fixed is not None
@@ -288,11 +287,27 @@ def resolve_driver(driver: str | Driver, seed: int) -> tuple[Any, bool, str, str
     return driver, False, name, desc
 
 
+_CONFIG_JSON: dict[int, tuple[ScenarioConfig, str]] = {}  # config_json's, by the id of configs it keeps alive
+
+
+def config_json(config: ScenarioConfig) -> str:
+    """``config.to_json()``, remembered for the last few config objects (a recorder of many episodes with one
+    config asks for it every episode; configs are frozen)."""
+    cached = _CONFIG_JSON.get(id(config))
+    if cached is not None and cached[0] is config:
+        return cached[1]
+    if len(_CONFIG_JSON) >= 8:
+        _CONFIG_JSON.clear()
+    text = config.to_json()
+    _CONFIG_JSON[id(config)] = (config, text)
+    return text
+
+
 def episode_metadata(config: ScenarioConfig, seed: int, *, driver: str, driver_description: str = "",
                      scenario: str = "", autopilot: bool = False) -> dict[str, Any]:  # fmt: skip
     """The metadata record of an episode: full config JSON, user and episode seeds, driver, version."""
     return {
-        "config": config.to_json(), "seed": int(seed), "episode_seed": str(episode_seed(seed)),
+        "config": config_json(config), "seed": int(seed), "episode_seed": str(episode_seed(seed)),
         "driver": driver, "driver_description": driver_description or driver, "scenario": scenario,
         "autopilot": bool(autopilot), "version": package_version(),
         "steps_per_decision": config.steps_per_decision,

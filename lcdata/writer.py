@@ -283,7 +283,7 @@ class EpisodeSink:
             self.write_image(step, t_s, image)
 
     def write_decision(self, step: int, t_s: float, pose: np.ndarray | None, image: np.ndarray | None,
-                       log: np.ndarray, fixed: Sequence[np.ndarray], off_road: bool, lc_active: bool, rl: np.ndarray,
+                       log: np.ndarray, fixed: Sequence[np.ndarray], off_road: bool, lc_active: bool, rl: Sequence[float],
                        current: np.ndarray | None) -> None:  # fmt: skip
         """One decision of the recorder in one call: :meth:`write_view`, :meth:`write_sim_log` (its K >= 0 steps),
         :meth:`write_rl_step`.
@@ -291,8 +291,8 @@ class EpisodeSink:
         Args:
             step, t_s: the decision's. pose, image: :meth:`write_view`'s. log, fixed, off_road, lc_active:
                 :meth:`write_sim_log`'s.
-            rl: the values :data:`lcdata.sim_records.RL_FIELDS` of ``/rl/step``, float64 (the outcome by its code
-                in :data:`OUTCOMES`). current: the observation's ``current`` matrix (or None).
+            rl: the values :data:`lcdata.sim_records.RL_FIELDS` of ``/rl/step`` (the outcome by its code in
+                :data:`OUTCOMES`). current: the observation's ``current`` matrix (or None).
         """
         if pose is not None or image is not None:
             self.write_view(step, t_s, pose, fixed, image)
@@ -514,7 +514,7 @@ class EpisodeWriter(EpisodeSink):
         self._mcap.records_written(p, m)
 
     def write_decision(self, step: int, t_s: float, pose: np.ndarray | None, image: np.ndarray | None,
-                       log: np.ndarray, fixed: Sequence[np.ndarray], off_road: bool, lc_active: bool, rl: np.ndarray,
+                       log: np.ndarray, fixed: Sequence[np.ndarray], off_road: bool, lc_active: bool, rl: Sequence[float],
                        current: np.ndarray | None) -> None:  # fmt: skip
         """See :meth:`EpisodeSink.write_decision`: one compiled call lays the records out in the chunk buffer, once
         every topic has its channel (the first decision registers them) and unless an event happens in the steps."""
@@ -533,6 +533,7 @@ class EpisodeWriter(EpisodeSink):
             else:
                 pose, x, y, qz, qw = _NO_POSE, 0.0, 0.0, 0.0, 0.0
             pixels = _NO_IMAGE if image is None else image
+            values = np.asarray(rl, dtype=np.float64)
             time_ns = self.start_time_ns + round(t_s * 1e9)
             off_road, lc_active = bool(off_road), bool(lc_active)
             while True:  # once, or once more after each step with events (written one call at a time)
@@ -542,7 +543,7 @@ class EpisodeWriter(EpisodeSink):
                 p, m, event = sim_records.decision_records(out, p, index, m, channels, consts, spans, time_ns,
                                                            self.start_time_ns, step, t_s, pose, ids, length, width, x,
                                                            y, qz, qw, quaternions, pixels, log, off_road, lc_active,
-                                                           rl, current)  # fmt: skip
+                                                           values, current)  # fmt: skip
                 self._mcap.records_written(p, m)
                 if event < 0:
                     return

@@ -50,7 +50,7 @@ from typing import Any, BinaryIO
 import numpy as np
 from numba import njit
 
-from lcdata.sim_records import RL_FIELDS, decision_records, log_event_row
+from lcdata.sim_records import LOG_HEAD, RL_FIELDS, decision_records, log_event_row
 from lcdata.writer import OUTCOME_CODES, OUTCOMES, EpisodeSink, EpisodeWriter
 
 log = logging.getLogger(__name__)
@@ -79,6 +79,8 @@ _LOG_SCALARS = 5  # K, row width, N, off_road, lc_active; ids, length, width and
 _DECISION_SCALARS = 15  # step, t, N, K, W, pose?, image?, C, H, W, off_road, lc_active, rows, cols, rl?; then RL_FIELDS,
 # ids, length, width, the pose (3 N), the log (K W), the observation (rows cols) and the pixels
 _RL_COUNT = len(RL_FIELDS)
+_DECISION_HEAD = struct.Struct(f"<{_DECISION_SCALARS + _RL_COUNT}d")  # the scalars, then the values of /rl/step
+_NO_RL_VALUES = (0.0,) * _RL_COUNT
 _STEP_BYTES_BASE = 2 * 31 + 20 + 10 * 11 + 84  # lcdata.writer._step_bytes(0)
 _NO_LOG = np.zeros((0, 0))
 _NO_RL = np.zeros(0)
@@ -109,32 +111,20 @@ def _put_2d(f: np.ndarray, at: int, values: np.ndarray) -> int:
 
 
 @njit(cache=True)
-def _pack_decision(u8: np.ndarray, at: int, step: int, t: float, off_road: bool, lc_active: bool, rl: np.ndarray,
-                   ids: np.ndarray, length: np.ndarray, width: np.ndarray, pose: np.ndarray, log: np.ndarray,
-                   current: np.ndarray, rows: int, image: np.ndarray, has_image: bool) -> None:  # fmt: skip
-    """The payload of :meth:`ProcessEpisodeWriter.write_decision` (see _DECISION_SCALARS) at byte ``at``."""
+def _pack_arrays(u8: np.ndarray, at: int, ids: np.ndarray, length: np.ndarray, width: np.ndarray, pose: np.ndarray,
+                 log: np.ndarray, current: np.ndarray, image: np.ndarray) -> None:  # fmt: skip
+    """The arrays of a :meth:`ProcessEpisodeWriter.write_decision` record (see _DECISION_SCALARS), from byte ``at``:
+    ids, length, width, the pose (when it has rows), the log, the observation and the image (when not empty)."""
     f = u8.view(np.float64)
     a = at // 8
-    n, k, w = ids.size, log.shape[0], log.shape[1]
-    c, h, iw = image.shape
-    head = f[a : a + 15]
-    head[0], head[1], head[2], head[3], head[4] = step, t, n, k, w
-    head[5], head[6], head[7], head[8], head[9] = pose.shape[0] > 0, has_image, c, h, iw
-    head[10], head[11], head[12], head[13], head[14] = off_road, lc_active, rows, current.shape[1], rl.size > 0
-    a += 15
-    if rl.size:
-        _put_1d(f, a, rl)
-    a += 13
     a = _put_1d(f, a, ids)
     a = _put_1d(f, a, length)
     a = _put_1d(f, a, width)
     if pose.shape[0]:
         a = _put_2d(f, a, pose)
-    if k:
-        a = _put_2d(f, a, log)
-    if rows >= 0:
-        a = _put_2d(f, a, current)
-    if has_image:
+    a = _put_2d(f, a, log)
+    a = _put_2d(f, a, current)
+    if image.size:
         pixels, flat = u8[8 * a : 8 * a + image.size], image.ravel()  # (a view when the image is contiguous)
         for i in range(image.size):
             pixels[i] = flat[i]
@@ -163,7 +153,10 @@ def _run_decisions(seg: np.ndarray, pos: int, end: int, wid: int, channels: np.n
         k, width, rows, cols = np.int64(head[3]), np.int64(head[4]), np.int64(head[12]), np.int64(head[13])
         if (np.int64(head[2]) != n or (head[5] != 0.0) != with_pose or (head[6] != 0.0) != (c > 0)
                 or np.int64(head[7]) != c or np.int64(head[8]) != h or np.int64(head[9]) != w or head[14] == 0.0
-                or rows < 0):  # fmt: skip
+                or rows < 0 or cols < 0 or k < 0 or width != LOG_HEAD + 7 * n):  # fmt: skip
+            break
+        floats = _DECISION_SCALARS + _RL_COUNT + (6 if with_pose else 3) * n + k * width + rows * cols
+        if 8 * floats + c * h * w > size or pos + 8 + size > end:  # (a record that does not hold what it says)
             break
         at = a + _DECISION_SCALARS
         rl = f[at : at + _RL_COUNT]
@@ -226,14 +219,15 @@ class _Service:
         try:
             ring = os.memfd_create("lc-record", os.MFD_CLOEXEC)
             os.ftruncate(ring, SEGMENTS * SEGMENT_BYTES)
-            self._ring = mmap.mmap(ring, SEGMENTS * SEGMENT_BYTES)
+            self._ring: mmap.mmap | None = mmap.mmap(ring, SEGMENTS * SEGMENT_BYTES)
         except (AttributeError, OSError):  # no memfd here: every record goes through the pipe
             ring, self._ring = -1, None
         tokens, tokens_w = os.pipe()
         fds = (tokens_w,) if ring < 0 else (ring, tokens_w)
         try:
             self.proc = subprocess.Popen(
-                [sys.executable, "-c", f"from lcdata.writer_process import serve; serve({ring}, {tokens_w})"],
+                [sys.executable, "-c", "from lcdata.writer_process import serve; "
+                                       f"serve({ring}, {tokens_w}, {SEGMENT_BYTES}, {SEGMENTS})"],
                 stdin=subprocess.PIPE, stdout=subprocess.PIPE, env=env, bufsize=0, pass_fds=fds,
             )  # fmt: skip
         finally:
@@ -247,10 +241,11 @@ class _Service:
             fcntl.fcntl(self._fd, _F_SETPIPE_SZ, PIPE_BYTES)
         except OSError:  # a capped pipe-max-size: the default pipe works, with more hand-offs
             pass
+        self._segment_bytes, self._segments = SEGMENT_BYTES, SEGMENTS
         self._segment = 0  # the segment being filled
         self._outstanding = 0  # segments sent whose return this process has not read yet
         self._inline = False  # the buffer goes through the pipe (a record too large for a segment, or no ring)
-        self._pipe_buffer = bytearray(SEGMENT_BYTES if self._ring is None else 0)
+        self._pipe_buffer = bytearray(self._segment_bytes if self._ring is None else 0)
         self._views(0)
         self.pos = 0
         self.next_id = 1
@@ -272,10 +267,10 @@ class _Service:
             self.buf = self._pipe_buffer
             self._inline = True
         else:
-            if self._outstanding == SEGMENTS:  # the segment to fill next was sent last round: wait for its return
+            if self._outstanding == self._segments:  # the segment to fill next was sent last round: its return
                 self._wait_token()
-            start = self._segment * SEGMENT_BYTES
-            self.buf = memoryview(self._ring)[start : start + SEGMENT_BYTES]
+            start = self._segment * self._segment_bytes
+            self.buf = memoryview(self._ring)[start : start + self._segment_bytes]
             self._inline = False
         self.f64 = np.frombuffer(self.buf, dtype=np.float64)
         self.u8 = np.frombuffer(self.buf, dtype=np.uint8)
@@ -322,7 +317,7 @@ class _Service:
         except (BrokenPipeError, OSError) as exc:
             raise WriterProcessError(self._gone()) from exc
         self._outstanding += 1
-        self._segment = (self._segment + 1) % SEGMENTS
+        self._segment = (self._segment + 1) % self._segments
         self._views(0)
 
     def _write(self, data: bytes | memoryview) -> None:
@@ -462,7 +457,7 @@ class ProcessEpisodeWriter(EpisodeSink):
         self.write_decision(step, t_s, pose, image, _NO_LOG, fixed, False, False, _NO_RL, None)
 
     def write_decision(self, step: int, t_s: float, pose: np.ndarray | None, image: np.ndarray | None,
-                       log: np.ndarray, fixed: Sequence[np.ndarray], off_road: bool, lc_active: bool, rl: np.ndarray,
+                       log: np.ndarray, fixed: Sequence[np.ndarray], off_road: bool, lc_active: bool, rl: Sequence[float],
                        current: np.ndarray | None) -> None:  # fmt: skip
         """See :meth:`lcdata.writer.EpisodeSink.write_decision`: one record, the values copied as they are (an
         empty ``rl``: no ``/rl/step``, as :meth:`write_view` sends it)."""
@@ -477,15 +472,19 @@ class ProcessEpisodeWriter(EpisodeSink):
                     self.write_decision(step, t_s, None, None, log, fixed, off_road, lc_active, rl, current)
                 return
         k, width = log.shape
-        n = len(fixed[0])
-        rows, cols = (-1, 0) if current is None else current.shape
-        floats = (_DECISION_SCALARS + len(RL_FIELDS) + (6 if pose is not None else 3) * n + k * width
-                  + max(rows, 0) * cols)  # fmt: skip
-        at = svc.reserve(OP_DECISION, self._wid, 8 * floats + (0 if image is None else image.size))
         ids, length, width_m = fixed
-        _pack_decision(svc.u8, at, step, t_s, off_road, lc_active, rl, ids, length, width_m,
-                       _NO_POSE if pose is None else pose, log, _NO_CURRENT if current is None else current, rows,
-                       _NO_IMAGE if image is None else image, image is not None)  # fmt: skip
+        n = len(ids)
+        rows, cols = (-1, 0) if current is None else current.shape
+        c, h, w = (0, 0, 0) if image is None else image.shape
+        floats = (_DECISION_SCALARS + _RL_COUNT + (6 if pose is not None else 3) * n + k * width
+                  + max(rows, 0) * cols)  # fmt: skip
+        at = svc.reserve(OP_DECISION, self._wid, 8 * floats + c * h * w)
+        has_rl = len(rl) > 0
+        _DECISION_HEAD.pack_into(svc.buf, at, step, t_s, n, k, width, pose is not None, image is not None, c, h, w,
+                                 off_road, lc_active, rows, cols, has_rl, *(rl if has_rl else _NO_RL_VALUES))  # fmt: skip
+        _pack_arrays(svc.u8, at + 8 * (_DECISION_SCALARS + _RL_COUNT), ids, length, width_m,
+                     _NO_POSE if pose is None else pose, log, _NO_CURRENT if current is None else current,
+                     _NO_IMAGE if image is None else image)  # fmt: skip
 
     # -- the rest, pickled (see :meth:`_call`) -------------------------------------------------------
     write_sim_step = _pickled("write_sim_step")
@@ -644,15 +643,16 @@ _FLOAT64_RECORDS = {OP_LOG: _sim_log, OP_RL: _rl_step}
 """Decoders of the records packed as float64."""
 
 
-def serve(ring: int = -1, tokens: int = -1) -> None:
-    """The helper's loop: read records (from the shared ring ``ring``, a memfd, or the pipe on stdin, see
-    :class:`_Service`), run them on :class:`EpisodeWriter` objects, hand every segment back on ``tokens``."""
+def serve(ring: int = -1, tokens: int = -1, segment_bytes: int = SEGMENT_BYTES, segments: int = SEGMENTS) -> None:
+    """The helper's loop: read records (from the shared ring ``ring``, a memfd of ``segments`` segments of
+    ``segment_bytes``, or the pipe on stdin, see :class:`_Service`), run them on :class:`EpisodeWriter` objects,
+    hand every segment back on ``tokens``."""
     signal.signal(signal.SIGINT, signal.SIG_IGN)  # Ctrl-C is the parent's to handle; it tells us
     logging.getLogger().addHandler(logging.NullHandler())  # the parent logs and raises what happens here
     replies = os.fdopen(os.dup(1), "wb", buffering=0)
     os.dup2(2, 1)  # a stray print must not corrupt the answers
     stream = os.fdopen(0, "rb", buffering=PIPE_BYTES)
-    shared = memoryview(mmap.mmap(ring, SEGMENTS * SEGMENT_BYTES)) if ring >= 0 else None
+    shared = memoryview(mmap.mmap(ring, segments * segment_bytes)) if ring >= 0 else None
     writers: dict[int, EpisodeWriter] = {}
     failed: dict[int, BaseException] = {}
 
@@ -710,7 +710,7 @@ def serve(ring: int = -1, tokens: int = -1) -> None:
             fail(wid, exc)
 
     notice = bytearray(_NOTICE.size)
-    inline = bytearray(SEGMENT_BYTES)
+    inline = bytearray(segment_bytes)
     while _read_into(stream, memoryview(notice)):
         segment, size = _NOTICE.unpack(notice)
         if segment == _INLINE:
@@ -721,7 +721,7 @@ def serve(ring: int = -1, tokens: int = -1) -> None:
             records = memoryview(inline)[:size]
         else:
             assert shared is not None
-            records = shared[segment * SEGMENT_BYTES : segment * SEGMENT_BYTES + size]
+            records = shared[segment * segment_bytes : segment * segment_bytes + size]
         pos, u8 = 0, np.frombuffer(records, dtype=np.uint8)
         while pos < size:  # the records, read in place (the writers copy what they keep)
             nbytes, op, wid = _HEADER.unpack_from(records, pos)
