@@ -19,10 +19,12 @@ topic                         schema                     rate
 ``log_time = publish_time = start_time_ns + round(t_s * 1e9)``. The file is written to
 ``<path>.partial`` and renamed to ``<path>`` by :meth:`EpisodeWriter.close`, so a killed run never
 leaves a half file under the final name; :func:`lcdata.read_episode` recovers the complete chunks of
-a partial file. The per-step topics (/vehicles, /ego/state) are encoded a batch of steps at a time
-(:meth:`EpisodeWriter.write_sim_steps`); zstd compression of the chunks can run on a background
-thread (``background=True``). :class:`lcdata.writer_process.ProcessEpisodeWriter` runs all of
-it in a helper process instead (what :func:`lcdata.record_episode` uses by default).
+a partial file. The recorder writes a decision in one call (:meth:`EpisodeSink.write_decision`: its /tf, /scene,
+image, the /vehicles and /ego/state of its steps with their events, and /rl/step), which :class:`EpisodeWriter`
+lays out with one compiled call straight into the chunk buffer; the single calls (``write_vehicles``,
+``write_scene``, ...) encode the same messages one at a time. zstd compression of the chunks can run on a
+background thread (``background=True``). :class:`lcdata.writer_process.ProcessEpisodeWriter` runs all of it in a
+helper process instead (what :func:`lcdata.record_episode` uses by default).
 
 Every ``/scene`` message is a whole scene: once :meth:`EpisodeWriter.write_lane_markings` has run, each
 message carries the entity ``lanes`` next to ``vehicles``. Foxglove's 3D panel clears on a seek and

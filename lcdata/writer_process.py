@@ -1,21 +1,21 @@
 """Episode writing on another core: :class:`ProcessEpisodeWriter`, an :class:`~lcdata.writer.EpisodeWriter`
 whose encoding, chunking, compression and file I/O run in a helper process.
 
-Why: on a 2-core machine the simulator uses one core and the other sits idle, while recording in
-the simulator's process costs about a quarter of its time (the per-step ``/vehicles`` encoding, the
-per-decision image and scene encoding, and the GIL hand-offs with the compression thread). Here the
-simulator's process only copies the raw values of each call into a buffer for a pipe, and a persistent
-helper process (one per recording process, started on first use and reused for every episode) runs
-the very same :class:`~lcdata.writer.EpisodeWriter` calls on them. The file is byte for byte the file
-the in-process writer makes (tested).
+Why: on a 2-core machine the simulator uses one core and the other sits idle, while encoding, chunking and
+compressing an episode costs more than simulating it. Here the simulator's process only copies the raw values of
+each call into shared memory, and a persistent helper process (one per recording process, started on first use
+and reused for every episode) runs the very same :class:`~lcdata.writer.EpisodeWriter` calls on them. The file is
+byte for byte the file the in-process writer makes (tested).
 
-Protocol: the helper reads records from its stdin, a pipe: ``<u32 payload bytes, u8 opcode, pad,
-u16 writer id>`` then the payload, padded to 8 bytes. The frequent calls (:meth:`write_sim_rows`,
-:meth:`write_image`, :meth:`write_scene`, :meth:`write_transform`, :meth:`write_rl_step`) are packed
-as float64 or raw arrays straight into the outgoing buffer (float64 holds every value they carry
-exactly); the rare ones travel pickled. Opening is not waited for. Closing, aborting and
-:attr:`message_count` wait for the helper's answer on its stdout (a length-prefixed pickle), which
-carries the helper's exception, if any, to be raised here.
+Protocol: records ``<u32 payload bytes, u8 opcode, pad, u16 writer id>`` then the payload, padded to 8 bytes, are
+laid out in segments of a ring of shared memory (a memfd); a segment goes to the helper with a notice on its stdin
+(segment, bytes) and comes back, once its records have run, with a byte on a second pipe (records larger than a
+segment follow their notice through the pipe). The frequent calls (:meth:`~ProcessEpisodeWriter.write_decision`,
+:meth:`~ProcessEpisodeWriter.write_sim_log`, :meth:`~ProcessEpisodeWriter.write_rl_step`) are packed as float64
+or raw arrays straight into the segment (float64 holds every value they carry exactly), a decision by one compiled
+call; the helper writes a run of decision records in one compiled loop (:func:`_run_decisions`). The rare calls
+travel pickled. Opening is not waited for. Closing, aborting and :attr:`message_count` wait for the helper's
+answer on its stdout (a length-prefixed pickle), which carries the helper's exception, if any, to be raised here.
 
 Failure semantics:
 

@@ -290,8 +290,8 @@ class HighwaySim:
         pid = self.pid
         if logged:  # two logs in turn: a hook may hold on to the rows of a call until the next call's hooks run
             self._log, log = self._log_spare, self._log
-            if log.shape[:2] != (self.num_envs, LOG_STEPS):
-                log = np.zeros((self.num_envs, LOG_STEPS, K.log_width(self.num_vehicles)))
+            if log.shape[0] != self.num_envs or log.shape[1] < steps:  # (as many steps as the longest call so far)
+                log = np.zeros((self.num_envs, steps, K.log_width(self.num_vehicles)))
             self._log_spare = log
             K.advance_logged(steps, stop_on_event, self.params, self.iparams, self.vf, self.vi, self.vb, self.ef,
                              self.ei, self.eb, self.keys, self.hist, self.hist_ptr, pid.errors, pid.count, pid.ptr,
