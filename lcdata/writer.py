@@ -39,6 +39,7 @@ import logging
 import math
 import os
 import pathlib
+import queue
 import threading
 import time
 from collections.abc import Mapping, Sequence
@@ -107,7 +108,27 @@ def replace_file(source: pathlib.Path, target: pathlib.Path) -> None:
         os.replace(source, target)
     finally:
         if old is not None:
-            threading.Thread(target=os.close, args=(old,), name="release-replaced-file", daemon=True).start()
+            _release_later(old)
+
+
+_RELEASE: tuple[int, queue.SimpleQueue[int]] | None = None  # the release thread's process and queue of descriptors
+_RELEASE_LOCK = threading.Lock()
+
+
+def _release_later(fd: int) -> None:
+    """Close ``fd`` on this process's release thread (started on first use; a forked child starts its own)."""
+    global _RELEASE
+    with _RELEASE_LOCK:
+        if _RELEASE is None or _RELEASE[0] != os.getpid():
+            _RELEASE = (os.getpid(), queue.SimpleQueue())
+            threading.Thread(target=_release, args=(_RELEASE[1],), name="release-replaced-files", daemon=True).start()
+        fds = _RELEASE[1]
+    fds.put(fd)
+
+
+def _release(fds: queue.SimpleQueue[int]) -> None:
+    while True:
+        os.close(fds.get())
 
 
 @cache
