@@ -57,12 +57,13 @@ log = logging.getLogger(__name__)
 
 WRITER_MODES = ("process", "thread", "inline")
 """Where an episode is encoded and written: a helper process, a compression thread, or inline."""
-SEGMENT_BYTES = 1 << 19
+SEGMENT_BYTES = 1 << 18
 """Records go to the helper in segments of shared memory of this size (a record larger than one goes through the
 pipe). The segment being filled is lost when this process is killed, as the chunk in progress of the in-process
 writer is."""
-SEGMENTS = 8
-"""Segments in the shared ring: the helper works on the ones sent while this process fills the next."""
+SEGMENTS = 16
+"""Segments in the shared ring: the helper works on the ones sent while this process fills the next (small
+segments keep what the helper has left to do when an episode closes short)."""
 PIPE_BYTES = 1 << 20
 """Requested pipe capacity for the records too large for a segment (Linux ``F_SETPIPE_SZ``; the default is 64 KiB)."""
 
@@ -352,7 +353,9 @@ class _Service:
         return f"the MCAP writer process (pid {self.proc.pid}) stopped answering (exit code {code})"
 
     def shutdown(self) -> None:
-        """End of input for the helper: it aborts what is still open (``.partial``) and exits."""
+        """End of input for the helper: it aborts what is still open (``.partial``) and exits. Safe to call twice."""
+        if self._tokens < 0:
+            return
         try:
             if self.pos:
                 self.flush()
@@ -362,6 +365,7 @@ class _Service:
             if stream is not None:
                 stream.close()
         os.close(self._tokens)
+        self._tokens = -1
         try:
             self.proc.wait(timeout=30)
         except subprocess.TimeoutExpired:

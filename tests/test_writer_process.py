@@ -180,3 +180,44 @@ def test_a_killed_helper_is_reported(tmp_path: pathlib.Path) -> None:
     with ProcessEpisodeWriter(tmp_path / "next.mcap", metadata={}) as nxt:  # a new helper is started
         nxt.write_ego(0, 0.0, speed=2.0, lane=1)
     assert nxt.writer_pid != pid and read_episode(nxt.path).ego["lane"].tolist() == [1]
+
+
+@pytest.mark.parametrize("shared", [True, False])
+def test_records_larger_than_a_segment_and_no_shared_memory(tmp_path: pathlib.Path, monkeypatch: pytest.MonkeyPatch,
+                                                           shared: bool) -> None:  # fmt: skip
+    """A record larger than a segment of the shared ring goes through the pipe, and without a memfd every record
+    does: the same bytes as the in-process writer either way."""
+    from lcdata import writer_process
+    from lcsim import kernel
+
+    rng = np.random.default_rng(1)
+    n, k = 500, 64  # a step log of 64 steps of 500 vehicles: 2 MB, larger than a segment
+    log = rng.normal(size=(k, kernel.log_width(n)))
+    log[:, kernel.LOG_STEP], log[:, kernel.LOG_T] = np.arange(k), 0.05 * np.arange(k)
+    log[:, kernel.LOG_COLLISION : kernel.LOG_INVASION + 1] = -1
+    log[:, kernel.LOG_OFF_ROAD] = log[:, kernel.LOG_LC_ACTIVE] = 0  # no events
+    assert log.nbytes > writer_process.SEGMENT_BYTES
+    fixed = (np.arange(n), np.full(n, 4.5), np.full(n, 1.8))
+    if not shared:
+        def no_memfd(*args: object) -> int:
+            raise OSError("no memfd here")
+
+        monkeypatch.setattr(writer_process.os, "memfd_create", no_memfd)
+        if writer_process._service is not None:
+            writer_process._service.shutdown()
+        monkeypatch.setattr(writer_process, "_service", None)
+    contents = []
+    for mode in ("process", "inline"):
+        with open_writer(tmp_path / mode / "ep.mcap", mode=mode, metadata={"seed": 1}, start_time_ns=T0) as w:
+            for first in (0, k):
+                shifted = log.copy()
+                shifted[:, kernel.LOG_STEP] += first
+                shifted[:, kernel.LOG_T] += 0.05 * first
+                w.write_sim_log(shifted, fixed, False, False)
+                w.write_event(first, 0.05 * first, "note", "between the large records")
+        contents.append(w.path.read_bytes())
+    if not shared:
+        assert writer_process._service is not None and writer_process._service._ring is None
+        writer_process._service.shutdown()
+    assert contents[0] == contents[1]
+    assert read_episode(tmp_path / "process" / "ep.mcap").ego["step"].tolist() == list(range(2 * k))
