@@ -40,6 +40,8 @@ StepLogHook = Callable[["HighwaySim", np.ndarray, np.ndarray], None]
 
 LOG_STEPS = 64
 """Most simulation steps one compiled call logs (:attr:`HighwaySim.log_hooks`); a longer advance is split."""
+_NO_LOG = np.zeros((0, 0, 0))
+_NO_LOG.flags.writeable = False
 
 
 def _state_property(name: str) -> property:
@@ -105,7 +107,7 @@ class HighwaySim:
         self.hooks: list[SubstepHook] = []
         # Called with the step log after every compiled call that ran steps (see advance).
         self.log_hooks: list[StepLogHook] = []
-        self._log = self._log_spare = np.zeros((0, 0, 0))
+        self._log = self._log_spare = _NO_LOG
         self._log_count = np.zeros(e, dtype=np.int64)
 
     def _bind(self) -> None:
@@ -121,6 +123,7 @@ class HighwaySim:
         for _block, _row, name in _OWN_ROWS:
             del state["_" + name]
         del state["drivers"], state["index"]
+        state["_log"] = state["_log_spare"] = _NO_LOG  # (the step logs are scratch: a copy makes its own)
         return state
 
     def __setstate__(self, state: dict[str, Any]) -> None:
@@ -164,7 +167,6 @@ class HighwaySim:
             state[name] = np.ascontiguousarray(state[name][:, rows])
         state["hist"] = self.hist[rows]
         state["num_envs"], state["hooks"], state["log_hooks"] = len(rows), [], []
-        state["_log"] = state["_log_spare"] = np.zeros((0, 0, 0))
         state["_log_count"] = np.zeros(len(rows), dtype=np.int64)
         pid = object.__new__(PIDBank)
         pid.__dict__.update(self.pid.__dict__)
