@@ -22,7 +22,7 @@ from lcsim.traffic import idm_accel
 def imagined_copy(core: LaneChangeCore) -> LaneChangeCore:
     """A copy of ``core`` to imagine a future in: it shares no state with ``core`` and has no hooks (a
     recorder must not see the imagined future) and no renderer."""
-    return copy.deepcopy(core, {id(core.sim.hooks): [], id(core.renderer): None})
+    return copy.deepcopy(core, {id(core.sim.hooks): [], id(core.sim.log_hooks): [], id(core.renderer): None})
 
 
 def redraw_future(sim: HighwaySim, salt: int | np.ndarray) -> None:
