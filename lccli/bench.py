@@ -11,19 +11,19 @@ from pathlib import Path
 
 from lccli.common import (
     add_executor_arguments,
-    add_lookahead_arguments,
+    add_safety_layer_arguments,
     fail,
     int_at_least,
-    lookahead_options,
     positive_int,
+    safety_layer_from_args,
 )
 
 EPILOG = """examples:
   lc-bench --list                                          # the suites and their scenarios
   lc-bench zoo:hybrid-ppo zoo:pure-ppo --episodes 100      # validation episodes (evaluation seed 0), 2 policies
   lc-bench zoo:hybrid-ppo zoo:pure-ppo rule oracle --final --workers 2   # the sealed test episodes
-  lc-bench lookahead-blind:zoo:hybrid-ppo --lookahead-follow zoo:pure-ppo --lookahead-perceived \\
-      --lookahead-horizon 32 --lookahead-samples 3 --suite paper --final --workers 2   # behind the safety layer
+  lc-bench zoo:hybrid-ppo safety-layer:zoo:hybrid-ppo --follow zoo:pure-ppo --set safety.horizon_decisions=32 \\
+      --set safety.samples=3 --suite paper --final --workers 2   # alone and behind its safety layer
   lc-bench mypkg.policies:act --episodes 50                # your own policy: act(obs[, action_mask]) -> actions
 
 Validation (default): --episodes episodes of evaluation seed --seed on every scenario, cached under
@@ -49,7 +49,8 @@ def bench_parser() -> argparse.ArgumentParser:
         "through the ledger (--final).")
     p.add_argument("policies", nargs="*", metavar="POLICY",
                    help="zoo:NAME, a policy.safetensors, a built-in driver (rule, oracle, lookahead, keep, ...), "
-                   "lookahead-blind:POLICY (behind the safety layer), or package.module:callable")
+                   "safety-layer:POLICY (behind the safety layer; older spelling lookahead-blind:POLICY), or "
+                   "package.module:callable")
     p.add_argument("--list", action="store_true", help="list the suites and their scenarios, then exit")
     p.add_argument("--suite", default=None, help="the suite (default highway; --list shows them)")
     p.add_argument("--scenario", action="append", default=None, metavar="NAME",
@@ -63,9 +64,7 @@ def bench_parser() -> argparse.ArgumentParser:
     p.add_argument("--ledger", type=Path, default=None, help="the ledger (default: LC_LEDGER, else the checkout's)")
     p.add_argument("--out", type=Path, default=None,
                    help="where the table and the cached cells go (default runs/bench, or runs/bench-final)")
-    add_lookahead_arguments(p)
-    p.add_argument("--lookahead-follow", metavar="DRIVER", default=None,
-                   help="with lookahead-blind:POLICY: the driver its imagined futures follow")
+    add_safety_layer_arguments(p)
     p.add_argument("--batch", type=positive_int, default=20, help="episodes simulated together (default 20)")
     p.add_argument("--threads", type=positive_int, default=1, help="torch threads per process (default 1)")
     p.add_argument("-q", "--quiet", action="store_true", help="no episode counts while a cell runs (a line per cell stays)")
@@ -131,13 +130,15 @@ def main(argv: list[str] | None = None) -> int:
     out = args.out or Path("runs") / ("bench-final" if args.final else "bench")
     if out.exists() and not out.is_dir():
         return error(f"--out {out} exists and is not a directory")
-    lookahead = lookahead_options(args)
+    from lcsim.planning import split_safety_layer
+
     try:
-        drivers = [resolve_driver(p, lookahead=lookahead if p.startswith("lookahead") else None,
-                                  follow=args.lookahead_follow if p.startswith("lookahead") else None)
+        behind = [p for p in args.policies if split_safety_layer(p)[1] is not None]
+        if not behind and (args.follow or args.settings):
+            return error("--follow and --set safety.KEY=VALUE apply to a driver behind the safety layer "
+                         "(safety-layer:POLICY)")  # fmt: skip
+        drivers = [resolve_driver(p, safety=safety_layer_from_args(p, args)) if p in behind else resolve_driver(p)
                    for p in args.policies]  # fmt: skip
-        if lookahead and not any(p.startswith("lookahead") for p in args.policies):
-            return error("--lookahead-* settings apply to lookahead:POLICY / lookahead-blind:POLICY drivers")
         references = {CEILING: resolve_driver(CEILING), FLOOR: resolve_driver(FLOOR)}
     except (ValueError, OSError) as exc:
         return error(str(exc).splitlines()[0])

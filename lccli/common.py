@@ -1,4 +1,4 @@
-"""What the commands share: the one-line error, argument types, the lookahead planner's options."""
+"""What the commands share: the one-line error, argument types, the safety layer's options, older flags."""
 
 from __future__ import annotations
 
@@ -7,6 +7,10 @@ import logging
 import math
 import sys
 from collections.abc import Callable
+from typing import TYPE_CHECKING
+
+if TYPE_CHECKING:
+    from lcsim.planning import SafetyLayerConfig
 
 
 def fail(prog: str, msg: str) -> int:
@@ -46,59 +50,125 @@ def positive_float(text: str) -> float:
     return value
 
 
-def _driver_fields(text: str) -> tuple[str, ...]:
-    """``--lookahead-known-drivers``: comma-separated :class:`lcsim.traffic.DriverParams` field names."""
-    from lcsim.traffic import driver_fields
+class _SetAlias(argparse.Action):
+    """An older flag that now is a setting: appends ``KEY=VALUE`` (``KEY=true`` for a flag without a value) to
+    the ``--set`` list, in command-line order."""
 
-    try:
-        return driver_fields([n.strip() for n in text.split(",") if n.strip()] or [text])
-    except ValueError as exc:
-        raise argparse.ArgumentTypeError(str(exc)) from exc
+    def __init__(self, option_strings: list[str], dest: str, key: str, **kwargs: object) -> None:
+        self.key = key
+        super().__init__(option_strings, dest, **kwargs)  # type: ignore[arg-type]
 
-
-def add_lookahead_arguments(p: argparse.ArgumentParser) -> None:
-    """``--lookahead-horizon``, ``--lookahead-samples``, ``--lookahead-perceived``, ``--lookahead-driver-draws``,
-    ``--lookahead-estimate-drivers``, ``--lookahead-known-drivers`` and ``--lookahead-margin``: how the lookahead
-    planners imagine (``lc-eval``, ``lc-record`` and the tools that run the same drivers)."""
-    p.add_argument("--lookahead-horizon", type=int_at_least(1), default=None,
-                   help="lookahead drivers: decisions imagined after each candidate one (default 16, i.e. 8 s)")
-    p.add_argument("--lookahead-samples", type=int_at_least(1), default=None,
-                   help="lookahead-blind drivers: redrawn futures imagined per candidate decision (default 1)")
-    p.add_argument("--lookahead-perceived", action="store_true",
-                   help="lookahead-blind drivers: imagine each future from what the ego's sensors show (no traffic "
-                   "beyond the scenario's sensing range, each vehicle's unseen desired speed read from its motion): "
-                   "the planner needs no privileged state, only the traffic's rules")
-    p.add_argument("--lookahead-driver-draws", action="store_true",
-                   help="with --lookahead-perceived, human-like traffic: each imagined future draws the unseen "
-                   "drivers' own parameters from the traffic's distribution instead of taking the median driver "
-                   "(with --lookahead-samples > 1 a decision's survival is its share over plausible drivers)")
-    p.add_argument("--lookahead-estimate-drivers", action="store_true",
-                   help="with --lookahead-perceived, human-like traffic: infer each vehicle's car-following "
-                   "parameters, reaction time and desired speed from its motion while in sight, and imagine it "
-                   "with a driver drawn from that estimate instead of the median driver")
-    p.add_argument("--lookahead-known-drivers", type=_driver_fields, default=None, metavar="FIELDS",
-                   help="with --lookahead-perceived, a privileged diagnostic: the imagined futures keep these driver "
-                   "parameters at their true values (comma-separated: time_headway, max_accel, inv_2sqrt_ab, lag, "
-                   "lc_inv_duration, eagerness), the ceiling of a planner that would estimate them")
-    p.add_argument("--lookahead-margin", type=float, default=None, metavar="M",
-                   help="lookahead-blind drivers: imagine the ego M metres longer at its front and back, so that a "
-                   "decision survives only with that much more room than contact (default 0)")
+    def __call__(self, parser: argparse.ArgumentParser, namespace: argparse.Namespace, values: object,
+                 option_string: str | None = None) -> None:  # fmt: skip
+        value = "true" if self.nargs == 0 else f"[{', '.join(values)}]" if isinstance(values, list) else str(values)
+        setattr(namespace, self.dest, [*(getattr(namespace, self.dest, None) or []), f"{self.key}={value}"])
 
 
-def lookahead_options(args: argparse.Namespace) -> dict[str, int | float]:
-    """The ``--lookahead-*`` options given (``LookaheadConfig`` fields, for ``driver_for``)."""
-    given = {"horizon_decisions": args.lookahead_horizon, "samples": args.lookahead_samples,
-             "perceived": args.lookahead_perceived or None, "driver_draws": args.lookahead_driver_draws or None,
-             "margin_m": args.lookahead_margin, "known_drivers": args.lookahead_known_drivers,
-             "estimate_drivers": args.lookahead_estimate_drivers or None}
-    return {k: v for k, v in given.items() if v is not None}
+class _Gone(argparse.Action):
+    """An older flag whose option left the command: a one-line error naming where it went."""
+
+    def __init__(self, option_strings: list[str], dest: str, where: str, **kwargs: object) -> None:
+        self.where = where
+        super().__init__(option_strings, dest, **kwargs)  # type: ignore[arg-type]
+
+    def __call__(self, parser: argparse.ArgumentParser, namespace: argparse.Namespace, values: object,
+                 option_string: str | None = None) -> None:  # fmt: skip
+        parser.error(f"{option_string} {self.where}")
 
 
-def add_trust_pickle_argument(p: argparse.ArgumentParser, what: str = "policies") -> None:
-    """``--trust-pickle``: accept legacy stable-baselines3 ``.zip`` files, which run code when loaded."""
-    p.add_argument("--trust-pickle", action="store_true",
-                   help=f"accept legacy stable-baselines3 .zip {what}; loading one runs code stored in it, so only "
-                   "for files from a source you trust")
+def add_setting_aliases(p: argparse.ArgumentParser | argparse._ArgumentGroup, aliases: dict[str, str],
+                        flags: tuple[str, ...] = (), lists: tuple[str, ...] = ()) -> None:  # fmt: skip
+    """Older flags that are settings now (``--batch`` for ``--set batch=...``), hidden from ``--help``: each
+    appends to ``--set``'s list (``dest="settings"``), ``flags`` without a value (``=true``), ``lists`` with one
+    or more (a JSON list)."""
+    for flag, key in aliases.items():
+        nargs = 0 if flag in flags else "+" if flag in lists else None
+        p.add_argument(flag, dest="settings", action=_SetAlias, key=key, nargs=nargs, help=argparse.SUPPRESS)
+
+
+RESEARCH_FLAGS = ("--lookahead-driver-draws", "--lookahead-estimate-drivers", "--lookahead-known-drivers",
+                  "--lookahead-margin")  # fmt: skip
+"""Older flags of the safety layer's research options (``experiments/imagined_drivers`` runs them)."""
+SAFETY_ALIASES = {"--lookahead-horizon": "safety.horizon_decisions", "--lookahead-samples": "safety.samples",
+                  "--lookahead-perceived": "safety.perceived"}  # fmt: skip
+"""The safety layer's older flags and the settings they are."""
+
+
+def add_safety_layer_arguments(p: argparse.ArgumentParser, *, with_set: bool = True) -> None:
+    """``--follow DRIVER`` and ``--set safety.KEY=VALUE`` (unless the command's own ``--set`` takes them,
+    ``with_set=False``): the safety layer of a driver spec ``safety-layer:DRIVER`` (``lc-eval``, ``lc-bench``,
+    ``lc-record``, ``lc-dagger``). The older ``--lookahead-*`` flags stay accepted, hidden."""
+    g = p.add_argument_group("the safety layer (for a driver safety-layer:DRIVER)")
+    g.add_argument("--follow", metavar="DRIVER", default=None, type=zoo_spec,
+                   help="who drives on in the safety layer's imagined futures: a built-in driver, a policy file or "
+                   "zoo:NAME that does not read the image (default: the driver behind the layer itself); lets the "
+                   "layer guard a policy that reads the image (safety.follow)")
+    if with_set:
+        g.add_argument("--set", dest="settings", action="append", default=[], metavar="safety.KEY=VALUE",
+                       type=_safety_setting,
+                       help="a setting of the safety layer (repeatable): horizon_decisions (16), samples (1), "
+                       "perceived (true), blind (true; false: a privileged layer that sees the traffic's coming random "
+                       "draws, an upper reference)")
+    g.add_argument("--lookahead-follow", dest="follow", type=zoo_spec, help=argparse.SUPPRESS)
+    add_setting_aliases(g, SAFETY_ALIASES, flags=("--lookahead-perceived",))
+    for flag in RESEARCH_FLAGS:
+        g.add_argument(flag, action=_Gone, nargs="?", help=argparse.SUPPRESS,
+                       where="was a research option of the safety layer: python -m "
+                       "experiments.imagined_drivers.imagined_drivers runs it")  # fmt: skip
+
+
+def _safety_setting(text: str) -> str:
+    """argparse type of a command's ``--set`` that takes the safety layer's settings only."""
+    if not text.strip().startswith("safety."):
+        raise argparse.ArgumentTypeError(f"{text!r}: this command takes the safety layer's settings only "
+                                         "(safety.KEY=VALUE)")  # fmt: skip
+    return text
+
+
+def safety_settings(settings: list[str]) -> tuple[list[str], list[str]]:
+    """``--set`` settings split into the safety layer's (``safety.KEY=VALUE``) and the others."""
+    mine = [s for s in settings if s.strip().startswith("safety.")]
+    return mine, [s for s in settings if not s.strip().startswith("safety.")]
+
+
+def safety_layer_from_args(spec: str, args: argparse.Namespace,
+                           table: dict[str, object] | None = None) -> SafetyLayerConfig | None:  # fmt: skip
+    """The safety layer the driver ``spec`` drives behind (``None``: none): the settings its spelling means
+    (:func:`lcsim.planning.split_safety_layer`), then the ``[safety]`` ``table`` of a config file, then
+    ``--follow``, then each ``--set safety.KEY=VALUE`` in order. ``ValueError`` in one line for settings given
+    for a driver behind no layer, or a setting the layer refuses."""
+    from lcsim.planning import safety_layer_of, split_safety_layer
+
+    mine, _ = safety_settings(getattr(args, "settings", None) or [])
+    follow = getattr(args, "follow", None)
+    if split_safety_layer(spec)[1] is None:
+        if table or follow or mine:
+            given = ", ".join([*(["[safety] table"] if table else []), *(["--follow"] if follow else []), *mine])
+            raise ValueError(f"{given}: settings of the safety layer, and {spec} drives behind none (name it "
+                             f"safety-layer:{spec})")  # fmt: skip
+        return None
+    layer = safety_layer_of(spec, table or None, follow, where="[safety]")
+    assert layer is not None
+    return layer.with_named_settings(mine) if mine else layer
+
+
+def given_safety_settings(args: argparse.Namespace) -> dict[str, object]:
+    """The safety layer's settings the command line gave (``--set safety.KEY=VALUE`` and the older flags), each
+    by its field's name with the value read as its type, the last one given winning (what a recording's flags
+    keep, so that a rerun of the same command resumes it)."""
+    from lckit.config import field_type, parse_value
+    from lcsim.planning import SafetyLayerConfig
+    from lcsim.planning.safety import LEGACY_KEYS
+
+    mine, _ = safety_settings(getattr(args, "settings", None) or [])
+    layer = SafetyLayerConfig()
+    given: dict[str, object] = {}
+    for text in mine:
+        key, _, value = text.partition("=")
+        name = LEGACY_KEYS.get(key.strip().removeprefix("safety."), key.strip().removeprefix("safety."))
+        if hasattr(layer, name):
+            given[name] = parse_value(value.strip(), getattr(layer, name), f"--set {text}", field_type(layer, name))
+    return given
 
 
 def add_executor_arguments(p: argparse.ArgumentParser | argparse._ArgumentGroup, ray_does: str,
@@ -136,8 +206,8 @@ def setup_logging(prog: str, verbose: bool) -> None:
 
 
 def zoo_spec(text: str) -> str:
-    """argparse type of a driver or policy argument: ``zoo:NAME`` (also ``lookahead-blind:zoo:NAME``) becomes
-    the zoo entry's policy file; anything else is returned as given."""
+    """argparse type of a driver or policy argument: ``zoo:NAME`` (also ``safety-layer:zoo:NAME``) becomes the zoo
+    entry's policy file; anything else is returned as given."""
     if "zoo:" not in text:
         return text
     from lcmodels.zoo import resolve_policy_spec

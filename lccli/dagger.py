@@ -9,9 +9,9 @@ episodes. See lcmodels.policy.dagger.
     lc-train-policy --obs hybrid --predictor P.pt --warm-start runs/oracle-demos --timesteps 0 --out runs/bc
     lc-dagger runs/bc --rounds 2 --episodes 100 --out runs/bc-dagger
     lc-dagger runs/bc --rounds 4 --episodes 100 --out runs/bc-dagger --resume   # rounds 3 and 4
-    lc-dagger runs/ppo --expert lookahead-blind:runs/ppo/policy.safetensors --out runs/ppo-improved
-    lc-dagger runs/ppo --expert lookahead-blind:runs/ppo/policy.safetensors --lookahead-horizon 32 \
-        --out runs/ppo-improved-16s    # the planner imagining 16 s instead of 8 s
+    lc-dagger runs/ppo --expert safety-layer:runs/ppo/policy.safetensors --out runs/ppo-improved
+    lc-dagger runs/ppo --expert safety-layer:runs/ppo/policy.safetensors --set safety.horizon_decisions=32 \\
+        --out runs/ppo-improved-16s    # the safety layer imagining 16 s instead of 8 s
     lc-eval runs/bc-dagger/round4/policy.safetensors --episodes 200
 
 Outputs in --out: round<r>/policy.safetensors (loadable by lc-eval and lc-record --driver policy:...),
@@ -23,7 +23,13 @@ from __future__ import annotations
 
 import argparse
 
-from lccli.common import add_lookahead_arguments, fail, lookahead_options, non_negative_int, positive_int
+from lccli.common import (
+    add_safety_layer_arguments,
+    fail,
+    non_negative_int,
+    positive_int,
+    safety_layer_from_args,
+)
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -44,9 +50,9 @@ def main(argv: list[str] | None = None) -> int:
                     "where the episode can still be won after it, correct only the losing ones (plan)")
     ap.add_argument("--expert", default="oracle",
                     help="who labels the states: oracle (sees the whole future; default), or a driver as lc-eval "
-                    "names it, e.g. lookahead-blind:runs/pure/policy.safetensors (the lookahead following that policy, "
-                    "without foreseeing the traffic's random lane changes)")
-    add_lookahead_arguments(ap)  # how a lookahead expert imagines
+                    "names it, e.g. safety-layer:runs/pure/policy.safetensors (that policy behind the safety layer, "
+                    "which does not foresee the traffic's random lane changes)")
+    add_safety_layer_arguments(ap)  # how an expert behind the safety layer imagines
     ap.add_argument("--correction-weight", type=float, default=1.0,
                     help="weight in training of a state whose label differs from the policy's own decision, "
                     "against 1 for one where they agree (1)")
@@ -67,10 +73,13 @@ def main(argv: list[str] | None = None) -> int:
 
     torch.set_num_threads(args.threads)
     try:
+        layer = safety_layer_from_args(args.expert, args) if args.expert != "oracle" else None
+        if args.expert == "oracle" and (args.follow or args.settings):
+            raise ValueError("--follow and --set safety.KEY=VALUE apply to an expert behind the safety layer")
         dagger(args.run, args.out, rounds=args.rounds, episodes=args.episodes, epochs=args.epochs, seed=args.seed,
                workers=args.workers, eval_episodes=args.eval_episodes, eval_seed=args.eval_seed, labels=args.labels,
                expert=args.expert, correction_weight=args.correction_weight, resume=args.resume,
-               expert_lookahead=lookahead_options(args), demonstrations=args.demonstrations,
+               expert_safety=layer, demonstrations=args.demonstrations,
                progress=lambda msg: print(msg, flush=True))  # fmt: skip
     except (ValueError, OSError) as exc:
         return fail("lc-dagger", str(exc).splitlines()[0])

@@ -5,27 +5,38 @@ from __future__ import annotations
 
 import argparse
 import contextlib
-import dataclasses
 import functools
 import shlex
 import sys
 import time
 from collections.abc import Callable
+from dataclasses import dataclass
 from pathlib import Path
-from typing import TYPE_CHECKING, Any
+from typing import TYPE_CHECKING, Any, ClassVar
 
 from lccli.common import (
-    add_executor_arguments,
-    add_lookahead_arguments,
+    add_safety_layer_arguments,
+    add_setting_aliases,
     fail,
     int_at_least,
-    lookahead_options,
     positive_int,
+    safety_layer_from_args,
+    safety_settings,
     zoo_spec,
+)
+from lckit.config import (
+    JsonConfig,
+    check_field,
+    check_limits,
+    read_data_file,
+    require_non_negative,
+    require_positive,
 )
 
 if TYPE_CHECKING:
     from lcsim.config import ScenarioConfig
+    from lcsim.planning import SafetyLayerConfig
+
 
 def format_eval(ev: dict) -> str:
     """One line: the outcome rates and means of an evaluation summary, each with its 95% interval."""
@@ -41,14 +52,88 @@ def format_eval(ev: dict) -> str:
             f"; return {ev['mean_return']:.1f} [{rlo:.1f}, {rhi:.1f}]")
 
 
+@dataclass(frozen=True, slots=True, kw_only=True)
+class EvalSettings(JsonConfig):
+    """What ``lc-eval --config FILE`` (a TOML or JSON table of these fields, and a ``[safety]`` table of the safety
+    layer's) and ``--set KEY=VALUE`` set; its flags set the rest."""
+
+    LIMITS: ClassVar[dict[str, float]] = {"batch": 10_000, "threads": 1_024, "shards": 100_000}
+
+    predictor: str = ""
+    """A predictor checkpoint ('': the one the policy was trained with)."""
+    batch: int = 20
+    """Episodes simulated together."""
+    threads: int = 1
+    """Torch threads (more collapse when another process shares the cores)."""
+    executor: str = "local"
+    """``local`` (this machine: this process, or ``--workers`` processes) or ``ray``: the episodes cut into
+    ``shards`` Ray tasks, the same figures (needs ``pip install -e ".[ray]"``)."""
+    ray_address: str = ""
+    """A running Ray cluster ('': RAY_ADDRESS, else a local instance started for the run)."""
+    shards: int = 4
+    """Ray tasks the episodes are cut into."""
+    breakdown: bool = False
+    """Also sort every collision at contact: trapped, missed_gap, late_change, short_gap, hit_from_behind
+    (:mod:`lcmodels.analysis`)."""
+    window_s: float = 5.0
+    """With ``breakdown``: how far back a side gap counts as missed."""
+    front_gap_m: float = 12.0
+    """With ``breakdown``: a side gap's room ahead."""
+    rear_gap_m: float = 5.0
+    """With ``breakdown``: a side gap's room behind."""
+    bound: bool = False
+    """With the oracle: prove, episode by episode, whether it can be won at all (the search's winning decisions
+    replayed from a fresh reset): the ceiling of any policy's success rate."""
+    memory: int = 8
+    """With ``bound``: decisions after which the ego's last lane change is forgotten when the search merges states
+    (more merges less)."""
+    max_nodes: int = 200_000
+    """With ``bound``: give up on an episode after this many simulated decisions."""
+    only: tuple[int, ...] = ()
+    """With ``bound``: only these episode indices (0-based; a JSON list, ``[3, 7]``)."""
+
+    def __post_init__(self) -> None:
+        from lcdata.executors import EXECUTORS
+
+        check_limits(self)
+        require_positive(self, "batch", "threads", "shards", "window_s", "memory", "max_nodes")
+        require_non_negative(self, "front_gap_m", "rear_gap_m")
+        check_field(self.executor in EXECUTORS, self, "executor", f"must be one of {', '.join(EXECUTORS)}",
+                    self.executor)  # fmt: skip
+        check_field(all(i >= 0 for i in self.only), self, "only", "must be episode indices >= 0", self.only)
+
+
+HELDOUT_ALIASES = {"--predictor": "predictor", "--batch": "batch"}
+"""Older flags of :func:`add_heldout_arguments` that are settings now (still accepted)."""
+EVAL_SETTING_ALIASES = {"--threads": "threads",
+                        "--executor": "executor", "--ray-address": "ray_address", "--shards": "shards",
+                        "--breakdown": "breakdown", "--window-s": "window_s", "--front-gap-m": "front_gap_m",
+                        "--rear-gap-m": "rear_gap_m", "--bound": "bound", "--memory": "memory",
+                        "--max-nodes": "max_nodes", "--only": "only"}  # fmt: skip
+"""lc-eval's other older flags and the settings they are now (still accepted)."""
+
+
 EVAL_EPILOG = """examples:
   lc-eval runs/hybrid-ppo/policy.safetensors --episodes 200 --seed 0 --json-out runs/hybrid-ppo/eval200.json
   lc-eval rule --episodes 200 --out runs/rule-eval
   lc-eval zoo:pure-ppo --scenario dense --episodes 200 --no-record   # a policy on another road of the suite
-  lc-eval lookahead-blind:runs/hybrid-ppo/policy.safetensors --lookahead-follow runs/ppo-pure/policy.safetensors \\
-      --lookahead-horizon 32 --no-record     # Hybrid-PPO behind the planner, imagining 16 s with the pure policy
-  lc-eval lookahead-blind:zoo:hybrid-ppo --lookahead-follow zoo:pure-ppo --lookahead-perceived \\
-      --lookahead-horizon 32 --lookahead-samples 3 --episodes 1000 --seed 9 --workers 2   # its card's figure
+  lc-eval safety-layer:zoo:hybrid-ppo --follow zoo:pure-ppo --set safety.horizon_decisions=32 \\
+      --set safety.samples=3 --episodes 1000 --seed 9 --workers 2 --no-record   # behind its safety layer
+  lc-eval safety-layer:rule --set safety.perceived=false --no-record   # the rule-based driver behind a blind layer
+  lc-eval zoo:hybrid-ppo --set breakdown=true --no-record   # why it crashes
+  lc-eval oracle --set bound=true --episodes 200 --json-out bound.json   # what the scenario allows at all
+
+settings (--config FILE: a TOML or JSON table of them, its [safety] table the safety layer's; then each
+--set KEY=VALUE in order):
+  predictor ('': the policy's own)  batch (20)  threads (1)  executor (local|ray)  ray_address  shards (4)
+  breakdown (false)  window_s (5.0)  front_gap_m (12.0)  rear_gap_m (5.0)       # sorting the collisions
+  bound (false)  memory (8)  max_nodes (200000)  only ([]: every episode)      # oracle's bound
+  safety.follow  safety.horizon_decisions (16)  safety.samples (1)  safety.perceived (true)  safety.blind (true)
+The safety layer: safety-layer:POLICY or safety-layer:rule; blind = false is a privileged layer, an upper
+reference. Older spellings still work: lookahead-blind:POLICY (blind, not perceived), lookahead:POLICY
+(privileged), --lookahead-follow, --lookahead-horizon/-samples/-perceived, and --batch, --threads, --predictor,
+--breakdown, --window-s, --front-gap-m, --rear-gap-m, --executor, --ray-address, --shards, --bound, --memory,
+--max-nodes, --only for the settings of the same names.
 
 Evaluation episode i uses the user seed 1000000000 + 100000 * SEED + i (SEED < 20000), disjoint from training
 seeds and from the benchmark's sealed test episodes, which only lc-bench --final runs.
@@ -57,32 +142,52 @@ episode is recorded to MCAP under --out (actions, reward components, predictions
 """
 
 
+def eval_settings(args: argparse.Namespace) -> tuple[EvalSettings, SafetyLayerConfig | None]:
+    """The settings of :func:`add_heldout_arguments`' command line: :class:`EvalSettings`' defaults, ``--config``,
+    then ``--set`` in order; and the safety layer the driver drives behind (None: none). ``ValueError`` in one
+    line naming the file or the setting."""
+    data: dict[str, Any] = {}
+    config = getattr(args, "config", None)
+    if config is not None:
+        data = read_data_file(config, "config file")
+    table = data.pop("safety", None)
+    if table is not None and not isinstance(table, dict):
+        raise ValueError(f"{config}: [safety] must be a table of the safety layer's settings")
+    _, rest = safety_settings(args.settings)
+    try:
+        opts = EvalSettings.from_dict(data, stored=False)
+    except ValueError as exc:
+        raise ValueError(f"{config}: {exc}") from None
+    return opts.with_settings(rest), safety_layer_from_args(args.policy, args, table)
+
+
 def heldout_driver(args: argparse.Namespace) -> tuple[Any, ScenarioConfig]:
-    """The driver and scenario named by :func:`add_heldout_arguments`' ``policy`` and ``--predictor``
+    """The driver and scenario named by :func:`add_heldout_arguments`' ``policy`` and settings
     (a built-in driver runs the paper scenario without the image). ``ValueError`` with a one-line message
     for a checkpoint that is missing, unreadable or does not fit its predictor."""
     from lcmodels.policy.evaluate import driver_for
     from lcsim.config import paper_scenario
 
+    opts, layer = eval_settings(args)
     try:
-        driver, config = driver_for(args.policy, predictor=args.predictor, lookahead=lookahead_options(args),
-                                    follow=args.lookahead_follow, trust_pickle=args.trust_pickle)
+        driver, config = driver_for(args.policy, predictor=opts.predictor or None, safety=layer)
     except (ValueError, OSError) as exc:
         raise ValueError(str(exc).splitlines()[0]) from exc
     return driver, config or paper_scenario(render_image=False)
 
 
 def predictor_unused(policy: str, follow: str | None, predictor: Path) -> str:
-    """Why ``--predictor`` makes no sense for the policies named (none reads a prediction), or "" when one
+    """Why a predictor makes no sense for the policies named (none reads a prediction), or "" when one
     does or a policy file cannot be read (loading it reports that)."""
     from lcmodels.policy.checkpoint import read_meta
     from lcmodels.policy.evaluate import policy_path_of
     from lcmodels.policy.obs import OBS_MODES, needs_predictor
+    from lcsim.planning import split_safety_layer
     from lcsim.registry import DRIVER_NAMES
 
     modes = []
-    for spec in (policy, follow):
-        if spec is None or spec in DRIVER_NAMES:
+    for spec in (split_safety_layer(policy)[0], follow):
+        if not spec or spec in DRIVER_NAMES:
             continue
         try:
             modes.append(str(read_meta(policy_path_of(spec)).get("obs_mode")))
@@ -91,41 +196,38 @@ def predictor_unused(policy: str, follow: str | None, predictor: Path) -> str:
     if any(needs_predictor(m) for m in modes if m in OBS_MODES):
         return ""
     what = f"observation mode {', '.join(modes)}" if modes else "a built-in driver"
-    return f"--predictor {predictor}: {policy} reads no prediction ({what}); drop --predictor"
+    return f"predictor {predictor}: {policy} reads no prediction ({what}); drop it"
 
 
 def add_heldout_arguments(p: argparse.ArgumentParser, episodes: int = 200) -> None:
-    """Who drives which held-out episodes: ``policy``, ``--episodes``, ``--seed``, ``--predictor``, ``--batch``
-    (lc-eval's arguments, shared by the tools that run the same episodes)."""
+    """Who drives which held-out episodes, and how: ``policy``, ``--episodes``, ``--seed``, the safety layer's
+    ``--follow``, ``--config`` and ``--set`` (:class:`EvalSettings`, :func:`eval_settings`), and the older flags
+    that are settings now (lc-eval's arguments, shared by the tools that run the same episodes)."""
     p.add_argument("policy", type=zoo_spec,
-                   help="policy checkpoint (policy.safetensors), zoo:NAME (a shipped policy: zoo/), or a built-in "
-                   "driver: rule / lookahead / "
-                   "lookahead-blind / oracle (planners, upper references) / keep / random, or lookahead:POLICY / "
-                   "lookahead-blind:POLICY (the lookahead following a policy without image in its imagined futures; "
-                   "see --lookahead-follow)")
+                   help="policy checkpoint (policy.safetensors), zoo:NAME (a shipped policy: zoo/), a built-in "
+                   "driver (rule, oracle, keep, random, and lookahead / lookahead-blind: the rule-based driver behind a privileged / blind safety layer), or "
+                   "safety-layer:POLICY / safety-layer:rule: that driver behind the safety layer (older spellings: "
+                   "lookahead-blind:POLICY, lookahead:POLICY)")
     p.add_argument("--episodes", type=positive_int, default=episodes, help="episodes (default %(default)s)")
     p.add_argument("--seed", type=int_at_least(0), default=0, help="evaluation seed (default %(default)s)")
-    p.add_argument("--predictor", type=Path, default=None,
-                   help="predictor checkpoint (default: the one the policy was trained with)")
-    p.add_argument("--batch", type=positive_int, default=20, help="episodes simulated together (default 20)")
-    add_lookahead_arguments(p)
-    p.add_argument("--lookahead-follow", metavar="DRIVER", default=None, type=zoo_spec,
-                   help="with lookahead:POLICY / lookahead-blind:POLICY: the policy proposes each decision and the "
-                   "imagined futures follow DRIVER (a built-in driver or a policy.safetensors without image), which "
-                   "lets the lookahead guard a policy that reads the image (default: the policy itself)")
-    p.add_argument("--trust-pickle", action="store_true",
-                   help="accept legacy stable-baselines3 .zip policies; loading one runs code stored in it, so only "
-                   "for files from a source you trust")
+    p.add_argument("--config", type=Path, default=None, metavar="FILE",
+                   help="a TOML or JSON table of settings (below), its [safety] table the safety layer's")
+    p.add_argument("--set", dest="settings", action="append", default=[], metavar="KEY=VALUE",
+                   help="a setting (below; safety.KEY for the safety layer's), after --config; repeatable")
+    add_safety_layer_arguments(p, with_set=False)
+    add_setting_aliases(p, HELDOUT_ALIASES)
 
 
 def eval_parser() -> argparse.ArgumentParser:
     p = argparse.ArgumentParser(
         prog="lc-eval",
-        description="Evaluate a trained policy (or a non-learning driver) on fixed held-out seeds.",
+        description="Evaluate a trained policy (or a non-learning driver), alone or behind the safety layer, on "
+        "fixed held-out seeds.",
         epilog=EVAL_EPILOG,
         formatter_class=argparse.RawDescriptionHelpFormatter,
     )
     add_heldout_arguments(p)
+    add_setting_aliases(p, EVAL_SETTING_ALIASES, flags=("--breakdown", "--bound"), lists=("--only",))
     p.add_argument("--scenario", default=None, metavar="NAME|FILE",
                    help="where to drive: a registered scenario (paper, three-lane, dense, ...; lc-bench --list) or a "
                    "scenario file (.toml/.json of ScenarioConfig fields); default: a policy's own, paper for a "
@@ -136,33 +238,10 @@ def eval_parser() -> argparse.ArgumentParser:
     p.add_argument("--no-record", action="store_true", help="do not record episodes")
     p.add_argument("--overwrite", action="store_true", help="replace existing episode files")
     p.add_argument("--json-out", type=Path, default=None, help="write the summary as JSON here")
-    p.add_argument("--threads", type=positive_int, default=1,
-                   help="torch threads (default 1: more collapse when another process shares the cores)")
+    p.add_argument("--workers", type=positive_int, default=None,
+                   help="processes at once on this machine: the episodes cut over them, whole batches each, "
+                   "the same figures (default 1); with bound, the searches (default 2)")
     p.add_argument("-q", "--quiet", action="store_true", help="no progress lines")
-    why = p.add_argument_group("why it crashes (--breakdown)")
-    why.add_argument("--breakdown", action="store_true",
-                     help="also sort every collision at contact: trapped, missed_gap, late_change, short_gap, "
-                     "hit_from_behind (see lcmodels.analysis)")
-    why.add_argument("--window-s", type=float, default=5.0,
-                     help="how far back a side gap counts as missed (default 5)")
-    why.add_argument("--front-gap-m", type=float, default=12.0, help="a side gap's room ahead (default 12)")
-    why.add_argument("--rear-gap-m", type=float, default=5.0, help="a side gap's room behind (default 5)")
-    where = p.add_argument_group("where the episodes run")
-    add_executor_arguments(where, "the episodes cut into --shards parts, each a Ray task", "this process")
-    where.add_argument("--shards", type=positive_int, default=4, help="Ray tasks the episodes are cut into (4)")
-    where.add_argument("--workers", type=positive_int, default=None,
-                       help="processes at once on this machine: the episodes cut over them, whole batches each, "
-                       "the same figures (default 1); with --bound, the searches (default 2)")
-    bound = p.add_argument_group("what the scenario allows (lc-eval oracle --bound)")
-    bound.add_argument("--bound", action="store_true",
-                       help="with the oracle: prove, episode by episode, whether it can be won at all (the search's "
-                       "winning decisions replayed from a fresh reset): the ceiling of any policy's success rate")
-    bound.add_argument("--memory", type=positive_int, default=8,
-                       help="decisions after which the ego's last lane change is forgotten when the search merges "
-                       "states (default 8; more merges less)")
-    bound.add_argument("--max-nodes", type=positive_int, default=200_000,
-                       help="give up on an episode after this many simulated decisions (default 200000)")
-    bound.add_argument("--only", type=int, nargs="+", metavar="I", help="only these episode indices (0-based)")
     return p
 
 
@@ -177,12 +256,17 @@ def eval_main(argv: list[str] | None = None) -> int:
 
     from lcmodels.policy.checkpoint import read_meta
     from lcmodels.policy.evaluate import driver_for, evaluate, policy_path_of
-    from lcsim.planning import LookaheadDriver
+    from lcsim.planning import LookaheadDriver, split_safety_layer
     from lcsim.registry import DRIVER_NAMES, scenario
     from lcsim.registry import scenario_label as registry_label
 
-    is_driver = args.policy in DRIVER_NAMES
-    ckpt = policy_path_of(args.policy)
+    try:
+        opts, layer = eval_settings(args)
+    except ValueError as exc:
+        return error(str(exc))
+    predictor = Path(opts.predictor) if opts.predictor else None
+    is_driver = args.policy in DRIVER_NAMES or split_safety_layer(args.policy)[0] in DRIVER_NAMES
+    ckpt = policy_path_of(split_safety_layer(args.policy)[0])
     if not is_driver and not ckpt.is_file():
         what = "is a directory" if ckpt.is_dir() else "does not exist"
         return error(f"{args.policy} {what} (expected a policy.safetensors, or {' / '.join(DRIVER_NAMES)})")
@@ -202,23 +286,20 @@ def eval_main(argv: list[str] | None = None) -> int:
             check_output_folder(args.out)
     except ValueError as exc:
         return error(str(exc))
-    if args.predictor is not None:
-        problem = predictor_unused(args.policy, args.lookahead_follow, args.predictor)
+    if predictor is not None:
+        problem = predictor_unused(args.policy, layer.follow if layer is not None else None, predictor)
         if problem:
             return error(problem)
-    if args.bound:
-        return _bound_main(args, error)
-    if args.window_s <= 0:
-        return error(f"--window-s must be > 0, got {args.window_s}")
-    torch.set_num_threads(args.threads)
+    if opts.bound:
+        return _bound_main(args, opts, error)
+    torch.set_num_threads(opts.threads)
     try:
         target = scenario(args.scenario) if args.scenario is not None else None
     except ValueError as exc:
         return error(str(exc))
     try:
-        driver, config = driver_for(args.policy, predictor=str(args.predictor) if args.predictor else None,
-                                    lookahead=lookahead_options(args), follow=args.lookahead_follow,
-                                    trust_pickle=args.trust_pickle, scenario=target)
+        driver, config = driver_for(args.policy, predictor=str(predictor) if predictor else None, safety=layer,
+                                    scenario=target)
     except (ValueError, OSError) as exc:
         return error(str(exc).splitlines()[0])
     if config is None:
@@ -228,7 +309,7 @@ def eval_main(argv: list[str] | None = None) -> int:
         if args.out is not None:
             out = args.out
         elif is_driver:
-            out = Path("runs") / f"eval-{args.policy}-s{args.seed}"
+            out = Path("runs") / f"eval-{args.policy.replace(':', '-')}-s{args.seed}"
         else:
             out = ckpt.parent / f"eval-{ckpt.stem}-s{args.seed}"
     train_seeds = None
@@ -241,37 +322,36 @@ def eval_main(argv: list[str] | None = None) -> int:
         scenario_label = str(read_meta(ckpt).get("scenario_name") or "paper")
     show = None if args.quiet else (lambda k, n: print(f"evaluating: {k}/{n} episodes", flush=True))
     start = time.perf_counter()
-    if args.workers is not None and args.executor == "ray":
-        return error("--workers is for this machine; with --executor ray, --shards says how the episodes are cut")
-    sharded = args.executor == "local" and (args.workers or 1) > 1
+    if args.workers is not None and opts.executor == "ray":
+        return error("--workers is for this machine; with executor ray, the setting shards says how the episodes "
+                     "are cut")  # fmt: skip
+    sharded = opts.executor == "local" and (args.workers or 1) > 1
     hooks = []
-    if args.breakdown:
+    if opts.breakdown:
         from lcmodels.analysis import CollisionBreakdown
 
-        hooks.append(CollisionBreakdown(window_s=args.window_s, front_gap_m=args.front_gap_m,
-                                        rear_gap_m=args.rear_gap_m))  # fmt: skip
+        hooks.append(CollisionBreakdown(window_s=opts.window_s, front_gap_m=opts.front_gap_m,
+                                        rear_gap_m=opts.rear_gap_m))  # fmt: skip
     try:
-        if args.executor == "ray" or sharded:
+        if opts.executor == "ray" or sharded:
             if hooks:
-                return error("--breakdown runs in this process only (no --executor ray, no --workers)")
+                return error("breakdown runs in this process only (no executor ray, no --workers)")
             from lcdata.executors import ray_session
-            from lcdata.procs import closing_pool
             from lcmodels.policy.evaluate import evaluate_sharded, shard_pool
 
-            where = ray_session(args.ray_address) if args.executor == "ray" else contextlib.nullcontext()
-            pooled = closing_pool(shard_pool(args.workers, args.threads)) if sharded else contextlib.nullcontext()
+            where = ray_session(opts.ray_address or None) if opts.executor == "ray" else contextlib.nullcontext()
+            pooled = shard_pool(args.workers, opts.threads) if sharded else contextlib.nullcontext()
             with pooled as pool, where:
                 summary, results = evaluate_sharded(
                     args.policy, config if is_driver or target is not None else None, episodes=args.episodes, seed=args.seed,
-                    shards=args.shards if args.executor == "ray" else args.workers, executor=args.executor,
-                    pool=pool, predictor=str(args.predictor) if args.predictor else None,
-                    lookahead=lookahead_options(args), follow=args.lookahead_follow,
-                    trust_pickle=args.trust_pickle, out_dir=out, scenario=scenario_label, batch=args.batch,
+                    shards=opts.shards if opts.executor == "ray" else args.workers, executor=opts.executor,
+                    pool=pool, predictor=str(predictor) if predictor else None, safety=layer,
+                    out_dir=out, scenario=scenario_label, batch=opts.batch,
                     overwrite=args.overwrite, train_seeds=train_seeds, progress=show,
                     driver_name=str(getattr(driver, "name", type(driver).__name__)))  # fmt: skip
         else:
             summary, results = evaluate(driver, config, episodes=args.episodes, seed=args.seed, out_dir=out,
-                                        batch=args.batch, overwrite=args.overwrite, train_seeds=train_seeds,
+                                        batch=opts.batch, overwrite=args.overwrite, train_seeds=train_seeds,
                                         progress=show, hooks=hooks, scenario=scenario_label)  # fmt: skip
     except OSError as exc:  # a full disk under --out
         where = f" under {out}" if out is not None else ""
@@ -287,17 +367,17 @@ def eval_main(argv: list[str] | None = None) -> int:
         summary["collision_kinds"] = hooks[0].counts
     summary["wall_s"] = round(time.perf_counter() - start, 3)
     summary["decisions"] = sum(r.length for r in results)
-    if isinstance(driver, LookaheadDriver) and args.executor != "ray" and not sharded:  # how often it overrode
+    if isinstance(driver, LookaheadDriver) and opts.executor != "ray" and not sharded:  # how often it overrode
         summary["planner_choices"], summary["planner_overrides"] = driver.choices, driver.overrides
-    if isinstance(driver, LookaheadDriver):  # what the planner imagined: the file says how it was made
-        summary["lookahead"] = dataclasses.asdict(driver.config) | {"follow": args.lookahead_follow}
+    if isinstance(driver, LookaheadDriver):  # how the safety layer imagined: the file says how it was made
+        summary["safety_layer"] = driver.config.to_dict()
     summary["command"] = command
     print(format_eval(summary))
     processes = f", {args.workers} processes" if sharded else ""
-    print(f"{summary['decisions']} decisions in {summary['wall_s']} s ({args.batch} episodes at a time, "
-          f"{args.threads} torch threads{processes})")
+    print(f"{summary['decisions']} decisions in {summary['wall_s']} s ({opts.batch} episodes at a time, "
+          f"{opts.threads} torch threads{processes})")
     if "planner_overrides" in summary:
-        print(f"the planner overrode {summary['planner_overrides']} of {summary['planner_choices']} decisions "
+        print(f"the safety layer overrode {summary['planner_overrides']} of {summary['planner_choices']} decisions "
               "with a choice")
     if "overlap_with_training" in summary:
         print(f"evaluation episodes also seen in training: {summary['overlap_with_training']}")
@@ -323,16 +403,16 @@ def _write_summary(path: Path, data: object, error: Callable[[str], int]) -> int
     return 0
 
 
-def _bound_main(args: argparse.Namespace, error: Callable[[str], int]) -> int:
-    """``lc-eval oracle --bound``: the share of the held-out episodes that can be won at all."""
+def _bound_main(args: argparse.Namespace, opts: EvalSettings, error: Callable[[str], int]) -> int:
+    """``lc-eval oracle --set bound=true``: the share of the held-out episodes that can be won at all."""
     from lcmodels.analysis import oracle_bound
     from lcmodels.policy.evaluate import eval_user_seeds
     from lcsim.registry import scenario
 
     if args.policy != "oracle":
-        return error(f"--bound applies to the oracle (lc-eval oracle --bound), not to {args.policy}")
-    if args.out is not None or args.breakdown:
-        return error("--bound records no episodes and sorts no collisions; write its figures with --json-out")
+        return error(f"bound applies to the oracle (lc-eval oracle --set bound=true), not to {args.policy}")
+    if args.out is not None or opts.breakdown:
+        return error("bound records no episodes and sorts no collisions; write its figures with --json-out")
     try:
         config = scenario(args.scenario or "paper")
         users = eval_user_seeds(args.episodes, args.seed)
@@ -340,8 +420,8 @@ def _bound_main(args: argparse.Namespace, error: Callable[[str], int]) -> int:
         return error(str(exc))
     show = None if args.quiet else (lambda k, n: print(f"\rsearching: {k}/{n} episodes", end="", flush=True))
     try:
-        summary, rows = oracle_bound(config, users, indices=args.only, memory_decisions=args.memory,
-                                     max_nodes=args.max_nodes, workers=args.workers or 2, progress=show)
+        summary, rows = oracle_bound(config, users, indices=list(opts.only) or None, memory_decisions=opts.memory,
+                                     max_nodes=opts.max_nodes, workers=args.workers or 2, progress=show)
     except ValueError as exc:
         return error(str(exc))
     if show is not None:
@@ -351,7 +431,7 @@ def _bound_main(args: argparse.Namespace, error: Callable[[str], int]) -> int:
     lo, hi = summary["winnable_rate_ci95"]
     print(f"winnable: {won}/{n} = {100 * won / n:.1f}% [{100 * lo:.1f}, {100 * hi:.1f}] "
           f"(every winning sequence replayed to success: {summary['replayed_success']}/{won})")
-    print(f"no winning sequence: episodes {summary['not_winnable_episodes'] or 'none'}; undecided (--max-nodes): "
+    print(f"no winning sequence: episodes {summary['not_winnable_episodes'] or 'none'}; undecided (max_nodes): "
           f"{summary['undecided_episodes'] or 'none'}")
     print(f"search: {summary['nodes_total']} decisions simulated, {summary['cpu_s_total']} s CPU, "
           f"{summary['wall_s']} s wall on {args.workers or 2} workers")

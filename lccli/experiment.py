@@ -16,19 +16,21 @@ EXPERIMENT_EPILOG = """stages (each skipped when complete, redone when missing o
   demos       demonstrations a recipe clones, shared between recipes    DIR/demos/<driver>-s<seed>-n<episodes>/
   recipes     per recipe and training seed: clone, dagger, train, shielded (as the recipe says; shielded:
               more PPO behind the safety layer, once the policy it follows is trained), then eval on the
-              validation and test episodes, and safety (behind the lookahead planner) where it asks
+              validation and test episodes, and safety (behind the safety layer) where it asks
                                                                         DIR/policies/<recipe>/seed<k>/<stage>/
   rule, oracle  the references on the same episodes                    DIR/rule/, DIR/oracle/
   zoo         (quick) the shipped policies on the test episodes (and behind their safety layer), a few
               recorded                                          DIR/zoo/, DIR/zoo-safety/, DIR/showcase/
   report      DIR/REPORT.md, DIR/fig5_safe_forward.png, DIR/fig6_total_reward.png
+A stage runs once the stages it reads are complete; --dry-run lists every stage: complete, would run (why), or
+would run after a stage it reads.
 
 recipes: lcmodels/recipes/*.toml (paper-*: the paper's methods as it trains them; hybrid-ppo, pure-ppo, ...:
 the project's best per method; quick-pure: make demo's), or a .toml file of your own (--recipe FILE).
 
 presets: tiny (seconds, for tests: every recipe with tiny budgets), quick (make demo: the zoo, one quick
-recipe, minutes on 2 cores), paper (every recipe at its own budget but hybrid-ppo-dagger, which runs when named,
-hybrid-ppo with 2 training seeds, 1000 test episodes: hours).
+recipe, minutes on 2 cores), paper (every recipe at its own budget but hybrid-ppo-dagger and attention-ppo,
+which run when named, hybrid-ppo with 2 training seeds, 1000 test episodes: hours).
 
 examples:
   lc-experiment --preset quick --out runs/demo
@@ -62,15 +64,15 @@ def experiment_parser() -> argparse.ArgumentParser:
                    help="torch threads (default 1: on a shared 2-core machine 1 is often fastest; results do "
                    "not depend on it beyond float rounding, and changing it does not make stages stale)")
     p.add_argument("--jobs", type=positive_int, default=1,
-                   help="recipes trained at once, each in its own process with --threads torch threads, and "
+                   help="training stages at once, each in its own process with --threads torch threads, and "
                    "processes an evaluation's episodes are cut over (default 1; on 2 cores --jobs 2 --threads 1 "
                    "keeps both busy; results do not depend on it)")
-    add_executor_arguments(p, "every independent stage a Ray task (each policy x seed, each evaluation shard, "
+    add_executor_arguments(p, "every independent stage a Ray task (each training stage, each evaluation shard, "
                            "each recorded episode)", "this machine, --jobs processes")
     p.add_argument("--skip-train", action="store_true",
                    help="do not train policies; report what the directory already holds")
     p.add_argument("--dry-run", action="store_true",
-                   help="only say which stages are complete and which would run (and why)")
+                   help="only say which stages are complete and which would run (and why, or after which stage)")
     p.add_argument("-q", "--quiet", action="store_true", help="no progress lines")
     return p
 
@@ -109,14 +111,11 @@ def experiment_main(argv: list[str] | None = None) -> int:
                      ray_address=args.ray_address)  # fmt: skip
     try:
         exp.check_out()
-        exp.recipes()  # every recipe and follower reads, before anything is written
+        exp.graph()  # every recipe and follower reads and no stages wait on each other, before anything is written
     except ValueError as exc:
         return error(str(exc).splitlines()[0])
     setup_logging("lc-experiment", verbose=False)
-    if args.dry_run:
-        if not args.out.exists():
-            print(f"{args.out} does not exist: every stage would run")
-            return 0
+    if args.dry_run:  # a query of the stage graph against DIR's records: nothing is written
         stages = exp.plan()
         print(f"{sum(s.status == 'skipped' for s in stages)} stages complete, "
               f"{sum(s.status != 'skipped' for s in stages)} would run")

@@ -7,7 +7,7 @@ import functools
 from pathlib import Path
 from typing import Any
 
-from lccli.common import add_trust_pickle_argument, fail, int_at_least, positive_int, setup_logging
+from lccli.common import fail, int_at_least, positive_int, setup_logging
 from lccli.evaluate import format_eval
 
 TRAIN_POLICY_EPILOG = """examples:
@@ -36,8 +36,7 @@ evaluation), metrics.json (training summary + evaluation), run.json (the full co
 
 
 def train_policy_parser() -> argparse.ArgumentParser:
-    from lcmodels.policy.config import ALGORITHMS
-    from lcmodels.policy.obs import OBS_MODES
+    from lcmodels.policy.names import ALGORITHMS, OBS_MODES
 
     p = argparse.ArgumentParser(
         prog="lc-train-policy",
@@ -73,40 +72,30 @@ def train_policy_parser() -> argparse.ArgumentParser:
     p.add_argument("--threads", type=positive_int, default=1,
                    help="torch threads (default 1: more collapse when another process shares the cores)")
     p.add_argument("--device", default="cpu", help="torch device (default cpu; cuda for the GPU)")
-    add_trust_pickle_argument(p, "initial policies")
     p.add_argument("-q", "--quiet", action="store_true", help="no progress lines")
     return p
 
 
 def policy_config_of(args: argparse.Namespace) -> Any:
     """The :class:`~lcmodels.policy.PolicyConfig` of the command line: defaults, ``--config``, the flags
-    given, ``--set``. A learning rate and rollout length nobody gave follow the algorithm (and, for the
-    rate, whether the run starts from a warm start or an initial policy). ``ValueError`` naming the problem."""
-    import dataclasses
-
-    from lcmodels.policy.config import PolicyConfig, default_learning_rate
-    from lcsim.config import read_data_file
+    given, ``--set`` (:meth:`PolicyConfig.of <lcmodels.policy.PolicyConfig.of>`, which gives a learning rate and
+    rollout length nobody gave the algorithm's, and for the rate whether the run starts from a warm start or an
+    initial policy). ``ValueError`` naming the problem."""
+    from lckit.config import read_data_file
+    from lcmodels.policy.config import PolicyConfig
 
     data: dict[str, Any] = {}
     if args.config is not None:
         data = read_data_file(args.config, "config file")
         data = data["policy"] if isinstance(data.get("policy"), dict) else data
-    try:
-        cfg = PolicyConfig.from_dict(data, stored=False)
-    except ValueError as exc:
-        raise ValueError(f"{args.config}: {exc}") from None
+        try:
+            PolicyConfig.from_dict(data, stored=False)
+        except ValueError as exc:
+            raise ValueError(f"{args.config}: {exc}") from None
     given = {"algo": args.algo, "obs": args.obs, "scenario": args.scenario, "timesteps": args.timesteps,
              "seed": args.seed, "warm_start": None if args.warm_start is None else str(args.warm_start),
              "init_policy": None if args.init_policy is None else str(args.init_policy)}  # fmt: skip
-    cfg = dataclasses.replace(cfg, **{k: v for k, v in given.items() if v is not None})
-    chosen = set(data) | {s.partition("=")[0].strip() for s in args.settings}
-    final = cfg.with_settings(args.settings)  # the algorithm and the start the run ends up with
-    defaults: dict[str, Any] = {}
-    if "learning_rate" not in chosen:
-        defaults["learning_rate"] = default_learning_rate(final.algo, bool(final.warm_start or final.init_policy))
-    if "n_steps" not in chosen:
-        defaults["n_steps"] = 8 if final.algo == "a2c" else 128
-    return dataclasses.replace(cfg, **defaults).with_settings(args.settings)
+    return PolicyConfig.of({**data, **{k: v for k, v in given.items() if v is not None}}, args.settings)
 
 
 def _fmt_row(row: dict) -> str:
@@ -124,7 +113,7 @@ def train_policy_main(argv: list[str] | None = None) -> int:
     import torch
 
     from lcmodels.fileio import POLICY_FILE
-    from lcmodels.policy.obs import needs_predictor
+    from lcmodels.policy.names import needs_predictor
     from lcmodels.policy.train import train_policy
 
     if args.predictor is not None and not args.predictor.is_file():
@@ -147,8 +136,7 @@ def train_policy_main(argv: list[str] | None = None) -> int:
     show_eval = None if args.quiet else (lambda k, n: print(f"evaluating: {k}/{n} episodes", flush=True))
     try:
         res = train_policy(cfg, args.out, predictor=args.predictor, device=args.device, progress=show,
-                           eval_progress=show_eval, overwrite=args.overwrite,
-                           trust_pickle=args.trust_pickle)  # fmt: skip
+                           eval_progress=show_eval, overwrite=args.overwrite)
     except (ValueError, OSError) as exc:
         return error(str(exc).splitlines()[0])
     ev = res.metrics.get("eval")

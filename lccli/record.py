@@ -16,9 +16,10 @@ from tqdm import tqdm
 
 from lccli.common import (
     add_executor_arguments,
-    add_lookahead_arguments,
+    add_safety_layer_arguments,
+    given_safety_settings,
     int_at_least,
-    lookahead_options,
+    safety_layer_from_args,
     setup_logging,
     zoo_spec,
 )
@@ -69,10 +70,14 @@ _non_negative_int = int_at_least(0)
 
 def _driver_spec(text: str) -> str:
     text = zoo_spec(text)
-    if text in DRIVERS or split_policy_spec(text):
+    policy = split_policy_spec(text)
+    if policy is not None and policy[0] != "policy:" and policy[1] in DRIVERS:
+        raise argparse.ArgumentTypeError(f"{text}: behind the safety layer lc-record takes a policy; the rule-based "
+                                         "driver behind it is the built-in lookahead-blind (or lookahead)")
+    if text in DRIVERS or policy:
         return text
     raise argparse.ArgumentTypeError(f"invalid choice: {text!r} (choose from {', '.join(DRIVERS)}, policy:CKPT, "
-                                     "zoo:NAME, lookahead:CKPT or lookahead-blind:CKPT)")
+                                     "zoo:NAME, safety-layer:CKPT)")
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -90,19 +95,12 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--episodes", type=positive_int, default=1, help="number of episodes (default: 1)")
     p.add_argument("--seed", type=_non_negative_int, default=0, help="seed of the first episode (default: 0)")
     p.add_argument("--driver", type=_driver_spec, default=None,
-                   metavar="{" + ",".join(DRIVERS) + ",policy:CKPT,lookahead:CKPT,lookahead-blind:CKPT}",
+                   metavar="{" + ",".join(DRIVERS) + ",policy:CKPT,safety-layer:CKPT}",
                    help="who drives the ego (default: autopilot for corpus, else rule); "
                    "policy:CKPT drives with a trained policy (a policy.safetensors from lc-train-policy); "
-                   "lookahead:CKPT / lookahead-blind:CKPT with the lookahead planner following that policy "
-                   "(one that does not read the image) in its imagined futures")  # fmt: skip
-    p.add_argument("--lookahead-follow", metavar="DRIVER", default=None, type=zoo_spec,
-                   help="with --driver lookahead:CKPT / lookahead-blind:CKPT: the policy CKPT proposes each "
-                   "decision and the imagined futures follow DRIVER (a built-in driver or a policy.safetensors that "
-                   "does not read the image), so the planner can guard a policy that reads the image")
-    add_lookahead_arguments(p)
-    p.add_argument("--trust-pickle", action="store_true",
-                   help="accept a legacy stable-baselines3 .zip policy; loading one runs code stored in it, so only "
-                   "for files from a source you trust")
+                   "safety-layer:CKPT with that policy behind the safety layer (older spellings: lookahead:CKPT, "
+                   "lookahead-blind:CKPT)")  # fmt: skip
+    add_safety_layer_arguments(p)
     p.add_argument("--out", type=pathlib.Path, required=True, help="output directory (created if missing)")
     p.add_argument("--workers", type=positive_int, default=1, help="parallel processes (default: 1)")
     p.add_argument("--overwrite", action="store_true", help="replace episode files that already exist")
@@ -188,13 +186,13 @@ def record_flags(args: argparse.Namespace, driver: str, scenario_name: str,
         "scenario_config": content if content is not None else _scenario_content(scenario_name),
         "vehicles": args.vehicles, "steps": args.steps,
         "images": not args.no_images, "start_time": args.start_time if args.start_time != "now" else None,
-        "lookahead_follow": args.lookahead_follow,
-        "lookahead": {k: v for k, v in lookahead_options(args).items()},
+        "lookahead_follow": args.follow,  # the safety layer's follower and settings given (names kept: resumable)
+        "lookahead": given_safety_settings(args),
     }  # fmt: skip
     if split_policy_spec(driver):
         from lcdata.fileio import file_sha256
 
-        for key, spec in (("driver_sha256", driver), ("lookahead_follow_sha256", args.lookahead_follow)):
+        for key, spec in (("driver_sha256", driver), ("lookahead_follow_sha256", args.follow)):
             if spec:
                 path = pathlib.Path((split_policy_spec(spec) or ("", spec))[1])
                 if path.is_file():
@@ -264,8 +262,8 @@ def _policy_driver(spec: str, args: argparse.Namespace, config: ScenarioConfig):
     from lcmodels.policy.evaluate import driver_for  # lcmodels builds on lcdata: import only when asked
 
     try:
-        policy, policy_config = driver_for(f"{prefix}{path}", follow=args.lookahead_follow,
-                                           lookahead=lookahead_options(args), trust_pickle=args.trust_pickle)
+        spec = f"{prefix}{path}"
+        policy, policy_config = driver_for(spec, safety=safety_layer_from_args(spec, args))
     except ValueError as exc:
         raise UsageError(str(exc).splitlines()[0]) from None
     return policy, dataclasses.replace(policy_config, render_image=policy_config.render_image or not args.no_images)
@@ -298,9 +296,9 @@ def record_main(argv: Sequence[str] | None = None) -> int:
             scenario_name = _policy_scenario_label(args.driver)
             if scenario_name not in SCENARIOS:  # a scenario file's name: its fields are the card's, not the file's
                 content = config.to_dict()
-        elif args.lookahead_follow is not None or lookahead_options(args):
-            raise UsageError("--lookahead-follow / --lookahead-horizon / --lookahead-samples / --lookahead-perceived "
-                             "need --driver lookahead:CKPT or lookahead-blind:CKPT")
+        elif args.follow is not None or args.settings:
+            raise UsageError("--follow and --set safety.KEY=VALUE need --driver safety-layer:CKPT (a policy behind "
+                             "the safety layer)")
         label = scenario_label(scenario_name)
         start_ns = start_time_ns(args.start_time)
         seeds = [args.seed + i for i in range(args.episodes)]

@@ -228,6 +228,10 @@ _LAST_TIMESTAMP: tuple[tuple[int, int], bytes] = ((-1, -1), b"")
 _TF_FRAMES = f_string(2, WORLD_FRAME) + f_string(3, EGO_FRAME)
 _TF_POSITION = tag(4, WIRE_LEN) + varint(_VEC3.size)
 _TF_ROTATION = tag(5, WIRE_LEN) + varint(_QUAT.size)
+TRANSFORM_HEAD = _TF_FRAMES + _TF_POSITION
+"""The bytes of a :func:`encode_transform` message between its timestamp and the position's members."""
+TRANSFORM_ROTATION = _TF_ROTATION
+"""The bytes of a :func:`encode_transform` message between the position and the rotation's members."""
 
 
 def encode_image(time_ns: int, chw: np.ndarray, frame_id: str = EGO_FRAME) -> bytes:
@@ -238,7 +242,7 @@ def encode_image(time_ns: int, chw: np.ndarray, frame_id: str = EGO_FRAME) -> by
 class ImageEncoder:
     """:func:`encode_image` into a buffer kept between calls (one per writer): the fields after the
     timestamp are written once per image size; each call copies the pixels in (channel by channel:
-    ~4x faster than a transposed copy), puts the timestamp in front and takes the bytes."""
+    faster than a transposed copy), puts the timestamp in front and takes the bytes."""
 
     HEAD_ROOM = 32
     """Bytes before the fixed fields, for the timestamp field (<= 24 bytes)."""
@@ -249,19 +253,25 @@ class ImageEncoder:
         self._buffer = bytearray()
         self._hwc = np.zeros((0, 0, 3), dtype=np.uint8)
 
-    def _layout(self, h: int, w: int) -> None:
-        size = 3 * h * w
+    def parts(self, h: int, w: int) -> tuple[bytes, bytes]:
+        """The bytes of an H x W image message between its timestamp and the pixels (H x W x 3, row-major), and
+        after them."""
         head = b"".join(
             (
                 _FIXED32.pack(0x15, w),  # width: fixed32, field 2
                 _FIXED32.pack(0x1D, h),  # height: fixed32, field 3
                 f_string(4, "rgb8"),
                 _FIXED32.pack(0x2D, 3 * w),  # step (row stride): fixed32, field 5
-                tag(6, WIRE_LEN) + varint(size),  # data: bytes, field 6 (filled per call)
+                tag(6, WIRE_LEN) + varint(3 * h * w),  # data: bytes, field 6 (filled per call)
             )
         )
+        return head, f_string(7, self.frame_id)
+
+    def _layout(self, h: int, w: int) -> None:
+        size = 3 * h * w
+        head, tail = self.parts(h, w)
         start = self.HEAD_ROOM + len(head)
-        self._buffer = bytearray(self.HEAD_ROOM) + head + bytes(size) + f_string(7, self.frame_id)
+        self._buffer = bytearray(self.HEAD_ROOM) + head + bytes(size) + tail
         self._hwc = np.frombuffer(self._buffer, dtype=np.uint8)[start : start + size].reshape(h, w, 3)
         self._shape = (h, w)
 
@@ -372,10 +382,12 @@ class CubeEncoder:
         self._records = np.zeros(0, dtype=_CUBE_DTYPE)
         self._key: tuple[int, float, bytes] | None = None
 
-    def encode(self, x: np.ndarray, y: np.ndarray, yaw: np.ndarray, length: np.ndarray, width: np.ndarray,
-               height: float, rgba: np.ndarray) -> bytes:  # fmt: skip
-        """Same arguments and bytes as :func:`encode_cubes`."""
-        n = len(x)
+    FIELDS = ("px", "py", "qz", "qw", "sx", "sy")
+    """The members each call fills: position, heading (the quaternion's z and w) and size."""
+
+    def template(self, n: int, height: float, rgba: np.ndarray) -> tuple[np.ndarray, list[int]]:
+        """The (n,) cube records with the members that do not change between calls filled in (:attr:`FIELDS` are
+        filled by the calls), and the offsets of :attr:`FIELDS` in a record."""
         colour = np.broadcast_to(np.asarray(rgba, dtype=np.float64), (n, 4))
         key = (n, float(height), colour.tobytes())
         if key != self._key:
@@ -383,7 +395,12 @@ class CubeEncoder:
             records["pz"], records["sz"] = height / 2, height
             records["cr"], records["cg"], records["cb"], records["ca"] = colour.T
             self._records, self._key = records, key
-        records = self._records
+        return self._records, [_CUBE_DTYPE.fields[name][1] for name in self.FIELDS]
+
+    def encode(self, x: np.ndarray, y: np.ndarray, yaw: np.ndarray, length: np.ndarray, width: np.ndarray,
+               height: float, rgba: np.ndarray) -> bytes:  # fmt: skip
+        """Same arguments and bytes as :func:`encode_cubes`."""
+        records = self.template(len(x), height, rgba)[0]
         half = np.asarray(yaw, dtype=np.float64) / 2
         records["px"], records["py"] = x, y
         records["qz"], records["qw"] = np.sin(half), np.cos(half)

@@ -32,8 +32,8 @@ def json_default(o: Any) -> Any:
 
 def loads_json(text: str | bytes) -> Any:
     """``json.loads``, with nesting too deep for the parser a ``ValueError`` too, not a ``RecursionError``
-    (:func:`lcsim.config.loads_data`, what every config file is read with)."""
-    from lcsim.config import loads_data
+    (:func:`lckit.config.loads_data`, what every config file is read with)."""
+    from lckit.config import loads_data
 
     return loads_data(text, ".json")
 

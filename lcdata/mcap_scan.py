@@ -48,7 +48,7 @@ MAX_CHUNK_BYTES = 64 << 20
 ``mcap`` package's (1 MiB)."""
 MAX_CHUNK_RATIO = 1000
 """The most uncompressed bytes per compressed byte a chunk over :data:`RATIO_FREE_BYTES` may declare. Recordings
-compress about 4 to 1; lz4 cannot pass about 255 to 1; zstd reaches 32000 to 1 only on runs of one byte."""
+compress a few to one; lz4 cannot pass about 255 to 1; zstd reaches 32000 to 1 only on runs of one byte."""
 RATIO_FREE_BYTES = 4 << 20
 """Chunks up to this size are not held to :data:`MAX_CHUNK_RATIO` (a chunk of constant images may exceed it)."""
 
@@ -62,8 +62,8 @@ class McapRefused(ValueError):
 class Limits:
     """What reading one file may cost, from its size: chunk bytes decompressed in all, records parsed in all.
 
-    Recordings of this package decompress to about 4 times their size with one record per ~1000 bytes;
-    the limits leave 16 times and 250 times that room, a floor for small files and a ceiling for all.
+    Recordings of this package decompress to a few times their size, with records of about a kilobyte; the
+    limits leave ample room above that, a floor for small files and a ceiling for all.
     """
 
     decompressed_bytes: int

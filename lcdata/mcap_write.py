@@ -1,11 +1,13 @@
 """A lean, streaming MCAP writer (chunked, zstd) tuned for many small messages.
 
-Why not ``mcap.writer.Writer``: its ``add_message`` costs about 10 µs (a record dataclass, a
+Why not ``mcap.writer.Writer``: its ``add_message`` does much per message (a record dataclass, a
 ``BytesIO`` with seeks, statistics bookkeeping) and it compresses each chunk on the caller's thread.
-At a simulator rate of ~6000 steps/s that alone would use most of the recording budget. This writer
-appends each message record to a ``bytearray`` with one ``struct.pack`` (~1 µs) and hands finished
-chunks to a background thread that compresses them (zstandard releases the GIL), writes them and
-flushes the file, so every complete chunk is on disk even if the process is killed later.
+At a simulator rate of thousands of steps per second that alone would use most of the recording budget.
+This writer lays the records of the chunk in progress out in one buffer (a record header packed in place,
+the message index as three integer arrays), and compiled encoders write whole batches of records into the
+same buffer (:meth:`McapStreamWriter.records_target`); finished chunks are compressed (zstandard releases
+the GIL, so optionally on a background thread), written and flushed, so every complete chunk is on disk
+even if the process is killed later.
 
 The file layout follows the MCAP specification (https://mcap.dev/spec): magic, header, metadata,
 chunks (schema and channel records live in the chunk where they were registered, followed by
@@ -26,6 +28,7 @@ from typing import BinaryIO
 
 import numpy as np
 import zstandard
+from numba import njit
 
 log = logging.getLogger(__name__)
 
@@ -49,6 +52,7 @@ _MESSAGE_HEADER = struct.Struct("<BQHIQQ")  # opcode, record length, channel, se
 _U16 = struct.Struct("<H")
 _U32 = struct.Struct("<I")
 _U64 = struct.Struct("<Q")
+_CHUNK_HEAD = struct.Struct("<BQQQQII4sQ")  # a chunk record up to its compressed records (compression "zstd")
 
 
 def _string(text: str) -> bytes:
@@ -64,10 +68,9 @@ def _string_map(mapping: dict[str, str]) -> bytes:
 
 
 COMPRESSION_LEVEL = -3
-"""Default zstd level of the chunks. Measured on recorded episodes (one core of the development machine):
-level 1 compresses the lane-change episode 3.86x at about 1 GB/s, -3 3.63x at about 2 GB/s (the corpus
-episode: 2.72x and 2.51x), lz4 3.46x at the speed of -3. The half of the compression time is worth more
-than 6-9 % of the file size."""
+"""Default zstd level of the chunks: on recorded episodes, -3 compresses a little less than level 1 in about
+half its time (lz4 less than both, at the speed of -3); the time saved is worth more than the few per cent of
+file size."""
 
 MESSAGE_HEADER_BYTES = _MESSAGE_HEADER.size
 """Bytes of a message record before its data (:func:`message_header`)."""
@@ -79,33 +82,69 @@ def message_header(channel_id: int, log_time: int, data_size: int) -> bytes:
     return _MESSAGE_HEADER.pack(OP_MESSAGE, 22 + data_size, channel_id, 0, log_time, log_time)
 
 
-def _batch_counts(batches: list[tuple[np.ndarray, np.ndarray, np.ndarray]]) -> dict[int, int]:
-    """Messages per channel id in :meth:`McapStreamWriter.add_message_records`' batches."""
-    if not batches:
-        return {}
-    ids, counts = np.unique(np.concatenate([b[0] for b in batches]), return_counts=True)
-    return dict(zip(ids.tolist(), counts.tolist(), strict=True))
+CHUNK_SLACK = 1 << 18
+"""Bytes the chunk buffer holds beyond the chunk size (a batch that crosses the chunk size is cut after)."""
+_SPARE_BUFFERS: list[bytearray] = []  # chunk buffers of finished writers, for the next ones (no fresh pages to fault)
+_SPARE_LOCK = threading.Lock()
+_MAX_SPARE_BUFFERS = 4
 
 
-def _merge_index(singles: dict[int, list[int]], batches: list[tuple[np.ndarray, np.ndarray, np.ndarray]]
-                 ) -> dict[int, np.ndarray]:  # fmt: skip
+def _take_buffer(size: int) -> bytearray:
+    with _SPARE_LOCK:
+        for i, buf in enumerate(_SPARE_BUFFERS):
+            if len(buf) >= size:
+                return _SPARE_BUFFERS.pop(i)
+    return bytearray(size)
+
+
+def _give_back_buffer(buf: bytearray) -> None:
+    with _SPARE_LOCK:
+        if len(_SPARE_BUFFERS) < _MAX_SPARE_BUFFERS:
+            _SPARE_BUFFERS.append(buf)
+
+
+def _channel_counts(channels: np.ndarray) -> dict[int, int]:
+    """Messages per channel id (channel ids are small: registered one after the other)."""
+    counts = np.bincount(channels)
+    return {int(c): int(counts[c]) for c in np.flatnonzero(counts)}
+
+
+@njit(cache=True)
+def _group_by_channel(channels: np.ndarray, times: np.ndarray, offsets: np.ndarray) -> tuple[np.ndarray, np.ndarray,
+                                                                                             np.ndarray]:  # fmt: skip
+    """The channels in the order of their first message, their message counts, and the (M, 2) (log time, offset)
+    entries grouped by channel in that order (in offset order within a channel)."""
+    first = np.full(channels.max() + 1 if channels.size else 0, -1, dtype=np.int64)
+    counts = np.zeros(first.size, dtype=np.int64)
+    order = np.empty(first.size, dtype=np.int64)
+    seen = 0
+    for i in range(channels.size):
+        c = channels[i]
+        if first[c] < 0:
+            first[c] = i
+            order[seen] = c
+            seen += 1
+        counts[c] += 1
+    order = order[:seen]
+    start = np.zeros(first.size, dtype=np.int64)
+    at = 0
+    for c in order:
+        start[c] = at
+        at += counts[c]
+    entries = np.empty((channels.size, 2), dtype=np.int64)
+    for i in range(channels.size):
+        c = channels[i]
+        entries[start[c], 0], entries[start[c], 1] = times[i], offsets[i]
+        start[c] += 1
+    return order, counts[order], entries
+
+
+def _chunk_index(channels: np.ndarray, times: np.ndarray, offsets: np.ndarray) -> dict[int, np.ndarray]:
     """The message index of a chunk: (M, 2) (log time, offset) entries per channel id, in offset order, the
-    channels in the order of their first message (what adding the messages one at a time gives)."""
-    if not batches:
-        return {c: np.array(flat, dtype=np.int64).reshape(-1, 2) for c, flat in singles.items()}
-    ids = [np.concatenate([b[0] for b in batches])]
-    times = [np.concatenate([b[1] for b in batches])]
-    offsets = [np.concatenate([b[2] for b in batches])]
-    for channel_id, flat in singles.items():
-        pairs = np.array(flat, dtype=np.int64).reshape(-1, 2)
-        ids.append(np.full(len(pairs), channel_id))
-        times.append(pairs[:, 0])
-        offsets.append(pairs[:, 1])
-    channel, time, offset = (np.concatenate(parts) for parts in (ids, times, offsets))
-    order = np.argsort(offset, kind="stable")
-    channel, time, offset = channel[order], time[order], offset[order]
-    firsts = np.unique(channel, return_index=True)[1]
-    return {int(c): np.stack((time[channel == c], offset[channel == c]), axis=1) for c in channel[np.sort(firsts)]}
+    channels in the order of their first message (the messages are given in offset order)."""
+    order, counts, entries = _group_by_channel(channels, times, offsets)
+    ends = np.cumsum(counts).tolist()
+    return {c: entries[end - n : end] for c, n, end in zip(order.tolist(), counts.tolist(), ends, strict=True)}
 
 
 def _record(opcode: int, body: bytes) -> bytes:
@@ -151,13 +190,15 @@ class McapStreamWriter:
         self._compressor = zstandard.ZstdCompressor(level=compression_level, write_checksum=not chunk_crc)
         self._chunk_crc = chunk_crc
         self._pos = 0  # file offset; touched only by the I/O side
-        self._chunk: list[bytes | memoryview] = []  # records of the chunk in progress
-        self._chunk_bytes = 0
+        # The chunk in progress: its records in _buf[:_len], its messages' channel ids, log times and offsets in
+        # _index[:, :_messages] (offset order). A chunk without messages keeps the time range of the one before.
+        self._buf = _take_buffer(chunk_size + CHUNK_SLACK)
+        self._u8 = np.frombuffer(self._buf, dtype=np.uint8)
+        self._len = 0
+        self._index = np.zeros((3, 4096), dtype=np.int64)
+        self._messages = 0
         self._chunk_start = 0
         self._chunk_end = 0
-        self._chunk_messages = 0
-        self._message_index: dict[int, list[int]] = {}  # (log time, offset) pairs per channel, add_message's
-        self._batches: list[tuple[np.ndarray, np.ndarray, np.ndarray]] = []  # add_message_records' (channels, times, offsets)
         self._schemas: list[bytes] = []
         self._channels: list[bytes] = []
         self._counts: dict[int, int] = {}
@@ -203,23 +244,17 @@ class McapStreamWriter:
         self, channel_id: int, log_time: int, data: bytes, publish_time: int, sequence: int = 0
     ) -> None:
         """Append one message record (times in ns) to the current chunk."""
-        header = _MESSAGE_HEADER.pack(OP_MESSAGE, 22 + len(data), channel_id, sequence, log_time, publish_time)
-        offset = self._chunk_bytes
-        index = self._message_index.get(channel_id)
-        if index is None:
-            index = self._message_index[channel_id] = []
-        index += (log_time, offset)
-        self._counts[channel_id] += 1
-        if self._chunk_messages == 0:
-            self._chunk_start = self._chunk_end = log_time
-        elif log_time < self._chunk_start:
-            self._chunk_start = log_time
-        elif log_time > self._chunk_end:
-            self._chunk_end = log_time
-        self._chunk_messages += 1
-        self._chunk += (header, data)
-        self._chunk_bytes = offset + len(header) + len(data)
-        if self._chunk_bytes >= self._chunk_size:
+        offset = self._len
+        end = offset + MESSAGE_HEADER_BYTES + len(data)
+        if end > len(self._buf) or self._messages == self._index.shape[1]:
+            self._grow(end, self._messages + 1)
+        _MESSAGE_HEADER.pack_into(self._buf, offset, OP_MESSAGE, 22 + len(data), channel_id, sequence, log_time,
+                                  publish_time)  # fmt: skip
+        self._buf[offset + MESSAGE_HEADER_BYTES : end] = data
+        index, m = self._index, self._messages
+        index[0, m], index[1, m], index[2, m] = channel_id, log_time, offset
+        self._messages, self._len = m + 1, end
+        if end >= self._chunk_size:
             self.flush_chunk()
 
     def add_message_records(self, records: bytes, channel_ids: Sequence[int] | np.ndarray,
@@ -229,42 +264,72 @@ class McapStreamWriter:
 
         ``channel_ids``, ``log_times`` and ``sizes`` (record bytes, header included) describe the
         records in order and must match their headers. For callers that encode many messages at once:
-        a few array operations per call, not per record (their message index entries are sorted out
-        when the chunk is written).
+        a few array operations per call, not per record.
         """
         channel_ids = np.asarray(channel_ids, dtype=np.int64)
         log_times = np.asarray(log_times, dtype=np.int64)
         sizes = np.asarray(sizes, dtype=np.int64)
         if not len(channel_ids) == len(log_times) == len(sizes):
             raise ValueError("channel_ids, log_times and sizes must have one entry per record")
-        view = memoryview(records)
-        pos = 0  # of the first record not yet in a chunk
-        while len(sizes):
-            ends = np.cumsum(sizes)
-            ends += self._chunk_bytes
-            m = len(sizes)
-            if ends[-1] >= self._chunk_size:  # the records up to the one that fills the chunk
-                m = int(np.argmax(ends >= self._chunk_size)) + 1
-            times = log_times[:m]
-            first, last = int(times.min()), int(times.max())
-            if self._chunk_messages == 0:
-                self._chunk_start, self._chunk_end = first, last
-            else:
-                self._chunk_start, self._chunk_end = min(self._chunk_start, first), max(self._chunk_end, last)
-            self._chunk_messages += m
-            self._batches.append((channel_ids[:m], times, ends[:m] - sizes[:m]))
-            end = pos + int(ends[m - 1]) - self._chunk_bytes
-            self._chunk.append(view[pos:end])
-            self._chunk_bytes, pos = int(ends[m - 1]), end
-            channel_ids, log_times, sizes = channel_ids[m:], log_times[m:], sizes[m:]
-            if self._chunk_bytes >= self._chunk_size:
-                self.flush_chunk()
+        m = len(sizes)
+        out, pos, index, first = self.records_target(len(records), m)
+        out[pos : pos + len(records)] = np.frombuffer(records, dtype=np.uint8)
+        index[0, first : first + m], index[1, first : first + m] = channel_ids, log_times
+        if m:
+            index[2, first] = pos
+            np.cumsum(sizes[:-1], out=index[2, first + 1 : first + m])
+            index[2, first + 1 : first + m] += pos
+        self.records_written(pos + len(records), first + m)
+
+    def records_target(self, nbytes: int, messages: int) -> tuple[np.ndarray, int, np.ndarray, int]:
+        """Room for ``messages`` message records of at most ``nbytes`` bytes in all, written by the caller (e.g. a
+        compiled encoder) straight into the chunk buffer: returns ``(buffer, position, index, messages so far)``,
+        the uint8 buffer to write from ``position`` on and the (3, capacity) int64 message index (channel id,
+        log time, offset in the chunk) to fill from column ``messages so far`` on. Then call
+        :meth:`records_written`; nothing else may touch the writer in between."""
+        if self._len + nbytes > len(self._buf) or self._messages + messages > self._index.shape[1]:
+            self._grow(self._len + nbytes, self._messages + messages)
+        return self._u8, self._len, self._index, self._messages
+
+    def records_written(self, end: int, messages: int) -> None:
+        """The records written after :meth:`records_target` end at ``end`` and the index has ``messages``
+        entries. The chunk is cut after the record that reaches the chunk size, as :meth:`add_message` would."""
+        first = self._messages
+        self._len, self._messages = end, messages
+        while self._len >= self._chunk_size and first < self._messages:
+            index = self._index
+            ends = np.append(index[2, first + 1 : self._messages], self._len)
+            m = first + int(np.argmax(ends >= self._chunk_size))  # the record that fills the chunk
+            cut = int(ends[m - first])
+            rest, later = self._len - cut, self._messages - m - 1
+            self._len, self._messages = cut, m + 1
+            self.flush_chunk()
+            if rest:
+                self._u8[:rest] = self._u8[cut : cut + rest]
+                index[:, :later] = index[:, m + 1 : m + 1 + later]
+                index[2, :later] -= cut
+            self._len, self._messages, first = rest, later, 0
+
+    def _grow(self, nbytes: int, messages: int) -> None:
+        if nbytes > len(self._buf):
+            buf = bytearray(max(nbytes, 2 * len(self._buf)))
+            buf[: self._len] = memoryview(self._buf)[: self._len]
+            self._buf, self._u8 = buf, np.frombuffer(buf, dtype=np.uint8)
+        if messages > self._index.shape[1]:
+            index = np.zeros((3, max(messages, 2 * self._index.shape[1])), dtype=np.int64)
+            index[:, : self._messages] = self._index[:, : self._messages]
+            self._index = index
+
+    @property
+    def chunk_size(self) -> int:
+        """Uncompressed bytes after which a chunk is closed."""
+        return self._chunk_size
 
     @property
     def message_counts(self) -> dict[int, int]:
         """Messages written so far per channel id."""
         counts = dict(self._counts)
-        for channel_id, n in _batch_counts(self._batches).items():
+        for channel_id, n in _channel_counts(self._index[0, : self._messages]).items():
             counts[channel_id] += n
         return counts
 
@@ -282,22 +347,24 @@ class McapStreamWriter:
 
     def flush_chunk(self) -> None:
         """Close the chunk in progress (if it holds anything) and queue it for writing."""
-        if not self._chunk:
+        if not self._len:
             return
-        records = b"".join(self._chunk)
-        indexes = _merge_index(self._message_index, self._batches)
-        for channel_id, n in _batch_counts(self._batches).items():
+        m = self._messages
+        channels, times, offsets = (row[:m] for row in self._index)
+        indexes = _chunk_index(channels, times, offsets)
+        for channel_id, n in _channel_counts(channels).items():
             self._counts[channel_id] += n
-        start, end = self._chunk_start, self._chunk_end
-        if self._chunk_messages:
+        if m:
+            self._chunk_start, self._chunk_end = int(times.min()), int(times.max())
             first = self._message_count == 0
-            self._start_time = start if first else min(self._start_time, start)
-            self._end_time = end if first else max(self._end_time, end)
-        self._message_count += self._chunk_messages
-        self._chunk = []
-        self._chunk_bytes = 0
-        self._message_index, self._batches = {}, []
-        self._chunk_messages = 0
+            self._start_time = self._chunk_start if first else min(self._start_time, self._chunk_start)
+            self._end_time = self._chunk_end if first else max(self._end_time, self._chunk_end)
+        start, end = self._chunk_start, self._chunk_end
+        self._message_count += m
+        records: bytes | memoryview = memoryview(self._buf)[: self._len]
+        if self._queue is not None:  # written later, on the worker thread: the buffer is reused before that
+            records = bytes(records)
+        self._len, self._messages = 0, 0
         self._submit(lambda: self._write_chunk(records, indexes, start, end))
 
     def finish(self) -> None:
@@ -309,6 +376,7 @@ class McapStreamWriter:
         self._submit(self._write_summary)
         self._stop_worker()
         self._stream.close()
+        self._release_buffer()
         if self._error is not None:
             raise _failure("MCAP writing failed", self._error) from self._error
 
@@ -319,10 +387,20 @@ class McapStreamWriter:
         self._finished = True
         self._stop_worker()
         self._stream.close()
+        self._release_buffer()
+
+    def _release_buffer(self) -> None:
+        """Hand the chunk buffer to the next writer of this process (nothing refers to it any more)."""
+        buf, self._buf = self._buf, bytearray()
+        self._u8, self._len, self._messages = np.frombuffer(self._buf, dtype=np.uint8), 0, 0
+        _give_back_buffer(buf)
 
     def _append(self, record: bytes) -> None:
-        self._chunk.append(record)
-        self._chunk_bytes += len(record)
+        end = self._len + len(record)
+        if end > len(self._buf):
+            self._grow(end, self._messages)
+        self._buf[self._len : end] = record
+        self._len = end
 
     # -- I/O side ---------------------------------------------------------------------------------
     def _submit(self, job: Callable[[], None]) -> None:
@@ -356,20 +434,13 @@ class McapStreamWriter:
         self._pos += len(data)
         return start
 
-    def _write_chunk(self, records: bytes, indexes: dict[int, np.ndarray], start: int, end: int) -> None:
+    def _write_chunk(self, records: bytes | memoryview, indexes: dict[int, np.ndarray], start: int, end: int) -> None:
         compressed = self._compressor.compress(records)
-        body = b"".join(
-            (
-                _U64.pack(start),
-                _U64.pack(end),
-                _U64.pack(len(records)),
-                _U32.pack(zlib.crc32(records) if self._chunk_crc else 0),
-                _string("zstd"),
-                _U64.pack(len(compressed)),
-                compressed,
-            )
-        )
-        chunk_start = self._write(_record(OP_CHUNK, body))
+        crc = zlib.crc32(records) if self._chunk_crc else 0
+        head = _CHUNK_HEAD.pack(OP_CHUNK, _CHUNK_HEAD.size - 9 + len(compressed), start, end, len(records), crc, 4,
+                                b"zstd", len(compressed))  # fmt: skip
+        chunk_start = self._write(head)  # (the compressed records follow without being copied into one record)
+        self._write(compressed)
         chunk_length = self._pos - chunk_start
         index_start = self._pos
         offsets = []

@@ -1,13 +1,12 @@
 """Record simulated episodes to MCAP: a per-step recorder any driver loop can use, and whole episodes.
 
-:class:`EpisodeRecorder` is a ``HighwaySim.hooks`` entry for one environment index. It records
+:class:`EpisodeRecorder` is a ``HighwaySim.log_hooks`` entry for one environment index. It records
 ``/vehicles`` and ``/ego/state`` (plus ``/ego/collision`` and ``/log`` events) of every simulation
 step, and, when the driver loop calls :meth:`~EpisodeRecorder.before_step` and
 :meth:`~EpisodeRecorder.after_step` around ``core.step``, ``/tf``, ``/scene``, the bird's-eye image
-and ``/rl/step`` at the decision rate. The steps of a decision go to the writer together at its end
-(at most :attr:`~EpisodeRecorder.MAX_PENDING_STEPS` are held, as references to the simulator's
-arrays), so memory stays flat however long the run. Do not reset the recorded environment while
-steps are pending: :meth:`~EpisodeRecorder.after_step` and :meth:`~EpisodeRecorder.detach` write them::
+and ``/rl/step`` at the decision rate. The simulator logs the steps of a decision in its compiled call
+(no Python per step) and the recorder hands them to the writer as one block, so memory stays flat however
+long the run::
 
     core = LaneChangeCore(config, num_envs)
     with EpisodeWriter(path, metadata=episode_metadata(config, seed, ...)) as writer:
@@ -30,11 +29,9 @@ steps are pending: :meth:`~EpisodeRecorder.after_step` and :meth:`~EpisodeRecord
 from __future__ import annotations
 
 import logging
-import multiprocessing
 import os
 import pathlib
 from collections.abc import Callable, Iterator, Mapping, Sequence
-from concurrent.futures import ProcessPoolExecutor, as_completed
 from dataclasses import dataclass
 from typing import Any
 
@@ -42,9 +39,9 @@ import numpy as np
 
 from lcdata.corpus import from_frame
 from lcdata.executors import EXECUTORS, ray_map
-from lcdata.procs import die_with_parent
-from lcdata.writer import EpisodeWriter, package_version
+from lcdata.writer import OUTCOME_CODES, EpisodeWriter, package_version
 from lcdata.writer_process import WRITER_MODES, ProcessEpisodeWriter, open_writer
+from lckit.pool import WorkerPool
 from lcsim import kernel
 from lcsim.config import ScenarioConfig
 from lcsim.core import KEEP, RUNNING, SUCCESS, LaneChangeCore, StepResult
@@ -53,12 +50,6 @@ from lcsim.envs import episode_seed as lcsim_episode_seed
 from lcsim.episodes import EpisodeHook, run_episodes
 from lcsim.registry import DRIVER_NAMES, make_driver
 from lcsim.sim import HighwaySim
-
-# The rows of the simulator's state blocks the recorder copies at every step (x .. accel, lane and target_lane).
-RECORDED_FLOAT_ROWS = slice(kernel.X, kernel.ACCEL + 1)
-RECORDED_INT_ROWS = slice(kernel.LANE, kernel.TARGET + 1)
-assert kernel.VF_NAMES[RECORDED_FLOAT_ROWS] == ("x", "y", "yaw", "speed", "accel")
-assert kernel.VI_NAMES[RECORDED_INT_ROWS] == ("lane", "target_lane")
 
 log = logging.getLogger(__name__)
 
@@ -99,9 +90,6 @@ class EpisodeRecorder:
         scene: write ``/tf`` and ``/scene`` (vehicles and lane markings) at every decision.
     """
 
-    MAX_PENDING_STEPS = 64
-    """Simulation steps kept before they go to the writer when no decision boundary comes."""
-
     def __init__(
         self, writer: EpisodeWriter | ProcessEpisodeWriter, core: LaneChangeCore, env: int = 0, *, images: bool = True,
         scene: bool = True,
@@ -116,109 +104,90 @@ class EpisodeRecorder:
         self.outcome = RUNNING
         self._lc_active = False
         self._off_road = False
-        self._pending: tuple[int, float, int, np.ndarray, np.ndarray] | None = None
-        # Simulation steps not yet handed to the writer (see _flush_steps).
-        self._steps: list[int] = []
-        self._ts: list[float] = []
-        self._ego: list[float] = []  # 8 per step
-        self._rows: list[np.ndarray] = []  # 7 per step: x, y, yaw, speed, accel, lane, target_lane
+        self._pending: tuple[int, float, int, np.ndarray, np.ndarray] | None = None  # the decision under way
+        self._view: tuple[np.ndarray | None, np.ndarray | None] | None = None  # its pose and image, not yet written
+        self._stash: np.ndarray | None = None  # its steps, as the simulator logged them, not yet written
+        self._fixed: tuple[np.ndarray, np.ndarray, np.ndarray] | None = None  # ids, length, width of the episode
 
     # -- life cycle -------------------------------------------------------------------------------
     def attach(self) -> None:
-        """Record the state right after ``core.reset`` (step 0) and register the per-step hook."""
+        """Record the state right after ``core.reset`` (step 0) and register the log hook."""
         sim, e = self.core.sim, self.env
-        if self._steps:
-            raise RuntimeError("attach() with steps not yet written: call after_step() or detach() before a reset")
+        if self._pending is not None:
+            raise RuntimeError("attach() inside a decision: call after_step() before a reset")
         self.done, self.decisions, self.total_reward, self.outcome = False, 0, 0.0, RUNNING
-        self._lc_active = bool(sim.lc_active.item(e, 0) if sim.autopilot_ego else sim.ego_lc_active.item(e))
-        self._off_road = bool(sim.off_road[e])
-        t0 = float(sim.t_s[e])
+        row = sim.log_row(e)
+        self._lc_active, self._off_road = bool(row[kernel.LOG_LC_ACTIVE]), bool(row[kernel.LOG_OFF_ROAD])
+        self._fixed = (sim.ids, sim.length[e].copy(), sim.width[e].copy())
+        t0 = float(row[kernel.LOG_T])
         if self.scene:
             self._write_lane_markings(t0)
-        self.writer.write_event(int(sim.step[e]), t0, "episode_start",
+        self.writer.write_event(int(row[kernel.LOG_STEP]), t0, "episode_start",
                                 f"env {e}, episode seed {int(self.core.seeds[e])}")  # fmt: skip
-        self(sim)  # step 0
-        if self not in sim.hooks:
-            sim.hooks.append(self)
+        self._write_log(row[None])  # step 0
+        if self not in sim.log_hooks:
+            sim.log_hooks.append(self)
 
     def detach(self) -> None:
-        """Write what is pending and stop recording (remove the hook). Safe to call twice."""
-        self._flush_steps()
-        if self in self.core.sim.hooks:
-            self.core.sim.hooks.remove(self)
+        """Write what is held back and stop recording (remove the log hook). Safe to call twice."""
+        self._flush()
+        if self in self.core.sim.log_hooks:
+            self.core.sim.log_hooks.remove(self)
 
-    # -- per simulation step (the hook) -----------------------------------------------------------
-    def __call__(self, sim: HighwaySim) -> None:
-        # Runs after every simulation step. It keeps copies of this step's vehicle states (the simulator updates its
-        # arrays in place). The steps go to the writer in one call at the end of the decision (_flush_steps), or
-        # before an event so that the file keeps step order.
-        e = self.env
-        if self.done or sim.frozen.item(e):
+    # -- per compiled call of the simulator (the log hook) ----------------------------------------------
+    def __call__(self, sim: HighwaySim, log: np.ndarray, counts: np.ndarray) -> None:
+        # Runs after every compiled call of the simulator with the rows of the steps it ran. Inside a decision the
+        # rows wait for after_step, which writes the whole decision in one call (the simulator reuses its log at its
+        # next call: a second call inside the decision writes them first); otherwise the writer copies them now.
+        k = counts.item(self.env)
+        if not k or self.done:
             return
-        step, t = sim.step.item(e), sim.t_s.item(e)
-        collision_with, invasion, off_road = sim.collision_with.item(e), sim.lane_invasion.item(e), sim.off_road.item(e)
-        self._steps.append(step)
-        self._ts.append(t)
-        self._ego += (sim.speed.item(e, 0), sim.lane.item(e, 0), collision_with, invasion, off_road,
-                      sim.steer.item(e), sim.throttle.item(e), sim.brake.item(e))  # fmt: skip
-        # The simulator updates its state in place: copies of this step's x, y, yaw, speed, accel (rows of its float
-        # block) and lane, target_lane (rows of its int block), two copies in all.
-        f, i = sim.vf[RECORDED_FLOAT_ROWS, e].copy(), sim.vi[RECORDED_INT_ROWS, e].copy()
-        self._rows += (f[0], f[1], f[2], f[3], f[4], i[0], i[1])
-        active = sim.lc_active.item(e, 0) if sim.autopilot_ego else sim.ego_lc_active.item(e)
-        if not (collision_with >= 0 or invasion >= 0 or off_road != self._off_road or active != self._lc_active):
-            if len(self._steps) == self.MAX_PENDING_STEPS:
-                self._flush_steps()
+        rows = log[self.env, :k]
+        if self._pending is not None and self._stash is None:
+            self._stash = rows
             return
-        self._flush_steps()
-        w = self.writer
-        if collision_with >= 0:
-            w.write_collision(step, t, other_id=collision_with, ego_x=float(sim.x[e, 0]), ego_y=float(sim.y[e, 0]),
-                              ego_speed=float(sim.speed[e, 0]), other_speed=float(sim.speed[e, collision_with]))  # fmt: skip
-            w.write_event(step, t, "collision", f"ego hit vehicle {collision_with}", "warning")
-        if invasion >= 0:
-            w.write_event(step, t, "lane_invasion", f"ego crossed marking {invasion}", "debug")
-        if off_road != self._off_road:
-            w.write_event(step, t, "off_road" if off_road else "on_road",
-                          "ego left the road" if off_road else "ego back on the road",
-                          "warning" if off_road else "info")  # fmt: skip
-            self._off_road = off_road
-        if active != self._lc_active:
-            lane, target = int(sim.lane[e, 0]), int(sim.target_lane[e, 0])
-            if active:
-                w.write_event(step, t, "lane_change_start", f"lane {lane} -> {target}")
-            else:
-                w.write_event(step, t, "lane_change_end", f"in lane {lane}")
-            self._lc_active = active
+        self._flush()
+        self._write_log(rows)
 
-    def _flush_steps(self) -> None:
-        """Hand the pending simulation steps to the writer (one ``write_sim_rows`` call)."""
-        if not self._steps:
-            return
-        sim, e = self.core.sim, self.env
-        self.writer.write_sim_rows(self._steps, self._ts, self._rows, (sim.ids, sim.length[e], sim.width[e]),
-                                   self._ego)  # fmt: skip
-        self._steps, self._ts, self._rows, self._ego = [], [], [], []
+    def _write_log(self, rows: np.ndarray) -> None:
+        assert self._fixed is not None
+        self.writer.write_sim_log(rows, self._fixed, self._off_road, self._lc_active)
+        self._track(rows)
+
+    def _track(self, rows: np.ndarray) -> None:
+        """The ego's state after ``rows`` (the events of the next rows are relative to it)."""
+        if len(rows):
+            last = rows[-1]
+            self._off_road = last.item(kernel.LOG_OFF_ROAD) != 0
+            self._lc_active = last.item(kernel.LOG_LC_ACTIVE) != 0
+
+    def _flush(self) -> None:
+        """Write what the decision under way holds back: its view and its steps."""
+        if self._view is not None:
+            assert self._pending is not None and self._fixed is not None
+            (pose, image), self._view = self._view, None
+            self.writer.write_view(self._pending[0], self._pending[1], pose, self._fixed, image)
+        if self._stash is not None:
+            rows, self._stash = self._stash, None
+            self._write_log(rows)
 
     # -- per decision -----------------------------------------------------------------------------
     def before_step(self, obs: Mapping[str, np.ndarray], action_mask: np.ndarray, actions: np.ndarray) -> None:
-        """Call just before ``core.step(actions)``: writes ``/tf``, ``/scene`` and the image of this decision.
+        """Call just before ``core.step(actions)``: ``/tf``, ``/scene`` and the image of this decision (written
+        with the rest of the decision by :meth:`after_step`).
 
         Args:
-            obs: the batched observation of all environments (``core.observe()``), e.g. ``current`` (E, 9, 9).
+            obs: the batched observation of all environments (``core.observe()``), e.g. ``current`` (E, 9, 9); it
+                must stay as it is until :meth:`after_step` (the next ``core.observe()`` makes a new one).
             action_mask: (E, 3) bool. actions: (E,) int.
         """
-        self._flush_steps()
-        sim, e, w = self.core.sim, self.env, self.writer
+        self._flush()
+        sim, e = self.core.sim, self.env
         step, t = sim.step.item(e), sim.t_s.item(e)
-        if self.scene:
-            w.write_transform(step, t, sim.x.item(e, 0), sim.y.item(e, 0), sim.yaw.item(e, 0))
-            w.write_scene(step, t, sim.ids, sim.x[e], sim.y[e], sim.yaw[e], sim.length[e], sim.width[e])
-        if self.images and "image" in obs:
-            w.write_image(step, t, obs["image"][e])
-        action = int(np.asarray(actions).reshape(-1)[e])
-        mask = np.asarray(action_mask, dtype=bool).reshape(-1, 3)[e].copy()
-        self._pending = (step, t, action, mask, np.asarray(obs["current"][e]).copy())
+        image = obs["image"][e] if self.images and "image" in obs else None
+        pose = sim.vf[kernel.X : kernel.YAW + 1, e].copy() if self.scene else None  # x, y, yaw
+        self._view = (pose, image) if pose is not None or image is not None else None
+        self._pending = (step, t, actions, action_mask, obs["current"][e])
 
     def write_predictions(self, predictions: np.ndarray) -> None:
         """``/prediction`` for this decision from the policy's ``(K, F, 2)`` ego-frame predictions.
@@ -226,6 +195,7 @@ class EpisodeRecorder:
         Slot k is the observation's k-th neighbour slot (``core.neighbours``); call it between
         :meth:`before_step` and ``core.step``. Positions are written in the world frame.
         """
+        self._flush()
         sim, e = self.core.sim, self.env
         nb = self.core.neighbours(np.array([e]))[0]
         ids = np.where(nb >= 0, np.asarray(sim.ids)[np.maximum(nb, 0)], -1)
@@ -234,21 +204,26 @@ class EpisodeRecorder:
         self.writer.write_prediction(int(sim.step[e]), float(sim.t_s[e]), ids, xy)
 
     def after_step(self, result: StepResult) -> None:
-        """Call right after ``core.step``: writes ``/rl/step`` (and the outcome event when the episode ends)."""
+        """Call right after ``core.step``: writes the decision (its view, its steps, ``/rl/step``) and the outcome
+        event when the episode ends."""
         if self._pending is None:
             raise RuntimeError("after_step() without before_step()")
-        self._flush_steps()
-        step, t, action, mask, current = self._pending
-        self._pending = None
+        step, t, actions, action_mask, current = self._pending
         e = self.env
         outcome = str(result.outcome[e])
-        reward = float(result.reward[e])
-        self.writer.write_rl_step(
-            step, t, action=action, action_mask=mask, reward=reward,
-            reward_components={k: float(v[e]) for k, v in result.components.items()},
-            terminated=bool(result.terminated[e]), truncated=bool(result.truncated[e]), outcome=outcome,
-            decision=self.decisions, obs_current=current,
-        )  # fmt: skip
+        reward = result.reward.item(e)
+        c = result.components
+        mask = np.asarray(action_mask).reshape(-1, 3)[e].tolist()
+        rl = (self.decisions, np.asarray(actions).item(e), *mask, reward, c["collision"].item(e), c["off_road"].item(e),
+              c["forward"].item(e), c["success"].item(e), result.terminated.item(e), result.truncated.item(e),
+              OUTCOME_CODES[outcome])  # fmt: skip
+        pose, image = self._view if self._view is not None else (None, None)
+        rows = self._stash if self._stash is not None else self._no_steps
+        assert self._fixed is not None
+        self.writer.write_decision(step, t, pose, image, rows, self._fixed, self._off_road, self._lc_active, rl,
+                                   current)  # fmt: skip
+        self._pending, self._view, self._stash = None, None, None
+        self._track(rows)
         self.decisions += 1
         self.total_reward += reward
         if outcome != RUNNING:
@@ -257,6 +232,10 @@ class EpisodeRecorder:
             level = "info" if outcome == SUCCESS else "warning"
             self.writer.write_event(end_step, end_t, "outcome", outcome, level)
             self.outcome, self.done = outcome, True
+
+    @property
+    def _no_steps(self) -> np.ndarray:
+        return np.zeros((0, kernel.log_width(self.core.sim.num_vehicles)))
 
     def _write_lane_markings(self, t_s: float) -> None:
         cfg = self.core.config
@@ -306,11 +285,27 @@ def resolve_driver(driver: str | Driver, seed: int) -> tuple[Any, bool, str, str
     return driver, False, name, desc
 
 
+_CONFIG_JSON: dict[int, tuple[ScenarioConfig, str]] = {}  # config_json's, by the id of configs it keeps alive
+
+
+def config_json(config: ScenarioConfig) -> str:
+    """``config.to_json()``, remembered for the last few config objects (a recorder of many episodes with one
+    config asks for it every episode; configs are frozen)."""
+    cached = _CONFIG_JSON.get(id(config))
+    if cached is not None and cached[0] is config:
+        return cached[1]
+    if len(_CONFIG_JSON) >= 8:
+        _CONFIG_JSON.clear()
+    text = config.to_json()
+    _CONFIG_JSON[id(config)] = (config, text)
+    return text
+
+
 def episode_metadata(config: ScenarioConfig, seed: int, *, driver: str, driver_description: str = "",
                      scenario: str = "", autopilot: bool = False) -> dict[str, Any]:  # fmt: skip
     """The metadata record of an episode: full config JSON, user and episode seeds, driver, version."""
     return {
-        "config": config.to_json(), "seed": int(seed), "episode_seed": str(episode_seed(seed)),
+        "config": config_json(config), "seed": int(seed), "episode_seed": str(episode_seed(seed)),
         "driver": driver, "driver_description": driver_description or driver, "scenario": scenario,
         "autopilot": bool(autopilot), "version": package_version(),
         "steps_per_decision": config.steps_per_decision,
@@ -406,14 +401,16 @@ class RecordingHook(EpisodeHook):
     def before_step(self, core: LaneChangeCore, obs: dict[str, np.ndarray], mask: np.ndarray, actions: np.ndarray,
                     running: np.ndarray) -> None:
         predictions = getattr(self._driver, "last_prediction", None)  # what a policy driver saw, if any
-        for i in np.flatnonzero(running):
-            self._recorders[i].before_step(obs, mask, actions)
-            if predictions is not None:
-                self._recorders[i].write_predictions(predictions[i])
+        for i, recorder in enumerate(self._recorders):
+            if running[i]:
+                recorder.before_step(obs, mask, actions)
+                if predictions is not None:
+                    recorder.write_predictions(predictions[i])
 
     def after_step(self, core: LaneChangeCore, result: StepResult, running: np.ndarray) -> None:
-        for i in np.flatnonzero(running):
-            self._recorders[i].after_step(result)
+        for i, recorder in enumerate(self._recorders):
+            if running[i]:
+                recorder.after_step(result)
 
     def end(self, core: LaneChangeCore, failed: bool) -> None:
         for rec in self._recorders:
@@ -464,8 +461,8 @@ def iter_record_episodes(
     takes an idle core) and ``thread`` with several (the cores are taken; a helper process per
     worker would cost more CPU in all). ``skip_existing``: leave the finished files there as they are and
     record only the missing episodes (a resumed run). ``start_time_ns``: every file's ``t = 0`` (default:
-    derived from each seed, :func:`seed_start_time_ns`). Worker processes die with this process
-    (:func:`lcdata.procs.die_with_parent`): a killed run leaves no orphan writing on. ``executor="ray"``
+    derived from each seed, :func:`seed_start_time_ns`). Worker processes (:class:`lckit.pool.WorkerPool`) die
+    with this process: a killed run leaves no orphan writing on. ``executor="ray"``
     records each episode as a Ray task in the open :func:`lcdata.executors.ray_session` (a driver name only:
     an object is not shipped); the files are the same.
     """
@@ -496,16 +493,8 @@ def iter_record_episodes(
         for a in args:
             yield _record_one(*a)
         return
-    ctx = multiprocessing.get_context("spawn")  # no fork of a process that may hold writer threads
-    with ProcessPoolExecutor(max_workers=min(workers, len(args)), mp_context=ctx, initializer=die_with_parent,
-                             initargs=(os.getpid(),)) as pool:  # fmt: skip
-        futures = [pool.submit(_record_one, *a) for a in args]
-        try:
-            for future in as_completed(futures):
-                yield future.result()
-        finally:
-            for future in futures:
-                future.cancel()
+    with WorkerPool(min(workers, len(args))) as pool:  # spawned: no fork of a process that may hold writer threads
+        yield from pool.map(_record_one, args, star=True, ordered=False)
 
 
 def record_episodes(config: ScenarioConfig, seeds: Sequence[int], driver: str | Driver,

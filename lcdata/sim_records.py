@@ -10,6 +10,7 @@ and :func:`lcdata.mcap_write.message_header` (tested against them).
 
 from __future__ import annotations
 
+import math
 from collections.abc import Sequence
 
 import numpy as np
@@ -17,6 +18,7 @@ from numba import njit
 
 from lcdata import mcap_write
 from lcdata.encode import VEHICLE_COLUMNS, VehicleEncoder
+from lcsim import kernel
 
 # The MCAP message record's header size (opcode, length, channel, sequence, log and publish times), written out here:
 # compiled functions keep module constants in numba's cache, which only this file's changes invalidate.
@@ -50,7 +52,10 @@ def _u64(out: np.ndarray, p: int, value: np.uint64, size: int) -> int:
 def _double(out: np.ndarray, p: int, key: int, value: float, scratch: np.ndarray) -> int:
     out[p] = key
     scratch[0] = value
-    return _u64(out, p + 1, scratch.view(np.uint64)[0], 8)
+    src, dst = scratch.view(np.uint8), out[p + 1 : p + 9]
+    for i in range(8):
+        dst[i] = src[i]
+    return p + 9
 
 
 @njit(cache=True)
@@ -183,3 +188,332 @@ class SimStepEncoder:
 
 _BODY_AT = MESSAGE_HEADER_BYTES + HEAD_MAX_BYTES
 """Where the vehicle fields start in a row of :class:`SimStepEncoder`'s buffer."""
+
+
+# -- a whole decision, straight into the chunk buffer ------------------------------------------------------------------
+# The records a recorder writes for one decision (lcdata.writer.EpisodeSink.write_decision), laid out by one compiled
+# call in the MCAP writer's chunk buffer: /tf, /scene, the image, /vehicles and /ego/state of every step, /rl/step.
+# The bytes are those of the Python encoders (lcdata.encode) and of McapStreamWriter.add_message (tested against them).
+# Values that need numpy's or the math module's own functions (the cubes' and the transform's quaternions) come in
+# computed, so that the bits are theirs.
+
+# The step log's layout (lcsim.kernel), written out: compiled functions keep module constants in numba's cache.
+(LOG_STEP, LOG_T, LOG_SPEED, LOG_LANE, LOG_COLLISION, LOG_INVASION, LOG_OFF_ROAD, LOG_STEER, LOG_THROTTLE, LOG_BRAKE,
+ LOG_LC_ACTIVE) = range(11)
+LOG_HEAD = 11
+assert (LOG_HEAD, LOG_OFF_ROAD, LOG_LC_ACTIVE, LOG_BRAKE) == (kernel.LOG_HEAD, kernel.LOG_OFF_ROAD,
+                                                             kernel.LOG_LC_ACTIVE, kernel.LOG_BRAKE)  # fmt: skip
+assert kernel.LOG_VEHICLE_ROWS == ("x", "y", "yaw", "speed", "accel", "lane", "target_lane")
+
+RL_FIELDS = ("decision", "action", "mask_right", "mask_keep", "mask_left", "reward", "r_collision", "r_off_road",
+             "r_forward", "r_success", "terminated", "truncated", "outcome")
+"""The values of ``/rl/step`` :func:`decision_records` takes as one float64 array (``outcome``: its index in
+:data:`lcdata.writer.OUTCOMES`)."""
+RL_DECISION, RL_ACTION, RL_MASK, RL_REWARD, RL_TERMINATED, RL_TRUNCATED, RL_OUTCOME = 0, 1, 2, 5, 10, 11, 12
+assert RL_FIELDS[RL_REWARD] == "reward" and RL_FIELDS[RL_OUTCOME] == "outcome" and len(RL_FIELDS) == 13
+
+SPANS = ("tf_head", "tf_rotation", "vehicles_entity", "lanes_entity", "lanes", "cubes", "image_head", "image_tail",
+         "px", "py", "qz", "qw", "sx", "sy")
+"""The constant byte strings of :func:`decision_records` (the cube fields: their offsets in a cube record), then one
+``/rl/step`` outcome field per outcome."""
+(S_TF_HEAD, S_TF_ROTATION, S_VEHICLES_ENTITY, S_LANES_ENTITY, S_LANES, S_CUBES, S_IMAGE_HEAD, S_IMAGE_TAIL,
+ S_CUBE_FIELDS) = range(9)
+S_OUTCOMES = len(SPANS)
+assert SPANS[S_CUBE_FIELDS] == "px" and SPANS[S_IMAGE_TAIL] == "image_tail"
+
+
+@njit(cache=True)
+def _put(out: np.ndarray, p: int, value: float, scratch: np.ndarray) -> None:
+    """The 8 bytes of a double at ``out[p:]``."""
+    scratch[0] = value
+    src, dst = scratch.view(np.uint8), out[p : p + 8]
+    for i in range(8):
+        dst[i] = src[i]
+
+
+@njit(cache=True)
+def _varint_size(value: np.uint64) -> int:
+    size = 1
+    while value >= 0x80:
+        value >>= np.uint64(7)
+        size += 1
+    return size
+
+
+@njit(cache=True)
+def _stamp(out: np.ndarray, p: int, time_ns: int) -> int:
+    """``google.protobuf.Timestamp`` as field 1 (:func:`lcdata.encode.encode_timestamp`), ``time_ns >= 0``."""
+    seconds, nanos = np.uint64(time_ns // 1_000_000_000), np.uint64(time_ns % 1_000_000_000)
+    size = (1 + _varint_size(seconds) if seconds else 0) + (1 + _varint_size(nanos) if nanos else 0)
+    out[p], out[p + 1] = 0x0A, size
+    p += 2
+    if seconds:
+        out[p] = 0x08
+        p = _varint(out, p + 1, seconds)
+    if nanos:
+        out[p] = 0x10
+        p = _varint(out, p + 1, nanos)
+    return p
+
+
+@njit(cache=True)
+def _copy(out: np.ndarray, p: int, src: np.ndarray) -> int:
+    # (a loop over a slice: a memcpy once compiled; numba's slice assignment from an array checks for overlap and
+    # copies first, and indexing out[p + i] checks for negative indices, which keeps the loop from being vectorised)
+    dst = out[p : p + src.size]
+    for i in range(src.size):
+        dst[i] = src[i]
+    return p + src.size
+
+
+@njit(cache=True)
+def _packed_key(out: np.ndarray, p: int, key: int, size: int) -> int:
+    out[p] = key
+    return _varint(out, p + 1, np.uint64(size))
+
+
+@njit(cache=True)
+def _open(index: np.ndarray, m: int, channel: int, time_ns: int, start: int) -> int:
+    """Enter a message record starting at ``start`` in the chunk's index (its header is written by _close)."""
+    index[0, m], index[1, m], index[2, m] = channel, time_ns, start
+    return m + 1
+
+
+@njit(cache=True)
+def _close(out: np.ndarray, start: int, end: int, channel: int, time_ns: int) -> int:
+    _header(out, start, channel, time_ns, end - start - MESSAGE_HEADER_BYTES)
+    return end
+
+
+@njit(cache=True)
+def _nonzero_double(value: float) -> bool:
+    """Whether proto3 writes a ``double`` (it omits +0.0 only)."""
+    return value != 0.0 or math.copysign(1.0, value) < 0.0
+
+
+@njit(cache=True)
+def log_event_row(log: np.ndarray, off_road: bool, lc_active: bool) -> int:
+    """The first row of a step log (K, W) where the ego meets an event (a collision, a lane invasion, leaving or
+    regaining the road, a lane change starting or ending; ``off_road``, ``lc_active``: its state before the first
+    row), or -1."""
+    for i in range(log.shape[0]):
+        row = log[i]
+        off, active = row[LOG_OFF_ROAD] != 0.0, row[LOG_LC_ACTIVE] != 0.0
+        if row[LOG_COLLISION] >= 0.0 or row[LOG_INVASION] >= 0.0 or off != off_road or active != lc_active:
+            return i
+        off_road, lc_active = off, active
+    return -1
+
+
+@njit(cache=True)
+def _log_records(out: np.ndarray, p: int, index: np.ndarray, m: int, log: np.ndarray, ids: np.ndarray,
+                 length: np.ndarray, width: np.ndarray, origin_ns: int, vehicles_id: int,
+                 ego_id: int) -> tuple[int, int]:  # fmt: skip
+    """The ``/vehicles`` and ``/ego/state`` records of the steps of a log (K, W); returns the new (p, m)."""
+    n = ids.size
+    ids32 = np.empty(n, dtype=np.int32)
+    lanes32 = np.empty(n, dtype=np.int32)
+    for v in range(n):
+        ids32[v] = np.int32(ids[v])
+    ids_b, length_b, width_b = ids32.view(np.uint8), length.view(np.uint8), width.view(np.uint8)
+    lanes_b = lanes32.view(np.uint8)
+    scratch = np.empty(1, dtype=np.float64)
+    for i in range(log.shape[0]):
+        row = log[i]
+        row_b = row.view(np.uint8)
+        step, t = np.int64(row[LOG_STEP]), row[LOG_T]
+        time_ns = origin_ns + np.int64(np.rint(t * 1e9))
+        start = p
+        m = _open(index, m, vehicles_id, time_ns, start)
+        p = _step_field(out, p + MESSAGE_HEADER_BYTES, step)
+        p = _double(out, p, 0x11, t, scratch)
+        if n:
+            p = _packed_key(out, p, 0x1A, 4 * n)
+            p = _copy(out, p, ids_b)
+            for j in range(5):  # x, y, yaw, speed, accel: fields 4 .. 8
+                at = 8 * (LOG_HEAD + j * n)
+                p = _packed_key(out, p, 0x22 + 8 * j, 8 * n)
+                p = _copy(out, p, row_b[at : at + 8 * n])
+            for j in range(5, 7):  # lane, target_lane: fields 9, 10 as int32
+                lanes = row[LOG_HEAD + j * n : LOG_HEAD + (j + 1) * n]
+                for v in range(n):
+                    lanes32[v] = np.int32(lanes[v])
+                p = _packed_key(out, p, 0x22 + 8 * j, 4 * n)
+                p = _copy(out, p, lanes_b)
+            p = _packed_key(out, p, 0x5A, 8 * n)
+            p = _copy(out, p, length_b)
+            p = _packed_key(out, p, 0x62, 8 * n)
+            p = _copy(out, p, width_b)
+        p = _close(out, start, p, vehicles_id, time_ns)
+        start = p
+        m = _open(index, m, ego_id, time_ns, start)
+        p = _step_field(out, p + MESSAGE_HEADER_BYTES, step)
+        p = _double(out, p, 0x11, t, scratch)
+        p = _double(out, p, 0x19, row[LOG_SPEED], scratch)
+        p = _sint_field(out, p, 0x20, np.int64(row[LOG_LANE]))
+        p = _sint_field(out, p, 0x28, np.int64(row[LOG_COLLISION]))
+        p = _sint_field(out, p, 0x30, np.int64(row[LOG_INVASION]))
+        if row[LOG_OFF_ROAD] != 0.0:
+            out[p], out[p + 1] = 0x38, 0x01
+            p += 2
+        p = _double(out, p, 0x41, row[LOG_STEER], scratch)
+        p = _double(out, p, 0x49, row[LOG_THROTTLE], scratch)
+        p = _double(out, p, 0x51, row[LOG_BRAKE], scratch)
+        p = _close(out, start, p, ego_id, time_ns)
+    return p, m
+
+
+@njit(cache=True)
+def log_records(out: np.ndarray, p: int, index: np.ndarray, m: int, log: np.ndarray, ids: np.ndarray,
+                length: np.ndarray, width: np.ndarray, origin_ns: int, vehicles_id: int,
+                ego_id: int) -> tuple[int, int]:  # fmt: skip
+    """The ``/vehicles`` and ``/ego/state`` records of every step of a step log (K, W) written into ``out`` from
+    ``p`` on, entered in ``index`` from column ``m`` on (see :meth:`lcdata.mcap_write.McapStreamWriter.records_target`);
+    returns the new ``(p, m)``. ``ids`` (N,) int64, ``length``, ``width`` (N,) float64, all contiguous."""
+    return _log_records(out, p, index, m, log, ids, length, width, origin_ns, vehicles_id, ego_id)
+
+
+@njit(cache=True)
+def decision_records(out: np.ndarray, p: int, index: np.ndarray, m: int, channels: np.ndarray, consts: np.ndarray,
+                     spans: np.ndarray, time_ns: int, origin_ns: int, step: int, t: float, pose: np.ndarray,
+                     ids: np.ndarray, length: np.ndarray, width: np.ndarray, x: float, y: float, qz: float, qw: float,
+                     quaternions: np.ndarray, image: np.ndarray, log: np.ndarray, off_road: bool, lc_active: bool,
+                     rl: np.ndarray, current: np.ndarray) -> tuple[int, int, int]:  # fmt: skip
+    """The records of one decision (see the comment above) up to the first step of ``log`` where the ego meets an
+    event (:func:`log_event_row`). Returns ``(p, m, row)``: where the records end, the index's length, and that
+    step's row in ``log`` (its events, and the rest of the decision, are the caller's: call again with the rest of
+    the log, no view) or -1 when the decision is complete.
+
+    ``channels``: ids of /tf, /scene, the image, /vehicles, /ego/state, /rl/step. ``consts`` and ``spans``: the
+    constant byte strings (:data:`SPANS`) and their (start, end) in ``consts``. ``pose`` (3, N) x, y, yaw, or
+    (0, N) without /tf and /scene; ``x``, ``y``, ``qz``, ``qw``: the ego's position and the sine and cosine (the
+    math module's) of half its heading; ``quaternions`` (2, N): numpy's sine and cosine of yaw / 2. ``image``
+    (C, H, W), or empty without one. ``rl``: :data:`RL_FIELDS`, or empty without ``/rl/step``; ``current``: the
+    observation matrix (stored as float32).
+    """
+    event = log_event_row(log, off_road, lc_active)
+    if event >= 0:
+        log = log[: event + 1]
+    scratch = np.empty(1, dtype=np.float64)
+    n = ids.size
+    if pose.shape[0]:
+        tf_id, scene_id = channels[0], channels[1]
+        start = p
+        m = _open(index, m, tf_id, time_ns, start)
+        p = _stamp(out, p + MESSAGE_HEADER_BYTES, time_ns)
+        p = _copy(out, p, consts[spans[S_TF_HEAD, 0] : spans[S_TF_HEAD, 1]])
+        p = _double(out, p, 0x09, x, scratch)
+        p = _double(out, p, 0x11, y, scratch)
+        p = _double(out, p, 0x19, 0.0, scratch)
+        p = _copy(out, p, consts[spans[S_TF_ROTATION, 0] : spans[S_TF_ROTATION, 1]])
+        p = _double(out, p, 0x09, 0.0, scratch)
+        p = _double(out, p, 0x11, 0.0, scratch)
+        p = _double(out, p, 0x19, qz, scratch)
+        p = _double(out, p, 0x21, qw, scratch)
+        p = _close(out, start, p, tf_id, time_ns)
+        start = p
+        m = _open(index, m, scene_id, time_ns, start)
+        p += MESSAGE_HEADER_BYTES
+        cubes = consts[spans[S_CUBES, 0] : spans[S_CUBES, 1]]
+        record = cubes.size // n if n else 0
+        stamp_size = _stamp_size(time_ns)
+        for entity in range(2):
+            head_at = S_VEHICLES_ENTITY if entity == 0 else S_LANES_ENTITY
+            head = consts[spans[head_at, 0] : spans[head_at, 1]]
+            body = cubes.size if entity == 0 else spans[S_LANES, 1] - spans[S_LANES, 0]
+            if entity == 1 and body == 0:
+                break
+            p = _packed_key(out, p, 0x12, stamp_size + head.size + body)
+            p = _stamp(out, p, time_ns)
+            p = _copy(out, p, head)
+            if entity == 1:
+                p = _copy(out, p, consts[spans[S_LANES, 0] : spans[S_LANES, 1]])
+                break
+            p = _copy(out, p, cubes)
+            base = p - cubes.size
+            fields = spans[S_CUBE_FIELDS : S_CUBE_FIELDS + 6, 0]  # px, py, qz, qw, sx, sy in a cube record
+            for v in range(n):
+                at = base + v * record
+                _put(out, at + fields[0], pose[0, v], scratch)
+                _put(out, at + fields[1], pose[1, v], scratch)
+                _put(out, at + fields[2], quaternions[0, v], scratch)
+                _put(out, at + fields[3], quaternions[1, v], scratch)
+                _put(out, at + fields[4], length[v], scratch)
+                _put(out, at + fields[5], width[v], scratch)
+        p = _close(out, start, p, scene_id, time_ns)
+    if image.size:
+        image_id = channels[2]
+        start = p
+        m = _open(index, m, image_id, time_ns, start)
+        p = _stamp(out, p + MESSAGE_HEADER_BYTES, time_ns)
+        p = _copy(out, p, consts[spans[S_IMAGE_HEAD, 0] : spans[S_IMAGE_HEAD, 1]])
+        c, h, w = image.shape
+        hw = h * w
+        pixels, planes = out[p : p + c * hw], image.ravel()  # (C, H, W) -> (H, W, C)
+        if c == 3:  # (the loop the compiler vectorises)
+            for i in range(hw):
+                pixels[3 * i], pixels[3 * i + 1], pixels[3 * i + 2] = planes[i], planes[hw + i], planes[2 * hw + i]
+        else:
+            for i in range(hw):
+                for k in range(c):
+                    pixels[c * i + k] = planes[k * hw + i]
+        p += c * hw
+        p = _copy(out, p, consts[spans[S_IMAGE_TAIL, 0] : spans[S_IMAGE_TAIL, 1]])
+        p = _close(out, start, p, image_id, time_ns)
+    p, m = _log_records(out, p, index, m, log, ids, length, width, origin_ns, channels[3], channels[4])
+    if event >= 0:
+        return p, m, event
+    if rl.size:
+        rl_id = channels[5]
+        start = p
+        m = _open(index, m, rl_id, time_ns, start)
+        p += MESSAGE_HEADER_BYTES
+        if step:
+            out[p] = 0x08
+            p = _varint(out, p + 1, np.uint64(step))
+        for i in range(6):  # t, then decision, action and the mask, then reward and its components
+            value = t if i == 0 else rl[RL_REWARD + i - 1]
+            if i == 1:
+                decision, action = np.int64(rl[RL_DECISION]), np.int64(rl[RL_ACTION])
+                if decision:
+                    out[p] = 0x18
+                    p = _varint(out, p + 1, np.uint64(decision))
+                if action:
+                    out[p] = 0x20
+                    p = _varint(out, p + 1, np.uint64(action))
+                out[p], out[p + 1] = 0x2A, 3
+                for j in range(3):
+                    out[p + 2 + j] = rl[RL_MASK + j] != 0.0
+                p += 5
+            if _nonzero_double(value):
+                p = _double(out, p, 0x11 if i == 0 else 0x29 + 8 * i, value, scratch)
+        if rl[RL_TERMINATED] != 0.0:
+            out[p], out[p + 1] = 0x58, 0x01
+            p += 2
+        if rl[RL_TRUNCATED] != 0.0:
+            out[p], out[p + 1] = 0x60, 0x01
+            p += 2
+        outcome = S_OUTCOMES + np.int64(rl[RL_OUTCOME])
+        p = _copy(out, p, consts[spans[outcome, 0] : spans[outcome, 1]])
+        if current.size:
+            values = np.empty(current.size, dtype=np.float32)
+            for i in range(current.shape[0]):
+                for j in range(current.shape[1]):
+                    values[i * current.shape[1] + j] = np.float32(current[i, j])
+            p = _packed_key(out, p, 0x72, 4 * values.size)
+            p = _copy(out, p, values.view(np.uint8))
+        if current.ndim:
+            size = 0
+            for d in current.shape:
+                size += _varint_size(np.uint64(d))
+            p = _packed_key(out, p, 0x7A, size)
+            for d in current.shape:
+                p = _varint(out, p, np.uint64(d))
+        p = _close(out, start, p, rl_id, time_ns)
+    return p, m, -1
+
+
+@njit(cache=True)
+def _stamp_size(time_ns: int) -> int:
+    seconds, nanos = np.uint64(time_ns // 1_000_000_000), np.uint64(time_ns % 1_000_000_000)
+    return 2 + (1 + _varint_size(seconds) if seconds else 0) + (1 + _varint_size(nanos) if nanos else 0)

@@ -20,14 +20,13 @@
 from __future__ import annotations
 
 import collections
-import multiprocessing
 import time
 from collections.abc import Callable, Sequence
-from concurrent.futures import ProcessPoolExecutor
 from typing import Any
 
 import numpy as np
 
+from lckit.pool import WorkerPool
 from lcmodels.policy.evaluate import wilson_interval
 from lcsim.config import ScenarioConfig
 from lcsim.core import KEEP, LaneChangeCore, StepResult
@@ -128,15 +127,8 @@ def oracle_bound(config: ScenarioConfig, user_seeds: Sequence[int], *, indices: 
             if progress is not None:
                 progress(len(rows), len(jobs))
     else:
-        from lcdata.procs import die_with_parent
-
-        ctx = multiprocessing.get_context("spawn")
-        with ProcessPoolExecutor(workers, mp_context=ctx, initializer=die_with_parent,
-                                 initargs=(multiprocessing.current_process().pid,)) as pool:  # fmt: skip
-            for row in pool.map(_search_one, jobs):
-                rows.append(row)
-                if progress is not None:
-                    progress(len(rows), len(jobs))
+        with WorkerPool(workers) as pool:
+            rows += pool.map(_search_one, jobs, progress=progress)
     n = len(rows)
     won = sum(r["winnable"] is True for r in rows)
     lo, hi = wilson_interval(won, n)

@@ -54,10 +54,11 @@ with the paper's budgets and observation."""
 BEST_RECIPES = ("hybrid-ppo", "pure-ppo", "pure-ppo-dagger", "prediction-ppo", "image-ppo", "a2c-hybrid",
                 "dqn-hybrid")  # fmt: skip
 """The project's best recipe for each method."""
-OPTIONAL_RECIPES = ("hybrid-ppo-dagger",)
+OPTIONAL_RECIPES = ("hybrid-ppo-dagger", "attention-ppo")
 """Recipes the ``paper`` preset runs only when named (``--recipe``): ``hybrid-ppo-dagger`` trains the image network
-on every state of its six DAgger rounds, several CPU hours (each round adds about 26,000 states), for a route
-that moved the pure policy by 1.6 points, inside the noise (docs/results/human-traffic)."""
+on every state of its six DAgger rounds, several CPU hours (each round adds tens of thousands of states), for a
+route that did not move the pure policy beyond the noise (docs/results/human-traffic); ``attention-ppo`` is a
+research route (the ego-attention sensor branch, docs/results/attention)."""
 
 
 # ------------------------------------------------------------------------------------------------ presets
@@ -90,7 +91,7 @@ class Preset:
     safety layer follows gets as many seeds as the recipe it serves."""
     caps: tuple[tuple[str, int], ...] = ()
     """Upper bounds on the recipes' integer settings, ``(name, cap)`` (``timesteps``, ``episodes``, ``epochs``,
-    ``warm_start_epochs``, ``rounds``, ``n_envs``, ``horizon``...): the small presets' budgets."""
+    ``warm_start_epochs``, ``rounds``, ``n_envs``, ``horizon_decisions``...): the small presets' budgets."""
     val_episodes: int = 200
     val_seeds: tuple[int, ...] = (0, 1)
     """Validation: the evaluation seeds every recipe was chosen on (``lc-eval --seed``)."""
@@ -132,7 +133,7 @@ class Preset:
 
 _TINY_CAPS = (("timesteps", 128), ("episodes", 2), ("warm_start_epochs", 1), ("epochs", 1), ("rounds", 1),
               ("n_envs", 4), ("n_steps", 32), ("batch_size", 64), ("n_epochs", 2), ("learning_starts", 32),
-              ("buffer_size", 1_000), ("target_update_interval", 64), ("checkpoint_every", 10_000), ("horizon", 2))
+              ("buffer_size", 1_000), ("target_update_interval", 64), ("checkpoint_every", 10_000), ("horizon_decisions", 2))
 PRESETS: dict[str, Preset] = {
     # Seconds: exercises every recipe and stage for the tests; the numbers mean nothing.
     "tiny": Preset(
@@ -143,7 +144,7 @@ PRESETS: dict[str, Preset] = {
         caps=_TINY_CAPS,
         val_episodes=4, val_seeds=(0,), test_episodes=4, oracle=True,
     ),
-    # make demo (about 10 minutes on 2 cores): the corpus and predictor at small budgets, the zoo's policies on
+    # make demo (minutes; the README says how long): the corpus and predictor at small budgets, the zoo's policies on
     # fresh held-out episodes, one quick recipe trained from scratch, a few episodes of the best zoo policy.
     "quick": Preset(
         name="quick", scenario="paper", corpus_episodes=6, corpus_steps=1000, predictor_epochs=20,

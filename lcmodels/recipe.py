@@ -34,15 +34,17 @@ evaluation and budget caps::
     timesteps = 150000             # more PPO steps with the [train] settings; the layer executes each decision
     penalty = 100.0                # raw reward per proposal not executed as proposed (a collision: 500)
 
-    [safety]                       # optional: also evaluate the final policy behind the lookahead planner
+    [safety]                       # optional: also evaluate the final policy behind the safety layer
     follow = "pure-ppo"            # the recipe whose policy the imagined futures follow
-    horizon = 32
+    horizon_decisions = 32
     samples = 3                    # redrawn futures per candidate decision
-    perceived = true
 
-The stage tables override ``[policy]`` for their stage (a ``shielded`` stage trains with ``[train]``'s).
-``--set policy.learning_rate=1e-4`` (or ``train.timesteps=...``, ``demos.episodes=...``) overrides a value on
-the command line. Whatever a recipe reached is recorded next to it (``<name>.reached.json``) by ``tools/publish_zoo.py``.
+The stage tables override ``[policy]`` for their stage (a ``shielded`` stage trains with ``[train]``'s); the
+``[safety]`` table is a :class:`lcsim.planning.SafetyLayerConfig` (blind and perceived unless it says otherwise;
+its older key ``horizon`` is read too). ``--set policy.learning_rate=1e-4`` (or ``train.timesteps=...``,
+``demos.episodes=...``, ``safety.samples=...``) overrides a value on the command line. The fields whose default
+follows the algorithm (``learning_rate``, ``n_steps``) are filled by :meth:`PolicyConfig.of
+<lcmodels.policy.config.PolicyConfig.of>` where the recipe leaves them out. Whatever a recipe reached is recorded next to it (``<name>.reached.json``) by ``tools/publish_zoo.py``.
 """
 
 from __future__ import annotations
@@ -56,7 +58,8 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, ClassVar
 
-from lcsim.config import parse_value, read_data_file
+from lckit.config import parse_value, read_data_file
+from lcsim.planning.safety import SafetyLayerConfig
 
 RECIPES_DIR = Path(__file__).parent / "recipes"
 STAGE_KINDS: tuple[str, ...] = ("clone", "dagger", "train", "shielded")
@@ -110,30 +113,6 @@ class DaggerSpec:
 
 
 @dataclass(frozen=True, slots=True, kw_only=True)
-class SafetySpec:
-    LIMITS: ClassVar[dict[str, int]] = {"horizon": 1_000, "samples": 1_000}
-
-    follow: str = ""
-    """The recipe whose final policy (same training seed) the planner's imagined futures follow: one that
-    does not read the image. '' with a policy that does not read the image: the policy itself."""
-    horizon: int = 16
-    """Decisions imagined after each candidate (16: 8 s)."""
-    samples: int = 1
-    perceived: bool = True
-    """Imagine from what the ego's sensors show (no privileged state)."""
-    driver_draws: bool = False
-    """Perceived, human-like traffic: each imagined future draws the unseen drivers from the traffic's
-    distribution instead of the median driver (with ``samples`` > 1: a share over plausible drivers)."""
-    estimate_drivers: bool = False
-    """Perceived, human-like traffic: each vehicle's car-following parameters, reaction time and desired speed
-    inferred from its motion while in sight, its imagined driver drawn from that estimate
-    (:class:`lcsim.planning.estimate.DriverEstimator`)."""
-    margin_m: float = 0.0
-    """The imagined ego this much longer at its front and back: a decision survives only with that much room
-    to spare (:class:`lcsim.planning.LookaheadConfig`)."""
-
-
-@dataclass(frozen=True, slots=True, kw_only=True)
 class ShieldedSpec:
     LIMITS: ClassVar[dict[str, float]] = {"timesteps": 1_000_000_000, "penalty": 1_000_000.0}
 
@@ -144,7 +123,7 @@ class ShieldedSpec:
     500)."""
 
 
-_SPECS: dict[str, type] = {"demos": DemoSpec, "dagger": DaggerSpec, "shielded": ShieldedSpec, "safety": SafetySpec}
+_SPECS: dict[str, type] = {"demos": DemoSpec, "dagger": DaggerSpec, "shielded": ShieldedSpec, "safety": SafetyLayerConfig}
 _STAGE_TABLES = ("clone", "train")
 
 
@@ -164,7 +143,8 @@ class Recipe:
     demos: DemoSpec = DemoSpec()
     dagger: DaggerSpec = DaggerSpec()
     shielded: ShieldedSpec = ShieldedSpec()
-    safety: SafetySpec | None = None
+    safety: SafetyLayerConfig | None = None
+    """The safety layer its final policy is also evaluated behind (and a ``shielded`` stage trains behind)."""
 
     def __post_init__(self) -> None:
         from lcmodels.presets import ROWS
@@ -219,8 +199,9 @@ class Recipe:
                              f"got {self.demos.driver!r}")  # fmt: skip
         if self.dagger.labels not in ("plan", "winning"):
             raise ValueError(f"{where}: dagger.labels must be plan or winning, got {self.dagger.labels!r}")
-        if self.safety is not None and not 0.0 <= self.safety.margin_m <= 10.0:
-            raise ValueError(f"{where}: safety.margin_m must be in [0, 10] metres, got {self.safety.margin_m!r}")
+        if self.safety is not None and not self.safety.blind:
+            raise ValueError(f"{where}: safety.blind must be true: a recipe's safety layer is one a car could have (the "
+                             "privileged layer, blind = false, is an upper reference for lc-eval)")  # fmt: skip
         if self.safety is not None and self.safety.follow and not _NAME.match(self.safety.follow):
             raise ValueError(f"{where}: safety.follow must name a recipe, got {self.safety.follow!r}")
         for stage in (s for s in stages if s != "dagger"):  # each training stage's PolicyConfig, paths stood in for
@@ -253,24 +234,25 @@ class Recipe:
                       eval_episodes: int = 200, eval_seed: int = 0, record_eval: bool = False,
                       caps: dict[str, int] | None = None) -> Any:  # fmt: skip
         """The :class:`~lcmodels.policy.config.PolicyConfig` of stage ``clone`` or ``train`` (a dagger stage
-        trains with its clone's); ``caps`` lower integer fields to at most the given values (the tiny and
-        quick presets' budgets)."""
-        from lcmodels.policy.config import PolicyConfig, default_learning_rate
+        trains with its clone's): its settings; for a stage that trains online, the fields whose default follows
+        the algorithm filled by :meth:`PolicyConfig.of <lcmodels.policy.config.PolicyConfig.of>` (fine-tuning when
+        it starts from a previous stage's policy); then ``caps``, which lower integer fields to at most the given
+        values (the tiny and quick presets' budgets)."""
+        from lcmodels.policy.config import PolicyConfig
 
         settings = self.stage_settings(stage)
         if stage in ("clone", "dagger"):
             settings["timesteps"] = 0
-        elif "learning_rate" not in settings:  # fine-tuning from a previous stage learns at the slower rate
-            settings["learning_rate"] = default_learning_rate(settings.get("algo", "ppo"), fine_tune=bool(init_policy))
         data = {**settings, "seed": seed, "scenario": scenario, "warm_start": warm_start if stage == "clone" else "",
                 "init_policy": init_policy if stage in ("train", "shielded") else "", "eval_episodes": eval_episodes,
                 "eval_seed": eval_seed, "record_eval": record_eval}  # fmt: skip
-        defaults = PolicyConfig()
-        for key, cap in (caps or {}).items():
-            current = data.get(key, getattr(defaults, key, None))
-            if isinstance(current, int) and not isinstance(current, bool) and current > cap:
-                data[key] = cap
-        return PolicyConfig.from_dict(data, stored=False)
+        if stage in ("clone", "dagger"):  # no online steps: the rate and rollout length go unused, left as stored
+            cfg = PolicyConfig.from_dict(data, stored=False)
+        else:
+            cfg = PolicyConfig.of(data, fine_tune=bool(init_policy))
+        lowered = {key: cap for key, cap in (caps or {}).items() if isinstance(current := getattr(cfg, key, None), int)
+                   and not isinstance(current, bool) and current > cap}  # fmt: skip
+        return dataclasses.replace(cfg, **lowered) if lowered else cfg
 
     def capped(self, caps: dict[str, int] | None) -> Recipe:
         """This recipe with its demonstrations, DAgger and safety budgets lowered to ``caps`` (policy fields
@@ -318,6 +300,9 @@ class Recipe:
                 table = kwargs[name]
                 if not isinstance(table, dict):
                     raise ValueError(f"{where}: [{name}] must be a table")
+                if spec_cls is SafetyLayerConfig:
+                    kwargs[name] = SafetyLayerConfig.from_table(table, where=f"{where}: [safety]")
+                    continue
                 names = {f.name for f in dataclasses.fields(spec_cls)}
                 bad = sorted(set(table) - names)
                 if bad:
@@ -338,18 +323,19 @@ class Recipe:
             raise ValueError(msg) from None
 
     def to_toml(self) -> str:
-        from lcsim.config import toml_text
+        from lckit.config import toml_text
 
         return toml_text(self.to_dict())
 
     def with_settings(self, settings: Sequence[str]) -> Recipe:
         """This recipe with ``TABLE.KEY=VALUE`` settings (``policy.learning_rate=1e-4``, ``train.timesteps=300000``,
-        ``demos.episodes=100``, ``safety.horizon=32``); values read as the field's type. ``ValueError`` naming
+        ``demos.episodes=100``, ``safety.horizon_decisions=32``); values read as the field's type. ``ValueError`` naming
         the setting for an unknown table or key or a bad value."""
         if not settings:
             return self
         data = self.to_dict()
         fields = _policy_fields()
+        safety: list[str] = []
         for text in settings:
             key, sep, value = text.partition("=")
             table, dot, name = key.strip().partition(".")
@@ -360,6 +346,8 @@ class Recipe:
                 if name not in fields:
                     raise ValueError(f"--set {text}: PolicyConfig has no field {name!r}")
                 data[table][name] = parse_value(value, None, f"--set {text}", fields[name])
+            elif table == "safety":  # applied together below (settings that must agree change at once)
+                safety.append(text)
             elif table in _SPECS:
                 spec_cls = _SPECS[table]
                 spec = getattr(self, table) or spec_cls()
@@ -371,6 +359,8 @@ class Recipe:
             else:
                 raise ValueError(f"--set {text}: no table {table!r} (tables: policy, clone, train, demos, dagger, "
                                  "shielded, safety)")  # fmt: skip
+        if safety:
+            data["safety"] = (self.safety or SafetyLayerConfig()).with_named_settings(safety).to_dict()
         return Recipe.from_dict(data, where=f"recipe {self.name!r} with --set {', '.join(settings)}")
 
 
@@ -407,7 +397,6 @@ __all__ = [
     "DaggerSpec",
     "DemoSpec",
     "Recipe",
-    "SafetySpec",
     "ShieldedSpec",
     "load_recipe",
     "recipe_names",

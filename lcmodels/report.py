@@ -17,6 +17,8 @@ from typing import Any
 
 import numpy as np
 
+from lcmodels.experiment.keys import StageKey
+from lcmodels.experiment.store import read_record
 from lcmodels.fileio import read_json
 from lcmodels.presets import (
     FIG5_NAME,
@@ -31,12 +33,10 @@ from lcmodels.presets import (
     ROWS,
     RULE_KEY,
     RULE_LABEL,
-    STAGES_DIR,
     TABLE3_ROWS,
     TABLE4_ROWS,
     Preset,
     StageResult,
-    policy_dir,
 )
 
 RATES = ("success", "collision", "timeout", "off_road")
@@ -86,9 +86,12 @@ def _add_eval(mr: MethodRuns, m: dict[str, Any] | None, seed: int) -> bool:
     return True
 
 
-def _stage_wall(out: Path, name: str) -> float:
-    rec = read_json(out / STAGES_DIR / (name.replace("/", "__") + ".json")) or {}
-    return float(rec.get("wall_s", 0.0))
+def _stage_wall(out: Path, key: StageKey) -> float:
+    return float((read_record(out, key) or {}).get("wall_s", 0.0))
+
+
+def _metrics(out: Path, key: StageKey) -> dict[str, Any] | None:
+    return read_json(key.path(out) / "metrics.json")
 
 
 def collect(out: Path, seeds: int, recipes: list[Any]) -> dict[str, MethodRuns]:
@@ -97,38 +100,42 @@ def collect(out: Path, seeds: int, recipes: list[Any]) -> dict[str, MethodRuns]:
     runs: dict[str, MethodRuns] = {}
     for key, label in ((RULE_KEY, RULE_LABEL), (ORACLE_KEY, ORACLE_LABEL)):
         ref = MethodRuns(key, label)
-        _add_eval(ref, read_json(out / key / "metrics.json"), 0)
+        _add_eval(ref, _metrics(out, StageKey.of(key)), 0)
         runs[key] = ref
     for r in recipes:
         mr = MethodRuns(r.name, r.label or ROWS[r.row], r.kind, r.row)
         safe = MethodRuns(f"{r.name}+safety", f"{r.label or ROWS[r.row]} behind the safety layer", r.kind, r.row)
         for s in range(seeds):
-            d = policy_dir(out, r.name, s)
-            if not _add_eval(mr, read_json(d / "eval" / "metrics.json"), s):
+            if not _add_eval(mr, _metrics(out, StageKey(r.name, s, "eval")), s):
                 continue
-            train = read_json(d / r.final_stage / "metrics.json") or {}
+            train = _metrics(out, StageKey(r.name, s, r.final_stage)) or {}
             mr.trains.append(train.get("train", {}))
-            mr.curves.append(read_progress(d / "train" / "progress.csv"))
-            mr.wall_s.append(sum(_stage_wall(out, f"{r.name}/seed{s}/{st}") for st in r.stages))
-            _add_eval(safe, read_json(d / "safety" / "metrics.json"), s)
+            mr.curves.append(read_progress(StageKey(r.name, s, "train").path(out) / "progress.csv"))
+            mr.wall_s.append(sum(_stage_wall(out, StageKey(r.name, s, st)) for st in r.stages))
+            _add_eval(safe, _metrics(out, StageKey(r.name, s, "safety")), s)
         runs[r.name] = mr
         if safe.evals:
             runs[safe.key] = safe
-    zoo = out / "zoo"
-    if zoo.is_dir():
+    if zoo_names(out):
         from lcmodels.zoo import zoo_dir
 
-        for d in sorted(zoo.iterdir()):
-            card = read_json(zoo_dir() / d.name / "zoo.json") or {}
+        for name in zoo_names(out):
+            card = read_json(zoo_dir() / name / "zoo.json") or {}
             commit = f" @ {card['commit']}" if card.get("commit") else ""
-            z = MethodRuns(f"zoo:{d.name}", f"shipped checkpoint{commit}", "zoo", str(card.get("row", "")), note=commit)
-            if _add_eval(z, read_json(d / "metrics.json"), 0):
+            z = MethodRuns(f"zoo:{name}", f"shipped checkpoint{commit}", "zoo", str(card.get("row", "")), note=commit)
+            if _add_eval(z, _metrics(out, StageKey.of("zoo", name)), 0):
                 runs[z.key] = z
             safe = MethodRuns(f"{z.key}+safety", f"shipped checkpoint{commit} behind the safety layer", "zoo",
                               z.row, note=commit)  # fmt: skip
-            if _add_eval(safe, read_json(out / "zoo-safety" / d.name / "metrics.json"), 0):
+            if _add_eval(safe, _metrics(out, StageKey.of("zoo-safety", name)), 0):
                 runs[safe.key] = safe
     return runs
+
+
+def zoo_names(out: Path) -> list[str]:
+    """The zoo entries the experiment in ``out`` evaluated (the folders of its ``zoo`` stages)."""
+    zoo = StageKey.of("zoo").path(out)
+    return sorted(d.name for d in zoo.iterdir() if d.is_dir()) if zoo.is_dir() else []
 
 
 # -------------------------------------------------------------------------------------------- formatting
@@ -226,9 +233,10 @@ def all_runs_table(runs: dict[str, MethodRuns]) -> str:
 
 
 def sealed_test_table(exp: ReportInput) -> str:
-    """The experiment's final policies (every recipe and training seed, the zoo entries it evaluated) and the
-    references as the ledger has them on the sealed test episodes of the paper's road: found by the policy's
-    weights, never run here (``lc-bench POLICY... --suite paper --final`` measures them)."""
+    """The experiment's final policies (the graph's final stages: every recipe and training seed; the zoo
+    entries it evaluated) and the references as the ledger has them on the sealed test episodes of the paper's
+    road: found by the policy's weights, never run here (``lc-bench POLICY... --suite paper --final`` measures
+    them)."""
     from lcmodels.bench.ledger import cell_key, find_entry, read_ledger
     from lcmodels.bench.run import policy_identity, scenario_sha256
     from lcmodels.fileio import POLICY_FILE
@@ -245,26 +253,24 @@ def sealed_test_table(exp: ReportInput) -> str:
     except ValueError as exc:
         return f"The ledger cannot be read: {exc}"
     found: list[tuple[str, dict[str, Any]]] = []
-    candidates = [(f"{r.name} seed {s}", policy_dir(exp.out, r.name, s) / r.final_stage / POLICY_FILE)
-                  for r in exp.recipes for s in range(exp.recipe_seeds.get(r.name, exp.seeds))]  # fmt: skip
-    zoo = exp.out / "zoo"
-    if zoo.is_dir():
-        candidates += [(f"zoo:{d.name}", zoo_dir() / d.name / POLICY_FILE) for d in sorted(zoo.iterdir())]
+    candidates = [(f"{k.recipe} seed {k.seed}", k.path(exp.out) / POLICY_FILE) for k in exp.finals]
+    zoo = zoo_names(exp.out)
+    candidates += [(f"zoo:{name}", zoo_dir() / name / POLICY_FILE) for name in zoo]
     for label, identity in ((RULE_LABEL, {"kind": "driver", "name": RULE_KEY}),
                             (ORACLE_LABEL, {"kind": "driver", "name": ORACLE_KEY})):  # fmt: skip
         entry = find_entry(entries, cell_key(identity, digest, seeds))
         if entry is not None:
             found.append((label, entry))
-    if zoo.is_dir():  # a zoo entry behind its safety layer, as its card describes it
+    if zoo:  # a zoo entry behind its safety layer, as its card describes it
         from lcmodels.bench.published import zoo_sealed
 
-        for d in sorted(zoo.iterdir()):
+        for name in zoo:
             try:
-                layer = zoo_sealed(d.name, entries)["safety_layer"]
+                layer = zoo_sealed(name, entries)["safety_layer"]
             except (ValueError, OSError):
                 continue
             if layer is not None:
-                found.append((f"zoo:{d.name} behind its safety layer", {**layer, "key": layer["ledger_key"]}))
+                found.append((f"zoo:{name} behind its safety layer", {**layer, "key": layer["ledger_key"]}))
     for label, path in candidates:
         if not path.is_file():
             continue
@@ -404,6 +410,9 @@ class ReportInput:
     """The :class:`lcmodels.recipe.Recipe` objects the experiment ran."""
     recipe_seeds: dict[str, int] = field(default_factory=dict)
     """Training seeds of each recipe (default ``seeds``)."""
+    finals: list[StageKey] = field(default_factory=list)
+    """The final training stage of every recipe and training seed (:meth:`StageGraph.finals`): the policies the
+    sealed test table looks up in the ledger."""
 
 
 def write_report(exp: ReportInput, *, wall_s: float) -> Path:

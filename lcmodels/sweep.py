@@ -28,9 +28,9 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
+from lckit.config import read_data_file
 from lcmodels.fileio import write_json
 from lcmodels.policy.config import PolicyConfig
-from lcsim.config import read_data_file
 
 SWEEP_JSON = "sweep.json"
 SWEEP_MD = "SWEEP.md"
@@ -117,7 +117,7 @@ def _trial(name: str, cfg_json: str, out: str, predictor: str | None, threads: i
 
 
 def _needs(cfg: PolicyConfig) -> bool:
-    from lcmodels.policy.obs import needs_predictor
+    from lcmodels.policy.names import needs_predictor
 
     return needs_predictor(cfg.obs)
 

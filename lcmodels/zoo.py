@@ -12,9 +12,12 @@ from __future__ import annotations
 import os
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 from lcmodels.fileio import POLICY_FILE, file_sha256, read_json
+
+if TYPE_CHECKING:
+    from lcsim.planning import SafetyLayerConfig
 
 ZOO_PREFIX = "zoo:"
 ENTRY_CARD = "zoo.json"
@@ -45,6 +48,17 @@ class ZooEntry:
     @property
     def weights_sha256(self) -> str:
         return weights_sha256(self.policy)
+
+    def safety_layer(self, follow: str = "") -> SafetyLayerConfig | None:
+        """The safety layer the card's figure behind the layer was measured with (its recorded driver's spelling
+        and settings), its imagined futures following ``follow``; None when the card has none."""
+        from lcsim.planning import safety_layer_of
+
+        config = (self.card.get("safety_layer") or {}).get("config") or {}
+        if not config.get("lookahead"):
+            return None
+        spelling = str(config.get("driver") or "safety-layer:policy")
+        return safety_layer_of(spelling, config["lookahead"], follow or None, where=f"zoo:{self.name}'s card")
 
 
 def weights_sha256(policy: str | os.PathLike[str]) -> str:
@@ -149,13 +163,15 @@ def check_episodes(policy: str | os.PathLike[str], *, seed: int, episodes: int =
 def final_policy(run: str | os.PathLike[str], recipe_name: str, seed: int) -> Path:
     """The policy file the last training stage of ``recipe_name`` (training seed ``seed``) of the
     ``lc-experiment`` directory ``run`` ended with; ``ValueError`` when it is missing."""
-    from lcmodels.presets import STAGES_DIR, StageResult, policy_dir, previous_policy
+    from lcmodels.experiment.keys import StageKey
+    from lcmodels.experiment.store import read_record
+    from lcmodels.presets import StageResult, previous_policy
     from lcmodels.recipe import load_recipe
 
     recipe = load_recipe(recipe_name)
-    final = policy_dir(Path(run), recipe.name, seed) / recipe.final_stage
-    rec = read_json(Path(run) / STAGES_DIR / f"{recipe.name}__seed{seed}__{recipe.final_stage}.json") or {}
-    policy = previous_policy(StageResult("final", "skipped", final, 0.0, outputs=rec.get("outputs", {})))
+    key = StageKey(recipe.name, seed, recipe.final_stage)
+    rec = read_record(run, key) or {}
+    policy = previous_policy(StageResult(key.name, "skipped", key.path(run), 0.0, outputs=rec.get("outputs", {})))
     if not policy.is_file():
         raise ValueError(f"{policy} does not exist: finish the experiment first")
     return policy
@@ -185,18 +201,18 @@ def experiment_card(run: str | os.PathLike[str], recipe_name: str, *, seed: int 
     ones (``heldout``: its *test* split, validation episodes in the benchmark's sense), the safety layer's when
     run, the experiment's command; the sealed test figures come from the ledger, ``tools/publish_ledger.py``), the policy file, and whether it reads predictions. ``ValueError``
     when the recipe's evaluation or its policy is missing."""
-    from lcmodels.presets import STAGES_DIR, policy_dir
+    from lcmodels.experiment.keys import StageKey
+    from lcmodels.experiment.store import read_record
     from lcmodels.recipe import load_recipe
 
     run = Path(run)
     recipe = load_recipe(recipe_name)
-    d = policy_dir(run, recipe.name, seed)
-    ev = read_json(d / "eval" / "metrics.json")
+    evaluation = StageKey(recipe.name, seed, "eval").path(run)
+    ev = read_json(evaluation / "metrics.json")
     if not ev or "test" not in ev:
-        raise ValueError(f"{d / 'eval'} holds no evaluation: finish the experiment first")
+        raise ValueError(f"{evaluation} holds no evaluation: finish the experiment first")
     policy = final_policy(run, recipe_name, seed)
-    walls = [float((read_json(run / STAGES_DIR / f"{recipe.name}__seed{seed}__{st}.json") or {}).get("wall_s", 0.0))
-             for st in recipe.stages]  # fmt: skip
+    walls = [float((read_record(run, StageKey(recipe.name, seed, st)) or {}).get("wall_s", 0.0)) for st in recipe.stages]
     meta = read_json(policy.parent / "policy.card.json") or {}
     needs = str(meta.get("obs_mode", "")) in ("prediction", "hybrid")
     experiment = read_json(run / "experiment.json") or {}
@@ -206,7 +222,7 @@ def experiment_card(run: str | os.PathLike[str], recipe_name: str, *, seed: int 
                 "timeout_rate", "mean_return", "planner_overrides", "planner_choices")
         return {k: summary[k] for k in keep if k in summary}
 
-    safety = read_json(d / "safety" / "metrics.json")
+    safety = read_json(StageKey(recipe.name, seed, "safety").path(run) / "metrics.json")
     follow = None
     if safety and "test" in safety and recipe.safety is not None and recipe.safety.follow:
         # the policy the layer's imagined futures followed: the zoo must ship the same one for the figure to hold
@@ -239,7 +255,7 @@ def publish_from_experiment(run: str | os.PathLike[str], recipe_name: str, *, se
 
 
 def resolve_policy_spec(spec: str) -> tuple[str, str | None]:
-    """``(spec, predictor)`` with a ``zoo:NAME`` part (also after ``lookahead:``-style prefixes) replaced by the
+    """``(spec, predictor)`` with a ``zoo:NAME`` part (also after a prefix such as ``safety-layer:``) replaced by the
     entry's policy file, and the zoo's predictor when that policy reads predictions (else None)."""
     prefix, sep, rest = spec.partition(":")
     if spec.startswith(ZOO_PREFIX):

@@ -16,8 +16,8 @@ from typing import Protocol
 
 import numpy as np
 
+from lckit.config import require_non_negative, require_positive
 from lcsim import kernel
-from lcsim.config import require_non_negative, require_positive
 from lcsim.core import KEEP, LaneChangeCore
 
 

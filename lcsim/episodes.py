@@ -80,32 +80,38 @@ def run_episodes(driver: Callable[..., np.ndarray], config: ScenarioConfig, user
         core = LaneChangeCore(config, e, autopilot_ego=autopilot_ego)
         seeds = [episode_seed(u) for u in chunk]
         core.reset(np.arange(e), seeds)
-        ret, fwd, decisions = np.zeros(e), np.zeros(e), np.zeros(e, dtype=np.int64)
+        ret, fwd, decisions = [0.0] * e, [0.0] * e, [0] * e  # (Python floats add as float64 does, with less fuss)
         started: list[EpisodeHook] = []
         failed = True
         try:
             for hook in hooks:
                 hook.start(core, chunk, driver)
                 started.append(hook)
-            while (core.outcome == RUNNING).any():
-                running = core.outcome == RUNNING
+            running = core.outcome == RUNNING
+            live = running.tolist()
+            while any(live):
                 obs = core.observe()
                 mask = core.action_mask()
                 actions = np.asarray(driver(obs, mask, core), dtype=np.int64).reshape(e)
                 for hook in hooks:
                     hook.before_step(core, obs, mask, actions, running)
                 res = core.step(actions)
-                ret += np.where(running, res.reward, 0.0)
-                fwd += np.where(running, res.components["forward"], 0.0)
-                decisions += running
+                rewards, forward = res.reward.tolist(), res.components["forward"].tolist()
+                for i in range(e):  # (ended episodes add nothing)
+                    if live[i]:
+                        ret[i] += rewards[i]
+                        fwd[i] += forward[i]
+                        decisions[i] += 1
                 for hook in hooks:
                     hook.after_step(core, res, running)
+                running = core.outcome == RUNNING
+                live = running.tolist()
             failed = False
         finally:
             for hook in started:
                 hook.end(core, failed)
-        results += [EpisodeResult(chunk[i], int(seeds[i]), str(core.outcome[i]), float(ret[i]), float(fwd[i]),
-                                  int(decisions[i])) for i in range(e)]
+        results += [EpisodeResult(chunk[i], int(seeds[i]), str(core.outcome[i]), ret[i], fwd[i], decisions[i])
+                    for i in range(e)]
         if progress is not None:
             progress(len(results), len(user_seeds))
     return results

@@ -719,17 +719,41 @@ def advance(steps, stop_on_event, p, ip, vf, vi, vb, ef, ei, eb, keys, hist, his
     the call; each advances by ``steps``. Nothing outside those environments' own state is read or written, so
     threads may advance disjoint ranges of one batch at the same time (the Python lock is released).
     """
+    _advance(steps, stop_on_event, p, ip, vf, vi, vb, ef, ei, eb, keys, hist, hist_ptr, pid_err, pid_count, pid_ptr,
+             np.empty((0, 0, 0)), np.empty(0, dtype=np.int64), e0, e1)
+
+
+@njit(cache=True, nogil=True)
+def advance_logged(steps, stop_on_event, p, ip, vf, vi, vb, ef, ei, eb, keys, hist, hist_ptr, pid_err, pid_count,
+                   pid_ptr, log, log_count, e0, e1):
+    """:func:`advance`, and a row of the step log (:func:`log_state`) of every step each environment runs.
+
+    ``log`` ``(E, S, log_width(N))`` with ``S >= steps``: environment e's steps go to ``log[e, :log_count[e]]``
+    (an environment frozen before a step logs nothing for it).
+    """
+    _advance(steps, stop_on_event, p, ip, vf, vi, vb, ef, ei, eb, keys, hist, hist_ptr, pid_err, pid_count, pid_ptr,
+             log, log_count, e0, e1)
+
+
+@njit(cache=True)
+def _advance(steps, stop_on_event, p, ip, vf, vi, vb, ef, ei, eb, keys, hist, hist_ptr, pid_err, pid_count, pid_ptr,
+             log, log_count, e0, e1):
     n = vf.shape[2]
     h, w = hist.shape[1], pid_err.shape[1]
     new = np.empty((5, n))
     scratch = np.empty(max(ip[NUM_LANES], 1), dtype=np.int64)
     route = p[ROUTE]
+    logging = log.shape[0] > 0
     for e in range(e0, e1):
         frozen = eb[FROZEN, e]
+        logged = 0
         for s in range(steps):
             if not frozen:
                 _substep_env(e, p, ip, vf, vi, vb, ef, ei, eb, keys, pid_err, pid_count, (pid_ptr + s) % w, new,
                              scratch)
+                if logging:
+                    log_state(e, ip, vf, vi, vb, ef, ei, eb, log[e, logged])
+                    logged += 1
                 if stop_on_event and (ei[COLLISION_WITH, e] >= 0 or eb[OFF_ROAD, e] or vf[X, e, 0] >= route):
                     frozen = True
                     eb[FROZEN, e] = True
@@ -738,6 +762,52 @@ def advance(steps, stop_on_event, p, ip, vf, vi, vb, ef, ei, eb, keys, hist, his
                 hist[e, slot, v, 0] = vf[X, e, v]
                 hist[e, slot, v, 1] = vf[Y, e, v]
             ei[HIST_COUNT, e] += 1
+        if logging:
+            log_count[e] = logged
+
+
+# ------------------------------------------------------------------------------------------------------ step log
+# What a recorder keeps of a simulation step of one environment (lcdata.record), as one float64 row: these
+# scalars (integers and booleans exactly), then x, y, yaw, speed, accel, lane and target_lane of the N vehicles
+# (LOG_VEHICLE_ROWS, N values each). ``lc_active`` is the ego's lane change in progress (its autopilot's when the
+# autopilot drives it).
+LOG_NAMES = ("step", "t_s", "speed", "lane", "collision_with", "lane_invasion", "off_road", "steer", "throttle",
+             "brake", "lc_active")
+LOG_VEHICLE_ROWS = ("x", "y", "yaw", "speed", "accel", "lane", "target_lane")
+(LOG_STEP, LOG_T, LOG_SPEED, LOG_LANE, LOG_COLLISION, LOG_INVASION, LOG_OFF_ROAD, LOG_STEER, LOG_THROTTLE, LOG_BRAKE,
+ LOG_LC_ACTIVE) = range(len(LOG_NAMES))
+LOG_HEAD = len(LOG_NAMES)
+
+
+def log_width(num_vehicles: int) -> int:
+    """The length of a step log row for N vehicles."""
+    return LOG_HEAD + len(LOG_VEHICLE_ROWS) * num_vehicles
+
+
+@njit(cache=True)
+def log_state(e, ip, vf, vi, vb, ef, ei, eb, out):
+    """Write environment ``e``'s present state into the step log row ``out`` (:data:`LOG_NAMES`)."""
+    n = vf.shape[2]
+    out[0] = ei[STEP, e]
+    out[1] = ef[T_S, e]
+    out[2] = vf[SPEED, e, 0]
+    out[3] = vi[LANE, e, 0]
+    out[4] = ei[COLLISION_WITH, e]
+    out[5] = ei[LANE_INVASION, e]
+    out[6] = eb[OFF_ROAD, e]
+    out[7] = ef[STEER, e]
+    out[8] = ef[THROTTLE, e]
+    out[9] = ef[BRAKE, e]
+    out[10] = vb[LC_ACTIVE, e, 0] if ip[AUTOPILOT_EGO] else eb[EGO_LC_ACTIVE, e]
+    at = LOG_HEAD
+    for row in (X, Y, YAW, SPEED, ACCEL):
+        for v in range(n):
+            out[at + v] = vf[row, e, v]
+        at += n
+    for row in (LANE, TARGET):
+        for v in range(n):
+            out[at + v] = vi[row, e, v]
+        at += n
 
 
 # --------------------------------------------------------------------------------------------------- observation

@@ -10,7 +10,8 @@ fields keep their defaults; a misspelt one is an error naming it)::
     num_vehicles = 60
 
 Drivers: :data:`DRIVER_NAMES` for :func:`make_driver`, and the policy specs (``policy:PATH``,
-``lookahead:PATH``, ``lookahead-blind:PATH``) that :mod:`lcmodels` builds.
+``safety-layer:PATH`` and its older spellings ``lookahead:PATH``, ``lookahead-blind:PATH``) that :mod:`lcmodels`
+builds.
 """
 
 from __future__ import annotations
@@ -18,16 +19,16 @@ from __future__ import annotations
 from collections.abc import Callable
 from pathlib import Path
 
+from lckit.config import read_data_file
 from lcsim.config import (
     ScenarioConfig,
     corpus_scenario,
     light_scenario,
     paper_scenario,
-    read_data_file,
     tiny_scenario,
 )
 from lcsim.drivers import Driver, KeepLaneDriver, RandomDriver, RuleBasedDriver
-from lcsim.planning import LookaheadConfig, LookaheadDriver, OracleDriver
+from lcsim.planning import PRIVILEGED, LookaheadDriver, OracleDriver, SafetyLayerConfig
 from lcsim.suite import SUITE_SCENARIOS
 
 SCENARIOS: dict[str, Callable[[], ScenarioConfig]] = {
@@ -72,17 +73,18 @@ def scenario_label(name_or_file: str | Path) -> str:
 
 _FACTORIES: dict[str, Callable[[int], Driver]] = {
     "rule": lambda seed: RuleBasedDriver(),
-    "lookahead": lambda seed: LookaheadDriver(),
-    "lookahead-blind": lambda seed: LookaheadDriver(LookaheadConfig(blind=True)),
+    "lookahead": lambda seed: LookaheadDriver(PRIVILEGED),  # the rule-based driver behind a privileged layer
+    "lookahead-blind": lambda seed: LookaheadDriver(SafetyLayerConfig(perceived=False)),  # and behind a blind one
     "oracle": lambda seed: OracleDriver(),
     "keep": lambda seed: KeepLaneDriver(),
     "random": RandomDriver,
 }
 DRIVER_NAMES = tuple(_FACTORIES)
 """Names :func:`make_driver` accepts."""
-POLICY_PREFIXES = ("policy:", "lookahead:", "lookahead-blind:")
-"""Prefixes of a driver spec that name a policy checkpoint: the policy itself, or the lookahead (blind or not)
-following it (built in lcmodels, which loads policies)."""
+POLICY_PREFIXES = ("policy:", "safety-layer:", "lookahead:", "lookahead-blind:")
+"""Prefixes of a driver spec that name a policy checkpoint: the policy itself, or the policy behind the safety
+layer (:mod:`lcsim.planning.safety`; ``lookahead:`` and ``lookahead-blind:`` are older spellings of it), built in
+lcmodels, which loads policies."""
 
 
 def split_policy_spec(spec: str) -> tuple[str, str] | None:

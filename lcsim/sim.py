@@ -37,6 +37,12 @@ _OWN_ROWS = tuple((block, row, name) for block, names in _BLOCKS for row, name i
 _VEHICLE_BLOCKS = ("vf", "vi", "vb")
 
 SubstepHook = Callable[["HighwaySim"], None]
+StepLogHook = Callable[["HighwaySim", np.ndarray, np.ndarray], None]
+
+LOG_STEPS = 64
+"""Most simulation steps one compiled call logs (:attr:`HighwaySim.log_hooks`); a longer advance is split."""
+_NO_LOG = np.zeros((0, 0, 0))
+_NO_LOG.flags.writeable = False
 
 
 def _state_property(name: str) -> property:
@@ -113,6 +119,10 @@ class HighwaySim:
         self.hist_ptr = 0
         # Called after every substep. The state arrays are updated in place: a hook that keeps values copies them.
         self.hooks: list[SubstepHook] = []
+        # Called with the step log after every compiled call that ran steps (see advance).
+        self.log_hooks: list[StepLogHook] = []
+        self._log = self._log_spare = _NO_LOG
+        self._log_count = np.zeros(e, dtype=np.int64)
 
     def _bind(self) -> None:
         """Bind the named views of the blocks (after they were made, copied or replaced)."""
@@ -127,6 +137,7 @@ class HighwaySim:
         for _block, _row, name in _OWN_ROWS:
             del state["_" + name]
         del state["drivers"], state["index"]
+        state["_log"] = state["_log_spare"] = _NO_LOG  # (the step logs are scratch: a copy makes its own)
         return state
 
     def __setstate__(self, state: dict[str, Any]) -> None:
@@ -166,7 +177,8 @@ class HighwaySim:
         for name in ("vf", "vi", "vb", "ef", "ei", "eb", "keys"):
             state[name] = np.ascontiguousarray(state[name][:, rows])
         state["hist"] = self.hist[rows]
-        state["num_envs"], state["hooks"] = len(rows), []
+        state["num_envs"], state["hooks"], state["log_hooks"] = len(rows), [], []
+        state["_log_count"] = np.zeros(len(rows), dtype=np.int64)
         pid = object.__new__(PIDBank)
         pid.__dict__.update(self.pid.__dict__)
         pid.errors, pid.count = self.pid.errors[rows], self.pid.count[rows]
@@ -222,38 +234,66 @@ class HighwaySim:
     # ----------------------------------------------------------------- physics
     def substep(self) -> None:
         """Advance every environment by one simulation step (frozen environments stay as they are), then call the
-        hooks."""
-        self._advance(1, False)
+        log hooks and the hooks."""
+        self._advance(1, False, bool(self.log_hooks))
+        if self.log_hooks:
+            self._call_log_hooks()
         for hook in self.hooks:
             hook(self)
 
     def advance(self, steps: int, *, stop_on_event: bool = False,
                 then: Callable[[int, int], None] | None = None) -> None:
-        """Advance every environment by ``steps`` simulation steps in one compiled call (frozen ones stay).
+        """Advance every environment not frozen by ``steps`` simulation steps in one compiled call.
 
         With ``stop_on_event``, an environment whose ego touches a vehicle, leaves the road or passes the route's
         end is frozen from there (``frozen`` is set) for the rest of the steps. With hooks attached, the steps run
-        one by one, each followed by the hooks (and the events are checked the same way). ``then(e0, e1)`` is
-        called for each shard of environments as soon as it has advanced, on the thread that advanced it (with the
-        ring pointers already moved on): a reader of those environments' state, such as the observation.
-        """
-        if not self.hooks:
-            self._advance(steps, stop_on_event, then)
-            return
-        for _ in range(steps):  # (the hooks see the event's step before it freezes the environment)
-            self.substep()
-            if stop_on_event:
-                self.frozen |= (self.collision_with >= 0) | self.off_road | (self.x[:, 0] >= self.config.route_length_m)
-        if then is not None:
-            then(0, self.num_envs)
+        one by one, each followed by the hooks (and the events are checked the same way).
 
-    def _advance(self, steps: int, stop_on_event: bool, then: Callable[[int, int], None] | None = None) -> None:
+        Log hooks (:attr:`log_hooks`, ``hook(sim, log, counts)``) see the steps without a Python call per step: the
+        compiled call (at most :data:`LOG_STEPS` steps) writes a row per environment and step it ran into ``log``
+        ``(E, S, kernel.log_width(N))`` float64 (:func:`lcsim.kernel.log_state`), environment e's in
+        ``log[e, :counts[e]]``. Two logs take turns: the rows stay as they are until the hooks of the next call
+        return (a hook may hold on to them until then); ``counts`` is the next call's.
+
+        ``then(e0, e1)``, a reader of environments ``e0 .. e1 - 1`` (the observation), is called for every shard of
+        environments once all the steps are done: without hooks, by the thread that advanced the shard, as soon as
+        it has (with the ring pointers already moved on); with hooks, after the last hooks.
+        """
+        if not self.hooks and not self.log_hooks:
+            self._advance(steps, stop_on_event, then=then)
+            return
+        if not self.hooks:
+            for start in range(0, steps, LOG_STEPS):
+                self._advance(min(steps - start, LOG_STEPS), stop_on_event, True)
+                self._call_log_hooks()
+        else:
+            for _ in range(steps):  # (the hooks see the event's step before it freezes the environment)
+                self.substep()
+                if stop_on_event:
+                    self.frozen |= ((self.collision_with >= 0) | self.off_road
+                                    | (self.x[:, 0] >= self.config.route_length_m))
+        if then is not None:
+            run_shards(then, self.num_envs, self.shards)
+
+    def _advance(self, steps: int, stop_on_event: bool, logged: bool = False,
+                 then: Callable[[int, int], None] | None = None) -> None:
         pid = self.pid
         hist_ptr, pid_ptr = self.hist_ptr, pid.ptr
+        log = _NO_LOG
+        if logged:  # two logs in turn: a hook may hold on to the rows of a call until the next call's hooks run
+            self._log, log = self._log_spare, self._log
+            if log.shape[0] != self.num_envs or log.shape[1] < steps:  # (as many steps as the longest call so far)
+                log = np.zeros((self.num_envs, steps, K.log_width(self.num_vehicles)))
+            self._log_spare = log
 
         def shard(e0: int, e1: int) -> None:
-            K.advance(steps, stop_on_event, self.params, self.iparams, self.vf, self.vi, self.vb, self.ef, self.ei,
-                      self.eb, self.keys, self.hist, hist_ptr, pid.errors, pid.count, pid_ptr, e0, e1)
+            if logged:
+                K.advance_logged(steps, stop_on_event, self.params, self.iparams, self.vf, self.vi, self.vb, self.ef,
+                                 self.ei, self.eb, self.keys, self.hist, hist_ptr, pid.errors, pid.count, pid_ptr,
+                                 log, self._log_count, e0, e1)  # fmt: skip
+            else:
+                K.advance(steps, stop_on_event, self.params, self.iparams, self.vf, self.vi, self.vb, self.ef, self.ei,
+                          self.eb, self.keys, self.hist, hist_ptr, pid.errors, pid.count, pid_ptr, e0, e1)
             if then is not None:
                 then(e0, e1)
 
@@ -265,6 +305,18 @@ class HighwaySim:
         except BaseException:
             self.hist_ptr, pid.ptr = hist_ptr, pid_ptr
             raise
+
+    def _call_log_hooks(self) -> None:
+        log, counts = self._log_spare, self._log_count
+        for hook in tuple(self.log_hooks):
+            hook(self, log, counts)
+
+    def log_row(self, env: int) -> np.ndarray:
+        """Environment ``env``'s present state as a step log row (what :attr:`log_hooks` get for each step), e.g. the
+        state after a reset."""
+        row = np.zeros(K.log_width(self.num_vehicles))
+        K.log_state(env, self.iparams, self.vf, self.vi, self.vb, self.ef, self.ei, self.eb, row)
+        return row
 
     @property
     def shards(self) -> int:

@@ -64,16 +64,6 @@ class DriverParams:
             getattr(self, name)[...] = np.where(mask, getattr(other, name), getattr(self, name))
 
 
-def driver_fields(names: tuple[str, ...] | list[str], what: str = "") -> tuple[str, ...]:
-    """``names`` as a tuple, each a :class:`DriverParams` field; ``ValueError`` naming the first that is not (and
-    ``what`` holds them)."""
-    bad = [n for n in names if n not in DriverParams.__slots__]
-    if bad:
-        raise ValueError(f"{what + ': ' if what else ''}{bad[0]!r} is not a driver parameter "
-                         f"(one of {', '.join(DriverParams.__slots__)})")
-    return tuple(names)
-
-
 def idm_accel(v: np.ndarray, v0: np.ndarray, gap: np.ndarray, dv: np.ndarray, cfg: TrafficConfig,
               drivers: DriverParams | None = None) -> np.ndarray:
     """Intelligent Driver Model acceleration (m/s^2), clipped to [-max_decel, max_accel]: the simulator's own

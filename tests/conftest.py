@@ -81,17 +81,31 @@ EVAL_KEYS = {"success_rate", "collision_rate", "off_road_rate", "timeout_rate", 
 
 
 class CountingPool:
-    """A shard pool that counts the shards given to it (the real processes run them)."""
+    """A shard pool that counts what is given to it (``submitted``) and the evaluation shards among it
+    (``shards``); the real processes run them."""
 
     def __init__(self, pool) -> None:
-        self.pool, self.submitted = pool, 0
+        self.pool, self.submitted, self.shards = pool, 0, 0
+
+    def map(self, fn, jobs, **kwargs):
+        jobs = list(jobs)
+        self.submitted += len(jobs)
+        self.shards += len(jobs) if getattr(fn, "__name__", "") == "_evaluate_shard" else 0
+        return self.pool.map(fn, jobs, **kwargs)
 
     def submit(self, *args, **kwargs):
         self.submitted += 1
+        self.shards += getattr(args[0], "__name__", "") == "_evaluate_shard"  # not other work given to the pool
         return self.pool.submit(*args, **kwargs)
 
-    def shutdown(self, *args, **kwargs) -> None:
-        self.pool.shutdown(*args, **kwargs)
+    def close(self, **kwargs) -> None:
+        self.pool.close(**kwargs)
+
+    def __enter__(self) -> CountingPool:
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self.pool.__exit__(*exc)
 
 
 @pytest.fixture

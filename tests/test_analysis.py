@@ -57,3 +57,18 @@ def test_lc_eval_breakdown_and_bound(tmp_path, capsys):
         assert eval_main([*argv, "--episodes", "1", "--no-record"]) == 2, argv
         err = capsys.readouterr().err
         assert err.startswith("lc-eval: error:") and len(err.strip().splitlines()) == 1, err
+
+
+def test_the_bound_searched_in_processes_gives_the_rows_of_one_process():
+    from lcmodels.analysis import oracle_bound
+    from lcsim.registry import scenario
+
+    config, seeds = scenario("tiny"), [3, 4, 5]
+    shown: list[tuple[int, int]] = []
+    (one, rows1), (two, rows2) = (oracle_bound(config, seeds, workers=w, progress=lambda k, n: shown.append((k, n)))
+                                  for w in (1, 2))
+    drop = {"cpu_s"}
+    assert [{k: v for k, v in r.items() if k not in drop} for r in rows1] == \
+           [{k: v for k, v in r.items() if k not in drop} for r in rows2]
+    assert one["winnable"] == two["winnable"] and two["workers"] == 2
+    assert shown == [(k, 3) for k in (1, 2, 3)] * 2

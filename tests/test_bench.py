@@ -17,6 +17,7 @@ from lcmodels.policy.evaluate import eval_user_seeds
 from lcsim import suite as suite_mod
 from lcsim.config import tiny_scenario
 from lcsim.envs import observation_space
+from lcsim.planning import SafetyLayerConfig, safety_layer_of
 from lcsim.registry import scenario
 from lcsim.suite import (
     MAX_VALIDATION_SEED,
@@ -193,7 +194,8 @@ def test_lc_bench_list_and_errors(capsys):
     assert all(name in out for name in SUITES["highway"]) and "sealed test episodes" in out
     for argv, message in ((["rule", "--suite", "nope"], "unknown suite"), ([], "at least one POLICY"),
                           (["rule", "--scenario", "nope"], "unknown suite scenario"),
-                          (["rule", "--lookahead-horizon", "4"], "lookahead")):
+                          (["rule", "--lookahead-horizon", "4"], "safety layer"),
+                          (["zoo:pure-ppo", "--follow", "rule"], "safety layer")):
         assert bench_main(argv) == 2
         err = capsys.readouterr().err.strip()
         assert message in err and len(err.splitlines()) == 1, err
@@ -205,13 +207,21 @@ def test_keys_capture_what_changes_the_driving_and_nothing_else():
     def key(spec, **kw):
         return resolve_driver(spec, **kw).identity
 
-    base = key("lookahead-blind:zoo:pure-ppo", lookahead={})
-    assert key("lookahead-blind:zoo:pure-ppo", lookahead={"horizon_decisions": 16}) == base  # the default, spelt out
-    assert key("lookahead-blind:zoo:pure-ppo", lookahead={"horizon_decisions": 32}) != base
-    assert key("lookahead-blind:zoo:pure-ppo", lookahead={"margin_m": 1}) == key(
-        "lookahead-blind:zoo:pure-ppo", lookahead={"margin_m": 1.0})  # fmt: skip
-    assert key("lookahead-blind:zoo:pure-ppo", follow="rule") != base
+    def layer(spec, table=None, follow=None):
+        return key(spec, safety=safety_layer_of(spec, table, follow))
+
+    base = key("lookahead-blind:zoo:pure-ppo")
+    assert layer("lookahead-blind:zoo:pure-ppo", {"horizon_decisions": 16}) == base  # the default, spelt out
+    assert layer("lookahead-blind:zoo:pure-ppo", {"horizon_decisions": 32}) != base
+    assert layer("lookahead-blind:zoo:pure-ppo", follow="rule") != base
     assert key("lookahead:zoo:pure-ppo") != base  # not blind
+    # today's spelling: the same layer, the same key
+    assert key("safety-layer:zoo:pure-ppo", safety=SafetyLayerConfig(perceived=False)) == base
+    assert layer("safety-layer:zoo:pure-ppo", {"perceived": False, "samples": 1}) == base
+    assert key("safety-layer:zoo:pure-ppo") == layer("lookahead-blind:zoo:pure-ppo", {"perceived": True})
+    assert key("safety-layer:rule", safety=SafetyLayerConfig(perceived=False)) == key("lookahead-blind")
+    with pytest.raises(ValueError, match="apply to a driver behind it"):
+        key("zoo:pure-ppo", safety=SafetyLayerConfig())
     # the same weights wherever the file lies: the zoo's copy is the experiment's policy
     assert key("zoo:pure-ppo") == key(str(ROOT / "docs/results/paper-best/policies/pure-ppo/seed1/train/policy.safetensors"))
     assert key("zoo:pure-ppo") != key("zoo:pure-ppo-dagger")

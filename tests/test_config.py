@@ -97,7 +97,7 @@ def test_the_shipped_scenarios_are_within_the_bounds():
 
 @pytest.mark.parametrize("suffix", [".toml", ".json"])
 def test_a_deeply_nested_file_is_one_line_not_a_recursion_error(tmp_path, suffix):
-    from lcsim.config import read_data_file
+    from lckit.config import read_data_file
     from lcsim.registry import scenario
 
     deep = "[" * 5000 + "]" * 5000
@@ -112,7 +112,7 @@ def test_a_deeply_nested_file_is_one_line_not_a_recursion_error(tmp_path, suffix
 
 
 def test_a_data_file_larger_than_any_config_is_refused_before_it_is_read(tmp_path):
-    from lcsim.config import DATA_FILE_MAX_BYTES, read_data_file
+    from lckit.config import DATA_FILE_MAX_BYTES, read_data_file
 
     path = tmp_path / "huge.toml"
     with open(path, "wb") as f:  # sparse: nothing is written to the disk

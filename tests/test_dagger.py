@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import json
 from pathlib import Path
 
 import numpy as np
@@ -18,6 +19,7 @@ from lcmodels.policy.evaluate import PolicyDriver
 from lcmodels.policy.obs import scenario_for_mode
 from lcsim.config import tiny_scenario
 from lcsim.core import KEEP, RUNNING, LaneChangeCore
+from lcsim.planning import SafetyLayerConfig
 
 from .conftest import tiny_policy
 
@@ -48,6 +50,11 @@ def test_dagger_round_labels_the_policys_states_with_the_oracle_and_saves_a_load
     assert set(records[0]["eval"]) >= {"success_rate", "collision_rate"}
     loaded = load_policy(tmp_path / "dg" / "round1" / "policy.safetensors")
     assert loaded.meta["dagger"]["round"] == 1
+    cut = dagger(tmp_path / "bc", tmp_path / "dg-workers", rounds=1, episodes=2, epochs=1, seed=7, workers=2,
+                 eval_episodes=0)  # the episodes collected in two processes: the same states, in the same order
+    assert cut[0]["states_labelled"] == records[0]["states_labelled"]
+    with np.load(tmp_path / "dg" / "round1" / "states.npz") as a, np.load(tmp_path / "dg-workers" / "round1" / "states.npz") as b:
+        assert np.array_equal(a["labels"], b["labels"]) and np.array_equal(a["current"], b["current"])
     with pytest.raises(FileExistsError):
         dagger(tmp_path / "bc", tmp_path / "dg", rounds=1, episodes=1, epochs=1)
     # the demonstrations moved (a published experiment resumed elsewhere): named, they are found; else one line
@@ -132,17 +139,23 @@ def test_dagger_with_a_driver_as_the_expert_labels_every_state_with_its_decision
     with pytest.raises(ValueError, match="there, oracle asked"):
         dagger(tmp_path / "run", tmp_path / "dg", rounds=2, episodes=3, epochs=1, seed=7, workers=1,
                eval_episodes=0, resume=True)  # fmt: skip
-    with pytest.raises(ValueError, match=r"expert's lookahead: \{\} there"):
+    short_layer = SafetyLayerConfig(horizon_decisions=2, perceived=False)  # what lookahead-blind: means, 1 s
+    with pytest.raises(ValueError, match=r"expert's safety layer: .*horizon_decisions': 16.* there"):
         dagger(tmp_path / "run", tmp_path / "dg", rounds=2, episodes=3, epochs=1, seed=7, workers=1,
-               eval_episodes=0, expert=expert, expert_lookahead={"horizon_decisions": 2}, resume=True)  # fmt: skip
-    for bad, what in (({"expert": "oracle", "expert_lookahead": {"horizon_decisions": 2}}, "lookahead expert only"),
-                      ({"expert": f"lookahead:{policy}", "expert_lookahead": {"samples": 2}}, "samples")):
-        with pytest.raises(ValueError, match=what):
-            dagger(tmp_path / "run", tmp_path / "bad", rounds=1, episodes=3, epochs=1, seed=7, workers=1,
-                   eval_episodes=0, **bad)  # fmt: skip
-    short = collect_from_driver(policy, [7, 8, 9], expert, batch=3, lookahead={"horizon_decisions": 2})
+               eval_episodes=0, expert=expert, expert_safety=short_layer, resume=True)  # fmt: skip
+    with pytest.raises(ValueError, match="apply to an expert behind it"):
+        dagger(tmp_path / "run", tmp_path / "bad", rounds=1, episodes=3, epochs=1, seed=7, workers=1,
+               eval_episodes=0, expert="oracle", expert_safety=short_layer)  # fmt: skip
+    short = collect_from_driver(policy, [7, 8, 9], expert, batch=3, safety=short_layer)
     records = dagger(tmp_path / "run", tmp_path / "dg-short", rounds=1, episodes=3, epochs=1, seed=7, workers=1,
-                     eval_episodes=0, expert=expert, expert_lookahead={"horizon_decisions": 2})  # fmt: skip
-    assert records[0]["expert_lookahead"] == {"horizon_decisions": 2}
+                     eval_episodes=0, expert=expert, expert_safety=short_layer)  # fmt: skip
+    assert records[0]["expert_safety_layer"] == short_layer.to_dict()
+    # rounds recorded before the one config (the expert's settings as given then) resume with the same layer
+    book = json.loads((tmp_path / "dg-short" / "dagger.json").read_text())
+    del book["rounds"][0]["expert_safety_layer"]
+    book["rounds"][0]["expert_lookahead"] = {"horizon_decisions": 2}
+    (tmp_path / "dg-short" / "dagger.json").write_text(json.dumps(book))
+    assert len(dagger(tmp_path / "run", tmp_path / "dg-short", rounds=1, episodes=3, epochs=1, seed=7, workers=1,
+                      eval_episodes=0, expert=expert, expert_safety=short_layer, resume=True)) == 1  # fmt: skip
     with np.load(tmp_path / "dg-short" / "round1" / "states.npz") as kept:
         assert np.array_equal(kept["labels"], short.labels)

@@ -1,5 +1,5 @@
 """Non-learning drivers: the rule-based driver completes most episodes; an ACC lane keeper times out; the
-lookahead planner only ever overrides the rule with a decision that survives its horizon."""
+safety layer only ever overrides the rule with a decision that survives its horizon."""
 
 import collections
 import copy
@@ -12,8 +12,8 @@ from lcsim.config import EgoConfig, ScenarioConfig, TrafficConfig
 from lcsim.core import KEEP, LaneChangeCore
 from lcsim.envs import LaneChangeVectorEnv
 from lcsim.planning import (
-    LookaheadConfig,
     LookaheadDriver,
+    SafetyLayerConfig,
     estimated_desired_speeds,
     imagined_copy,
     perceive,
@@ -62,7 +62,7 @@ def test_lookahead_picks_a_surviving_decision_and_leaves_the_simulator_untouched
     core.reset(range(4), [11, 12, 13, 14])
     calls = []
     core.sim.hooks.append(lambda sim: calls.append(int(sim.step[0])))
-    driver = LookaheadDriver(LookaheadConfig(horizon_decisions=6))
+    driver = LookaheadDriver(SafetyLayerConfig(horizon_decisions=6, blind=False, perceived=False))
     decisions = 0
     while (core.outcome == "").all() and decisions < 40:
         mask = core.action_mask()
@@ -87,7 +87,7 @@ def test_lookahead_driver_is_deterministic_and_named(blind: bool):
     for _ in range(2):
         core = LaneChangeCore(small_config(render_image=False), 2)
         core.reset([0, 1], [7, 8])
-        driver, actions = LookaheadDriver(LookaheadConfig(horizon_decisions=4, blind=blind)), []
+        driver, actions = LookaheadDriver(SafetyLayerConfig(horizon_decisions=4, blind=blind, perceived=False)), []
         while (core.outcome == "").all():
             actions.append(driver({}, core.action_mask(), core))
             core.step(actions[-1])
@@ -133,7 +133,7 @@ def _dense_core(human_like: bool = True) -> LaneChangeCore:
 @pytest.mark.slow
 def test_blind_lookahead_with_several_futures_keeps_a_decision_that_survives_the_most_of_them():
     core = _dense_core()
-    driver = LookaheadDriver(LookaheadConfig(horizon_decisions=6, blind=True, samples=3))
+    driver = LookaheadDriver(SafetyLayerConfig(horizon_decisions=6, perceived=False, samples=3))
     overridden = 0
     for _ in range(30):
         if (core.outcome != "").any():
@@ -153,7 +153,7 @@ def test_lookahead_with_a_proposer_keeps_its_decision_unless_that_future_crashes
     core = _dense_core()
     proposer = make_driver("random", 5)
     proposer.last_prediction = np.zeros((4, 1, 1, 2))  # what a policy that predicts would expose
-    driver = LookaheadDriver(LookaheadConfig(horizon_decisions=6, blind=True), proposer=proposer)
+    driver = LookaheadDriver(SafetyLayerConfig(horizon_decisions=6, perceived=False), proposer=proposer)
     assert driver.name == "random+lookahead-blind-rule" and driver.last_prediction is None  # nothing decided yet
     kept = vetoed = choices = 0
     for _ in range(30):
@@ -184,7 +184,7 @@ def test_lookahead_never_returns_a_decision_the_mask_refuses():
     def always_right(obs, mask, core):
         return np.zeros(len(mask), dtype=np.int64)
 
-    driver = LookaheadDriver(LookaheadConfig(horizon_decisions=6, blind=True), proposer=always_right)
+    driver = LookaheadDriver(SafetyLayerConfig(horizon_decisions=6, perceived=False), proposer=always_right)
     refused = 0
     for _ in range(30):
         if (core.outcome != "").any():
@@ -197,11 +197,11 @@ def test_lookahead_never_returns_a_decision_the_mask_refuses():
     assert refused > 0  # the case arose: a lane change under way, or the ego in the rightmost lane
 
 
-def test_lookahead_config_refuses_samples_without_blindness():
-    with pytest.raises(ValueError, match="samples"):
-        LookaheadConfig(samples=2)
-    with pytest.raises(ValueError, match="samples"):
-        LookaheadConfig(blind=True, samples=0)
+def test_the_safety_layer_config_refuses_samples_without_blindness():
+    with pytest.raises(ValueError, match="samples > 1 needs blind"):
+        SafetyLayerConfig(blind=False, perceived=False, samples=2)
+    with pytest.raises(ValueError, match="samples must be >= 1"):
+        SafetyLayerConfig(samples=0)
 
 
 def test_perceive_keeps_what_the_sensors_show_and_parks_the_rest():
@@ -252,7 +252,7 @@ def test_perceived_lookahead_is_deterministic_and_only_picks_surviving_decisions
     runs = []
     for _ in range(2):
         core = _dense_core()
-        driver = LookaheadDriver(LookaheadConfig(horizon_decisions=6, blind=True, perceived=True))
+        driver = LookaheadDriver(SafetyLayerConfig(horizon_decisions=6))
         assert driver.name == "lookahead-perceived"
         actions_seen = []
         for _ in range(20):
@@ -269,34 +269,11 @@ def test_perceived_lookahead_is_deterministic_and_only_picks_surviving_decisions
     assert np.array_equal(runs[0], runs[1])
 
 
-def test_lookahead_config_refuses_perception_without_blindness():
-    with pytest.raises(ValueError, match="perceived"):
-        LookaheadConfig(perceived=True)
-    with pytest.raises(ValueError, match="driver_draws"):
-        LookaheadConfig(blind=True, driver_draws=True)
-
-
-def test_a_margin_makes_the_imagined_ego_longer_and_refuses_tight_decisions():
-    core = _dense_core()
-    plain = LookaheadDriver(LookaheadConfig(horizon_decisions=6, blind=True))
-    margin = LookaheadDriver(LookaheadConfig(horizon_decisions=6, blind=True, margin_m=3.0))
-    length = core.sim.length.copy()
-    survived = np.zeros(2, dtype=int)
-    for _ in range(20):
-        if (core.outcome != "").any():
-            break
-        mask = core.action_mask()
-        for a in range(3):
-            act = np.where(mask[:, a], a, KEEP)
-            plain_ok, margin_ok = (d.survives(core, act) & mask[:, a] for d in (plain, margin))
-            survived += (int(plain_ok.sum()), int(margin_ok.sum()))
-        core.step(plain({}, mask, core))
-    assert 0 < survived[1] < survived[0]  # 3 m more room at each end: fewer decisions survive, not none
-    assert np.array_equal(core.sim.length, length)  # only the imagined copies are longer
-    with pytest.raises(ValueError, match="margin_m > 0 needs blind"):
-        LookaheadConfig(margin_m=1.0)
-    with pytest.raises(ValueError, match="margin_m must be a number of metres"):
-        LookaheadConfig(blind=True, margin_m=-0.5)
+def test_the_safety_layer_config_refuses_perception_without_blindness():
+    with pytest.raises(ValueError, match="perceived needs blind"):
+        SafetyLayerConfig(blind=False)
+    with pytest.raises(TypeError):  # a research option is no field of the product's layer
+        SafetyLayerConfig(driver_draws=True)  # type: ignore[call-arg]
 
 
 def test_the_planner_reports_the_prediction_its_driver_decided_on():
@@ -313,7 +290,7 @@ def test_the_planner_reports_the_prediction_its_driver_decided_on():
 
     env = LaneChangeVectorEnv(4, ScenarioConfig(render_image=False))
     obs, info = env.reset(seed=3)
-    driver = LookaheadDriver(LookaheadConfig(blind=True, horizon_decisions=2, samples=2), rule=Tagging())
+    driver = LookaheadDriver(SafetyLayerConfig(perceived=False, horizon_decisions=2, samples=2), rule=Tagging())
     for _ in range(3):
         actions = driver(obs, info["action_mask"], env.core)
         assert driver.last_prediction.shape == (4, 1) and (driver.last_prediction == 4.0).all()

@@ -25,6 +25,7 @@ from lcmodels.experiment import (
     RULE_KEY,
     Experiment,
     Preset,
+    StageKey,
     outputs_digest,
     policy_dir,
 )
@@ -43,7 +44,7 @@ def test_tiny_preset_end_to_end(tmp_path: Path, capsys: pytest.CaptureFixture[st
     check_every_recipe_kind_ran(run_dir)
     check_report_holds_the_numbers_of_the_metrics_files(run_dir)
     check_parallel_policies_equal_sequential_ones(run_dir)
-    check_a_safety_stage_runs_as_soon_as_its_follower_is_trained(run_dir)
+    check_a_safety_stage_waits_for_its_follower_and_runs_once_it_is_trained(run_dir)
     check_rerun_skips_everything_and_a_changed_recipe_is_stale(run_dir, capsys)
     check_publish_copies_the_report_and_every_metrics_file(run_dir, tmp_path / "published", capsys)
     check_a_folder_published_with_weights_resumes_as_the_run(run_dir, tmp_path, capsys)
@@ -212,33 +213,40 @@ def check_parallel_policies_equal_sequential_ones(run_dir: Path) -> None:
         assert after == before[key]
 
 
-def check_a_safety_stage_runs_as_soon_as_its_follower_is_trained(run_dir: Path) -> None:
-    """What a ``--jobs`` worker does after training a recipe with a safety layer: its safety stage, when the
-    policy the planner follows is trained already (the same figures as the run's own), else nothing."""
+def check_a_safety_stage_waits_for_its_follower_and_runs_once_it_is_trained(run_dir: Path) -> None:
+    """hybrid-ppo's shielded and safety stages read the final policy of pure-ppo (its layer's follower, same seed):
+    they are ready once that is complete, not before; the safety stage run alone gives the run's own figures, and
+    is refused while the policy it follows is not trained."""
     exp = Experiment(PRESETS["tiny"], run_dir, seeds=SEEDS)
-    hybrid, pure = (next(r for r in exp.recipes() if r.name == n) for n in ("hybrid-ppo", "pure-ppo"))
-    exp.dry_run = True
-    predictor = exp.predictor(exp.corpus())
-    demos = exp.demos(pure.demos)
-    waiting = exp.recipe_stages(hybrid, 1, predictor, exp.demos(hybrid.demos))  # its shielded stage needs pure-ppo's
-    follow_final = exp.recipe_stages(pure, 1, None, demos)[-2]
-    done = exp.recipe_stages(hybrid, 1, predictor, exp.demos(hybrid.demos), follow_final)
-    exp.dry_run = False
-    assert [s.name.rsplit("/", 1)[1] for s in waiting] == ["clone", "train"]
-    assert [s.status for s in done] == ["skipped"] * (len(hybrid.stages) + 1)
-    assert exp.follower_ready(hybrid, 1, predictor, (pure, demos)).digest == follow_final.digest
-    metrics = policy_dir(run_dir, "hybrid-ppo", 1) / "safety" / "metrics.json"
+    graph = exp.graph()
+    follower, train = StageKey("pure-ppo", 1, "train"), StageKey("hybrid-ppo", 1, "train")
+    shielded, safety = StageKey("hybrid-ppo", 1, "shielded"), StageKey("hybrid-ppo", 1, "safety")
+    assert graph.needed(shielded) == [StageKey.of("predictor"), train, follower]
+    assert set(graph.needed(safety)) == {StageKey.of("predictor"), shielded, follower}
+    assert [k.stage for k in graph.needed(train) if k.recipe == "hybrid-ppo"] == ["clone"]
+    done = graph.upstream(shielded) - {follower}
+    assert follower in graph.ready(done) and shielded not in graph.ready(done)
+    assert shielded in graph.ready(done | {follower})
+    assert {s.status for s in exp.plan()} == {"skipped"}  # every stage of the run, the safety stages too
+    metrics = safety.path(run_dir) / "metrics.json"
     before = without_wall_times(json.loads(metrics.read_text()))
     metrics.unlink()
-    assert exp.safety_when_ready(hybrid, 1, done, predictor, None) is None  # the follower is not known
-    follower = policy_dir(run_dir, "pure-ppo", 1) / "train" / "policy.safetensors"
-    kept = follower.read_bytes()
-    follower.unlink()
-    assert exp.safety_when_ready(hybrid, 1, done, predictor, (pure, demos)) is None  # not trained
+    policy = follower.path(run_dir) / "policy.safetensors"
+    kept = policy.read_bytes()
+    policy.unlink()
+    plan = {s.name: s.status for s in exp.plan()}
+    assert plan[follower.name] == "would run (outputs missing or changed)"
+    assert plan[shielded.name] == f"would run (after {follower.name})"
+    assert plan[safety.name] == f"would run (after {shielded.name})"  # not trained: the safety stage waits
+    with pytest.raises(ValueError, match=f"stage {safety} needs .* not complete .*after {follower}"):
+        exp.run_stage(safety)
     assert not metrics.exists()
-    follower.write_bytes(kept)
-    res = exp.safety_when_ready(hybrid, 1, done, predictor, (pure, demos))
-    assert res is not None and res.status == "done" and res.name == "hybrid-ppo/seed1/safety"
+    policy.write_bytes(kept)
+    plan = {s.name: s.status for s in exp.plan()}
+    assert plan[safety.name] == "would run (outputs missing or changed)"
+    assert {st for n, st in plan.items() if n != safety.name} == {"skipped"}
+    res = exp.run_stage(safety)
+    assert res.status == "done" and res.name == "hybrid-ppo/seed1/safety"
     assert without_wall_times(json.loads(metrics.read_text())) == before
 
 
@@ -284,6 +292,27 @@ def test_a_worker_that_dies_ends_the_run_in_one_line_and_a_rerun_resumes(tmp_pat
         assert stage_metrics(tmp_path / "run", name)["test"]["episodes"] == preset.test_episodes
 
 
+def test_a_progress_callback_that_fails_on_a_workers_line_stops_the_run_and_a_rerun_resumes(tmp_path: Path) -> None:
+    """A training step's line comes from a ``--jobs`` worker process; the callback's exception on it ends the run
+    (no worker left behind, none blocked on its progress lines), and the same run then completes."""
+    import multiprocessing
+
+    class Stop(Exception):
+        pass
+
+    def stop_at_a_training_step(msg: str) -> None:
+        if "/train] step " in msg:
+            raise Stop
+
+    preset = dataclasses.replace(PRESETS["tiny"], recipes=("paper-ppo-pure", "paper-a2c"), oracle=False)
+    with pytest.raises(Stop):
+        Experiment(preset, tmp_path / "run", progress=stop_at_a_training_step).run(jobs=2)
+    assert not multiprocessing.active_children()
+    Experiment(preset, tmp_path / "run").run(jobs=2)
+    for name in preset.recipes:
+        assert stage_metrics(tmp_path / "run", name)["test"]["episodes"] == preset.test_episodes
+
+
 def test_a_second_run_in_a_directory_in_use_is_refused(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
     import fcntl
 
@@ -321,8 +350,13 @@ def check_rerun_skips_everything_and_a_changed_recipe_is_stale(run_dir: Path, ca
     exp = Experiment(dataclasses.replace(PRESETS["tiny"], recipes=recipes), run_dir, seeds=SEEDS)
     plan = {s.name: s.status for s in exp.plan()}
     stale = {n for n, st in plan.items() if st != "skipped"}
+    # the plan lists every stage of the graph: the evaluations and safety stages after a stale policy wait for it
     assert stale == {"demos/oracle-s6000-n2"} | {f"pure-ppo/seed{s}/{st}" for s in range(SEEDS) for st in ("clone", "train")} \
-        | {f"hybrid-ppo/seed{s}/shielded" for s in range(SEEDS)}
+        | {f"hybrid-ppo/seed{s}/shielded" for s in range(SEEDS)} \
+        | {f"pure-ppo/seed{s}/eval" for s in range(SEEDS)} | {f"hybrid-ppo/seed{s}/{st}" for s in range(SEEDS) for st in ("eval", "safety")}
+    assert plan["demos/oracle-s6000-n2"] == "would run (new)"
+    assert all(plan[n].startswith("would run (after ") for n in stale - {"demos/oracle-s6000-n2"})
+    assert len(plan) == n_stages + 1  # the new demonstrations besides the old ones, which other recipes read
     assert {p: p.stat().st_mtime_ns for p in policies} == before
 
 
@@ -338,11 +372,11 @@ def test_an_interrupted_recording_stage_keeps_the_time_of_its_first_part(tmp_pat
 
     run_dir = tmp_path / "run"
     with pytest.raises(Stop):
-        Experiment(PRESETS["tiny"], run_dir, progress=stop_after_two).corpus()
+        Experiment(PRESETS["tiny"], run_dir, progress=stop_after_two).run_stage(StageKey.of("corpus"))
     pending = json.loads((run_dir / "stages" / "corpus.pending.json").read_text())
     first = pending["wall_s_parts"]
     assert first > 0 and len(list((run_dir / "corpus").glob("*.mcap"))) == 2
-    res = Experiment(PRESETS["tiny"], run_dir).corpus()
+    res = Experiment(PRESETS["tiny"], run_dir).run_stage(StageKey.of("corpus"))
     assert res.status == "done" and len(list((run_dir / "corpus").glob("*.mcap"))) == 3
     record = json.loads((run_dir / "stages" / "corpus.json").read_text())
     # the one episode left took less than the two of the first part; the record holds both parts
@@ -516,12 +550,12 @@ def test_an_interrupted_evaluation_keeps_the_splits_it_finished(tmp_path: Path) 
 
     preset = dataclasses.replace(PRESETS["tiny"], recipes=())
     with pytest.raises(Stop):
-        Experiment(preset, tmp_path / "run", progress=stop_after_validation).reference(RULE_KEY)
+        Experiment(preset, tmp_path / "run", progress=stop_after_validation).run_stage(StageKey.of(RULE_KEY))
     first = tmp_path / "run" / RULE_KEY / "val-seed0.json"
     stamp = first.stat().st_mtime_ns
     assert not (tmp_path / "run" / RULE_KEY / "metrics.json").exists()
     lines: list[str] = []
-    res = Experiment(preset, tmp_path / "run", progress=lines.append).reference(RULE_KEY)
+    res = Experiment(preset, tmp_path / "run", progress=lines.append).run_stage(StageKey.of(RULE_KEY))
     assert res.status == "done" and first.stat().st_mtime_ns == stamp
     assert not any("] val (seed" in line for line in lines) and any("] test (seed" in line for line in lines)
     m = json.loads((tmp_path / "run" / RULE_KEY / "metrics.json").read_text())
@@ -529,22 +563,26 @@ def test_an_interrupted_evaluation_keeps_the_splits_it_finished(tmp_path: Path) 
 
 
 def test_a_followed_policy_is_trained_before_the_recipes_whose_layer_follows_it() -> None:
-    from lcmodels.experiment import _task_ranks
+    from lcmodels.experiment import recipe_ranks
     from lcmodels.recipe import load_recipe
 
     recipes = [load_recipe(n) for n in ("a2c-hybrid", "hybrid-ppo", "pure-ppo")]
-    rank = _task_ranks(recipes)
+    rank = recipe_ranks(recipes)
     assert rank["pure-ppo"] < rank["hybrid-ppo"] < rank["a2c-hybrid"]
     # a chain: a follows b, which follows pure-ppo: pure-ppo, then b, then a
     hybrid = recipes[1]
     b = dataclasses.replace(hybrid, name="b")
     a = dataclasses.replace(hybrid, name="a", safety=dataclasses.replace(hybrid.safety, follow="b"))
-    rank = _task_ranks([a, b, *recipes])
+    rank = recipe_ranks([a, b, *recipes])
     assert rank["pure-ppo"] < rank["b"] < rank["a"] < rank["a2c-hybrid"]
-    # the paper preset's order: its workers start both pure-ppo seeds before either hybrid-ppo seed
+    # the paper preset's graph, in the order one process runs it: both pure-ppo seeds before either hybrid-ppo seed
     exp = Experiment(PRESETS["paper"], Path("unused"))
-    names = [r.name for r in sorted(exp.recipes(), key=lambda r: _task_ranks(exp.recipes())[r.name])]
-    assert names.index("pure-ppo") < names.index("hybrid-ppo") < names.index("a2c-hybrid")
+    order = [k for k in exp.graph().keys() if k.recipe is not None]
+    first = {}
+    for i, k in enumerate(order):
+        first.setdefault(k.recipe, i)
+    assert first["pure-ppo"] < first["hybrid-ppo"] < first["a2c-hybrid"]
+    assert max(i for i, k in enumerate(order) if k.recipe == "pure-ppo") < first["hybrid-ppo"]
 
 
 def test_jobs_cut_the_runs_own_evaluations_over_processes_with_the_same_figures(
@@ -557,7 +595,7 @@ def test_jobs_cut_the_runs_own_evaluations_over_processes_with_the_same_figures(
     preset = dataclasses.replace(PRESETS["tiny"], recipes=("paper-ppo-pure",), oracle=False, test_episodes=40)
     for jobs in (1, 2):
         Experiment(preset, tmp_path / f"j{jobs}").run(jobs=jobs)
-    assert len(pools) == 1 and pools[0].submitted >= 4  # --jobs 2: the rule's and the policy's test episodes
+    assert len(pools) == 1 and pools[0].shards >= 4  # --jobs 2: the rule's and the policy's test episodes
     assert not mp.active_children()  # closed with the run
     for key in (RULE_KEY, "paper-ppo-pure"):
         a, b = stage_metrics(tmp_path / "j1", key), stage_metrics(tmp_path / "j2", key)

@@ -164,6 +164,30 @@ UPPER = {2: 9.875, 3: 13.625}
 SIZE = {"Car": (4.5, 1.9), "Truck": (12.0, 2.5)}
 
 
+def highd_row(frame: int, vid: int, cx: float, cy: float, length: float, width: float, vx: float, vy: float,
+              lane_id: int, ax: float = 0.0) -> dict[str, float]:
+    """One row of XX_tracks.csv: a vehicle centred at image ``(cx, cy)`` (metres, y down) as highD writes it, by the
+    upper-left corner of its bounding box."""
+    return {
+        "frame": frame, "id": vid, "x": cx - length / 2, "y": cy - width / 2, "width": length, "height": width,
+        "xVelocity": vx, "yVelocity": vy, "xAcceleration": ax, "yAcceleration": 0.0, "frontSightDistance": 100.0,
+        "backSightDistance": 100.0, "dhw": 0.0, "thw": 0.0, "ttc": 0.0, "precedingXVelocity": 0.0, "precedingId": 0,
+        "followingId": 0, "leftPrecedingId": 0, "leftAlongsideId": 0, "leftFollowingId": 0, "rightPrecedingId": 0,
+        "rightAlongsideId": 0, "rightFollowingId": 0, "laneId": lane_id,
+    }  # fmt: skip
+
+
+def highd_meta(vid: int, length: float, width: float, frames: list[int], cls: str, direction: int, speed: float,
+               lane_changes: int) -> dict[str, object]:
+    """One row of XX_tracksMeta.csv."""
+    return {
+        "id": vid, "width": length, "height": width, "initialFrame": frames[0], "finalFrame": frames[-1],
+        "numFrames": len(frames), "class": cls, "drivingDirection": direction,
+        "traveledDistance": speed * len(frames) / FPS, "minXVelocity": speed, "maxXVelocity": speed,
+        "meanXVelocity": speed, "minDHW": -1, "minTHW": -1, "minTTC": -1, "numLaneChanges": lane_changes,
+    }  # fmt: skip
+
+
 def highd_rows() -> tuple[list[dict[str, float]], list[dict[str, object]]]:
     """(tracks rows, meta rows): vehicle 1 and 2 drive +x on the lower carriageway (2 changes from lane 6,
     the rightmost, to lane 5 between frames 41 and 61, its lane id switching at frame 51), vehicles 3 and 4
@@ -183,31 +207,24 @@ def highd_rows() -> tuple[list[dict[str, float]], list[dict[str, object]]]:
         for f in frames:
             t = (f - 1) / FPS
             cy, cy_next = s["cy"](f), s["cy"](f + 1)
-            tracks.append({
-                "frame": f, "id": vid, "x": s["x0"] + s["vx"] * t - w / 2, "y": cy - h / 2, "width": w,
-                "height": h, "xVelocity": s["vx"], "yVelocity": (cy_next - cy) * FPS, "xAcceleration": 0.0,
-                "yAcceleration": 0.0, "frontSightDistance": 100.0, "backSightDistance": 100.0, "dhw": 0.0,
-                "thw": 0.0, "ttc": 0.0, "precedingXVelocity": 0.0, "precedingId": 0, "followingId": 0,
-                "leftPrecedingId": 0, "leftAlongsideId": 0, "leftFollowingId": 0, "rightPrecedingId": 0,
-                "rightAlongsideId": 0, "rightFollowingId": 0, "laneId": s["lane"](f),
-            })  # fmt: skip
-        meta.append({
-            "id": vid, "width": w, "height": h, "initialFrame": frames[0], "finalFrame": frames[-1],
-            "numFrames": len(frames), "class": s["cls"], "drivingDirection": s["direction"],
-            "traveledDistance": abs(s["vx"]) * len(frames) / FPS, "minXVelocity": abs(s["vx"]),
-            "maxXVelocity": abs(s["vx"]), "meanXVelocity": abs(s["vx"]), "minDHW": -1, "minTHW": -1, "minTTC": -1,
-            "numLaneChanges": int(vid == 2),
-        })  # fmt: skip
+            tracks.append(highd_row(f, vid, s["x0"] + s["vx"] * t, cy, w, h, s["vx"], (cy_next - cy) * FPS,
+                                    s["lane"](f)))  # fmt: skip
+        meta.append(highd_meta(vid, w, h, frames, s["cls"], s["direction"], abs(s["vx"]), int(vid == 2)))
     tracks.sort(key=lambda r: (r["id"], r["frame"]))  # highD's order: by track, then frame
     return tracks, meta
 
 
-def write_highd(folder: pathlib.Path, prefix: str = "01") -> pathlib.Path:
+def write_highd_tables(folder: pathlib.Path, tracks: list[dict[str, float]], meta: list[dict[str, object]],
+                       prefix: str = "01") -> pathlib.Path:  # fmt: skip
+    """XX_tracks.csv and XX_tracksMeta.csv of these rows in ``folder``; the tracks file."""
     folder.mkdir(parents=True, exist_ok=True)
-    tracks, meta = highd_rows()
     pd.DataFrame(tracks).to_csv(folder / f"{prefix}_tracks.csv", index=False)
     pd.DataFrame(meta).to_csv(folder / f"{prefix}_tracksMeta.csv", index=False)
     return folder / f"{prefix}_tracks.csv"
+
+
+def write_highd(folder: pathlib.Path, prefix: str = "01") -> pathlib.Path:
+    return write_highd_tables(folder, *highd_rows(), prefix=prefix)
 
 
 @pytest.fixture(scope="module")

@@ -11,7 +11,7 @@ _ROLLOUT = textwrap.dedent("""
     from lcsim.config import EgoConfig, ScenarioConfig, TrafficConfig
     from lcsim.core import LaneChangeCore
     from lcsim.envs import LaneChangeVectorEnv
-    from lcsim.planning import LookaheadConfig, LookaheadDriver
+    from lcsim.planning import LookaheadDriver, SafetyLayerConfig
 
     import lcsim.threads
     lcsim.threads.CHUNK_ALIGN = 1  # (chunks of one environment: three environments on two threads)
@@ -27,11 +27,14 @@ _ROLLOUT = textwrap.dedent("""
             obs, _, term, trunc, info = env.step(actions)
     core = LaneChangeCore(ScenarioConfig(render_image=False), 2, autopilot_ego=True)
     core.reset([0, 1], [3, 4])
+    core.sim.log_hooks.append(lambda sim, log, counts: None)  # the logged call and the log rows
     for _ in range(40):
         core.step(np.ones(2, dtype=np.int64))
+    core.sim.advance(70)  # more than one logged call
+    core.sim.log_row(1)
     env = LaneChangeVectorEnv(1, ScenarioConfig(render_image=False))
     obs, info = env.reset(seed=2)
-    driver = LookaheadDriver(LookaheadConfig(blind=True, perceived=True, samples=2))
+    driver = LookaheadDriver(SafetyLayerConfig(samples=2))
     for _ in range(3):
         obs, *_, info = env.step(driver(obs, info["action_mask"], env.core))
     index = env.core.sim.index
@@ -77,3 +80,47 @@ def test_advance_freezes_an_environment_at_its_event_with_hooks_or_without():
         sims.append(sim)
     for block in ("vf", "vi", "vb", "ef", "ei", "eb"):
         assert np.array_equal(getattr(sims[0], block), getattr(sims[1], block), equal_nan=True), block
+
+
+def test_log_hooks_see_the_rows_of_every_step_the_per_step_hooks_see():
+    """The step log of the compiled call (``log_hooks``) holds, row for row, the state a per-step hook sees after each
+    step an environment runs (none once it is frozen), and logging changes nothing in the simulation: batches of
+    three, the PID ego and the autopilot ego, decisions that end in events, an advance longer than one logged call."""
+    import numpy as np
+
+    from lcsim.core import LaneChangeCore
+    from lcsim.registry import make_driver
+    from lcsim.sim import LOG_STEPS
+    from tests.conftest import small_config
+
+    for autopilot in (False, True):
+        cores = [LaneChangeCore(small_config(), 3, autopilot_ego=autopilot) for _ in range(2)]
+        seen: list[list[np.ndarray]] = [[], [], []]
+        logged: list[list[np.ndarray]] = [[], [], []]
+
+        def per_step(sim, seen=seen) -> None:
+            for e in range(3):
+                if not sim.frozen[e]:
+                    seen[e].append(sim.log_row(e))
+
+        def per_call(sim, log, counts, logged=logged) -> None:
+            for e in range(3):
+                logged[e] += list(log[e, : counts[e]].copy())
+
+        for core in cores:
+            core.reset([0, 1, 2], [11, 12, 13])
+        cores[0].sim.hooks.append(per_step)
+        cores[1].sim.log_hooks.append(per_call)
+        drivers = [make_driver("random", 5) for _ in cores]
+        for _ in range(60):
+            for core, driver in zip(cores, drivers, strict=True):
+                core.step(driver(core.observe(), core.action_mask(), core))
+        for core in cores:
+            core.sim.frozen[:] = False
+            core.sim.advance(LOG_STEPS + 6)
+        for block in ("vf", "vi", "vb", "ef", "ei", "eb", "hist"):
+            assert np.array_equal(getattr(cores[0].sim, block), getattr(cores[1].sim, block)), block
+        for e in range(3):
+            assert len(seen[e]) == len(logged[e]) > LOG_STEPS
+            assert np.array_equal(np.stack(seen[e]), np.stack(logged[e]))
+        assert any(len(rows) < 60 * 10 + LOG_STEPS + 6 for rows in seen)  # an environment was frozen for a while

@@ -1,5 +1,5 @@
-"""The layers hold: no import runs up (lcsim <- lcdata <- lcmodels <- lccli <- tools, experiments), no two
-modules import each other in a circle, no private name crosses a package (``tools/import_graph.py``)."""
+"""The layers hold: no import runs up (lckit <- lcsim <- lcdata <- lcmodels <- lccli <- tools, experiments), no
+two modules import each other in a circle, no private name crosses a package (``tools/import_graph.py``)."""
 
 import subprocess
 import sys

@@ -338,3 +338,29 @@ def test_chunk_checksums_are_checked_by_every_reader(tmp_path: pathlib.Path, chu
     damaged = tmp_path / "damaged.mcap"
     damaged.write_bytes(bytes(data))
     assert scan_mcap(damaged).messages < 40
+
+
+def test_an_overwritten_file_is_replaced_whole_and_its_blocks_freed_later(tmp_path: pathlib.Path) -> None:
+    """``replace_file`` renames over the old file as ``os.replace`` does (never a moment without a complete file)
+    and closes the descriptor it held on the old one afterwards, on the release thread: none is left open."""
+    import os
+    import time
+
+    from lcdata.writer import replace_file
+
+    target = tmp_path / "ep.mcap"
+    target.write_bytes(b"old" * 1000)
+    before = len(os.listdir("/proc/self/fd"))
+    for k in range(5):
+        source = tmp_path / "ep.mcap.partial"
+        source.write_bytes(bytes([k]) * 2000)
+        replace_file(source, target)
+        assert target.read_bytes() == bytes([k]) * 2000 and not source.exists()
+    fresh = tmp_path / "new.mcap"
+    (tmp_path / "new.mcap.partial").write_bytes(b"x")
+    replace_file(tmp_path / "new.mcap.partial", fresh)  # no old file: a plain rename
+    assert fresh.read_bytes() == b"x"
+    deadline = time.monotonic() + 10
+    while len(os.listdir("/proc/self/fd")) > before and time.monotonic() < deadline:
+        time.sleep(0.01)
+    assert len(os.listdir("/proc/self/fd")) <= before

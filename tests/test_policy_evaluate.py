@@ -1,4 +1,4 @@
-"""Evaluation and policies as drivers: reproducible held-out episodes, recorded predictions, lc-eval, lc-record with a policy, the lookahead following a policy."""
+"""Evaluation and policies as drivers: reproducible held-out episodes, recorded predictions, lc-eval, lc-record with a policy, a policy behind the safety layer."""
 
 from __future__ import annotations
 
@@ -16,6 +16,7 @@ from lcmodels.policy import (
 from lcmodels.policy.evaluate import PolicyDriver, driver_for, evaluate, wilson_interval
 from lcmodels.policy.obs import scenario_for_mode
 from lcsim.config import tiny_scenario
+from lcsim.planning import SafetyLayerConfig, safety_layer_of
 from tests.conftest import CountingPool
 
 from .conftest import EVAL_KEYS, tiny_policy
@@ -81,7 +82,7 @@ def test_lc_record_with_a_policy_driver_writes_its_predictions(tmp_path: Path, p
 
 
 @pytest.mark.slow
-def test_a_lookahead_follows_a_policy_without_image_and_refuses_one_with(tmp_path: Path) -> None:
+def test_the_safety_layer_follows_a_policy_without_image_and_refuses_one_with(tmp_path: Path) -> None:
     train_policy(tiny_policy(obs="pure", timesteps=64, n_steps=16, eval_episodes=0), tmp_path / "pure")
     driver, config = driver_for(f"lookahead:{tmp_path / 'pure' / 'policy.safetensors'}")
     assert driver.name == "lookahead-ppo-pure" and config.render_image is False
@@ -91,15 +92,16 @@ def test_a_lookahead_follows_a_policy_without_image_and_refuses_one_with(tmp_pat
     with pytest.raises(ValueError, match="reads the image"):
         driver_for(f"lookahead-blind:{tmp_path / 'image' / 'policy.safetensors'}")
     image, pure = tmp_path / "image" / "policy.safetensors", tmp_path / "pure" / "policy.safetensors"
-    guarded, image_config = driver_for(f"lookahead-blind:{image}", follow=str(pure))  # it proposes, pure follows
+    guarded, image_config = driver_for(f"lookahead-blind:{image}", safety=safety_layer_of(f"lookahead-blind:{image}",
+                                                                                        follow=str(pure)))  # fmt: skip
     assert guarded.name == "ppo-image+lookahead-blind-ppo-pure" and image_config.render_image is True
     assert isinstance(guarded.proposer, PolicyDriver) and guarded.proposer.policy.obs_mode == "image"
     summary, _ = evaluate(guarded, image_config, episodes=2, batch=2)
     assert summary["episodes"] == 2
     with pytest.raises(ValueError, match=r"driver to follow: .* reads the image"):
-        driver_for(f"lookahead-blind:{image}", follow=str(image))
-    with pytest.raises(ValueError, match="applies to lookahead:POLICY"):
-        driver_for(str(pure), follow="rule")
+        driver_for(f"safety-layer:{image}", safety=SafetyLayerConfig(follow=str(image)))
+    with pytest.raises(ValueError, match="apply to a driver behind it"):
+        driver_for(str(pure), safety=SafetyLayerConfig(follow="rule"))
     assert eval_main([f"lookahead:{image}", "--lookahead-follow", str(tmp_path / "missing.safetensors"), "--no-record"]) == 2
     assert eval_main([f"lookahead-blind:{image}", "--lookahead-follow", "rule", "--lookahead-horizon", "2",
                       "--episodes", "2", "--no-record", "--json-out", str(tmp_path / "guarded.json")]) == 0
@@ -107,11 +109,11 @@ def test_a_lookahead_follows_a_policy_without_image_and_refuses_one_with(tmp_pat
     assert guarded_summary["driver"] == "ppo-image+lookahead-blind-rule"
     assert 0 <= guarded_summary["planner_overrides"] <= guarded_summary["planner_choices"] <= guarded_summary["decisions"]
     assert eval_main([f"lookahead-blind:{tmp_path / 'missing.safetensors'}", "--no-record"]) == 2
-    longer, _ = driver_for(f"lookahead-blind:{tmp_path / 'pure' / 'policy.safetensors'}",
-                           lookahead={"horizon_decisions": 3, "samples": 2})  # fmt: skip
+    longer, _ = driver_for(f"safety-layer:{tmp_path / 'pure' / 'policy.safetensors'}",
+                           safety=SafetyLayerConfig(horizon_decisions=3, samples=2))  # fmt: skip
     assert (longer.config.horizon_decisions, longer.config.samples, longer.config.blind) == (3, 2, True)
-    with pytest.raises(ValueError, match="lookahead drivers only"):
-        driver_for("rule", lookahead={"samples": 2})
+    with pytest.raises(ValueError, match="apply to a driver behind it"):
+        driver_for("rule", safety=SafetyLayerConfig(samples=2))
     assert eval_main(["lookahead", "--lookahead-samples", "2", "--no-record"]) == 2  # samples need blindness
     assert eval_main(["lookahead", "--lookahead-perceived", "--no-record"]) == 2  # so does perception
     assert eval_main([f"lookahead-blind:{image}", "--lookahead-follow", "rule", "--lookahead-horizon", "2",
@@ -119,9 +121,16 @@ def test_a_lookahead_follows_a_policy_without_image_and_refuses_one_with(tmp_pat
                       str(tmp_path / "perceived.json")]) == 0  # fmt: skip
     perceived = json.loads((tmp_path / "perceived.json").read_text())
     assert perceived["driver"] == "ppo-image+lookahead-perceived-rule"
-    # the file says how it was made: the planner's settings and the command
-    assert perceived["lookahead"]["perceived"] and perceived["lookahead"]["horizon_decisions"] == 2
-    assert perceived["lookahead"]["follow"] == "rule" and perceived["command"].startswith("lc-eval lookahead-blind:")
+    # the file says how it was made: the safety layer's settings and the command
+    assert perceived["safety_layer"]["perceived"] and perceived["safety_layer"]["horizon_decisions"] == 2
+    assert perceived["safety_layer"]["follow"] == "rule" and perceived["command"].startswith("lc-eval lookahead-blind:")
+    # the same layer in today's spelling: the same figures
+    assert eval_main([f"safety-layer:{image}", "--follow", "rule", "--set", "safety.horizon_decisions=2", "--episodes",
+                      "2", "--no-record", "--json-out", str(tmp_path / "today.json")]) == 0  # fmt: skip
+    today = json.loads((tmp_path / "today.json").read_text())
+    drop = ("command", "wall_s")
+    assert {k: v for k, v in today.items() if k not in drop} == {k: v for k, v in perceived.items() if k not in drop}
+    assert eval_main([str(image), "--set", "safety.samples=2", "--no-record"]) == 2  # behind no layer
     assert eval_main(["lookahead-blind", "--lookahead-horizon", "2", "--lookahead-samples", "2", "--episodes", "2",
                       "--scenario", "tiny", "--no-record", "--json-out", str(tmp_path / "la.json")]) == 0
     assert json.loads((tmp_path / "la.json").read_text())["episodes"] == 2
@@ -150,17 +159,15 @@ def test_a_lookahead_follows_a_policy_without_image_and_refuses_one_with(tmp_pat
 
 
 def test_an_evaluation_cut_over_processes_gives_the_serial_figures_episode_for_episode() -> None:
-    from lcdata.procs import closing_pool
     from lcmodels.policy.evaluate import evaluate_sharded, shard_pool
     from lcmodels.zoo import zoo_entry
 
     hybrid, pure = zoo_entry("hybrid-ppo"), zoo_entry("pure-ppo")
     spec = f"lookahead-blind:{hybrid.policy}"
-    options = {"predictor": str(hybrid.predictor), "follow": str(pure.policy), "batch": 3,
-               "lookahead": {"horizon_decisions": 4, "perceived": True, "samples": 2}}  # the zoo's layer, shorter
+    options = {"predictor": str(hybrid.predictor), "batch": 3,  # the zoo's layer, shorter
+               "safety": SafetyLayerConfig(horizon_decisions=4, samples=2, follow=str(pure.policy))}
     serial, rows = evaluate_sharded(spec, None, episodes=6, seed=3, shards=1, **options)
-    with closing_pool(shard_pool(2)) as real:
-        pool = CountingPool(real)
+    with CountingPool(shard_pool(2)) as pool:
         cut, cut_rows = evaluate_sharded(spec, None, episodes=6, seed=3, shards=2, pool=pool, **options)
     assert pool.submitted == 2  # both shards ran in the pool's processes
     assert cut_rows == rows and serial["planner_choices"] > 0
@@ -193,7 +200,7 @@ def test_lc_eval_workers_give_the_same_figures_and_files(
         assert message in err and len(err.splitlines()) == 1, err
     assert eval_main(["rule", "--scenario", "tiny", "--episodes", "2", "--workers", "2", "--breakdown",
                       "--no-record"]) == 2  # fmt: skip
-    assert "--breakdown runs in this process only" in capsys.readouterr().err
+    assert "breakdown runs in this process only" in capsys.readouterr().err
 
 
 def test_a_json_out_that_cannot_be_written_is_refused_before_the_evaluation(

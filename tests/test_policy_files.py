@@ -1,9 +1,11 @@
-"""Policy files are data: safetensors + a JSON card, legacy pickles refused unless trusted, and the run
-directory's own files the only ones ``--overwrite`` touches."""
+"""Policy files are data: safetensors + a JSON card, legacy pickles refused by every command (only
+``tools/convert_policy.py`` reads one, when told to trust it), and the run directory's own files the only ones
+``--overwrite`` touches."""
 
 from __future__ import annotations
 
 import base64
+import importlib.util
 import json
 import pickle
 import zipfile
@@ -17,9 +19,19 @@ from lccli.evaluate import eval_main
 from lccli.policy import train_policy_main
 from lccli.record import record_main
 from lcmodels.policy import PolicyConfig, load_policy, read_meta, train_policy
-from lcmodels.policy.checkpoint import LEGACY_VERSION, META_FORMAT, card_path, convert_legacy_policy
+from lcmodels.policy.checkpoint import META_FORMAT, card_path
 from lcmodels.policy.train import RUN_OUTPUTS
 from lcsim.sb3 import LaneChangeSB3VecEnv
+
+ROOT = Path(__file__).resolve().parent.parent
+
+
+def _convert_tool():
+    """``tools/convert_policy.py`` as a module (the one reader of legacy ``.zip`` policies)."""
+    spec = importlib.util.spec_from_file_location("convert_policy", ROOT / "tools" / "convert_policy.py")
+    module = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(module)
+    return module
 
 
 def _tiny(**kw) -> PolicyConfig:
@@ -39,7 +51,7 @@ def run_dir(tmp_path_factory: pytest.TempPathFactory) -> Path:
 def _legacy_zip(model, meta: dict, path: Path) -> Path:
     """A policy as this project wrote them before: stable-baselines3's own ``.zip`` with ``lc_meta``."""
     model.lc_meta = {**{k: v for k, v in meta.items() if k not in ("format", "version")},
-                     "format": META_FORMAT, "version": LEGACY_VERSION}
+                     "format": META_FORMAT, "version": _convert_tool().LEGACY_VERSION}
     model.save(path, include=["lc_meta"])
     return path
 
@@ -123,25 +135,35 @@ def test_a_crafted_policy_zip_is_refused_and_its_code_never_runs(run_dir: Path, 
     for command in commands:
         assert command() == 2
         err = capsys.readouterr().err.strip()
-        assert len(err.splitlines()) == 1 and "--trust-pickle" in err and "Traceback" not in err, err
+        assert len(err.splitlines()) == 1 and "tools/convert_policy.py" in err and "Traceback" not in err, err
         assert not marker.exists()
     assert not (tmp_path / "train").exists()  # a refused start writes nothing
+    with pytest.raises(SystemExit):  # no command takes the legacy flag any more
+        eval_main([str(evil), "--trust-pickle", "--episodes", "1", "--no-record"])
+    assert not marker.exists()
+    assert _convert_tool().main([str(evil), str(tmp_path / "evil.safetensors")]) == 2  # the tool: not untrusted
+    assert "--trust-pickle" in capsys.readouterr().err and not marker.exists()
 
 
-def test_a_trusted_legacy_zip_loads_and_converts_to_the_same_tensors(run_dir: Path, tmp_path: Path) -> None:
+def test_a_trusted_legacy_zip_converts_to_the_same_tensors_with_the_tool_only(
+    run_dir: Path, tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    tool = _convert_tool()
     loaded = load_policy(run_dir / "policy.safetensors")
     legacy = _legacy_zip(loaded.model, loaded.meta, tmp_path / "old.zip")
+    for read in (load_policy, read_meta):  # the library names the tool and reads nothing more
+        with pytest.raises(ValueError, match=r"tools/convert_policy\.py"):
+            read(legacy)
     with pytest.raises(ValueError, match="--trust-pickle"):
-        load_policy(legacy)
-    trusted = load_policy(legacy, trust_pickle=True)
+        tool.load_legacy_policy(legacy)
+    trusted = tool.load_legacy_policy(legacy, trust_pickle=True)
     want = loaded.model.policy.state_dict()
     assert all(torch.equal(trusted.model.policy.state_dict()[k], v) for k, v in want.items())
     dest = tmp_path / "new.safetensors"
-    with pytest.raises(ValueError, match="--trust-pickle"):
-        convert_legacy_policy(legacy, dest)  # not without saying so
-    convert_legacy_policy(legacy, dest, trust_pickle=True)
-    with pytest.raises(ValueError, match="already exists"):
-        convert_legacy_policy(legacy, dest, trust_pickle=True)  # nothing overwritten silently
+    assert tool.main([str(legacy), str(dest)]) == 2 and not dest.exists()  # not without saying so
+    assert tool.main([str(legacy), str(dest), "--trust-pickle"]) == 0
+    assert tool.main([str(legacy), str(dest), "--trust-pickle"]) == 2  # nothing overwritten silently
+    assert "already exists" in capsys.readouterr().err
     converted = load_policy(dest).model.policy.state_dict()
     assert converted.keys() == want.keys() and all(torch.equal(converted[k], v) for k, v in want.items())
 

@@ -94,13 +94,17 @@ def test_settings_override_a_recipe_as_the_fields_type_and_refuse_what_it_does_n
         with pytest.raises(ValueError) as exc:
             load_recipe("pure-ppo").with_settings([bad])
         assert message in str(exc.value) and "\n" not in str(exc.value)
-    safe = load_recipe("hybrid-ppo").with_settings(["safety.margin_m=1.5"])
-    assert safe.safety is not None and safe.safety.margin_m == 1.5 and safe.safety.samples == 3
-    for bad, message in (("safety.margin_m=wide", "expected a value of type float"),
-                         ("safety.margin_m=-1", "safety.margin_m must be in [0, 10] metres, got -1.0")):  # fmt: skip
+    safe = load_recipe("hybrid-ppo").with_settings(["safety.samples=5", "safety.horizon=24"])  # an older key too
+    assert safe.safety is not None and (safe.safety.samples, safe.safety.horizon_decisions) == (5, 24)
+    assert safe.safety.follow == "pure-ppo" and safe.safety.blind and safe.safety.perceived
+    for bad, message in (("safety.samples=many", "expected a value of type int"),
+                         ("safety.margin_m=1", "margin_m was a research option"),
+                         ("safety.blind=false", "samples > 1 needs blind")):  # fmt: skip
         with pytest.raises(ValueError) as exc:
             load_recipe("hybrid-ppo").with_settings([bad])
         assert message in str(exc.value) and "\n" not in str(exc.value)
+    with pytest.raises(ValueError, match=r"safety\.blind must be true: a recipe.s safety layer"):  # the privileged one
+        load_recipe("hybrid-ppo").with_settings(["safety.blind=false", "safety.perceived=false", "safety.samples=1"])
 
 
 def test_caps_lower_every_budget_but_seeds() -> None:
@@ -160,7 +164,7 @@ def test_safety_layers_whose_followers_loop_are_one_line_errors(
     ('stages = ["train", "shielded"]\n[safety]\nfollow = "pure-ppo"\n[shielded]\ntimesteps = 10000000000000\n',
      "shielded.timesteps must be at most"),
     ("[shielded]\npenalty = 1e300\n", "shielded.penalty must be at most"),
-    ("[safety]\nhorizon = 1000000000\n", "safety.horizon must be at most"),
+    ("[safety]\nhorizon = 1000000000\n", "horizon_decisions must be at most"),
     ('stages = [{a = 1}]\n', "stages"),
     ("x = " + "[" * 5000 + "]" * 5000 + "\n", "nested too deeply"),
 ])
@@ -188,3 +192,21 @@ def test_lc_experiment_refuses_an_absurd_recipe_and_the_home_directory(tmp_path:
         err = capsys.readouterr().err
         assert ("home directory" in err or "filesystem root" in err) and err.count("\n") == 1
     assert not list(home.iterdir())
+
+
+def test_the_a2c_recipes_get_their_rollout_length_from_the_one_place_that_fills_defaults() -> None:
+    """n_steps is A2C's own default (8) without the recipe saying it, in every online stage; the learning rate is the
+    algorithm's, a tenth of it from a previous stage, unless the recipe sets one."""
+    from lcmodels.policy.config import PolicyConfig
+
+    for name in ("a2c-hybrid", "paper-a2c"):
+        recipe = load_recipe(name)
+        assert all("n_steps" not in getattr(recipe, t) for t in ("policy", "clone", "train"))
+        cfg = recipe.policy_config("train", scenario="paper", seed=0, init_policy="p.safetensors" if
+                                   recipe.stages[0] != "train" else "")  # fmt: skip
+        assert cfg.n_steps == 8 and cfg.algo == "a2c"
+    assert PolicyConfig.of({"algo": "a2c"}).learning_rate == 7e-4
+    assert PolicyConfig.of({"algo": "a2c", "init_policy": "p.safetensors"}).n_steps == 8
+    assert PolicyConfig.of({"algo": "ppo", "init_policy": "p.safetensors"}).learning_rate == 3e-5
+    assert PolicyConfig.of({}, ["algo=a2c", "n_steps=16"]).n_steps == 16
+    assert PolicyConfig.of({"algo": "ppo", "warm_start": "d"}, fine_tune=False).learning_rate == 3e-4

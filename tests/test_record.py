@@ -27,11 +27,15 @@ from lcdata import (
     replay,
 )
 from lcdata.offline import STATE_COLUMNS, track_arrays
-from lcdata.record import episode_metadata
+from lcdata.record import episode_metadata, seed_start_time_ns
+from lcdata.writer import EpisodeSink
+from lcdata.writer_process import open_writer
+from lcsim import kernel
 from lcsim.config import ScenarioConfig
 from lcsim.core import LaneChangeCore
 from lcsim.envs import LaneChangeEnv
 from lcsim.registry import make_driver
+from lcsim.sim import LOG_STEPS
 from tests.conftest import small_config, wait_gone
 
 ROOT = pathlib.Path(__file__).resolve().parents[1]
@@ -77,7 +81,7 @@ def test_round_trip_tracks_ego_steps_metadata(tmp_path: pathlib.Path, small: Sce
             actions.append(int(a[e]))
             obs = core.observe()
         recorder.detach()
-    assert recorder not in core.sim.hooks
+    assert recorder not in core.sim.log_hooks
     ep = read_episode(tmp_path / "ep.mcap")
     assert ep.complete
     tracks = track_arrays(ep)
@@ -102,25 +106,88 @@ def test_round_trip_tracks_ego_steps_metadata(tmp_path: pathlib.Path, small: Sce
     assert len(ep.image_steps) == len(actions)
 
 
-def test_hook_only_recording_flushes_by_itself(tmp_path: pathlib.Path, small: ScenarioConfig) -> None:
-    """Without before_step/after_step the recorder writes its steps every MAX_PENDING_STEPS and on detach."""
+def test_hook_only_recording_writes_every_step(tmp_path: pathlib.Path, small: ScenarioConfig) -> None:
+    """Without before_step/after_step the recorder writes the steps of every compiled call as they come (an advance
+    longer than one logged call too); attach() refuses a decision under way, detach() writes what it holds."""
     core = LaneChangeCore(small, 1, autopilot_ego=True)
     seen: list[np.ndarray] = []
     with EpisodeWriter(tmp_path / "ep.mcap", metadata={"seed": 1}) as writer:
         recorder = EpisodeRecorder(writer, core)
         core.reset([0], [episode_seed(1)])
         recorder.attach()
-        core.sim.hooks.append(lambda sim: seen.append(sim.x[0].copy()))
-        for _ in range(15):  # 150 steps: two full batches of 64 and the rest on detach
+        core.sim.log_hooks.append(lambda sim, log, counts: seen.extend(log[0, : counts[0], kernel.LOG_HEAD :].copy()))
+        for _ in range(15):
             core.step(np.array([1]))
-        with pytest.raises(RuntimeError, match="not yet written"):
-            recorder.attach()  # as after a reset: the pending steps' rows would be overwritten
+        core.sim.advance(LOG_STEPS + 10)
+        recorder.before_step(core.observe(), core.action_mask(), np.array([1]))
+        core.step(np.array([1]))
+        with pytest.raises(RuntimeError, match="inside a decision"):
+            recorder.attach()  # as after a reset: the decision's steps and view would be lost
         recorder.detach()
         with pytest.raises(RuntimeError, match="before_step"):
-            recorder.after_step(None)  # type: ignore[arg-type]
-    tracks = track_arrays(read_episode(tmp_path / "ep.mcap"))
-    np.testing.assert_array_equal(tracks.steps, np.arange(151))
-    assert tracks.columns["x"][1:].tobytes() == np.stack(seen).tobytes()
+            EpisodeRecorder(writer, core).after_step(None)  # type: ignore[arg-type]
+    ep = read_episode(tmp_path / "ep.mcap")
+    tracks = track_arrays(ep)
+    steps = 160 + LOG_STEPS + 10
+    np.testing.assert_array_equal(tracks.steps, np.arange(steps + 1))
+    assert tracks.columns["x"][1:].tobytes() == np.stack(seen)[:, : small.traffic.num_vehicles + 1].tobytes()
+    assert ep.image_steps == [150 + LOG_STEPS + 10] and len(ep.steps) == 0  # the unfinished decision: no /rl/step
+
+
+class SingleCalls(EpisodeWriter):
+    """A writer that makes the recorder's composite calls of the single ones, with the per-message encoders
+    (lcdata.encode, SimStepEncoder), as the recorder wrote its files before the compiled decision records."""
+
+    def write_decision(self, *args) -> None:
+        EpisodeSink.write_decision(self, *args)
+
+    def _write_log_steps(self, log: np.ndarray, fixed) -> None:
+        EpisodeSink._write_log_steps(self, log, fixed)
+
+
+def _recorded(path: pathlib.Path, config: ScenarioConfig, seed: int, driver, mode: str, autopilot: bool = False,
+              scene: bool = True, images: bool = True) -> bytes:  # fmt: skip
+    """The file an EpisodeRecorder writes for one episode with ``mode``'s writer (``single``: SingleCalls)."""
+    meta = episode_metadata(config, seed, driver="test", autopilot=autopilot)
+    kwargs = {"metadata": meta, "start_time_ns": seed_start_time_ns(seed), "chunk_size": 1 << 16}
+    writer = SingleCalls(path, **kwargs) if mode == "single" else open_writer(path, mode=mode, **kwargs)
+    core = LaneChangeCore(config, 1, autopilot_ego=autopilot)
+    with writer:
+        recorder = EpisodeRecorder(writer, core, scene=scene, images=images)
+        core.reset([0], [episode_seed(seed)])
+        recorder.attach()
+        obs = core.observe()
+        while not recorder.done:
+            mask = core.action_mask()
+            actions = driver(obs, mask, core)
+            recorder.before_step(obs, mask, actions)
+            recorder.after_step(core.step(actions))
+            obs = core.observe()
+        recorder.detach()
+    return path.read_bytes()
+
+
+def _always_right(obs, mask, core) -> np.ndarray:
+    return np.zeros(core.num_envs, dtype=np.int64)
+
+
+def test_compiled_decisions_write_the_bytes_of_the_single_calls(tmp_path: pathlib.Path, small: ScenarioConfig) -> None:
+    """The recorder's decisions laid out by one compiled call (and, in the process writer's helper, many at once)
+    give byte for byte the file of the per-message encoders, in real episodes with every kind of event: lane changes
+    and lane invasions, collisions, leaving the road, the autopilot ego, no image, no scene, small chunks."""
+    leave = dataclasses.replace(small, invalid_lane_change="leave_road")
+    cases = [(small, seed, "random", {}) for seed in (0, 1, 2)]
+    cases += [(leave, seed, "right", {}) for seed in (0, 2)]
+    cases += [(small, 3, "keep", {"autopilot": True}), (small, 4, "rule", {"images": False}),
+              (small, 5, "rule", {"scene": False})]  # fmt: skip
+    kinds: set[str] = set()
+    for i, (config, seed, name, options) in enumerate(cases):
+        files = {mode: _recorded(tmp_path / mode / f"ep{i}.mcap", config, seed,
+                                 _always_right if name == "right" else make_driver(name, seed), mode, **options)
+                 for mode in ("single", "inline", "process")}  # fmt: skip
+        assert files["inline"] == files["single"] == files["process"], (i, options)
+        kinds |= set(read_episode(tmp_path / "inline" / f"ep{i}.mcap").events["kind"])
+    assert {"lane_change_start", "lane_change_end", "lane_invasion", "collision", "off_road"} <= kinds
 
 
 @pytest.mark.parametrize("writer", ["process", "inline"])
@@ -187,6 +254,7 @@ from lcdata.record import episode_metadata
 from lcdata.writer_process import open_writer
 from lcsim.core import LaneChangeCore
 from lcsim.registry import make_driver
+from lcsim.sim import LOG_STEPS
 from tests.conftest import small_config
 
 cfg = small_config(time_limit_s=200.0, route_length_m=1000.0)

@@ -58,6 +58,7 @@ def test_driver_names_and_policy_specs():
     for name in DRIVER_NAMES:
         assert callable(make_driver(name))
     assert split_policy_spec("lookahead-blind:runs/p.safetensors") == ("lookahead-blind:", "runs/p.safetensors")
+    assert split_policy_spec("safety-layer:runs/p.safetensors") == ("safety-layer:", "runs/p.safetensors")
     assert split_policy_spec("rule") is None and split_policy_spec("policy:") is None
     with pytest.raises(ValueError, match="unknown driver"):
         make_driver("autopilot")

@@ -1,4 +1,4 @@
-"""Shielded training: the safety layer executes the policy's proposals and each override costs the penalty."""
+"""Training behind the safety layer: it executes the policy's proposals and each override costs the penalty."""
 
 from __future__ import annotations
 
@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 
 from lcmodels.policy.shield import Shield, ShieldedSB3VecEnv, shield_for
-from lcsim.planning import LookaheadConfig, LookaheadDriver
+from lcsim.planning import PRIVILEGED, LookaheadDriver, SafetyLayerConfig
 from lcsim.registry import make_driver, scenario
 from lcsim.sb3 import LaneChangeSB3VecEnv
 
@@ -23,7 +23,7 @@ def test_the_shielded_env_steps_what_the_layer_executes_and_takes_the_penalty_pe
     same road as an unshielded env given those decisions, with the penalty taken exactly where it overrode."""
     config = scenario("tiny")
     penalty = 7.5
-    look = LookaheadConfig(blind=True, perceived=True, horizon_decisions=4, samples=2)
+    look = SafetyLayerConfig(horizon_decisions=4, samples=2)
     shield = Shield(LookaheadDriver(look, rule=make_driver("rule")), penalty)
     twin = Shield(LookaheadDriver(look, rule=make_driver("rule")), penalty)  # what the layer will execute
     shielded, plain = ShieldedSB3VecEnv(4, config, shield), LaneChangeSB3VecEnv(4, config)
@@ -47,10 +47,12 @@ def test_the_shielded_env_steps_what_the_layer_executes_and_takes_the_penalty_pe
 
 
 def test_a_shield_must_be_blind_and_its_penalty_a_number_at_least_zero() -> None:
-    with pytest.raises(ValueError, match="must be blind"):
-        Shield(LookaheadDriver(LookaheadConfig(blind=False)), 1.0)
-    with pytest.raises(ValueError, match="penalty must be a number >= 0"):
-        Shield(LookaheadDriver(LookaheadConfig(blind=True)), -1.0)
+    with pytest.raises(ValueError, match="needs a blind layer"):
+        Shield(LookaheadDriver(PRIVILEGED), 1.0)
+    with pytest.raises(ValueError, match=r"penalty .* must be a number >= 0"):
+        Shield(LookaheadDriver(SafetyLayerConfig()), -1.0)
+    with pytest.raises(ValueError, match=r"safety\.follow"):
+        shield_for(SafetyLayerConfig(), 1.0, scenario("tiny"))
 
 
 def test_shielded_training_is_reproducible_feels_the_penalty_and_resumes_its_step_count(tmp_path: Path) -> None:
@@ -60,12 +62,12 @@ def test_shielded_training_is_reproducible_feels_the_penalty_and_resumes_its_ste
 
     follow = tmp_path / "follow"
     train_policy(tiny_policy(obs="pure", timesteps=64, n_steps=32, eval_episodes=0), follow)
-    look = {"horizon_decisions": 3, "samples": 2, "perceived": True}
+    look = SafetyLayerConfig(horizon_decisions=3, samples=2, follow=str(follow / "policy.safetensors"))
 
     def run(out: Path, timesteps: int, penalty: float = 50.0) -> bytes:
         cfg = tiny_policy(obs="pure", timesteps=timesteps, n_steps=32, eval_episodes=0, checkpoint_every=64,
                           init_policy=str(follow / "policy.safetensors"))  # fmt: skip
-        shield = shield_for(look, str(follow / "policy.safetensors"), penalty, cfg.scenario_config())
+        shield = shield_for(look, penalty, cfg.scenario_config())
         train_policy(cfg, out, shield=shield)
         return (out / "policy.safetensors").read_bytes()
 

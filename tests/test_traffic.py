@@ -163,9 +163,13 @@ def test_human_like_drivers_differ_wander_within_their_lane_and_vary_their_accel
     tc = TrafficConfig()
     assert 0.6 * tc.lane_wander_m < human["lateral_offset_sd_m"] < 1.2 * tc.lane_wander_m
     assert human["lateral_offset_max_m"] <= 2.5 * tc.lane_wander_m + 1e-9
-    assert exact["lateral_offset_sd_m"] == exact["lateral_offset_max_m"] == 0.0
+    # exact IDM keeps the lane centre; only a lane change begun in the last moments, before it has covered a tenth
+    # of a lane width (which the statistics cannot tell from lane keeping), shows at all
+    assert exact["lateral_offset_sd_m"] < 0.02 and exact["lateral_offset_max_m"] < 0.1 * 3.5
     assert human["accel_sd_mps2"] > 2.0 * exact["accel_sd_mps2"]
     assert human["lane_change_duration_sd_s"] > 0.5 > exact["lane_change_duration_sd_s"]
+    # the durations measured on the lateral position are the configured ones
+    assert exact["lane_change_duration_mean_s"] == pytest.approx(tc.lane_change_duration_s, abs=0.02)
     assert human["lane_changes"] > 20 and human["traffic_collisions"] == exact["traffic_collisions"] == 0
     sim = LaneChangeCore(_traffic(True), 2).sim
     sim.reset([0, 1], [3, 4])
@@ -212,29 +216,6 @@ def test_a_perceived_copy_sees_the_median_driver():
     assert (copy_.sim.drivers.time_headway[:, 1:] == tc.idm_time_headway_s).all()
     assert (copy_.sim.drivers.max_accel[:, 1:] == tc.idm_max_accel_mps2).all()
     assert core.sim.drivers.time_headway[:, 1:].std() > 0  # the original keeps its drivers
-
-
-def test_a_perceived_copy_can_draw_plausible_drivers_instead():
-    """With ``draw_drivers`` the copy's unseen drivers come from the traffic's distribution: the same state and
-    salt give the same drivers, another salt others, and the ego keeps its own parameters."""
-    from lcsim.planning.perception import imagined_copy, perceive, redraw_future
-
-    core = LaneChangeCore(_traffic(True), 2)
-    core.reset([0, 1], [5, 6])
-    drawn = []
-    for salt in (1, 1, 2):
-        copy_ = imagined_copy(core)
-        redraw_future(copy_.sim, salt)
-        perceive(copy_.sim, 1000.0, draw_drivers=True)
-        drawn.append(copy_.sim.drivers.time_headway.copy())
-        assert np.array_equal(copy_.sim.drivers.max_accel[:, 0], core.sim.drivers.max_accel[:, 0])
-    assert np.array_equal(drawn[0], drawn[1])
-    assert not np.array_equal(drawn[0][:, 1:], drawn[2][:, 1:])
-    assert drawn[0][:, 1:].std() > 0  # not the median driver
-    assert not np.array_equal(drawn[0][:, 1:], core.sim.drivers.time_headway[:, 1:])  # nor the true ones
-    tc = core.config.traffic
-    spread = np.log(drawn[0][:, 1:] / tc.idm_time_headway_s)
-    assert np.abs(spread).max() <= 2.5 * tc.driver_spread + 1e-9  # within the distribution's clipped range
 
 
 def test_a_perceived_copy_keeps_the_pace_of_lane_changes_under_way():

@@ -34,7 +34,8 @@ def test_same_bytes_as_the_in_process_writer(tmp_path: pathlib.Path, small: Scen
 
 
 def test_each_call_gives_the_same_bytes(tmp_path: pathlib.Path) -> None:
-    """Every writing method, called directly (per step and batched, static and per-step columns)."""
+    """Every writing method, called directly (per step and batched, static and per-step columns; step logs and
+    decisions with events, views without a pose or an image, arrays not contiguous and of other types)."""
     rng = np.random.default_rng(0)
     n, k = 5, 4
     ids, length, width = np.arange(n), np.full(n, 4.8), np.full(n, 1.9)
@@ -50,13 +51,19 @@ def test_each_call_gives_the_same_bytes(tmp_path: pathlib.Path) -> None:
                              1.5, 2, -1, -1, False, 0.1, 0.2, 0.0)  # fmt: skip
             w.write_vehicles(k + 1, 0.3, ids, *(c[1] for c in cols), lanes[0, 1], lanes[1, 1], length, width)
             w.write_ego(k + 1, 0.3, speed=2.0, lane=1)
-            rows = [column[i] for i in range(k) for column in (*cols, *lanes)]  # as EpisodeRecorder collects
-            other_dtypes = [row.astype(np.int32) if row.dtype.kind == "i" else row for row in rows]
-            strided = [np.repeat(row, 2)[::2] for row in rows]  # not contiguous
-            for first, shaped in ((k + 2, rows), (2 * k + 2, [row[None] for row in rows]), (3 * k + 2, other_dtypes),
-                                  (4 * k + 2, strided)):  # fmt: skip
-                w.write_sim_rows(range(first, first + k), [0.05 * i for i in range(first, first + k)], shaped,
-                                 (ids, length, width), ego.ravel().tolist())  # fmt: skip
+            log = _log(k, n, cols, lanes, ego, first=k + 2)
+            strided = np.repeat(_log(k, n, cols, lanes, ego, first=2 * k + 2), 2, axis=1)[:, ::2]  # not contiguous
+            w.write_sim_log(log, (ids, length, width), False, False)
+            w.write_sim_log(strided, (ids.astype(np.int32), length, width), False, False)
+            pose = np.stack((cols[0][0], cols[1][0], cols[2][0]))
+            image = rng.integers(0, 255, (3, 8, 6), dtype=np.uint8)
+            rl = np.array([3, 2, 0, 1, 1, -1.5, -2.5, 0, 1.0, 0, 1, 0, 2], dtype=np.float64)
+            for d, (current, view_image, view_pose) in enumerate((
+                    (rng.normal(size=(3, 4)).astype(np.float32), image, pose), (rng.normal(size=(2, 2)), None, pose[:, ::-1]),
+                    (None, image[:, ::2], None))):  # fmt: skip
+                w.write_decision(10 + d, 0.6 + 0.05 * d, view_pose, view_image, _log(k, n, cols, lanes, ego, first=(3 + d) * k + 2),
+                                 (ids, length, width), True, True, rl, current)  # fmt: skip
+            w.write_view(13, 0.75, pose, (ids, length, width), image)
             w.write_transform(k, 0.2, 1.0, 2.0, 0.3)
             w.write_scene(k, 0.2, ids, cols[0][0], cols[1][0], cols[2][0], length, width)
             w.write_image(k, 0.2, rng.integers(0, 255, (3, 8, 6), dtype=np.uint8))
@@ -75,13 +82,29 @@ def test_each_call_gives_the_same_bytes(tmp_path: pathlib.Path) -> None:
                                rng.normal(size=(k, 3))])  # fmt: skip
     assert contents[0] == contents[1]
     ep = read_episode(tmp_path / "process" / "ep.mcap")
-    assert ep.ego["step"].tolist() == list(range(5 * k + 2))
+    assert ep.ego["step"].tolist() == list(range(6 * k + 2))
     assert ep.ego["collision_with"].tolist()[:4] == ep.ego["collision_with"].tolist()[-4:] == [-1, 2, -1, -1]
     x = ep.tracks["x"].to_numpy()
     target_lane = ep.tracks["target_lane"].to_numpy()
-    for first in (0, k + 2, 2 * k + 2, 3 * k + 2, 4 * k + 2):  # columns; (N,), (1, N), int32, strided rows
+    for first in (0, k + 2, 2 * k + 2, 3 * k + 2, 4 * k + 2, 5 * k + 2):  # columns; logs, a strided log, decisions
         np.testing.assert_array_equal(x[first * n : (first + k) * n], cols[0].reshape(-1))
         np.testing.assert_array_equal(target_lane[first * n : (first + k) * n], lanes[1].reshape(-1))
+    assert (ep.steps["action"] == 2).all() and len(ep.steps) == 4  # three decisions and write_rl_step
+    assert "lane_change_end" in set(ep.events["kind"]) and "on_road" in set(ep.events["kind"])
+
+
+def _log(k: int, n: int, cols: list[np.ndarray], lanes: np.ndarray, ego: np.ndarray, first: int) -> np.ndarray:
+    """K step log rows (lcsim.kernel.log_state) of steps ``first``, ... from the test's columns."""
+    from lcsim import kernel
+
+    log = np.zeros((k, kernel.log_width(n)))
+    log[:, kernel.LOG_STEP], log[:, kernel.LOG_T] = first + np.arange(k), 0.05 * (first + np.arange(k))
+    log[:, kernel.LOG_SPEED : kernel.LOG_BRAKE + 1] = ego
+    log[:, kernel.LOG_LC_ACTIVE] = [1, 1, 0, 0]
+    vehicles = log[:, kernel.LOG_HEAD :].reshape(k, 7, n)
+    for j, column in enumerate((*cols, *lanes)):
+        vehicles[:, j] = column
+    return log
 
 
 def test_episodes_written_at_once_by_one_helper(tmp_path: pathlib.Path, small: ScenarioConfig) -> None:
@@ -157,3 +180,44 @@ def test_a_killed_helper_is_reported(tmp_path: pathlib.Path) -> None:
     with ProcessEpisodeWriter(tmp_path / "next.mcap", metadata={}) as nxt:  # a new helper is started
         nxt.write_ego(0, 0.0, speed=2.0, lane=1)
     assert nxt.writer_pid != pid and read_episode(nxt.path).ego["lane"].tolist() == [1]
+
+
+@pytest.mark.parametrize("shared", [True, False])
+def test_records_larger_than_a_segment_and_no_shared_memory(tmp_path: pathlib.Path, monkeypatch: pytest.MonkeyPatch,
+                                                           shared: bool) -> None:  # fmt: skip
+    """A record larger than a segment of the shared ring goes through the pipe, and without a memfd every record
+    does: the same bytes as the in-process writer either way."""
+    from lcdata import writer_process
+    from lcsim import kernel
+
+    rng = np.random.default_rng(1)
+    n, k = 500, 64  # a step log of 64 steps of 500 vehicles: 2 MB, larger than a segment
+    log = rng.normal(size=(k, kernel.log_width(n)))
+    log[:, kernel.LOG_STEP], log[:, kernel.LOG_T] = np.arange(k), 0.05 * np.arange(k)
+    log[:, kernel.LOG_COLLISION : kernel.LOG_INVASION + 1] = -1
+    log[:, kernel.LOG_OFF_ROAD] = log[:, kernel.LOG_LC_ACTIVE] = 0  # no events
+    assert log.nbytes > writer_process.SEGMENT_BYTES
+    fixed = (np.arange(n), np.full(n, 4.5), np.full(n, 1.8))
+    if not shared:
+        def no_memfd(*args: object) -> int:
+            raise OSError("no memfd here")
+
+        monkeypatch.setattr(writer_process.os, "memfd_create", no_memfd)
+        if writer_process._service is not None:
+            writer_process._service.shutdown()
+        monkeypatch.setattr(writer_process, "_service", None)
+    contents = []
+    for mode in ("process", "inline"):
+        with open_writer(tmp_path / mode / "ep.mcap", mode=mode, metadata={"seed": 1}, start_time_ns=T0) as w:
+            for first in (0, k):
+                shifted = log.copy()
+                shifted[:, kernel.LOG_STEP] += first
+                shifted[:, kernel.LOG_T] += 0.05 * first
+                w.write_sim_log(shifted, fixed, False, False)
+                w.write_event(first, 0.05 * first, "note", "between the large records")
+        contents.append(w.path.read_bytes())
+    if not shared:
+        assert writer_process._service is not None and writer_process._service._ring is None
+        writer_process._service.shutdown()
+    assert contents[0] == contents[1]
+    assert read_episode(tmp_path / "process" / "ep.mcap").ego["step"].tolist() == list(range(2 * k))

@@ -102,10 +102,11 @@ def run_case(case: Case, cwd: Path) -> Outcome:
 def build_cases(root: Path) -> list[Case]:
     """The cases, with the small files they need made under ``root`` (a trained tiny policy, a crafted zip)."""
     import torch
+    from convert_policy import LEGACY_VERSION  # tools/: the one reader of legacy policies
 
     from lcdata.record import record_episode
     from lcmodels.policy import PolicyConfig, train_policy
-    from lcmodels.policy.checkpoint import LEGACY_VERSION, META_FORMAT, load_policy, read_meta
+    from lcmodels.policy.checkpoint import META_FORMAT, load_policy, read_meta
     from lcmodels.predictor import Predictor, PredictorConfig, TrajectoryTransformer
     from lcsim.config import paper_scenario
 

@@ -1,12 +1,12 @@
 #!/usr/bin/env python
 """The recorder's own CPU time per simulated second, whatever the simulator's speed.
 
-An episode is simulated once while its states are captured (copies of the simulator arrays the
-:class:`~lcdata.record.EpisodeRecorder` reads, after every simulation step and around every decision,
-with the observations, masks, actions and step results). The capture is then replayed into a real
-recorder and writer on a stand-in core, with no simulation: what the replay costs is the recorder's
-work alone (the per-step hook, the hand-over to the writer, encoding, chunking, compression, file
-I/O). The replayed file is checked to be byte for byte the file :func:`lcdata.record_episode` writes.
+An episode is simulated once while what the :class:`~lcdata.record.EpisodeRecorder` reads is captured
+(copies of the simulator's step logs, of the state arrays it reads around every decision, the observations,
+masks, actions and step results). The capture is then replayed into a real recorder and writer on a stand-in
+core, with no simulation: what the replay costs is the recorder's work alone (the log hook, the hand-over to
+the writer, encoding, chunking, compression, file I/O). The compiled call's own cost of writing the log is
+not in it (the overhead of ``tools/bench_mcap.py`` has it). The replayed file is checked to be byte for byte the file :func:`lcdata.record_episode` writes.
 
 Costs are CPU seconds per simulated second (``time.process_time`` of this process, all threads; the
 helper process of ``--writer process`` from ``/proc/<pid>/schedstat``), the median of ``--repeats``
@@ -33,8 +33,6 @@ from typing import Any
 import numpy as np
 
 from lcdata.record import (
-    RECORDED_FLOAT_ROWS,
-    RECORDED_INT_ROWS,
     EpisodeRecorder,
     episode_metadata,
     episode_seed,
@@ -46,9 +44,9 @@ from lcsim import corpus_scenario, paper_scenario
 from lcsim.config import ScenarioConfig
 from lcsim.core import LaneChangeCore
 
-SIM_STATE = ("step", "t_s", "frozen", "collision_with", "lane_invasion", "off_road", "lc_active", "ego_lc_active",
-             "x", "y", "yaw", "speed", "accel", "lane", "target_lane", "steer", "throttle", "brake")  # fmt: skip
-"""The simulator arrays the recorder reads at every step (copied into the capture)."""
+SIM_STATE = ("step", "t_s")
+"""The simulator arrays the recorder reads at a decision (copied into the capture, with the rows x, y, yaw of the
+vehicles' state block)."""
 
 
 @dataclass
@@ -59,10 +57,10 @@ class Capture:
     seed: int
     driver: str
     fixed: dict[str, Any]
-    """What does not change in an episode: ids, length, width, road, autopilot_ego."""
+    """What does not change in an episode: ids, length, width, road, and the step log row after the reset."""
     events: list[tuple[Any, ...]] = field(default_factory=list)
-    """``("step", state)``, ``("before", state, obs, mask, actions)``, ``("after", state, result)``; the first
-    is the state after the reset."""
+    """``("log", state, log, counts)``, ``("before", state, obs, mask, actions)``, ``("after", state, result)``;
+    the first is ``("reset", state)``."""
 
     @property
     def simulated_s(self) -> float:
@@ -71,9 +69,7 @@ class Capture:
 
 
 def _state(sim: Any) -> dict[str, np.ndarray]:
-    # (with the rows of the state blocks the recorder copies each step: vf's x .. accel, vi's lane, target_lane)
-    return {name: np.array(getattr(sim, name)) for name in SIM_STATE} | {"vf": sim.vf[RECORDED_FLOAT_ROWS].copy(),
-                                                                         "vi": sim.vi[RECORDED_INT_ROWS].copy()}
+    return {name: np.array(getattr(sim, name)) for name in SIM_STATE} | {"vf": sim.vf[:3].copy()}
 
 
 def capture(config: ScenarioConfig, seed: int, driver: str) -> Capture:
@@ -82,10 +78,12 @@ def capture(config: ScenarioConfig, seed: int, driver: str) -> Capture:
     core = LaneChangeCore(config, 1, autopilot_ego=autopilot)
     core.reset([0], [episode_seed(seed)])
     sim = core.sim
+    first = sim.log_row(0)
     fixed = {"ids": np.array(sim.ids), "length": np.array(sim.length), "width": np.array(sim.width),
-             "road": sim.road, "autopilot_ego": sim.autopilot_ego}  # fmt: skip
-    cap = Capture(config, seed, driver, fixed, [("step", _state(sim))])
-    sim.hooks.append(lambda s: cap.events.append(("step", _state(s))))
+             "road": sim.road, "log_row": lambda e: first.copy()}  # fmt: skip
+    cap = Capture(config, seed, driver, fixed, [("reset", _state(sim))])
+    sim.log_hooks.append(lambda s, log, counts: cap.events.append(("log", _state(s), log[:, : counts.max()].copy(),
+                                                                   counts.copy())))  # fmt: skip
     obs = core.observe()
     while True:
         mask = core.action_mask()
@@ -101,7 +99,7 @@ def capture(config: ScenarioConfig, seed: int, driver: str) -> Capture:
 
 def replay(cap: Capture, path: pathlib.Path | None, writer: str) -> None:
     """Feed the capture to an :class:`EpisodeRecorder` writing ``path`` (``None``: the loop alone)."""
-    sim = SimpleNamespace(hooks=[], **cap.fixed)
+    sim = SimpleNamespace(log_hooks=[], **cap.fixed)
     core = SimpleNamespace(sim=sim, config=cap.config, num_envs=1, seeds=np.array([episode_seed(cap.seed)]))
     state = sim.__dict__
     events = iter(cap.events)
@@ -118,8 +116,9 @@ def replay(cap: Capture, path: pathlib.Path | None, writer: str) -> None:
         rec.attach()
         for event in events:
             state.update(event[1])
-            if event[0] == "step":
-                rec(sim)  # type: ignore[arg-type]
+            if event[0] == "log":
+                for hook in sim.log_hooks:
+                    hook(sim, event[2], event[3])
             elif event[0] == "before":
                 rec.before_step(*event[2:])
             else:

@@ -79,10 +79,10 @@ def bench_batch(seconds: float, config: ScenarioConfig, num_envs: int = 64, thre
 
 def bench_planner(seconds: float) -> float:
     """Milliseconds per decision of the perceived lookahead planner (blind, perceived, horizon 16) in one env."""
-    from lcsim.planning import LookaheadConfig, LookaheadDriver
+    from lcsim.planning import LookaheadDriver, SafetyLayerConfig
 
     env = LaneChangeEnv(ScenarioConfig(render_image=False))
-    driver = LookaheadDriver(LookaheadConfig(blind=True, perceived=True))
+    driver = LookaheadDriver(SafetyLayerConfig())
     obs, info = env.reset(seed=0)
     decisions, t0 = 0, time.perf_counter()
     while time.perf_counter() - t0 < seconds or decisions < 3:

@@ -5,7 +5,7 @@
     python tools/import_graph.py --check    # exit 1 on a violation (the test suite runs this)
     python tools/import_graph.py --modules  # every module-to-module arrow too
 
-The layers, bottom up: ``lcsim`` <- ``lcdata`` <- ``lcmodels`` <- ``lccli`` <- ``tools``, ``experiments``.
+The layers, bottom up: ``lckit`` <- ``lcsim`` <- ``lcdata`` <- ``lcmodels`` <- ``lccli`` <- ``tools``, ``experiments``.
 Every import counts, also one inside a function or under ``TYPE_CHECKING``. A violation is an arrow that
 runs up a layer, a circle of modules that import each other, or a private name (``_x``) imported from
 another package.
@@ -20,7 +20,7 @@ import sys
 from pathlib import Path
 
 ROOT = Path(__file__).resolve().parent.parent
-LAYERS = {"lcsim": 0, "lcdata": 1, "lcmodels": 2, "lccli": 3, "tools": 4, "experiments": 4}
+LAYERS = {"lckit": 0, "lcsim": 1, "lcdata": 2, "lcmodels": 3, "lccli": 4, "tools": 5, "experiments": 5}
 
 
 def module_name(path: Path) -> str:

@@ -9,9 +9,9 @@ with ``lcdata.importers.import_sumo_fcd`` into the corpus layout (one ``.mcap`` 
 The traffic is SUMO's own, with the paper's numbers where it has them: Ford-Crown-sized cars
 (5.37 x 1.80 m) whose desired speed is 24 km/h times a speed factor drawn per vehicle (normal, 10 %
 spread by default), Krauss car following with its default driver imperfection, LC2013 lane changes
-(to overtake slower cars, to keep right), 0.05 s steps. At t = 0 the road already holds the initial
-vehicles (placed at random free positions over its first part), and a random inflow on every lane keeps
-the density up while cars leave at the end. Everything random comes from the episode's seed, so the same
+(to overtake slower cars, to keep right; how eagerly: ``--lc-speed-gain``, ``--lc-keep-right``) over 3 s,
+0.05 s steps. At t = 0 the road already holds the initial vehicles (placed at random free positions over its
+first part), and a random inflow on every lane keeps the density up while cars leave at the end. Everything random comes from the episode's seed, so the same
 seed writes the same FCD, and episodes differ by seed.
 
     python tools/sumo_highway.py --episodes 4 --seed 1000 --out runs/sumo     # runs/sumo/{sumo/,corpus/}
@@ -74,6 +74,10 @@ class HighwayOptions:
     velocity noise of up to 0.2 m/s in a one-step difference, like a real sensor's)."""
     lane_change_duration_s: float = 3.0
     """Time a lane change takes, seconds: the car moves sideways over it (SUMO's default, 0, jumps)."""
+    lc_speed_gain: float = 1.0
+    """LC2013's eagerness to change lanes to gain speed (``lcSpeedGain``, SUMO's default 1; 0 never does)."""
+    lc_keep_right: float = 1.0
+    """LC2013's eagerness to return to the right (``lcKeepRight``, SUMO's default 1; 0 never does)."""
 
     def __post_init__(self) -> None:
         for name in ("lanes", "initial_vehicles", "precision"):
@@ -85,6 +89,10 @@ class HighwayOptions:
             value = getattr(self, name)
             if not (isinstance(value, int | float) and math.isfinite(value) and value > 0):
                 raise ValueError(f"{name} must be > 0, got {value!r}")
+        for name in ("lc_speed_gain", "lc_keep_right"):
+            value = getattr(self, name)
+            if not (isinstance(value, int | float) and math.isfinite(value) and 0 <= value <= 100):
+                raise ValueError(f"{name} must be in [0, 100], got {value!r}")
         if not 0 <= self.speed_factor_dev < 0.5:
             raise ValueError(f"speed_factor_dev must be in [0, 0.5), got {self.speed_factor_dev!r}")
         if not 0 <= self.sigma <= 1:
@@ -163,7 +171,8 @@ def write_routes(path: pathlib.Path, options: HighwayOptions) -> pathlib.Path:
         "<routes>",
         f'    <vType id="crown" vClass="passenger" length="{o.vehicle_length_m:.2f}" width="{o.vehicle_width_m:.2f}" '
         f'minGap="2.5" accel="2.6" decel="4.5" sigma="{o.sigma:.3f}" speedFactor={quoteattr(speed_factor)} '
-        'carFollowModel="Krauss" laneChangeModel="LC2013"/>',
+        f'carFollowModel="Krauss" laneChangeModel="LC2013" lcSpeedGain="{o.lc_speed_gain:g}" '
+        f'lcKeepRight="{o.lc_keep_right:g}"/>',
         '    <route id="straight" edges="road"/>',
     ]
     for i in range(o.initial_vehicles):  # SUMO draws lane and place from the run's seed
@@ -259,6 +268,12 @@ def main(argv: Sequence[str] | None = None) -> int:
                    help=f"Krauss driver imperfection in [0, 1] (default {DEFAULTS.sigma:g})")
     p.add_argument("--action-step", type=float, default=DEFAULTS.action_step_s, metavar="S",
                    help=f"drivers' decision interval, seconds (default {DEFAULTS.action_step_s:g})")
+    p.add_argument("--lane-change-duration", type=float, default=DEFAULTS.lane_change_duration_s, metavar="S",
+                   help=f"time a lane change takes, seconds (default {DEFAULTS.lane_change_duration_s:g})")
+    p.add_argument("--lc-speed-gain", type=float, default=DEFAULTS.lc_speed_gain, metavar="X",
+                   help=f"eagerness to change lanes for speed, LC2013's lcSpeedGain (default {DEFAULTS.lc_speed_gain:g})")
+    p.add_argument("--lc-keep-right", type=float, default=DEFAULTS.lc_keep_right, metavar="X",
+                   help=f"eagerness to return to the right, LC2013's lcKeepRight (default {DEFAULTS.lc_keep_right:g})")
     p.add_argument("--overwrite", action="store_true", help="replace the episodes of an earlier run in OUT/corpus")
     p.add_argument("-q", "--quiet", action="store_true", help="no progress")
     try:
@@ -276,7 +291,8 @@ def main(argv: Sequence[str] | None = None) -> int:
         options = HighwayOptions(duration_s=args.duration, initial_vehicles=args.initial_vehicles,
                                  inflow_per_lane_hz=args.inflow, desired_speed_kmh=args.speed_kmh,
                                  speed_factor_dev=args.speed_dev, sigma=args.sigma,
-                                 action_step_s=args.action_step)  # fmt: skip
+                                 action_step_s=args.action_step, lane_change_duration_s=args.lane_change_duration,
+                                 lc_speed_gain=args.lc_speed_gain, lc_keep_right=args.lc_keep_right)  # fmt: skip
         if not sumo_available():
             sumo_binary("sumo")  # raises with the reason
         corpus = args.out / "corpus"

@@ -21,7 +21,7 @@ import time
 import numpy as np
 
 from lccli.common import fail
-from lccli.evaluate import add_heldout_arguments, heldout_driver
+from lccli.evaluate import add_heldout_arguments, eval_settings, heldout_driver
 from lcmodels.policy.evaluate import evaluate
 from lcsim.core import KEEP, LaneChangeCore
 
@@ -66,6 +66,7 @@ def main(argv: list[str] | None = None) -> int:
         parser.error("--rear-gap-m and --headway-s must be >= 0")
     try:
         driver, config = heldout_driver(args)
+        batch = eval_settings(args)[0].batch
     except ValueError as exc:
         return fail(parser.prog, str(exc))
     shield = None
@@ -73,7 +74,7 @@ def main(argv: list[str] | None = None) -> int:
         shield = driver = GapShield(driver, front_gap_m=args.front_gap_m, rear_gap_m=args.rear_gap_m,
                                     headway_s=args.headway_s)
     t0 = time.perf_counter()
-    summary, _ = evaluate(driver, config, episodes=args.episodes, seed=args.seed, batch=args.batch)
+    summary, _ = evaluate(driver, config, episodes=args.episodes, seed=args.seed, batch=batch)
     print(json.dumps({
         "driver": args.policy, "shield": shield is not None, "front_gap_m": args.front_gap_m,
         "rear_gap_m": args.rear_gap_m, "headway_s": args.headway_s, "episodes": args.episodes,

@@ -29,10 +29,8 @@ from __future__ import annotations
 
 import argparse
 import json
-import multiprocessing
 import sys
 import time
-from concurrent.futures import ProcessPoolExecutor
 from pathlib import Path
 from typing import Any
 
@@ -41,7 +39,8 @@ import torch
 from torch import nn
 
 from lccli.common import fail, int_at_least, positive_int
-from lccli.evaluate import add_heldout_arguments, heldout_driver
+from lccli.evaluate import add_heldout_arguments, eval_settings, heldout_driver
+from lckit.pool import WorkerPool
 from lcmodels.fileio import write_json
 from lcmodels.policy.extractor import (
     CURRENT_SCALE,
@@ -211,13 +210,14 @@ class CriticGuard:
 
 def _collect_job(job: tuple[int, str, list[int], str, dict[str, int]]) -> Any:
     from lcmodels.policy.dagger import collect_from_driver
+    from lcsim.planning import safety_layer_of
 
     worker, policy, seeds, expert, lookahead = job
 
     def show(done: int, total: int) -> None:
         print(f"collecting: worker {worker}: {done}/{total} episodes", flush=True)
 
-    return collect_from_driver(policy, seeds, expert, lookahead=lookahead, progress=show)
+    return collect_from_driver(policy, seeds, expert, safety=safety_layer_of(expert, lookahead), progress=show)
 
 
 def _overridable(alive: np.ndarray, actions: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -275,11 +275,11 @@ def train_main(args: argparse.Namespace, prog: str) -> int:
         meta["states_from"] = [str(p) for p in args.from_states]
     else:
         from lcmodels.policy.evaluate import driver_for
-        from lcsim.planning import LookaheadDriver
+        from lcsim.planning import LookaheadDriver, safety_layer_of
 
         lookahead = {"horizon_decisions": args.lookahead_horizon} if args.lookahead_horizon else {}
         try:
-            expert, _ = driver_for(args.expert, lookahead=lookahead)
+            expert, _ = driver_for(args.expert, safety=safety_layer_of(args.expert, lookahead))
         except ValueError as exc:
             return fail(prog, str(exc).splitlines()[0])
         if not isinstance(expert, LookaheadDriver):
@@ -294,7 +294,7 @@ def train_main(args: argparse.Namespace, prog: str) -> int:
             flush=True,
         )
         try:
-            with ProcessPoolExecutor(len(parts), mp_context=multiprocessing.get_context("spawn")) as pool:
+            with WorkerPool(len(parts)) as pool:
                 got = []
                 for k, g in enumerate(
                     pool.map(_collect_job, [(k + 1, str(args.policy), p, args.expert, lookahead) for k, p in enumerate(parts)])
@@ -402,6 +402,7 @@ def eval_main(args: argparse.Namespace, prog: str) -> int:
     try:
         critic = CriticEnsemble.load(args.critic)
         driver, config = heldout_driver(args)
+        batch = eval_settings(args)[0].batch
     except ValueError as exc:
         return fail(prog, str(exc).splitlines()[0])
     if critic.members[0].slots != config.num_neighbours:
@@ -412,7 +413,7 @@ def eval_main(args: argparse.Namespace, prog: str) -> int:
                      f"{args.policy} sees the {config.neighbour_selection} vehicles")
     guard = CriticGuard(driver, critic, threshold=args.threshold, margin=args.margin)
     t0 = time.perf_counter()
-    summary, results = evaluate(guard, config, episodes=args.episodes, seed=args.seed, batch=args.batch)
+    summary, results = evaluate(guard, config, episodes=args.episodes, seed=args.seed, batch=batch)
     print(
         json.dumps(
             {

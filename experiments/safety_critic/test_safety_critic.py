@@ -10,7 +10,7 @@ import torch
 from lcmodels.policy.train import PolicyConfig, train_policy
 from lcsim.config import ScenarioConfig, TrafficConfig
 from lcsim.core import KEEP, LEFT, RUNNING, LaneChangeCore
-from lcsim.planning import LookaheadConfig, LookaheadDriver
+from lcsim.planning import LookaheadDriver, SafetyLayerConfig
 
 from .safety_critic import CriticEnsemble, CriticGuard, SafetyCritic, critic_loss, main, train_critics
 
@@ -25,7 +25,7 @@ def small_config(**overrides) -> ScenarioConfig:
 
 def _labelled(decisions: int = 40, envs: int = 4) -> tuple[np.ndarray, np.ndarray, list[np.ndarray]]:
     """(current, alive, masks) of the states with a choice the blind lookahead (following the rule) drove through."""
-    planner = LookaheadDriver(LookaheadConfig(horizon_decisions=3, blind=True))
+    planner = LookaheadDriver(SafetyLayerConfig(horizon_decisions=3, perceived=False))
     core = LaneChangeCore(small_config(render_image=False), envs)
     core.reset(np.arange(envs), [11 + k for k in range(envs)])
     current, alive, masks = [], [], []

@@ -34,6 +34,7 @@ from lcmodels.policy.evaluate import driver_for, eval_user_seeds
 from lcsim.config import paper_scenario
 from lcsim.core import COLLISION, KEEP, LaneChangeCore, StepResult
 from lcsim.episodes import EpisodeHook, run_episodes
+from lcsim.planning import safety_layer_of
 from lcsim.traffic import DriverParams
 
 _PARAMS = ("time_headway", "max_accel", "inv_2sqrt_ab", "lag")
@@ -105,8 +106,8 @@ class ShortGapProbe(EpisodeHook):
 def main(argv: Sequence[str] | None = None) -> int:
     p = argparse.ArgumentParser(prog="short_gap", description=__doc__.split("\n\n")[1],
                                 formatter_class=argparse.RawDescriptionHelpFormatter)
-    p.add_argument("policy", type=zoo_spec, help="an lc-eval driver, e.g. lookahead-blind:zoo:hybrid-ppo")
-    p.add_argument("--follow", type=zoo_spec, default=None, help="the driver the imagined futures follow (lc-eval's --lookahead-follow)")
+    p.add_argument("policy", type=zoo_spec, help="an lc-eval driver behind the safety layer, e.g. safety-layer:zoo:hybrid-ppo")
+    p.add_argument("--follow", type=zoo_spec, default=None, help="the driver the imagined futures follow (lc-eval's --follow)")
     p.add_argument("--samples", type=positive_int, default=3, help="imagined futures per candidate decision (default 3)")
     p.add_argument("--horizon", type=positive_int, default=32, help="decisions imagined after each candidate (default 32)")
     p.add_argument("--episodes", type=positive_int, default=200, help="held-out episodes (default 200)")
@@ -122,8 +123,9 @@ def main(argv: Sequence[str] | None = None) -> int:
     torch.set_num_threads(1)
 
     try:
-        driver, config = driver_for(args.policy, follow=args.follow, lookahead={"samples": args.samples, "perceived": True,
-                                                                   "horizon_decisions": args.horizon})
+        layer = safety_layer_of(args.policy, {"samples": args.samples, "perceived": True,
+                                              "horizon_decisions": args.horizon}, args.follow)  # fmt: skip
+        driver, config = driver_for(args.policy, safety=layer)
     except (ValueError, OSError) as exc:
         print(f"short_gap: error: {str(exc).splitlines()[0]}", file=sys.stderr)
         return 2

@@ -17,10 +17,11 @@ from typing import Any
 
 import numpy as np
 
+from lckit.config import read_data_file
 from lcmodels.bench.ledger import cell_key, find_entry, read_ledger
 from lcmodels.bench.run import resolve_driver, scenario_sha256
 from lcmodels.stats import mcnemar, t_interval
-from lcsim.config import read_data_file
+from lcsim.planning import safety_layer_of, split_safety_layer
 from lcsim.suite import SUITE_SCENARIOS, suite
 
 BLOCK = re.compile(r"(<!-- ledger:(?P<name>[a-z0-9-]+) -->\n)(?P<body>.*?)(<!-- /ledger -->)", re.S)
@@ -37,10 +38,18 @@ class Found:
     note: str = ""
 
 
-def _key(spec: str, sc_name: str, follow: str | None, lookahead: dict[str, Any] | None) -> str:
+def _key(spec: str, sc_name: str, follow: str | None, safety: dict[str, Any] | None) -> str:
+    """The ledger key of a run of a row: a driver spec, the follower and the ``[safety]`` settings of a row
+    behind the safety layer (the settings apply to the runs behind it)."""
     sc = SUITE_SCENARIOS[sc_name]
-    driver = resolve_driver(spec, follow=follow, lookahead=lookahead if spec.startswith("lookahead") else None)
+    layer = split_safety_layer(spec)[1] is not None
+    driver = resolve_driver(spec, safety=safety_layer_of(spec, safety if layer else None, follow, where=spec))
     return cell_key(driver.identity, scenario_sha256(sc.make()), sc.sealed_seeds())
+
+
+def _safety_table(row: dict[str, Any]) -> dict[str, Any] | None:
+    """A row's safety layer settings: its ``safety`` table (``lookahead``: the older name)."""
+    return row.get("safety", row.get("lookahead"))
 
 
 def _pct(rate: float, ci: list[float] | tuple[float, float]) -> str:
@@ -53,7 +62,7 @@ def _runs(row: dict[str, Any], sc: str, entries: list[dict[str, Any]]) -> list[F
     out = []
     for spec, follow, note in zip(row["runs"], follows, notes, strict=True):
         with _in_root():
-            key = _key(spec, sc, follow, row.get("lookahead"))
+            key = _key(spec, sc, follow, _safety_table(row))
         out.append(Found(spec, find_entry(entries, key), note))
     return out
 
@@ -197,7 +206,7 @@ def _remeasured_table(table: dict[str, Any], entries: list[dict[str, Any]], base
     lines = [f"| row | before: {table['before']} | sealed test: {SUITE_SCENARIOS[sc].test_episodes} episodes of "
              f"`{sc}` | difference, points | before, from |", "|---|---|---|---|---|"]  # fmt: skip
     for row in table["row"]:
-        found = _runs({"runs": [row["run"]], "follow": [row.get("follow")], "lookahead": row.get("lookahead")},
+        found = _runs({"runs": [row["run"]], "follow": [row.get("follow")], "safety": _safety_table(row)},
                       sc, entries)[0]  # fmt: skip
         old = read_json(ROOT / row["before"]) or {}
         rate, ci = _dig(old, row["before_key"] + ".success_rate"), _dig(old, row["before_key"] + ".success_rate_ci95")
@@ -278,9 +287,9 @@ def zoo_sealed(name: str, entries: list[dict[str, Any]] | None = None) -> dict[s
         weights = (layer.get("follow") or {}).get("weights_sha256")
         follower = next((e for e in zoo_entries() if e.card.get("recipe") == follow
                          and (weights is None or e.weights_sha256 == weights)), None)  # fmt: skip
-        if follower is not None:
-            lookahead = (layer.get("config") or {}).get("lookahead") or {}
-            drv = resolve_driver(f"lookahead-blind:zoo:{name}", follow=f"zoo:{follower.name}", lookahead=lookahead)
+        safety = entry.safety_layer(f"zoo:{follower.name}") if follower is not None else None
+        if safety is not None:
+            drv = resolve_driver(f"safety-layer:zoo:{name}", safety=safety)
             found = find_entry(entries, cell_key(drv.identity, digest, seeds))
             out["safety_layer"] = _figures(found) if found else None
     return out

@@ -1,8 +1,8 @@
 """Running the benchmark: any driver on every scenario of a suite, on validation or sealed test episodes.
 
 A *driver spec* is what ``lc-bench`` takes: ``zoo:NAME``, a ``policy.safetensors``, a built-in driver
-(``rule``, ``oracle``, ...), ``lookahead-blind:POLICY`` (a policy behind the safety layer, with the
-``lookahead`` settings and the ``follow`` driver of :func:`lcmodels.policy.evaluate.driver_for`), or a
+(``rule``, ``oracle``, ...), ``safety-layer:POLICY`` (a policy behind the safety layer, with the settings of a
+:class:`lcsim.planning.SafetyLayerConfig`; ``lookahead-blind:POLICY`` is an older spelling), or a
 user's own policy as ``package.module:callable``: it is called with the batched gymnasium observation (a
 dict of ``(E, ...)`` arrays: ``current``, ``history``, ``image``) and, when it takes a second argument, the
 ``(E, 3)`` action mask, and returns ``(E,)`` actions (0 right, 1 keep, 2 left).
@@ -37,11 +37,11 @@ from lcmodels.bench.ledger import (
     read_ledger,
 )
 from lcmodels.fileio import file_sha256, read_json, write_json
+from lcsim.planning import SafetyLayerConfig
 from lcsim.suite import SuiteScenario, is_sealed
 
 CALLABLE_SPEC = re.compile(r"^[A-Za-z_][\w.]*:[A-Za-z_]\w*$")
 """``package.module:callable``."""
-POLICY_PREFIXES = ("lookahead:", "lookahead-blind:")
 FINAL_BATCH = 20
 """Episodes simulated together in every sealed test evaluation."""
 SHARD_EPISODES = 100
@@ -61,8 +61,8 @@ class BenchDriver:
     about: dict[str, Any] = field(default_factory=dict)
     """What people call it (recipe, training seed, zoo name, ...): in the record, not in the key."""
     predictor: str | None = None
-    lookahead: dict[str, Any] = field(default_factory=dict)
-    follow: str | None = None
+    safety: SafetyLayerConfig | None = None
+    """The safety layer it drives behind (its follower's spec resolved to a file), or None."""
 
     @property
     def is_callable(self) -> bool:
@@ -108,54 +108,36 @@ def policy_identity(path: Path) -> tuple[dict[str, Any], dict[str, Any]]:
     return ident, about
 
 
-def _lookahead_settings(blind: bool, options: dict[str, Any]) -> dict[str, Any]:
-    """The settings of the safety layer's planner that differ from its defaults, each in its field's type: the
-    same layer has one key however its settings were spelt (``1`` or ``1.0``, a default given or left out), and
-    keeps it when the planner gains a setting whose default changes nothing."""
-    from lcsim.planning import LookaheadConfig
-
-    try:
-        config = LookaheadConfig(blind=blind, **options)
-    except TypeError as exc:
-        raise ValueError(f"lookahead settings: {exc}") from None
-    out: dict[str, Any] = {}
-    for f in dataclasses.fields(LookaheadConfig):
-        default = f.default if f.default is not dataclasses.MISSING else f.default_factory()  # type: ignore[misc]
-        value = getattr(config, f.name)
-        if isinstance(default, bool) or not isinstance(default, int | float):
-            value = list(value) if isinstance(value, tuple) else value
-        else:
-            value = type(default)(value)
-        if value != (list(default) if isinstance(default, tuple) else default):
-            out[f.name] = value
-    return out
-
-
-def resolve_driver(label: str, *, lookahead: dict[str, Any] | None = None, follow: str | None = None,
+def resolve_driver(label: str, *, safety: SafetyLayerConfig | None = None,
                    predictor: str | None = None) -> BenchDriver:
-    """A driver spec as :class:`BenchDriver`. ``ValueError`` with one line for a name that is nothing known,
-    a missing file, or settings that do not apply to it."""
+    """A driver spec as :class:`BenchDriver`; ``safety``: the settings of the safety layer a spec
+    ``safety-layer:DRIVER`` (or an older spelling) drives behind (default: what its spelling means). A layer is
+    identified in the ledger by the policy, its follower and :meth:`SafetyLayerConfig.ledger_settings
+    <lcsim.planning.SafetyLayerConfig.ledger_settings>`. ``ValueError`` with one line for a name that is nothing
+    known, a missing file, or settings that do not apply to it."""
     from lcmodels.policy.evaluate import policy_path_of
     from lcmodels.zoo import resolve_policy_spec
+    from lcsim.planning import split_safety_layer
     from lcsim.registry import DRIVER_NAMES
 
-    lookahead = dict(lookahead or {})
-    if label in DRIVER_NAMES:
-        if follow is not None:
-            raise ValueError(f"a driver to follow applies to lookahead:POLICY / lookahead-blind:POLICY, not {label}")
-        ident: dict[str, Any] = {"kind": "driver", "name": label}
-        if label.startswith("lookahead"):
-            ident["lookahead"] = _lookahead_settings(label == "lookahead-blind", lookahead)
-        elif lookahead:
-            raise ValueError(f"{', '.join(lookahead)} apply to the lookahead drivers only, not to {label}")
-        return BenchDriver(label, label, ident, lookahead=lookahead)
+    name, layer = split_safety_layer(label)
+    if safety is not None:
+        if layer is None:
+            raise ValueError(f"settings of the safety layer apply to a driver behind it (safety-layer:{label}), "
+                             f"not to {label}")  # fmt: skip
+        layer = safety
+    if layer is None and label in DRIVER_NAMES:
+        return BenchDriver(label, label, {"kind": "driver", "name": label})
+    if layer is not None and name in DRIVER_NAMES:  # the rule-based driver behind the layer (built-in lookahead)
+        if name != "rule" or layer.follow not in ("", "rule"):
+            raise ValueError(f"{label}: the safety layer guards a policy or the rule-based driver, following it")
+        ident: dict[str, Any] = {"kind": "driver", "name": "lookahead-blind" if layer.blind else "lookahead",
+                                 "lookahead": layer.ledger_settings()}  # fmt: skip
+        return BenchDriver(label, label, ident, safety=dataclasses.replace(layer, follow=""))
     spec, zoo_predictor = resolve_policy_spec(label)
-    prefix = next((p for p in POLICY_PREFIXES if spec.startswith(p)), None)
-    if prefix is None and not spec.startswith("policy:") and CALLABLE_SPEC.match(label):
-        if lookahead or follow:
-            raise ValueError(f"lookahead settings and a driver to follow apply to lookahead:POLICY, not to {label}")
+    if layer is None and not spec.startswith("policy:") and CALLABLE_SPEC.match(label):
         return BenchDriver(label, label, {"kind": "callable", "name": label, "source_sha256": _source_digest(label)})
-    path = policy_path_of(spec)
+    path = policy_path_of(split_safety_layer(spec)[0])
     if not path.is_file():
         what = "is a directory" if path.is_dir() else "does not exist"
         raise ValueError(f"{label}: {path} {what} (expected zoo:NAME, a policy.safetensors, a built-in driver "
@@ -165,19 +147,16 @@ def resolve_driver(label: str, *, lookahead: dict[str, Any] | None = None, follo
     except Exception as exc:  # a foreign or corrupt file: whatever safetensors or torch raise, one line
         raise ValueError(f"{label}: {path} is not a readable policy file ({type(exc).__name__}: "
                          f"{str(exc).splitlines()[0] if str(exc) else ''})") from None
-    if prefix is None:
-        if lookahead or follow:
-            raise ValueError(f"lookahead settings and a driver to follow apply to lookahead:POLICY, not to {label}")
+    if layer is None:
         return BenchDriver(label, spec, policy, about, predictor=predictor or zoo_predictor)
-    follow_spec, follow_ident = None, None
-    if follow is not None:
-        followed = resolve_driver(follow)
-        follow_spec, follow_ident = followed.spec, followed.identity
+    follow_ident = None
+    if layer.follow:
+        followed = resolve_driver(layer.follow)
+        follow_ident = followed.identity
         about = {**about, "follow": followed.label, "follow_about": followed.about}
-    ident = {"kind": "safety-layer", "policy": policy, "follow": follow_ident,
-             "lookahead": _lookahead_settings(prefix == "lookahead-blind:", lookahead)}  # fmt: skip
-    return BenchDriver(label, spec, ident, about, predictor=predictor or zoo_predictor, lookahead=lookahead,
-                       follow=follow_spec)
+        layer = dataclasses.replace(layer, follow=followed.spec)
+    ident = {"kind": "safety-layer", "policy": policy, "follow": follow_ident, "lookahead": layer.ledger_settings()}
+    return BenchDriver(label, spec, ident, about, predictor=predictor or zoo_predictor, safety=layer)
 
 
 def _source_digest(spec: str) -> str | None:
@@ -243,14 +222,13 @@ class Runner:
     def session(self) -> Iterator[Runner]:
         """Open the pool or the Ray session for the whole run, and close it after."""
         from lcdata.executors import ray_session
-        from lcdata.procs import closing_pool
         from lcmodels.policy.evaluate import shard_pool
 
         if self.executor == "ray":
             with ray_session(self.ray_address):
                 yield self
         elif self.workers > 1:
-            with closing_pool(shard_pool(self.workers, self.threads)) as pool:
+            with shard_pool(self.workers, self.threads) as pool:
                 self._pool = pool
                 try:
                     yield self
@@ -271,8 +249,8 @@ class Runner:
             if driver.is_callable:
                 built, run_config = CallableDriver(driver.spec), config
             else:
-                built, own = driver_for(driver.spec, predictor=driver.predictor, lookahead=driver.lookahead or None,
-                                        follow=driver.follow, scenario=config)
+                built, own = driver_for(driver.spec, predictor=driver.predictor, safety=driver.safety,
+                                        scenario=config)
                 run_config = own or config
             summary, results = evaluate(built, run_config, user_seeds=user_seeds, batch=self.batch,
                                         progress=self.progress, scenario=scenario)
@@ -282,8 +260,8 @@ class Runner:
             summary, results = evaluate_sharded(
                 driver.spec, config, episodes=len(user_seeds), user_seeds=user_seeds,
                 shards=max(self.workers, -(-len(user_seeds) // SHARD_EPISODES)), executor=self.executor,
-                pool=self._pool, predictor=driver.predictor, lookahead=driver.lookahead or None,
-                follow=driver.follow, scenario=scenario, batch=self.batch, progress=self.progress)  # fmt: skip
+                pool=self._pool, predictor=driver.predictor, safety=driver.safety, scenario=scenario,
+                batch=self.batch, progress=self.progress)  # fmt: skip
             extra = {k: summary[k] for k in ("planner_choices", "planner_overrides") if k in summary}
         outcomes = outcome_string(r.outcome for r in results)
         return {"outcomes": outcomes, **counts(outcomes),

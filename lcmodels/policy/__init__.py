@@ -1,40 +1,45 @@
 """The lane-change policy: hybrid features extractor, observation modes, training, warm start, evaluation.
 
-Public API::
+Public API (each name imported when first used, so that ``import lcmodels.policy.config`` and the commands'
+``--help`` load no torch, numba or stable-baselines3)::
 
+    ALGORITHMS, IMAGE_NETS, OBS_MODES, ObsMode              # names.py (plain constants)
     HybridExtractor, CompactVGG, StridedCompact, VGG16      # extractor.py
-    OBS_MODES, ObsMode, policy_vec_env, build_observation   # obs.py
-    PolicyConfig, train_policy                              # train.py
+    policy_vec_env, build_observation                       # obs.py
+    PolicyConfig                                            # config.py
+    train_policy                                            # train.py
     load_demonstrations, pretrain, bc_loss                  # warmstart.py
-    evaluate, PolicyDriver, eval_user_seeds                 # evaluate.py
+    PolicyDriver, eval_user_seeds                           # evaluate.py (and its evaluate())
     save_policy, load_policy, read_meta                     # checkpoint.py
 """
 
-from lcmodels.policy.checkpoint import load_policy, read_meta, save_policy
-from lcmodels.policy.evaluate import PolicyDriver, eval_user_seeds, evaluate
-from lcmodels.policy.extractor import VGG16, CompactVGG, HybridExtractor, StridedCompact
-from lcmodels.policy.obs import OBS_MODES, ObsMode, build_observation, policy_vec_env
-from lcmodels.policy.train import PolicyConfig, train_policy
-from lcmodels.policy.warmstart import bc_loss, load_demonstrations, pretrain
+from __future__ import annotations
 
-__all__ = [
-    "OBS_MODES",
-    "VGG16",
-    "CompactVGG",
-    "HybridExtractor",
-    "ObsMode",
-    "PolicyConfig",
-    "PolicyDriver",
-    "StridedCompact",
-    "bc_loss",
-    "build_observation",
-    "eval_user_seeds",
-    "evaluate",
-    "load_demonstrations",
-    "load_policy",
-    "policy_vec_env",
-    "pretrain",
-    "read_meta",
-    "save_policy",
-    "train_policy",
-]
+import importlib
+from typing import Any
+
+_WHERE = {
+    "ALGORITHMS": "names", "IMAGE_NETS": "names", "OBS_MODES": "names", "ObsMode": "names",
+    "HybridExtractor": "extractor", "CompactVGG": "extractor", "StridedCompact": "extractor", "VGG16": "extractor",
+    "policy_vec_env": "obs", "build_observation": "obs",
+    "PolicyConfig": "config",
+    "train_policy": "train",
+    "load_demonstrations": "warmstart", "pretrain": "warmstart", "bc_loss": "warmstart",
+    "PolicyDriver": "evaluate", "eval_user_seeds": "evaluate",
+    "save_policy": "checkpoint", "load_policy": "checkpoint", "read_meta": "checkpoint",
+}  # fmt: skip
+
+__all__ = sorted(_WHERE)
+
+
+def __getattr__(name: str) -> Any:
+    module = _WHERE.get(name)
+    if module is None:
+        raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
+    value = getattr(importlib.import_module(f"{__name__}.{module}"), name)
+    globals()[name] = value
+    return value
+
+
+def __dir__() -> list[str]:
+    return sorted({*globals(), *_WHERE})

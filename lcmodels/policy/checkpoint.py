@@ -9,10 +9,10 @@ card is written beside it (``<stem>.card.json``) for people; loading reads only 
 predictor or scenario differ from what the caller asks for (saying what differs), then rebuilds the
 network from the card and fills it with the tensors: nothing in the file can run code.
 
-stable-baselines3's own ``.zip`` (what this project wrote before) unpickles objects when loaded, so
-any code its author put there runs. It is refused unless the caller passes ``trust_pickle=True``
-(``--trust-pickle`` on the command lines); ``tools/convert_policy.py`` turns a trusted one into a
-``.safetensors`` policy once.
+stable-baselines3's own ``.zip`` (what this project wrote before) unpickles objects when loaded, so any
+code its author put there runs: nothing here loads one. :func:`read_meta` refuses it in one line that names
+``tools/convert_policy.py``, the one place that reads such a file (behind its ``--trust-pickle``) and turns it
+into a ``.safetensors`` policy once.
 """
 
 from __future__ import annotations
@@ -21,8 +21,8 @@ import contextlib
 import json
 import os
 import re
-import warnings
 import zipfile
+from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -40,12 +40,16 @@ from lcsim.config import ScenarioConfig
 
 META_FORMAT = "lc-toolkit/policy"
 META_VERSION = 2
-"""2: safetensors with the card in the header; 1: stable-baselines3 ``.zip`` (pickles, legacy)."""
-LEGACY_VERSION = 1
+"""2: safetensors with the card in the header (1 was a stable-baselines3 ``.zip``: tools/convert_policy.py)."""
 CARD_KEY = "lc_card"
-TRUST_PICKLE_HINT = ("it is a stable-baselines3 .zip, and loading one runs whatever code its author put "
-                     "in it (pickle): pass --trust-pickle only if you trust where it came from, or convert it "
-                     "once with tools/convert_policy.py")
+CONVERT_COMMAND = "python tools/convert_policy.py OLD.zip NEW.safetensors --trust-pickle"
+"""What turns a legacy stable-baselines3 ``.zip`` policy into a policy file, once, for a file one trusts."""
+
+
+def legacy_refusal(path: str | os.PathLike[str]) -> str:
+    """The one line that refuses the legacy ``.zip`` ``path`` and names the command that converts it."""
+    return (f"{path} is a legacy stable-baselines3 .zip, which no command loads (loading one runs whatever code "
+            f"is stored in it); if you trust where it came from, convert it once: {CONVERT_COMMAND}")
 
 
 def card_path(path: str | os.PathLike[str]) -> Path:
@@ -60,7 +64,7 @@ def save_policy(model: BaseAlgorithm, path: str | os.PathLike[str], meta: dict[s
     cannot be written (a full disk): no ``.partial`` stays, the file there is as it was."""
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
-    card = {**{k: v for k, v in meta.items() if k not in ("format", "version", "legacy_pickle", "tensor_aliases")},
+    card = {**{k: v for k, v in meta.items() if k not in ("format", "version", "tensor_aliases")},
             "format": META_FORMAT, "version": META_VERSION}
     tensors, aliases = _unique_tensors(model.policy.state_dict())
     if aliases:
@@ -93,17 +97,17 @@ def _unique_tensors(state: dict[str, torch.Tensor]) -> tuple[dict[str, torch.Ten
 
 
 def read_meta(path: str | os.PathLike[str]) -> dict[str, Any]:
-    """The card of a policy file, read without loading any weights (and without unpickling anything).
+    """The card of a policy file, read without loading any weights.
 
-    A legacy stable-baselines3 ``.zip`` gives its ``lc_meta`` (a JSON record of the zip) with
-    ``legacy_pickle`` set. ``ValueError`` for a missing, truncated, corrupt or foreign file.
+    ``ValueError`` for a missing, truncated, corrupt or foreign file, and for a legacy stable-baselines3 ``.zip``
+    (:func:`legacy_refusal`: it names the command that converts one).
     """
     path = Path(path)
     if not path.is_file():
         what = "is a directory" if path.is_dir() else "does not exist"
         raise ValueError(f"policy file {path} {what}")
     if zipfile.is_zipfile(path):
-        return _read_legacy_meta(path)
+        raise ValueError(legacy_refusal(path))
     try:
         with safe_open(str(path), framework="pt") as f:
             header = f.metadata() or {}
@@ -139,17 +143,33 @@ def _plain_name(value: Any) -> bool:
             and value not in (".", ".."))
 
 
-def card_problem(meta: dict[str, Any], *, legacy: bool = False) -> str:
+def card_problem(meta: dict[str, Any]) -> str:
     """What makes a policy card unusable (``""`` when nothing does): the schema of every field a loader reads,
-    checked before any network is built. ``algo`` and ``obs_mode`` known names; ``scenario`` a
-    :class:`~lcsim.config.ScenarioConfig` (every field's type and plausible range, ``from_dict``);
+    checked before any network is built. The plain fields as :func:`card_fields_problem` checks them;
+    ``scenario`` a :class:`~lcsim.config.ScenarioConfig` (every field's type and plausible range, ``from_dict``);
     ``train_config`` a :class:`~lcmodels.policy.config.PolicyConfig` validated against that scenario
-    (``from_card``: the scenario file it names is not read); ``predictor`` none or a file name with a SHA-256;
-    ``timesteps`` a count; ``tensor_aliases`` names. ``legacy``: a stable-baselines3 ``.zip``'s record, which
-    may predate ``scenario`` (checked when there) and whose ``train_config`` builds nothing (an object)."""
-    from lcmodels.policy.config import ALGORITHMS, PolicyConfig
-    from lcmodels.policy.extractor import IMAGE_FEATURES, IMAGE_NETS
-    from lcmodels.policy.obs import OBS_MODES
+    (``from_card``: the scenario file it names is not read)."""
+    from lcmodels.policy.config import PolicyConfig
+
+    problem = card_fields_problem(meta)
+    if problem:
+        return problem
+    try:
+        scenario = ScenarioConfig.from_dict(meta.get("scenario"))
+    except ValueError as exc:
+        return f"scenario: {_short(exc)}"
+    try:
+        PolicyConfig.from_card(meta.get("train_config"), scenario)
+    except ValueError as exc:
+        return f"train_config: {_short(exc)}"
+    return ""
+
+
+def card_fields_problem(meta: dict[str, Any]) -> str:
+    """What makes the plain fields of a policy card unusable (``""`` when nothing does): ``algo`` and
+    ``obs_mode`` known names, ``image_net`` one too when given; ``predictor`` none or a file name with a SHA-256;
+    ``timesteps`` a count; ``tensor_aliases`` names; ``scenario_name`` and ``converted_from`` strings."""
+    from lcmodels.policy.names import ALGORITHMS, IMAGE_FEATURES, IMAGE_NETS, OBS_MODES
 
     if meta.get("algo") not in ALGORITHMS:
         return f"algo must be one of {', '.join(ALGORITHMS)}, got {str(meta.get('algo'))[:40]!r}"
@@ -178,47 +198,11 @@ def card_problem(meta: dict[str, Any], *, legacy: bool = False) -> str:
             return "predictor.sha256 must be 64 hexadecimal digits"
         if "path" in pred and not (isinstance(pred["path"], str) and 0 < len(pred["path"]) <= 4096):
             return "predictor.path must be a path"
-    if legacy and "scenario" not in meta:
-        return ""
-    try:
-        scenario = ScenarioConfig.from_dict(meta.get("scenario"))
-    except ValueError as exc:
-        return f"scenario: {_short(exc)}"
-    if legacy:  # stable-baselines3 rebuilds its network from its own record: the config is only carried along
-        return "" if isinstance(meta.get("train_config", {}), dict) else "train_config must be an object"
-    try:
-        PolicyConfig.from_card(meta.get("train_config"), scenario)
-    except ValueError as exc:
-        return f"train_config: {_short(exc)}"
     return ""
 
 
 def _short(exc: BaseException) -> str:
     return " ".join(str(exc).split())[:300]
-
-
-LEGACY_DATA_MAX_BYTES = 64 << 20
-"""The largest JSON record of a stable-baselines3 ``.zip`` read (its ``data``: a few hundred KiB)."""
-
-
-def _read_legacy_meta(path: Path) -> dict[str, Any]:
-    try:
-        with zipfile.ZipFile(path) as zf:
-            info = zf.getinfo("data")
-            if info.file_size > LEGACY_DATA_MAX_BYTES:
-                raise ValueError(f"its data record is {info.file_size} bytes")
-            data = loads_json(zf.read("data"))
-    except (zipfile.BadZipFile, KeyError, ValueError, OSError, EOFError) as exc:
-        raise ValueError(f"{path} is not a readable policy checkpoint (corrupt or truncated?): {exc}") from None
-    meta = data.get("lc_meta") if isinstance(data, dict) else None
-    if not isinstance(meta, dict) or meta.get("format") != META_FORMAT:
-        raise ValueError(f"{path} is a stable-baselines3 file but not an lc-toolkit policy checkpoint")
-    if meta.get("version") != LEGACY_VERSION:
-        raise ValueError(f"{path}: unsupported policy checkpoint version {str(meta.get('version'))[:40]!r}")
-    problem = card_problem(meta, legacy=True)
-    if problem:
-        raise ValueError(f"{path}: its policy record is unusable: {problem}")
-    return {**meta, "legacy_pickle": True}
 
 
 def _diff(a: Any, b: Any, prefix: str = "") -> list[str]:
@@ -259,28 +243,6 @@ def compatibility_problems(meta: dict[str, Any], *, obs_mode: str | None = None,
     if scenario is not None:
         problems += [f"scenario {d}" for d in scenario_differences(meta.get("scenario") or {}, scenario)]
     return problems
-
-
-# Before commit 4c56e3c the sensor branch with contact features had no Flatten in front of its two
-# linear layers, so they were numbered 0 and 2 instead of 1 and 3 (legacy .zip files only).
-_OLD_CONTACT_LAYER = re.compile(r"(branches\.current\.net\.)([02])\.")
-
-
-def _load_renamed(model: BaseAlgorithm, path: str | os.PathLike[str], device: str) -> bool:
-    """Load the policy parameters of a legacy checkpoint saved before a layer renumbering into ``model``
-    under today's names; False when renaming does not make every parameter fit exactly (refused)."""
-    from stable_baselines3.common.save_util import load_from_zip_file
-
-    _, params, _ = load_from_zip_file(path, device=device, load_data=False)
-    state = (params or {}).get("policy") or {}
-    renamed = {_OLD_CONTACT_LAYER.sub(lambda m: f"{m[1]}{int(m[2]) + 1}.", k): v for k, v in state.items()}
-    if renamed.keys() == state.keys() or renamed.keys() != model.policy.state_dict().keys():
-        return False
-    try:
-        model.policy.load_state_dict(renamed, strict=True)
-    except RuntimeError:  # a shape does not fit: not that network
-        return False
-    return True
 
 
 @dataclass
@@ -380,26 +342,39 @@ def find_predictor(meta: dict[str, Any], policy: str | os.PathLike[str]) -> Path
 
 def load_policy(path: str | os.PathLike[str], *, obs_mode: str | None = None,
                 predictor: str | os.PathLike[str] | None = None, scenario: ScenarioConfig | None = None,
-                device: str = "cpu", trust_pickle: bool = False) -> LoadedPolicy:
+                device: str = "cpu") -> LoadedPolicy:
     """Load a policy file and the predictor it was trained with, checking compatibility.
 
     Args:
-        path: the ``.safetensors`` policy (or, with ``trust_pickle``, a legacy stable-baselines3 ``.zip``).
+        path: the ``.safetensors`` policy.
         obs_mode, scenario: when given, must match the policy's.
         predictor: the predictor checkpoint to use; by default the one recorded in the card (its path,
             checked by SHA-256). Must be the same file content the policy was trained with.
-        trust_pickle: allow a legacy ``.zip``, whose loading runs code stored in it.
 
     Raises:
-        ValueError: unreadable file, a legacy file without ``trust_pickle``, or an incompatibility (the
+        ValueError: unreadable file (a legacy ``.zip`` too: :func:`legacy_refusal`), or an incompatibility (the
             message lists every difference).
     """
-    from lcmodels.policy.obs import needs_predictor
-
     path = Path(path)
-    meta = read_meta(path)
-    if meta.get("legacy_pickle") and not trust_pickle:
-        raise ValueError(f"{path} refused: {TRUST_PICKLE_HINT}")
+
+    def network(meta: dict[str, Any], future_steps: int) -> BaseAlgorithm:
+        model = policy_model(meta, future_steps=future_steps, device=device)
+        load_weights(model, path, device, meta)
+        model.num_timesteps = meta.get("timesteps", 0)
+        return model
+
+    return open_policy(path, read_meta(path), network, obs_mode=obs_mode, predictor=predictor, scenario=scenario)
+
+
+def open_policy(path: Path, meta: dict[str, Any], network: Callable[[dict[str, Any], int], BaseAlgorithm], *,
+                obs_mode: str | None = None, predictor: str | os.PathLike[str] | None = None,
+                scenario: ScenarioConfig | None = None) -> LoadedPolicy:  # fmt: skip
+    """The policy whose card ``meta`` was read from ``path``, after the checks of :func:`load_policy` (a
+    training checkpoint refused, the algorithm known, the predictor found and of the card's digest, the mode and
+    scenario asked for); ``network(meta, future_steps)`` makes its network with its weights (``future_steps``:
+    the predictor's horizon)."""
+    from lcmodels.policy.names import needs_predictor
+
     if meta.get("training_form"):
         raise ValueError(f"{path} is a training checkpoint of a frozen-image run (it sees the image branch's "
                          "features, not the image), for resuming only: use the run's policy file")
@@ -433,54 +408,5 @@ def load_policy(path: str | os.PathLike[str], *, obs_mode: str | None = None,
             except ValueError:
                 raise ValueError(f"{path}: the predictor its card names ({pred_path}) is not a usable predictor "
                                  "file; pass the right one with --predictor") from None
-    if meta.get("legacy_pickle"):
-        model = _load_legacy(path, algo, device)
-    else:
-        future = loaded_predictor.future_steps if loaded_predictor is not None else 10
-        model = policy_model(meta, future_steps=future, device=device)
-        load_weights(model, path, device, meta)
-        model.num_timesteps = meta.get("timesteps", 0)
+    model = network(meta, loaded_predictor.future_steps if loaded_predictor is not None else 10)
     return LoadedPolicy(model, meta, loaded_predictor, ScenarioConfig.from_dict(meta["scenario"]), pred_path)
-
-
-def _load_legacy(path: str | os.PathLike[str], algo: str, device: str) -> BaseAlgorithm:
-    """stable-baselines3's own load of a legacy ``.zip`` (it unpickles: trusted files only)."""
-    with warnings.catch_warnings(record=True) as caught:
-        warnings.simplefilter("always")
-        try:
-            model = ALGOS[algo].load(path, device=device)
-        except Exception as exc:  # SB3 raises many types for damaged archives
-            raise ValueError(f"{path}: could not load the weights (corrupt?): {exc}") from exc
-    for w in caught:
-        # SB3 loads weights whose names do not fit the network "without exact match", leaving those
-        # layers at their random start: a policy that silently is not the one saved.
-        if "exact_match" in str(w.message):
-            if _load_renamed(model, path, device):
-                continue
-            detail = next((line.strip() for line in str(w.message).splitlines() if "Missing key" in line), "")
-            raise ValueError(f"{path}: its weights do not fit this version's network (saved before a change to "
-                             f"it?): {detail[:200]}")
-        warnings.warn_explicit(w.message, w.category, w.filename, w.lineno)
-    return model
-
-
-def convert_legacy_policy(src: str | os.PathLike[str], dest: str | os.PathLike[str], *,
-                          predictor: str | os.PathLike[str] | None = None, trust_pickle: bool = False,
-                          overwrite: bool = False) -> Path:
-    """Convert a legacy stable-baselines3 ``.zip`` policy into a ``.safetensors`` policy with the same tensors.
-
-    Loading ``src`` runs code stored in it: ``trust_pickle`` must say that its source is trusted.
-    ``ValueError`` for a refused or unreadable ``src``, or an existing ``dest`` without ``overwrite``.
-    """
-    dest = Path(dest)
-    if dest.suffix != ".safetensors":
-        raise ValueError(f"{dest}: the file name must end in .safetensors")
-    if dest.exists() and not overwrite:
-        raise ValueError(f"{dest} already exists; pass --overwrite or choose another name")
-    loaded = load_policy(src, predictor=predictor, trust_pickle=trust_pickle)
-    meta = {k: v for k, v in loaded.meta.items() if k not in ("format", "version", "legacy_pickle")}
-    if "train_config" not in meta:
-        raise ValueError(f"{src} predates stored training configs: no card can describe its network")
-    meta.setdefault("timesteps", int(loaded.model.num_timesteps))
-    meta["converted_from"] = Path(src).name
-    return save_policy(loaded.model, dest, meta)

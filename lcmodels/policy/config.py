@@ -8,34 +8,37 @@ from __future__ import annotations
 
 import contextvars
 import dataclasses
+from collections.abc import Sequence
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, ClassVar
 
-from lcmodels.policy.extractor import IMAGE_NETS
-from lcmodels.policy.obs import OBS_MODES, ObsMode, scenario_for_mode
-from lcsim.config import (
-    NEIGHBOUR_SELECTIONS,
-    JsonConfig,
-    ScenarioConfig,
-    check_field,
-    check_limits,
-    require_non_negative,
-    require_positive,
+from lckit.config import JsonConfig, check_field, check_limits, require_non_negative, require_positive
+from lcmodels.policy.names import (
+    ALGORITHMS,
+    IMAGE_NETS,
+    OBS_MODES,
+    SENSOR_ENCODERS,
+    ObsMode,
+    scenario_for_mode,
 )
+from lcsim.config import NEIGHBOUR_SELECTIONS, ScenarioConfig
 from lcsim.registry import SCENARIO_FILE_SUFFIXES, TASK_SCENARIOS, scenario
 from lcsim.suite import MAX_VALIDATION_SEED, SEED_STRIDE
 
-ALGORITHMS: tuple[str, ...] = ("ppo", "a2c", "dqn")
-"""The learning algorithms a policy can be trained with (stable-baselines3's PPO, A2C and DQN)."""
-
-
 _LEARNING_RATES = {"ppo": 3e-4, "a2c": 7e-4, "dqn": 1e-4}
 FINE_TUNE_LEARNING_RATES = {"ppo": 3e-5}
-"""PPO from a warm start or an initial policy learns at a tenth of its default rate: from the same clone
-(69.5% held-out success), 300k steps at 3e-4 fell to 61.0% and at 3e-5 rose to 75.5%
-(docs/results/lanes/NOTE.md); PPO from DAgger at 3e-5 gave the project's best policy (docs/results/contact).
-A2C and DQN were not measured that way and keep their rates."""
+"""PPO from a warm start or an initial policy learns at a tenth of its default rate: from the same clone, PPO
+at 3e-4 lost held-out success and at 3e-5 gained it (docs/results/lanes/NOTE.md); PPO from DAgger at 3e-5 gave
+the project's best policy (docs/results/contact). A2C and DQN were not compared that way and keep their rates."""
+
+
+_ROLLOUT_STEPS = {"a2c": 8}
+"""PPO / A2C rollout length per environment where it is not PolicyConfig's default (A2C's own default)."""
+
+
+def _field_default(cls: type, name: str) -> Any:
+    return next(f.default for f in dataclasses.fields(cls) if f.name == name)
 
 
 def default_learning_rate(algo: str, fine_tune: bool = False) -> float:
@@ -89,20 +92,23 @@ class PolicyConfig(JsonConfig):
     image_features: int = 10
     contact_features: bool = True
     """The sensor branch also gets each slot's time to contact, gap and proximity
-    (``lcmodels.policy.extractor.ContactFeatures``). Cloning the oracle in ``pure`` mode: 69.5% held-out
-    success without, 77.0% with (docs/results/contact). Runs stored before the option existed read as off."""
+    (``lcmodels.policy.extractor.ContactFeatures``). A clone of the oracle in ``pure`` mode wins more held-out
+    episodes with them (docs/results/contact). Runs stored before the option existed read as off."""
     window_features: bool = False
     """The sensor branch also gets, per side lane, when over the next 16 s the ego could change into it,
     against when its own leader traps it (``lcmodels.policy.extractor.WindowFeatures``; lane slots only)."""
+    sensor_encoder: str = "mlp"
+    """How the sensor branch reads the vehicles: ``mlp`` (the slots' rows flattened) or ``attention`` (the ego
+    attends to the set of sensed vehicles: ``lcmodels.policy.extractor.EgoAttention``)."""
     accel_features: bool = False
     """The observation also shows each vehicle's acceleration (``ScenarioConfig.observe_acceleration``), and
     with ``window_features`` the sensor branch also looks at the side lanes with those accelerations kept."""
     learning_rate: float = _LEARNING_RATES["ppo"]
     gamma: float = 0.95
-    """0.95 (a 10 s horizon at 2 decisions/s): PPO pure reached 24% held-out success in 150k steps with
-    0.95 and no entropy bonus, 7% with 0.99 and 0.01 in 100k (measured, 200 episodes)."""
+    """0.95 (a 10 s horizon at 2 decisions/s): PPO on ``pure`` observations learned far sooner with it and no
+    entropy bonus than with 0.99 and 0.01."""
     n_steps: int = 128
-    """PPO / A2C rollout length per environment (A2C default 8)."""
+    """PPO / A2C rollout length per environment (A2C default 8, filled by :meth:`of`)."""
     batch_size: int = 256
     n_epochs: int = 10
     ent_coef: float = 0.0
@@ -144,6 +150,8 @@ class PolicyConfig(JsonConfig):
                f"must be one of {', '.join(NEIGHBOUR_SELECTIONS)}", self.neighbours)
         check_field(not self.window_features or self.neighbours == "lanes", self, "window_features",
                "needs neighbours='lanes' (which vehicle is in which lane)", self.window_features)
+        check_field(self.sensor_encoder in SENSOR_ENCODERS, self, "sensor_encoder",
+                    f"must be one of {', '.join(SENSOR_ENCODERS)}", self.sensor_encoder)
         check_field(self.image_net in IMAGE_NETS, self, "image_net", f"must be one of {', '.join(IMAGE_NETS)}",
                self.image_net)  # fmt: skip
         require_positive(self, "n_envs", "image_features", "learning_rate", "n_steps", "batch_size",
@@ -175,6 +183,22 @@ class PolicyConfig(JsonConfig):
             self.scenario_config(base)
         except ValueError as exc:
             raise ValueError(f"PolicyConfig.slots {self.slots} does not fit the scenario: {exc}") from None
+
+    @classmethod
+    def of(cls, given: dict[str, Any], settings: Sequence[str] = (), *, fine_tune: bool | None = None) -> PolicyConfig:
+        """The config of the fields ``given`` (a file's, a recipe's, the flags'), then the ``KEY=VALUE``
+        ``settings`` in order, with each field whose default follows the algorithm and that neither gives filled
+        here, the one place that fills them: ``learning_rate`` (:func:`default_learning_rate`, fine-tuning when
+        ``fine_tune``, by default when the run starts from a warm start or an initial policy) and ``n_steps``
+        (A2C 8, else 128). ``ValueError`` naming the problem."""
+        final = cls.from_dict(given, stored=False).with_settings(settings)
+        chosen = set(given) | {s.partition("=")[0].strip() for s in settings}
+        if fine_tune is None:
+            fine_tune = bool(final.warm_start or final.init_policy)
+        filled = {"learning_rate": default_learning_rate(final.algo, fine_tune),
+                  "n_steps": _ROLLOUT_STEPS.get(final.algo, _field_default(cls, "n_steps"))}  # fmt: skip
+        filled = {k: v for k, v in filled.items() if k not in chosen}
+        return dataclasses.replace(final, **filled) if filled else final
 
     @classmethod
     def from_card(cls, data: dict[str, Any], scenario: ScenarioConfig) -> PolicyConfig:

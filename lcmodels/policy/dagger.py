@@ -24,11 +24,9 @@ the future rewards in states like the ones the policy reaches.
 from __future__ import annotations
 
 import json
-import multiprocessing
 import os
 import time
 from collections.abc import Callable, Sequence
-from concurrent.futures import ProcessPoolExecutor
 from dataclasses import dataclass, replace
 from pathlib import Path
 from typing import Any
@@ -37,6 +35,7 @@ import numpy as np
 import torch
 
 from lcdata.fileio import file_sha256
+from lckit.pool import WorkerPool
 from lcmodels.fileio import POLICY_FILE, write_json
 from lcmodels.policy.checkpoint import load_policy, save_policy
 from lcmodels.policy.evaluate import PolicyDriver, evaluate
@@ -44,7 +43,7 @@ from lcmodels.policy.obs import mode_keys, scenario_for_mode
 from lcmodels.policy.warmstart import Demonstrations, RowChunks, every_tenth, load_demonstrations, pretrain
 from lcsim.core import KEEP, SUCCESS, LaneChangeCore, StepResult
 from lcsim.episodes import EpisodeHook, run_episodes
-from lcsim.planning import LookaheadConfig, LookaheadDriver, SearchResult, search_from
+from lcsim.planning import LookaheadDriver, SafetyLayerConfig, SearchResult, safety_layer_of, search_from
 
 LABELS = ("plan", "winning")
 """How :func:`collect` labels a state (see there)."""
@@ -67,8 +66,8 @@ class Collected:
     """Decisions off the oracle's plan after which the episode could still be won (those states carry the
     policy's own decision as their label when ``labels="winning"``)."""
     alive: np.ndarray | None = None
-    """``(N, 3)`` for a lookahead expert: the share of its imagined futures each decision survived in each
-    state (:attr:`lcsim.planning.LookaheadDriver.last_alive`; NaN for a decision not allowed there)."""
+    """``(N, 3)`` for an expert behind the safety layer: the share of its imagined futures each decision survived
+    in each state (:attr:`lcsim.planning.LookaheadDriver.last_alive`; NaN for a decision not allowed there)."""
 
 
 class _OracleLabels(EpisodeHook):
@@ -148,7 +147,7 @@ class _ExpertLabels(EpisodeHook):
         self.rows: dict[str, list[np.ndarray]] = {k: [] for k in keys}
         self.labels: list[np.ndarray] = []
         self.own: list[np.ndarray] = []
-        # the lookahead's survival of each decision, kept alongside its labels
+        # the safety layer's survival of each decision, kept alongside its labels
         self.alive: list[np.ndarray] | None = [np.zeros((0, 3))] if isinstance(teacher, LookaheadDriver) else None
         self.agreed = 0
 
@@ -167,22 +166,22 @@ class _ExpertLabels(EpisodeHook):
 
 def collect_from_driver(policy_path: str | os.PathLike[str], user_seeds: Sequence[int], expert: str, *,
                         predictor: str | os.PathLike[str] | None = None, threads: int = 1,
-                        batch: int = 20, lookahead: dict[str, int] | None = None,
+                        batch: int = 20, safety: SafetyLayerConfig | None = None,
                         progress: Callable[[int, int], None] | None = None) -> Collected:
     """Drive one episode per user seed with the policy, ``batch`` at a time, and label every state with the
     decision of ``expert``, a driver spec of :func:`lcmodels.policy.evaluate.driver_for` (for example
-    ``lookahead-blind:runs/pure/policy.safetensors``, which sees no more of the future than the policy could).
-    Only states with a choice are kept: in the middle of a lane change the simulator ignores the decision,
-    and a label there ("keep") would teach the network something that matters nowhere. ``lookahead``:
-    :class:`lcsim.planning.LookaheadConfig` fields for a lookahead expert (as ``driver_for``'s), whose
-    survival of each decision is kept too (``Collected.alive``). ``progress`` is called with (episodes done,
-    episodes) after each batch."""
+    ``safety-layer:runs/pure/policy.safetensors``: a policy behind the safety layer, which sees no more of the
+    future than the policy could). Only states with a choice are kept: in the middle of a lane change the
+    simulator ignores the decision, and a label there ("keep") would teach the network something that matters
+    nowhere. ``safety``: the settings of an expert's safety layer (as ``driver_for``'s); the share of imagined
+    futures each decision survived is kept too (``Collected.alive``). ``progress`` is called with (episodes
+    done, episodes) after each batch."""
     from lcmodels.policy.evaluate import driver_for
 
     torch.set_num_threads(threads)
     loaded = load_policy(policy_path, predictor=predictor)
     config = scenario_for_mode(loaded.scenario, loaded.obs_mode)
-    teacher, teacher_config = driver_for(expert, lookahead=lookahead)
+    teacher, teacher_config = driver_for(expert, safety=safety)
     if teacher_config is not None and replace(teacher_config, render_image=False) != replace(config, render_image=False):
         raise ValueError(f"the expert {expert} was trained on another scenario than {policy_path}")
     driver = PolicyDriver(loaded)
@@ -199,7 +198,7 @@ _STATES = "states.npz"
 
 
 def _finished_rounds(out: Path, run_dir: Path, *, episodes: int, seed: int, labels: str, expert: str,
-                    correction_weight: float, expert_lookahead: dict[str, int]) -> list[dict[str, Any]]:
+                    correction_weight: float, expert_layer: dict[str, Any] | None) -> list[dict[str, Any]]:
     """The records of the rounds in ``out`` that can be resumed, checked against the arguments."""
     try:
         book = json.loads((out / "dagger.json").read_text())
@@ -218,7 +217,7 @@ def _finished_rounds(out: Path, run_dir: Path, *, episodes: int, seed: int, labe
         ("episodes", first.get("episodes"), episodes), ("seed", first.get("user_seeds", [None])[0], seed),
         ("labels", first.get("labels"), labels), ("expert", first.get("expert", ORACLE), expert),
         ("correction weight", first.get("correction_weight", 1.0), correction_weight),
-        ("expert's lookahead", first.get("expert_lookahead", {}), expert_lookahead)) if have != want]
+        ("expert's safety layer", _recorded_layer(first), expert_layer)) if have != want]
     if differs:
         raise ValueError(f"cannot resume {out}: " + "; ".join(differs))
     for record in records:
@@ -228,11 +227,24 @@ def _finished_rounds(out: Path, run_dir: Path, *, episodes: int, seed: int, labe
     return records
 
 
-def _collect_job(args: tuple[str, list[int], str | None, str, str, dict[str, int]]) -> Collected:
-    path, seeds, predictor, labels, expert, lookahead = args
+def _recorded_layer(record: dict[str, Any]) -> dict[str, Any] | None:
+    """The safety layer of a round's expert as its record holds it (rounds recorded before the layer had one
+    config: the expert's spec with the settings given then)."""
+    if "expert_safety_layer" in record:
+        return record["expert_safety_layer"]
+    try:
+        layer = safety_layer_of(str(record.get("expert", ORACLE)), record.get("expert_lookahead") or None)
+    except ValueError:
+        return record.get("expert_lookahead")  # settings no layer takes now: differs from any asked
+    return None if layer is None else layer.to_dict()
+
+
+def _collect_job(args: tuple[str, list[int], str | None, str, str, dict[str, Any] | None]) -> Collected:
+    path, seeds, predictor, labels, expert, layer = args
     if expert == ORACLE:
         return collect(path, seeds, predictor=predictor, labels=labels)
-    return collect_from_driver(path, seeds, expert, predictor=predictor, lookahead=lookahead)
+    safety = None if layer is None else SafetyLayerConfig.from_dict(layer)
+    return collect_from_driver(path, seeds, expert, predictor=predictor, safety=safety)
 
 
 def dagger(
@@ -249,7 +261,7 @@ def dagger(
     labels: str = "plan",
     expert: str = ORACLE,
     correction_weight: float = 1.0,
-    expert_lookahead: dict[str, int] | None = None,
+    expert_safety: SafetyLayerConfig | None = None,
     resume: bool = False,
     demonstrations: str | os.PathLike[str] | None = None,
     progress: Callable[[str], None] | None = None,
@@ -265,12 +277,13 @@ def dagger(
         epochs: behaviour-cloning epochs over all labelled states per round.
         labels: ``"plan"`` or ``"winning"``, as in :func:`collect` (the oracle's labels only).
         expert: ``"oracle"`` (:func:`collect`) or a driver spec that labels the states instead
-            (:func:`collect_from_driver`), for example ``lookahead-blind:runs/pure/policy.safetensors``.
+            (:func:`collect_from_driver`), for example ``safety-layer:runs/pure/policy.safetensors``.
         correction_weight: how much more a labelled state counts in training when its label differs from
             the decision the policy took there (a correction), than one where they agree. An expert
             that corrects one decision in a hundred needs this above 1 to be heard.
-        expert_lookahead: :class:`lcsim.planning.LookaheadConfig` fields for a lookahead expert, for example
-            ``{"horizon_decisions": 32}`` (16 s); ``ValueError`` for an expert that is not a lookahead.
+        expert_safety: the settings of the expert's safety layer (:class:`lcsim.planning.SafetyLayerConfig`, for
+            example ``horizon_decisions=32``, 16 s; default: what the expert's spec means); ``ValueError`` for an
+            expert behind no safety layer.
         resume: continue the rounds already in ``out`` (made with the same run, episodes, seed and labels)
             up to ``rounds`` in all: their labelled states rejoin the training set and the last round's
             policy is trained on. The result is the one an uninterrupted call gives (each round trains
@@ -286,16 +299,18 @@ def dagger(
         raise ValueError("rounds, episodes, epochs and workers must be >= 1")
     if not correction_weight > 0:
         raise ValueError(f"correction_weight must be > 0, got {correction_weight}")
-    expert_lookahead = dict(expert_lookahead or {})
-    if expert_lookahead and not expert.startswith("lookahead"):
-        raise ValueError(f"lookahead options apply to a lookahead expert only, not to {expert}")
-    LookaheadConfig(blind=expert.startswith("lookahead-blind"), **expert_lookahead)  # refuses impossible values now
+    layer = safety_layer_of(expert, where="expert") if expert != ORACLE else None
+    if expert_safety is not None:
+        if layer is None:
+            raise ValueError(f"settings of the safety layer apply to an expert behind it, not to {expert}")
+        layer = expert_safety
+    expert_layer = None if layer is None else layer.to_dict()
     done: list[dict[str, Any]] = []
     if out.exists() and any(out.iterdir()):
         if not resume:
             raise FileExistsError(f"{out} exists and is not empty; choose a new directory, or resume its rounds")
         done = _finished_rounds(out, run_dir, episodes=episodes, seed=seed, labels=labels, expert=expert,
-                                correction_weight=correction_weight, expert_lookahead=expert_lookahead)
+                                correction_weight=correction_weight, expert_layer=expert_layer)
     elif resume:
         raise FileNotFoundError(f"{out} holds no DAgger rounds to resume")
     policy_path = run_dir / POLICY_FILE
@@ -346,16 +361,15 @@ def dagger(
     elif done:
         model = load_policy(current, predictor=predictor).model
         say(f"resuming after round {len(done)}: {sum(len(t) for t in targets)} states, policy {current}")
-    ctx = multiprocessing.get_context("spawn")
     for r in range(len(done) + 1, rounds + 1):
         t0 = time.perf_counter()
         seeds = [seed + (r - 1) * episodes + i for i in range(episodes)]
         parts = [seeds[i::workers] for i in range(workers) if seeds[i::workers]]
-        jobs = [(str(current), p, predictor, labels, expert, expert_lookahead) for p in parts]
+        jobs = [(str(current), p, predictor, labels, expert, expert_layer) for p in parts]
         if len(jobs) == 1:  # in this process: it may itself be a worker of a pool (lc-experiment --jobs 2)
             got = [_collect_job(jobs[0])]
         else:
-            with ProcessPoolExecutor(len(parts), mp_context=ctx) as pool:
+            with WorkerPool(len(parts)) as pool:
                 got = list(pool.map(_collect_job, jobs))
         kept = [g for g in got if len(g.labels)]
         states = sum(len(g.labels) for g in kept)
@@ -387,7 +401,7 @@ def dagger(
         record: dict[str, Any] = {
             "round": r, "episodes": episodes, "user_seeds": [seeds[0], seeds[-1]], "states_labelled": states,
             "agreement": sum(g.agreed for g in got) / max(states, 1), "searches": sum(g.searches for g in got),
-            "labels": labels, "expert": expert, "expert_lookahead": expert_lookahead,
+            "labels": labels, "expert": expert, "expert_safety_layer": expert_layer,
             "correction_weight": correction_weight,
             "harmless_deviations": sum(g.harmless for g in got),
             "policy_success_in_collection": outcomes.count("success") / len(outcomes),

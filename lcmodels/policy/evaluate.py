@@ -15,13 +15,14 @@ from __future__ import annotations
 
 import dataclasses
 import os
-from collections.abc import Callable, Iterable, Iterator, Sequence
+from collections.abc import Callable, Iterable, Sequence
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
 from lcdata.record import RecordingHook, episode_filename, episode_metadata
+from lckit.pool import WorkerPool
 from lcmodels.policy.checkpoint import LoadedPolicy
 from lcmodels.policy.obs import EpisodeStats, ObsMode, build_observation, scenario_for_mode, summarize
 from lcmodels.stats import normal_interval as mean_interval
@@ -34,7 +35,7 @@ from lcsim.registry import split_policy_spec
 from lcsim.suite import MAX_VALIDATION_SEED, SEED_STRIDE, VALIDATION_SEED_BASE, observed_by
 
 if TYPE_CHECKING:
-    from concurrent.futures import Executor
+    from lcsim.planning import SafetyLayerConfig
 
 EVAL_SEED_BASE = VALIDATION_SEED_BASE
 EVAL_SEED_STRIDE = SEED_STRIDE
@@ -177,17 +178,16 @@ def transfer_problems(policy: LoadedPolicy, target: ScenarioConfig) -> list[str]
 
 
 def driver_for(spec: str, *, predictor: str | None = None, device: str = "cpu",
-               lookahead: dict[str, int] | None = None, follow: str | None = None,
-               trust_pickle: bool = False, scenario: ScenarioConfig | None = None) -> tuple[Any, ScenarioConfig | None]:
+               safety: SafetyLayerConfig | None = None,
+               scenario: ScenarioConfig | None = None) -> tuple[Any, ScenarioConfig | None]:
     """A driver from a built-in name (:data:`lcsim.drivers.DRIVER_NAMES`), a policy checkpoint path (``policy:``
-    prefix optional), or ``lookahead:PATH`` / ``lookahead-blind:PATH``: :class:`lcsim.planning.LookaheadDriver`
-    following that policy in its imagined futures (blind: with the traffic's random draws redrawn). The
-    policy must not read the image (the imagined futures are not rendered), unless ``follow`` names the
-    driver the imagined futures follow instead (a built-in driver or a checkpoint of the same scenario that
-    does not read the image): then the policy proposes and the lookahead vetoes. ``lookahead``: fields of
-    :class:`lcsim.planning.LookaheadConfig` (``horizon_decisions``, ``samples``) for a lookahead driver.
-    ``ValueError`` when ``lookahead`` or ``follow`` is given for a driver they do not apply to.
-    ``trust_pickle``: accept legacy stable-baselines3 ``.zip`` policies (loading one runs code stored in it).
+    prefix optional), or a driver behind the safety layer: ``safety-layer:PATH`` or ``safety-layer:rule``
+    (:func:`lcsim.planning.split_safety_layer`, which also reads the older ``lookahead:PATH``,
+    ``lookahead-blind:PATH`` and the built-in ``lookahead`` drivers). ``safety``: the layer's settings
+    (:class:`lcsim.planning.SafetyLayerConfig`; default: what the spec's spelling means); ``ValueError`` when
+    given for a driver behind no layer. The layer's imagined futures follow ``safety.follow`` (a built-in driver,
+    or a checkpoint of the same scenario that does not read the image; then the policy proposes and the layer
+    checks), else the driver itself, which must then not read the image (the imagined futures are not rendered).
     ``scenario``: run a policy on that road instead of the one it was trained on, observed with the policy's
     own sensor settings (:func:`lcsim.suite.observed_by`; ``ValueError`` naming what differs when its
     observation would not have the shapes the policy was trained on).
@@ -195,49 +195,54 @@ def driver_for(spec: str, *, predictor: str | None = None, device: str = "cpu",
     Returns the driver and, for a policy, the scenario it drives in (``None`` for lcsim drivers).
     """
     from lcmodels.policy.checkpoint import load_policy
-    from lcsim.planning import LookaheadConfig, LookaheadDriver
+    from lcsim.drivers import RuleBasedDriver
+    from lcsim.planning import LookaheadDriver, split_safety_layer
     from lcsim.registry import DRIVER_NAMES, make_driver
 
-    prefix, name = split_policy_spec(spec) or ("policy:", spec)
-    if spec in DRIVER_NAMES:
-        driver, config = make_driver(spec), None
-    else:
-        path = Path(name)
-        policy = load_policy(path, predictor=predictor, device=device, trust_pickle=trust_pickle)
-        driver = PolicyDriver(policy)
-        config = driver.config
-        trained = policy.scenario
-        if scenario is not None:
-            there = observed_by(scenario, trained)
-            problems = transfer_problems(policy, there)
-            if problems:
-                raise ValueError(f"{path} cannot drive in that scenario: its observation {problems[0]} "
-                                 f"({len(problems)} difference(s) from the scenario it was trained on)")
-            config = scenario_for_mode(there, policy.obs_mode)
-        if prefix != "policy:":
-            planner = LookaheadConfig(blind=prefix == "lookahead-blind:")
-            if follow is not None:
-                driver = LookaheadDriver(planner, rule=_follower(follow, trained, predictor, device, trust_pickle),
-                                         proposer=driver)
-            elif ObsMode.of(policy.obs_mode).reads_image:
-                raise ValueError(f"{path}: a lookahead cannot follow a policy that reads the image (mode "
-                                 f"{policy.obs_mode}): its imagined futures are not rendered; name a driver "
-                                 "for them to follow (--lookahead-follow)")
-            else:
-                driver = LookaheadDriver(planner, rule=driver)
-    if follow is not None and prefix == "policy:":
-        raise ValueError(f"a driver to follow applies to lookahead:POLICY / lookahead-blind:POLICY only, not to {spec}")
-    if lookahead:
-        if not isinstance(driver, LookaheadDriver):
-            raise ValueError(f"{', '.join(lookahead)} apply to the lookahead drivers only, not to {spec}")
-        driver.config = dataclasses.replace(driver.config, **lookahead)
+    name, layer = split_safety_layer(spec)
+    if safety is not None:
+        if layer is None:
+            raise ValueError(f"settings of the safety layer apply to a driver behind it (safety-layer:{spec}), "
+                             f"not to {spec}")  # fmt: skip
+        layer = safety
+    name = (split_policy_spec(name) or ("policy:", name))[1]
+    if layer is not None and name in DRIVER_NAMES:
+        if name != "rule":
+            raise ValueError(f"the safety layer guards a policy or the rule-based driver (safety-layer:rule), not "
+                             f"{name}")  # fmt: skip
+        if layer.follow not in ("", "rule"):
+            raise ValueError(f"a driver to follow applies to a policy behind the safety layer, not to {spec}")
+        return LookaheadDriver(layer, rule=RuleBasedDriver()), None
+    if name in DRIVER_NAMES:
+        return make_driver(name), None
+    path = Path(name)
+    policy = load_policy(path, predictor=predictor, device=device)
+    driver: Any = PolicyDriver(policy)
+    config = driver.config
+    trained = policy.scenario
+    if scenario is not None:
+        there = observed_by(scenario, trained)
+        problems = transfer_problems(policy, there)
+        if problems:
+            raise ValueError(f"{path} cannot drive in that scenario: its observation {problems[0]} "
+                             f"({len(problems)} difference(s) from the scenario it was trained on)")
+        config = scenario_for_mode(there, policy.obs_mode)
+    if layer is not None:
+        if layer.follow:
+            driver = LookaheadDriver(layer, rule=_follower(layer.follow, trained, predictor, device),
+                                     proposer=driver)  # fmt: skip
+        elif ObsMode.of(policy.obs_mode).reads_image:
+            raise ValueError(f"{path}: the safety layer's imagined futures cannot follow a policy that reads the "
+                             f"image (mode {policy.obs_mode}): they are not rendered; name a driver for them to "
+                             "follow (--follow)")  # fmt: skip
+        else:
+            driver = LookaheadDriver(layer, rule=driver)
     return driver, config
 
 
-def _follower(spec: str, scenario: ScenarioConfig, predictor: str | None, device: str,
-              trust_pickle: bool = False) -> Any:
-    """The driver a lookahead's imagined futures follow: a built-in driver, or a policy trained on ``scenario``
-    (the proposer's) that does not read the image."""
+def _follower(spec: str, scenario: ScenarioConfig, predictor: str | None, device: str) -> Any:
+    """The driver the safety layer's imagined futures follow: a built-in driver, or a policy trained on
+    ``scenario`` (the proposer's) that does not read the image."""
     from lcmodels.policy.checkpoint import load_policy
     from lcsim.registry import DRIVER_NAMES, make_driver
 
@@ -245,7 +250,7 @@ def _follower(spec: str, scenario: ScenarioConfig, predictor: str | None, device
         return make_driver(spec)
     path = policy_path_of(spec)
     try:
-        policy = load_policy(path, predictor=predictor, scenario=scenario, device=device, trust_pickle=trust_pickle)
+        policy = load_policy(path, predictor=predictor, scenario=scenario, device=device)
     except ValueError as exc:
         raise ValueError(f"driver to follow: {exc}") from exc
     if ObsMode.of(policy.obs_mode).reads_image:
@@ -273,12 +278,12 @@ def _evaluate_shard(index: int, spec: str, scenario_json: str | None, user_seeds
                     options: dict[str, Any]) -> tuple[int, str, list[dict[str, Any]], int, int]:
     """One shard of :func:`evaluate_sharded`, in a worker: the driver rebuilt from its spec (nothing loaded
     is shipped), its episodes run and recorded. Returns the shard's index, the driver's name, the episodes'
-    statistics and the planner's choices and overrides (0 for other drivers)."""
-    from lcsim.planning import LookaheadDriver
+    statistics and the safety layer's choices and overrides (0 for other drivers)."""
+    from lcsim.planning import LookaheadDriver, SafetyLayerConfig
 
     target = None if scenario_json is None else ScenarioConfig.from_json(scenario_json)
-    driver, config = driver_for(spec, predictor=options["predictor"], lookahead=options["lookahead"],
-                                follow=options["follow"], trust_pickle=options["trust_pickle"], scenario=target)
+    safety = None if options["safety"] is None else SafetyLayerConfig.from_dict(options["safety"])
+    driver, config = driver_for(spec, predictor=options["predictor"], safety=safety, scenario=target)
     if config is None:
         config = target
     out_dir = options["out_dir"]
@@ -297,55 +302,19 @@ def _evaluate_shard_task(*args: Any) -> tuple[int, str, list[dict[str, Any]], in
     return _evaluate_shard(*args)
 
 
-def _shard_worker_init(parent: int, threads: int) -> None:
-    """A process of :func:`shard_pool`: ``threads`` torch threads, ended with its parent, deaf to Ctrl-C
-    (the parent stops it: a shard under way is cut, and an interrupted evaluation is run again)."""
-    import signal
-
-    import torch
-
-    from lcdata.procs import die_with_parent
-
-    die_with_parent(parent)
-    signal.signal(signal.SIGINT, signal.SIG_IGN)
-    torch.set_num_threads(threads)
-
-
-def shard_pool(workers: int, threads: int = 1) -> Executor:
-    """``workers`` spawned processes for :func:`evaluate_sharded`'s ``pool`` (``threads`` torch threads each).
-    Stop it with :func:`lcdata.procs.stop_pool` (or hold it in :func:`lcdata.procs.closing_pool`)."""
-    import multiprocessing as mp
-    from concurrent.futures import ProcessPoolExecutor
-
-    return ProcessPoolExecutor(workers, mp_context=mp.get_context("spawn"), initializer=_shard_worker_init,
-                               initargs=(os.getpid(), threads))  # fmt: skip
-
-
-def _pool_results(pool: Executor, calls: list[tuple[Any, ...]]) -> Iterator[tuple[Any, ...]]:
-    """The shards ``calls`` at once in the processes of ``pool``, as each ends; a worker that dies is a
-    :class:`ChildProcessError` (an ``OSError``: the commands end it in one line)."""
-    from concurrent.futures import as_completed
-    from concurrent.futures.process import BrokenProcessPool
-
-    futures = [pool.submit(_evaluate_shard, *c) for c in calls]
-    try:
-        for fut in as_completed(futures):
-            yield fut.result()
-    except BrokenProcessPool:
-        raise ChildProcessError("an evaluation worker process died (killed, or out of memory?); "
-                                "a rerun resumes") from None  # fmt: skip
-    finally:
-        for fut in futures:
-            fut.cancel()
+def shard_pool(workers: int, threads: int = 1) -> WorkerPool:
+    """``workers`` processes for :func:`evaluate_sharded`'s ``pool``, ``threads`` torch threads each (a
+    :class:`lckit.pool.WorkerPool`: hold it in a ``with`` block)."""
+    return WorkerPool(workers, threads=threads)
 
 
 def evaluate_sharded(spec: str, config: ScenarioConfig | None, *, episodes: int = 200, seed: int = 0,
                      shards: int = 4, executor: str = "local", predictor: str | None = None,
-                     lookahead: dict[str, int] | None = None, follow: str | None = None, trust_pickle: bool = False,
+                     safety: SafetyLayerConfig | None = None,
                      out_dir: str | os.PathLike[str] | None = None, scenario: str = "paper", batch: int = 16,
                      overwrite: bool = False, train_seeds: np.ndarray | None = None,
                      progress: Callable[[int, int], None] | None = None,
-                     driver_name: str | None = None, pool: Executor | None = None,
+                     driver_name: str | None = None, pool: WorkerPool | None = None,
                      user_seeds: Sequence[int] | None = None) -> tuple[dict[str, Any], list[EpisodeStats]]:
     """:func:`evaluate` of the driver spec ``spec`` (as :func:`driver_for` takes it) with the episodes cut into
     ``shards`` parts, each run where ``executor`` says (``local``: one after the other here, or at once in the
@@ -354,8 +323,8 @@ def evaluate_sharded(spec: str, config: ScenarioConfig | None, *, episodes: int 
     Every episode depends only on its seed and runs where :func:`evaluate` runs it, so the summary and the
     recorded files are the ones :func:`evaluate` gives, episode for episode (the ``random`` driver aside,
     whose draws follow the batch's calls). ``config``: the scenario of a built-in driver, or the scenario a
-    policy drives in instead of its own (``None``: its own). The summary
-    also has ``planner_choices`` / ``planner_overrides`` for a lookahead. ``driver_name``: the driver's name,
+    policy drives in instead of its own (``None``: its own); ``safety``: as :func:`driver_for` takes it. The summary
+    also has ``planner_choices`` / ``planner_overrides`` behind the safety layer. ``driver_name``: the driver's name,
     when the caller has built it already (else it is built here once, to check for existing files).
     ``user_seeds``: run these episodes instead of the ``episodes`` of evaluation seed ``seed``."""
     from lcdata.executors import EXECUTORS, ray_map
@@ -369,14 +338,13 @@ def evaluate_sharded(spec: str, config: ScenarioConfig | None, *, episodes: int 
     if out_dir is not None and not overwrite:  # refuse before any shard writes, as evaluate() does
         name = driver_name
         if name is None:  # (the name the files carry: build the driver once here to learn it)
-            driver, _ = driver_for(spec, predictor=predictor, lookahead=lookahead, follow=follow,
-                                   trust_pickle=trust_pickle, scenario=config)
+            driver, _ = driver_for(spec, predictor=predictor, safety=safety, scenario=config)
             name = str(getattr(driver, "name", type(driver).__name__))
         existing = [p for u in user_seeds if (p := Path(out_dir) / episode_filename(scenario, name, u)).exists()]
         if existing:
             raise FileExistsError(f"{existing[0]} exists ({len(existing)} evaluation files); use --overwrite "
                                   "or another output directory")
-    options = {"predictor": predictor, "lookahead": lookahead, "follow": follow, "trust_pickle": trust_pickle,
+    options = {"predictor": predictor, "safety": None if safety is None else safety.to_dict(),
                "out_dir": None if out_dir is None else str(out_dir), "scenario": scenario, "batch": batch,
                "overwrite": overwrite}  # fmt: skip
     scenario_json = None if config is None else config.to_json()
@@ -389,7 +357,7 @@ def evaluate_sharded(spec: str, config: ScenarioConfig | None, *, episodes: int 
     if executor == "ray":
         runner: Iterable[tuple[Any, ...]] = ray_map(_evaluate_shard_task, calls)
     elif pool is not None and len(calls) > 1:
-        runner = _pool_results(pool, calls)
+        runner = pool.map(_evaluate_shard, calls, star=True, ordered=False)
     else:
         runner = (_evaluate_shard(*c) for c in calls)
     for index, *out in runner:

@@ -15,6 +15,10 @@
   ``window_features``, also when over the next 16 s each side lane has room for a change, against when
   the leader traps the ego (:class:`WindowFeatures`; a second such look with the accelerations kept when
   there is the acceleration column).
+  With ``sensor_encoder="attention"`` the rows are read as a set instead (:class:`EgoAttention`): each
+  vehicle embedded by one shared network, then the ego attends to every sensed vehicle (the ego-attention
+  of Leurent and Mercat, "Social Attention for Autonomous Decision-Making in Dense Traffic", 2019): the
+  weights do not depend on which slot a vehicle is in or on how many slots there are.
 - ``prediction`` (K, F, 2): predicted neighbour positions in the ego frame, scaled, flattened, MLP.
 
 The output size is the sum of the branch sizes and is computed here (``features_dim``), so the policy
@@ -24,7 +28,6 @@ and value heads adapt to whichever keys the observation mode keeps.
 from __future__ import annotations
 
 import math
-from typing import Literal
 
 import numba
 import numpy as np
@@ -33,11 +36,9 @@ from gymnasium import spaces
 from stable_baselines3.common.torch_layers import BaseFeaturesExtractor
 from torch import nn
 
+from lcmodels.policy.names import IMAGE_FEATURES, IMAGE_NETS, SENSOR_ENCODERS
 from lcsim.config import LANE_SLOTS
 from lcsim.core import CURRENT_FEATURES
-
-ImageNet = Literal["compact", "strided", "vgg16"]
-IMAGE_NETS: tuple[str, ...] = ("compact", "strided", "vgg16")
 
 # Scales of the `current` columns x, y, vx, vy, yaw, speed, lane, target_lane, present (and accel_mps2,
 # with ScenarioConfig.observe_acceleration).
@@ -206,11 +207,6 @@ def make_image_net(name: str, in_channels: int, size: int, out_features: int) ->
     if name == "vgg16":
         return VGG16(in_channels, size, out_features)
     raise ValueError(f"unknown image network {name!r}; choose one of {', '.join(IMAGE_NETS)}")
-
-
-IMAGE_FEATURES = "image_features"
-"""The observation key that replaces ``image`` when the image branch is frozen and run by the environment
-wrapper (:class:`ImageEncoder`): what the branch would output, so the extractor passes it through."""
 
 
 class ImageEncoder:
@@ -387,6 +383,53 @@ class ScaledMLP(nn.Module):
         return self.net(torch.cat([scaled.flatten(1), self.extra(x)], dim=1))
 
 
+class EgoAttention(nn.Module):
+    """The sensor rows read as a set: the ego attends to every sensed vehicle.
+
+    Each row of ``current`` (the ego, then K neighbour slots), scaled per column as :class:`ScaledMLP` does,
+    with its slot's :class:`ContactFeatures` when given (the ego's row reads far, no contact), goes through
+    one shared two-layer embedding. The ego's embedding is the query of multi-head attention over all the
+    embeddings, the ego's own included, with the empty slots (``present`` 0) masked out. Its output, beside
+    the ego's embedding and the per-lane features when given (:class:`WindowFeatures`, which depend on the
+    lane layout and so are not read per vehicle), goes through two linear layers with ReLU.
+
+    Which slot a vehicle is in changes nothing (the weights are shared across rows, attention sums over
+    them), nor does the number of slots: weights trained with K slots read any other number.
+    """
+
+    def __init__(self, columns: int, scale: tuple[float, ...], hidden: int, out: int, *, contact: bool = False,
+                 window: nn.Module | None = None, embed: int = 64, heads: int = 4) -> None:
+        super().__init__()
+        if columns != len(scale):
+            raise ValueError(f"expected {len(scale)} columns per row, got {columns}")
+        if embed % heads:
+            raise ValueError(f"the embedding width {embed} must be a multiple of the heads {heads}")
+        self.register_buffer("inv_scale", 1.0 / torch.tensor(scale, dtype=torch.float32))
+        self.contact = contact
+        width = columns + (3 if contact else 0)
+        self.embed = nn.Sequential(nn.Linear(width, embed), nn.ReLU(), nn.Linear(embed, embed), nn.ReLU())
+        self.attention = nn.MultiheadAttention(embed, heads, batch_first=True)
+        self.window = window
+        n = 2 * embed + (int(window.out_features) if window is not None else 0)
+        self.net = nn.Sequential(nn.Linear(n, hidden), nn.ReLU(), nn.Linear(hidden, out), nn.ReLU())
+
+    def forward(self, current: torch.Tensor) -> torch.Tensor:
+        tokens = current * self.inv_scale  # (B, 1+K, C)
+        if self.contact:
+            k = current.shape[1] - 1
+            per_slot = ContactFeatures(k)(current).view(-1, 3, k).transpose(1, 2)  # (B, K, 3)
+            ego = per_slot.new_tensor((1.0, 1.0, 0.0)).expand(len(current), 1, 3)
+            tokens = torch.cat([tokens, torch.cat([ego, per_slot], dim=1)], dim=2)
+        emb = self.embed(tokens)
+        absent = current[..., _PRESENT] <= 0.5
+        absent[:, 0] = False  # the ego always attends to itself
+        seen, _ = self.attention(emb[:, :1], emb, emb, key_padding_mask=absent, need_weights=False)
+        parts = [emb[:, 0], seen[:, 0]]
+        if self.window is not None:
+            parts.append(self.window(current))
+        return self.net(torch.cat(parts, dim=1))
+
+
 class HybridExtractor(BaseFeaturesExtractor):
     """stable-baselines3 features extractor over a ``Dict`` observation (see the module docstring).
 
@@ -398,11 +441,16 @@ class HybridExtractor(BaseFeaturesExtractor):
         contact_features: the sensor branch also gets :class:`ContactFeatures` (off in checkpoints saved
             before the option existed, which load as they were).
         window_features: ... and :class:`WindowFeatures` (lane slots only).
+        sensor_encoder: ``"mlp"`` (the rows flattened; checkpoints saved before the option existed) or
+            ``"attention"`` (:class:`EgoAttention`).
     """
 
     def __init__(self, observation_space: spaces.Dict, image_net: str = "compact", image_features: int = 10,
                  sensor_features: int = 64, prediction_features: int = 64, hidden: int = 128,
-                 contact_features: bool = False, window_features: bool = False) -> None:
+                 contact_features: bool = False, window_features: bool = False,
+                 sensor_encoder: str = "mlp") -> None:
+        if sensor_encoder not in SENSOR_ENCODERS:
+            raise ValueError(f"unknown sensor encoder {sensor_encoder!r}; choose one of {', '.join(SENSOR_ENCODERS)}")
         if "current" not in observation_space.spaces:
             raise ValueError(f"the observation needs a 'current' key, got {sorted(observation_space.spaces)}")
         branches: dict[str, nn.Module] = {}
@@ -414,10 +462,16 @@ class HybridExtractor(BaseFeaturesExtractor):
                 dims += image_features
             elif key == "current":
                 slots, accel = int(shape[0]) - 1, int(shape[-1]) == len(CURRENT_SCALE) + 1
+                scale = CURRENT_SCALE + ((ACCEL_SCALE,) if accel else ())
+                if sensor_encoder == "attention":
+                    window = WindowFeatures(slots, accel) if window_features else None
+                    branches[key] = EgoAttention(int(shape[-1]), scale, hidden, sensor_features,
+                                                 contact=contact_features, window=window)
+                    dims += sensor_features
+                    continue
                 parts = [ContactFeatures(slots)] if contact_features else []
                 parts += [WindowFeatures(slots, accel)] if window_features else []
                 extra = ConcatFeatures(*parts) if parts else None  # (no parameters: checkpoints keep their keys)
-                scale = CURRENT_SCALE + ((ACCEL_SCALE,) if accel else ())
                 branches[key] = ScaledMLP(shape, scale, hidden, sensor_features, extra=extra)
                 dims += sensor_features
             elif key == "prediction":

@@ -38,7 +38,8 @@ def build_model(cfg: PolicyConfig, env: VecEnv | None, tensorboard: str | None =
         "features_extractor_class": HybridExtractor,
         "features_extractor_kwargs": {"image_net": cfg.image_net, "image_features": cfg.image_features,
                                       "contact_features": cfg.contact_features,
-                                      "window_features": cfg.window_features},
+                                      "window_features": cfg.window_features,
+                                      "sensor_encoder": cfg.sensor_encoder},
         "net_arch": [128, 64] if cfg.algo == "dqn" else {"pi": [64, 64], "vf": [64, 64]},
     }
     common: dict[str, Any] = {"policy_kwargs": policy_kwargs, "seed": cfg.seed, "device": device,

@@ -23,71 +23,25 @@ from __future__ import annotations
 
 import dataclasses
 from collections.abc import Sequence
-from enum import StrEnum
 from typing import Any
 
 import numpy as np
 from gymnasium import spaces
 from stable_baselines3.common.vec_env import VecEnv, VecEnvWrapper, VecMonitor
 
-from lcmodels.policy.extractor import IMAGE_FEATURES, ImageEncoder
+from lcmodels.policy.extractor import ImageEncoder
+from lcmodels.policy.names import (  # noqa: F401  (named here too, as before)
+    IMAGE_FEATURES,
+    OBS_MODES,
+    ObsMode,
+    mode_keys,
+    needs_predictor,
+    scenario_for_mode,
+)
 from lcmodels.predictor.inference import Predictor
 from lcsim.config import ScenarioConfig
 from lcsim.core import COLLISION, OFF_ROAD, OUTCOMES
 from lcsim.envs import observation_space
-
-
-class ObsMode(StrEnum):
-    """An observation mode of the ablation: which keys the policy sees (a ``str``, so configs store it as one)."""
-
-    PURE = "pure"
-    IMAGE = "image"
-    PREDICTION = "prediction"
-    HYBRID = "hybrid"
-
-    @classmethod
-    def of(cls, mode: str) -> ObsMode:
-        """The mode named ``mode``; ``ValueError`` listing the modes for an unknown one."""
-        try:
-            return cls(mode)
-        except ValueError:
-            raise ValueError(f"unknown observation mode {mode!r}; choose one of {', '.join(OBS_MODES)}") from None
-
-    @property
-    def keys(self) -> tuple[str, ...]:
-        """The observation keys the policy sees."""
-        return _KEYS[self]
-
-    @property
-    def reads_image(self) -> bool:
-        return "image" in _KEYS[self]
-
-    @property
-    def needs_predictor(self) -> bool:
-        return "prediction" in _KEYS[self]
-
-
-_KEYS = {
-    ObsMode.PURE: ("current",),
-    ObsMode.IMAGE: ("current", "image"),
-    ObsMode.PREDICTION: ("current", "prediction"),
-    ObsMode.HYBRID: ("current", "image", "prediction"),
-}
-OBS_MODES: tuple[str, ...] = tuple(m.value for m in ObsMode)
-
-
-def mode_keys(mode: str) -> tuple[str, ...]:
-    """The observation keys of ``mode``; ``ValueError`` for an unknown mode."""
-    return ObsMode.of(mode).keys
-
-
-def needs_predictor(mode: str) -> bool:
-    return ObsMode.of(mode).needs_predictor
-
-
-def scenario_for_mode(config: ScenarioConfig, mode: str) -> ScenarioConfig:
-    """``config`` with the bird's-eye image rendered only when the mode uses it (rendering costs time)."""
-    return dataclasses.replace(config, render_image=ObsMode.of(mode).reads_image)
 
 
 def policy_observation_space(config: ScenarioConfig, mode: str, future_steps: int = 10,

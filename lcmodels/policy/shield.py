@@ -1,7 +1,7 @@
-"""Shielded training: PPO steps in which a safety layer executes the policy's decisions.
+"""Training behind the safety layer: PPO steps in which the safety layer executes the policy's decisions.
 
 Post-posed shielding with a penalty (Alshiekh et al., "Safe reinforcement learning via shielding", 2018): the
-policy proposes, the lookahead safety layer (:meth:`lcsim.planning.LookaheadDriver.check`) executes its proposal
+policy proposes, the safety layer (:meth:`lcsim.planning.LookaheadDriver.check`) executes its proposal
 or overrides it, and each proposal not executed as proposed costs the policy ``penalty`` raw
 reward (a collision costs 500): one the layer overrode, and a lane change the action mask refuses, which the
 layer turns into a keep (towards a lane the road does not have, or while a change is under way, when the
@@ -10,7 +10,7 @@ The training returns in ``progress.csv`` include the penalties. The policy learn
 layer at evaluation it proposes fewer decisions that lead into states with none left that survives.
 
 ``lc-experiment`` runs it as a recipe's ``shielded`` stage (:mod:`lcmodels.recipe`); :func:`shield_for` builds
-the layer of a recipe's ``[safety]`` settings.
+the layer of a recipe's ``[safety]`` table (a :class:`~lcsim.planning.SafetyLayerConfig`).
 """
 
 from __future__ import annotations
@@ -22,7 +22,7 @@ import numpy as np
 from stable_baselines3.common.vec_env.base_vec_env import VecEnvStepReturn
 
 from lcsim.config import ScenarioConfig
-from lcsim.planning import LookaheadConfig, LookaheadDriver
+from lcsim.planning import LookaheadDriver, SafetyLayerConfig
 from lcsim.sb3 import LaneChangeSB3VecEnv
 
 
@@ -42,9 +42,11 @@ class Shield:
     def __post_init__(self) -> None:
         if isinstance(self.penalty, bool) or not isinstance(self.penalty, int | float) or not (
                 0 <= self.penalty < float("inf")):  # fmt: skip
-            raise ValueError(f"shield penalty must be a number >= 0, got {self.penalty!r}")
+            raise ValueError(f"the penalty of training behind the safety layer must be a number >= 0, got "
+                             f"{self.penalty!r}")  # fmt: skip
         if not self.layer.config.blind:
-            raise ValueError("a shield's lookahead must be blind (a layer that sees the future is privileged)")
+            raise ValueError("training behind the safety layer needs a blind layer (safety.blind = true: one that "
+                             "sees the future is privileged)")  # fmt: skip
 
     @property
     def choices(self) -> int:
@@ -85,15 +87,17 @@ class ShieldedSB3VecEnv(LaneChangeSB3VecEnv):
         return obs, (reward - self.shield.penalty * replaced).astype(np.float32), dones, infos
 
 
-def shield_for(lookahead: dict[str, Any], follow: str, penalty: float, scenario: ScenarioConfig,
+def shield_for(safety: SafetyLayerConfig, penalty: float, scenario: ScenarioConfig,
                predictor: str | None = None) -> Shield:  # fmt: skip
-    """The shield of a recipe's safety layer: a blind lookahead with the settings ``lookahead`` (fields of
-    :class:`~lcsim.planning.LookaheadConfig`) whose imagined futures follow the policy file ``follow`` (one that
-    does not read the image) or a built-in driver."""
+    """The shield of a recipe's safety layer ``safety`` (blind), whose imagined futures follow ``safety.follow``:
+    a policy file that does not read the image, or a built-in driver (a recipe's name resolved to its policy by
+    the caller)."""
     from lcmodels.policy.evaluate import _follower
 
-    config = LookaheadConfig(**{"blind": True, **lookahead})
-    return Shield(LookaheadDriver(config, rule=_follower(follow, scenario, predictor, "cpu")), float(penalty))
+    if not safety.follow:
+        raise ValueError("training behind the safety layer needs the driver its imagined futures follow "
+                         "(safety.follow)")  # fmt: skip
+    return Shield(LookaheadDriver(safety, rule=_follower(safety.follow, scenario, predictor, "cpu")), float(penalty))
 
 
 __all__ = ["Shield", "ShieldedSB3VecEnv", "shield_for"]

@@ -56,6 +56,7 @@ from lcmodels.policy.checkpoint import (
     load_policy,
     load_weights,
     save_policy,
+    scenario_differences,
 )
 from lcmodels.policy.config import (  # re-exported: the names training's callers know
     FINE_TUNE_LEARNING_RATES,
@@ -143,28 +144,57 @@ class _Logger(BaseCallback):
             self.run.progress(row)
 
 
-class _Run:
-    """The run directory: config check, checkpoints, progress rows, wall time across resumes."""
+@dataclass(frozen=True)
+class _Plan:
+    """What a run needs, resolved once from its config before anything is written (:func:`_resolve`)."""
 
-    def __init__(self, cfg: PolicyConfig, out: Path, predictor_path: Path | None, predictor_sha256: str | None,
-                 progress: Callable[[dict[str, Any]], None] | None) -> None:
-        self.cfg, self.out, self.progress = cfg, out, progress
-        self.predictor: dict[str, str] | None = None
-        """The predictor as the policy's card names it: its file name and SHA-256, which find it beside the
-        policy or in a folder above it wherever the policy is copied (``find_predictor``), and where it lay
-        relative to the policy file (a hint, checked by the digest), never an absolute path of this machine."""
-        self.predictor_path: str | None = None
-        """Where it was read from, for ``run.json`` (this run's own record)."""
-        if predictor_path is not None:
-            self.predictor = {"file": predictor_path.name, "sha256": str(predictor_sha256)}
-            self.predictor_path = str(predictor_path.resolve())
-        self.scenario = cfg.scenario_config()
-        """The scenario every card of the run stores (read once: a file edited meanwhile changes none)."""
+    cfg: PolicyConfig
+    scenario: ScenarioConfig
+    """The scenario every card of the run stores (read once: a file edited meanwhile changes none)."""
+    pred: Predictor | None
+    pred_path: Path | None
+    pred_sha: str | None
+    replace: bool
+    """The run in ``out`` is another one, to be replaced (``overwrite``)."""
+    initial: LoadedPolicy | None
+    """``cfg.init_policy``, loaded and checked, when the run starts from it (not on a resume)."""
+
+    @property
+    def predictor_file(self) -> str | None:
+        """Where the predictor was read from, for ``run.json`` (this run's own record)."""
+        return None if self.pred_path is None else str(self.pred_path.resolve())
+
+    def card(self, timesteps: int, folder: Path, training_form: bool = False) -> dict[str, Any]:
+        """The card of a policy file saved in ``folder``; ``training_form``: a frozen-image run's checkpoint,
+        which sees the image branch's features in place of the image (resumable, not loadable as a policy).
+
+        It names the predictor by its file name and SHA-256, which find it beside the policy or in a folder
+        above it wherever the policy is copied (``find_predictor``), and by where it lay relative to the
+        policy file (a hint, checked by the digest), never by an absolute path of this machine."""
+        cfg, predictor = self.cfg, None
+        if self.pred_path is not None:
+            predictor = {"file": self.pred_path.name, "sha256": str(self.pred_sha)}
+            with contextlib.suppress(ValueError):  # no relative path between two drives: name and digest only
+                predictor["path"] = os.path.relpath(str(self.predictor_file), Path(folder).resolve())
+        meta = {"algo": cfg.algo, "obs_mode": cfg.obs, "image_net": cfg.image_net,
+                "scenario_name": cfg.scenario, "scenario": self.scenario.to_dict(),
+                "predictor": predictor, "train_config": cfg.to_dict(), "timesteps": timesteps}  # fmt: skip
+        if training_form:
+            meta["training_form"] = IMAGE_FEATURES
+        return meta
+
+
+class _Run:
+    """The run directory while it trains: checkpoints, progress rows, wall time across resumes."""
+
+    def __init__(self, plan: _Plan, out: Path, progress: Callable[[dict[str, Any]], None] | None,
+                 t_start: float) -> None:
+        self.plan, self.cfg, self.out, self.progress = plan, plan.cfg, out, progress
         self.ckpt_state = out / "checkpoints" / "latest.json"
         self.start_timesteps = 0
         self.episodes_total = 0
         self.wall_before = 0.0
-        self.t_start = time.perf_counter()
+        self.t_start = t_start
         self.seeds_path = out / "train_episode_seeds.npy"
         self.prior_seeds = np.zeros(0, dtype=np.int64)
         self.env: VecEnv | None = None
@@ -172,19 +202,26 @@ class _Run:
     def wall_s(self) -> float:
         return self.wall_before + time.perf_counter() - self.t_start
 
-    def meta(self, timesteps: int, folder: Path, training_form: bool = False) -> dict[str, Any]:
-        """The card of a policy file saved in ``folder``; ``training_form``: a frozen-image run's checkpoint,
-        which sees the image branch's features in place of the image (resumable, not loadable as a policy)."""
-        predictor = self.predictor
-        if predictor is not None and self.predictor_path is not None:
-            with contextlib.suppress(ValueError):  # no relative path between two drives: name and digest only
-                predictor = {**predictor, "path": os.path.relpath(self.predictor_path, Path(folder).resolve())}
-        meta = {"algo": self.cfg.algo, "obs_mode": self.cfg.obs, "image_net": self.cfg.image_net,
-                "scenario_name": self.cfg.scenario, "scenario": self.scenario.to_dict(),
-                "predictor": predictor, "train_config": self.cfg.to_dict(), "timesteps": timesteps}  # fmt: skip
-        if training_form:
-            meta["training_form"] = IMAGE_FEATURES
-        return meta
+    def restore(self) -> dict[str, Any]:
+        """The last checkpoint's state (empty when there is none), its counters taken over; files of a killed
+        attempt that ``latest.json`` does not name (it is written last) are removed."""
+        state: dict[str, Any] = {}
+        if self.ckpt_state.exists():
+            state = read_checkpoint_state(self.ckpt_state)
+            self.start_timesteps = int(state["timesteps"])
+            self.wall_before = float(state["wall_s"])
+            self.episodes_total = int(state["episodes_total"])
+            if self.seeds_path.exists():
+                self.prior_seeds = np.load(self.seeds_path)
+            self.truncate_progress(self.start_timesteps)
+            log.info("resuming %s from step %d", self.out, self.start_timesteps)
+        elif (self.out / "progress.csv").exists():
+            (self.out / "progress.csv").unlink()  # a previous attempt died before its first checkpoint
+        keep = {state["weights"], state["optimizer"], card_path(state["weights"]).name} if state else set()
+        for f in self.ckpt_state.parent.glob("step-*"):
+            if f.name not in keep:
+                f.unlink()
+        return state
 
     def all_seeds(self) -> np.ndarray:
         new = np.asarray(episode_seeds_of(self.env) if self.env is not None else [], dtype=np.int64)
@@ -196,7 +233,7 @@ class _Run:
         folder = self.ckpt_state.parent
         previous = read_checkpoint_state(self.ckpt_state) if self.ckpt_state.exists() else None
         weights, optim = f"step-{t}.safetensors", f"step-{t}.optim.pt"
-        save_policy(model, folder / weights, self.meta(t, folder, training_form=self.cfg.freeze_image))
+        save_policy(model, folder / weights, self.plan.card(t, folder, training_form=self.cfg.freeze_image))
         tmp = folder / (optim + ".partial")
         write_atomically(tmp, folder / optim, lambda: torch.save(model.policy.optimizer.state_dict(), tmp))
         seeds_tmp = self.seeds_path.with_name(self.seeds_path.name + ".partial.npy")
@@ -316,10 +353,12 @@ def read_checkpoint_state(path: Path) -> dict[str, Any]:
                          "restart training from step 0") from None
 
 
-def check_run_dir(cfg: PolicyConfig, out: Path, predictor_sha256: str | None, *, overwrite: bool = False) -> bool:
+def check_run_dir(cfg: PolicyConfig, out: Path, predictor_sha256: str | None, *, overwrite: bool = False,
+                  scenario: ScenarioConfig | None = None) -> bool:
     """Whether ``out`` can hold this run. ``ValueError`` when it holds a run with another config or predictor
     (says what differs) unless ``overwrite``, or files that are no run of this tool's. Returns True when the
-    run there is to be replaced (``overwrite`` and a different run), False to start or resume."""
+    run there is to be replaced (``overwrite`` and a different run), False to start or resume. ``scenario``:
+    the run's scenario when the caller has read it (else read from ``cfg``)."""
     run_json = out / "run.json"
     if out.exists() and not out.is_dir():
         raise ValueError(f"--out {out} is a file, not a directory")
@@ -344,9 +383,7 @@ def check_run_dir(cfg: PolicyConfig, out: Path, predictor_sha256: str | None, *,
     if (prev.get("predictor") or {}).get("sha256") != predictor_sha256:
         diffs.append("predictor file content differs")
     if "scenario" in prev and not diffs:  # a scenario file whose content changed since the run began
-        from lcmodels.policy.checkpoint import scenario_differences
-
-        changed = scenario_differences(prev["scenario"] or {}, cfg.scenario_config())
+        changed = scenario_differences(prev["scenario"] or {}, scenario or cfg.scenario_config())
         if changed:
             diffs.append(f"the scenario's content differs ({'; '.join(changed[:3])})")
     if diffs and not overwrite:
@@ -373,7 +410,6 @@ def train_policy(
     eval_progress: Callable[[int, int], None] | None = None,
     log_every: int | None = None,
     overwrite: bool = False,
-    trust_pickle: bool = False,
     shield: Shield | None = None,
 ) -> TrainResult:
     """Train (or resume, or just finish evaluating) the run in ``out``; see the module docstring.
@@ -385,7 +421,6 @@ def train_policy(
         log_every: timesteps between progress rows (default: one PPO/A2C rollout, 2048 for DQN).
         overwrite: replace a run of another configuration in ``out`` (only its own files go, and only
             after every other check has passed).
-        trust_pickle: let ``cfg.init_policy`` be a legacy stable-baselines3 ``.zip`` (loading one runs code).
         shield: a safety layer that executes the policy's decisions during training, each overridden proposal
             penalised (:mod:`lcmodels.policy.shield`); what it did goes to ``shield.json``.
 
@@ -395,33 +430,18 @@ def train_policy(
             directory); nothing has been written then.
     """
     out = Path(out)
-    check_output_folder(out)
-    pred_path = Path(predictor) if predictor is not None and needs_predictor(cfg.obs) else None
-    if needs_predictor(cfg.obs) and pred_path is None:
-        raise ValueError(f"observation mode {cfg.obs!r} needs a trained predictor (--predictor)")
-    pred = Predictor.load(pred_path) if pred_path is not None else None
-    pred_sha = file_sha256(pred_path) if pred_path is not None else None
-    replace = check_run_dir(cfg, out, pred_sha, overwrite=overwrite)
-    run = _Run(cfg, out, pred_path, pred_sha, progress)
-    if cfg.warm_start:
-        _check_demonstrations(Path(cfg.warm_start))
-    if replace:  # what the run starts from must not be among what --overwrite removes
-        for what, given in (("init_policy", cfg.init_policy), ("warm_start", cfg.warm_start)):
-            if given and Path(given).resolve().is_relative_to(out.resolve()):
-                raise ValueError(f"{what} {given} is inside {out}, whose run --overwrite would remove; copy it "
-                                 "elsewhere first, or use another --out")
-    initial = None
-    if cfg.init_policy and (replace or not run.ckpt_state.exists()):
-        initial = _load_init_policy(cfg, run, run.scenario, device, trust_pickle)
+    plan, t_start = _resolve(cfg, out, predictor, device, overwrite)
+    run = _Run(plan, out, progress, t_start)
     # Every check has passed: from here on the directory is written.
-    if replace:
+    if plan.replace:
         removed, kept = remove_run_outputs(out)
         log.info("--overwrite: removed the %d files of the previous run in %s%s", removed, out,
                  f"; kept {len(kept)} files it did not write" if kept else "")
     out.mkdir(parents=True, exist_ok=True)
-    run_predictor = None if run.predictor is None else {**run.predictor, "path": run.predictor_path}
+    run_predictor = None if plan.pred_path is None else {"file": plan.pred_path.name, "sha256": str(plan.pred_sha),
+                                                         "path": plan.predictor_file}  # fmt: skip
     write_json(out / "run.json", {"config": cfg.to_dict(), "predictor": run_predictor,
-                                   "scenario": run.scenario.to_dict(), "versions": versions()})  # fmt: skip
+                                   "scenario": plan.scenario.to_dict(), "versions": versions()})  # fmt: skip
     final = out / POLICY_FILE
     train_info: dict[str, Any] = {}
     if (out / "metrics.json").exists():
@@ -429,12 +449,11 @@ def train_policy(
     done_steps = int(train_info.get("timesteps", 0)) if final.exists() else 0
     torch.manual_seed(cfg.seed)
     if not final.exists() or done_steps < cfg.timesteps:
-        train_info = _train(cfg, run, pred, device, log_every, final, initial, shield)
+        train_info = _train(plan, run, device, log_every, final, shield)
         if shield is not None:  # the decisions of the steps this call trained (a resumed run: since its checkpoint)
             write_json(out / "shield.json", shield.counts() | {"penalty": shield.penalty,
                                                                "from_step": run.start_timesteps,
                                                                "to_step": int(train_info.get("timesteps", 0))})
-    config = run.scenario
     metrics: dict[str, Any] = {"config": cfg.to_dict(), "train": train_info}
     eval_json = out / "eval" / "metrics.json"
     if cfg.eval_episodes > 0:
@@ -443,13 +462,11 @@ def train_policy(
         recorded = (out / "eval" / "episodes").is_dir() or not cfg.record_eval
         if not recorded or (summary.get("episodes"), summary.get("eval_seed"), summary.get("policy_sha256")) != (
                 cfg.eval_episodes, cfg.eval_seed, policy_sha):
-            from lcmodels.policy.checkpoint import load_policy
-
-            loaded: LoadedPolicy = load_policy(final, predictor=pred_path, device=device)
+            loaded: LoadedPolicy = load_policy(final, predictor=plan.pred_path, device=device)
             train_seeds = np.load(run.seeds_path) if run.seeds_path.exists() else None
             t0 = time.perf_counter()
-            summary, _ = evaluate(PolicyDriver(loaded), config, episodes=cfg.eval_episodes, seed=cfg.eval_seed,
-                                  out_dir=out / "eval" / "episodes" if cfg.record_eval else None,
+            summary, _ = evaluate(PolicyDriver(loaded), plan.scenario, episodes=cfg.eval_episodes,
+                                  seed=cfg.eval_seed, out_dir=out / "eval" / "episodes" if cfg.record_eval else None,
                                   batch=cfg.eval_batch, overwrite=True, train_seeds=train_seeds,
                                   progress=eval_progress)  # fmt: skip
             summary["wall_s"] = time.perf_counter() - t0
@@ -460,58 +477,50 @@ def train_policy(
     return TrainResult(out, int(train_info.get("timesteps", 0)), float(train_info.get("wall_s", 0.0)), metrics)
 
 
-def _check_demonstrations(path: Path) -> None:
-    """``ValueError`` unless ``path`` is a directory holding recorded episodes (a warm start's input)."""
-    if not path.is_dir():
-        raise ValueError(f"warm_start {path} is not a directory of recorded episodes")
-    if not any(path.glob("*.mcap")):
-        raise ValueError(f"warm_start {path} holds no .mcap episodes (record some with lc-record)")
+def _resolve(cfg: PolicyConfig, out: Path, predictor: str | os.PathLike[str] | None, device: str,
+             overwrite: bool) -> tuple[_Plan, float]:
+    """Every check of :func:`train_policy` and what the run needs, read once (``ValueError``, nothing written);
+    and when the run's wall time starts (after the predictor was read)."""
+    check_output_folder(out)
+    pred_path = Path(predictor) if predictor is not None and needs_predictor(cfg.obs) else None
+    if needs_predictor(cfg.obs) and pred_path is None:
+        raise ValueError(f"observation mode {cfg.obs!r} needs a trained predictor (--predictor)")
+    pred = Predictor.load(pred_path) if pred_path is not None else None
+    pred_sha = file_sha256(pred_path) if pred_path is not None else None
+    t_start = time.perf_counter()
+    scenario = cfg.scenario_config()
+    replace = check_run_dir(cfg, out, pred_sha, overwrite=overwrite, scenario=scenario)
+    if cfg.warm_start:
+        path = Path(cfg.warm_start)
+        if not path.is_dir():
+            raise ValueError(f"warm_start {path} is not a directory of recorded episodes")
+        if not any(path.glob("*.mcap")):
+            raise ValueError(f"warm_start {path} holds no .mcap episodes (record some with lc-record)")
+    if replace:  # what the run starts from must not be among what --overwrite removes
+        for what, given in (("init_policy", cfg.init_policy), ("warm_start", cfg.warm_start)):
+            if given and Path(given).resolve().is_relative_to(out.resolve()):
+                raise ValueError(f"{what} {given} is inside {out}, whose run --overwrite would remove; copy it "
+                                 "elsewhere first, or use another --out")
+    initial = None
+    if cfg.init_policy and (replace or not (out / "checkpoints" / "latest.json").exists()):
+        path = Path(cfg.init_policy)  # checked to fit this run: mode, predictor, scenario, algorithm
+        if not path.is_file():
+            raise ValueError(f"init_policy {path} does not exist")
+        initial = load_policy(path, obs_mode=cfg.obs, scenario=scenario, device=device,
+                              predictor=None if pred_path is None else str(pred_path.resolve()))
+        if initial.meta.get("algo") != cfg.algo:
+            raise ValueError(f"init_policy {path} is a {initial.meta.get('algo')} policy, this run trains {cfg.algo}")
+    return _Plan(cfg, scenario, pred, pred_path, pred_sha, replace, initial), t_start
 
 
-def _train(cfg: PolicyConfig, run: _Run, pred: Predictor | None, device: str, log_every: int | None,
-           final: Path, initial: LoadedPolicy | None, shield: Shield | None = None) -> dict[str, Any]:
-    out = run.out
-    resume = run.ckpt_state.exists()
-    state: dict[str, Any] = {}
-    if resume:
-        state = read_checkpoint_state(run.ckpt_state)
-        run.start_timesteps = int(state["timesteps"])
-        run.wall_before = float(state["wall_s"])
-        run.episodes_total = int(state["episodes_total"])
-        if run.seeds_path.exists():
-            run.prior_seeds = np.load(run.seeds_path)
-        run.truncate_progress(run.start_timesteps)
-        log.info("resuming %s from step %d", out, run.start_timesteps)
-    elif (out / "progress.csv").exists():
-        (out / "progress.csv").unlink()  # a previous attempt died before its first checkpoint
-    # Checkpoint files a killed attempt left that latest.json does not name (it is written last) are its own.
-    keep = {state["weights"], state["optimizer"], card_path(state["weights"]).name} if state else set()
-    for f in run.ckpt_state.parent.glob("step-*"):
-        if f.name not in keep:
-            f.unlink()
-    config = run.scenario
-    base = LaneChangeSB3VecEnv(cfg.n_envs, config) if shield is None else ShieldedSB3VecEnv(cfg.n_envs, config, shield)
-    # The initial policy (loaded once, before anything was written): its weights start the model, its image
-    # branch (when frozen) the wrapper.
-    encoder = _frozen_image_encoder(cfg, run, config, initial) if cfg.freeze_image else None
-    env = policy_vec_env(base, cfg.obs, pred, reward_scale=cfg.reward_scale, image_encoder=encoder,
-                       collision_weight=cfg.collision_weight)
+def _train(plan: _Plan, run: _Run, device: str, log_every: int | None, final: Path,
+           shield: Shield | None) -> dict[str, Any]:
+    cfg = plan.cfg
+    state = run.restore()
+    base, env, encoder, model, warm = _build(plan, run.out, state, device, shield)
     run.env = env
-    tb = str(out / "tb")
-    warm: dict[str, Any] | None = None
-    if resume:
-        model = _resume_model(cfg, env, tb, device, run.ckpt_state.parent, state)
-    else:
-        model = build_model(cfg, env, tb, device)
-        if cfg.warm_start:
-            warm = _warm_start(cfg, model, pred, config)
-            write_json(out / "warm_start.json", warm)
-        elif cfg.init_policy:
-            assert initial is not None
-            warm = _init_policy(cfg, model, initial)
-            write_json(out / "warm_start.json", warm)
     env.seed(train_seed_base(cfg.seed, run.start_timesteps))
-    model.set_logger(configure(tb, ["tensorboard"]))
+    model.set_logger(configure(str(run.out / "tb"), ["tensorboard"]))
     every = log_every or (cfg.n_envs * cfg.n_steps if cfg.algo != "dqn" else 2048)
     callback = _Logger(run, every)
     remaining = cfg.timesteps - run.start_timesteps
@@ -522,72 +531,79 @@ def _train(cfg: PolicyConfig, run: _Run, pred: Predictor | None, device: str, lo
     if callback.last_log != t:
         callback._log(t)
     run.checkpoint(model, t, callback.episodes_total)
-    if encoder is not None:
-        model = _with_image_branch(cfg, model, encoder, ObservationModeVecEnv(base, cfg.obs, pred), device)
-    save_policy(model, final, run.meta(t, final.parent))
+    card = plan.card(t, final.parent)
+    if encoder is not None:  # the policy file holds the frozen image branch again: any loader reads it
+        plain = build_model(cfg, ObservationModeVecEnv(base, cfg.obs, plan.pred), None, device)
+        trained, image = model.policy.state_dict(), encoder.state_dict()
+        plain.policy.load_state_dict({k: image[k.split(_IMAGE_BRANCH, 1)[1]] if _IMAGE_BRANCH in k else trained[k]
+                                      for k in plain.policy.state_dict()})  # fmt: skip
+        plain.num_timesteps = model.num_timesteps
+        model = plain
+    save_policy(model, final, card)
     info = {"timesteps": t, "wall_s": run.wall_s(), "episodes": callback.episodes_total,
             "resumed_from": run.start_timesteps, "warm_start": warm}  # fmt: skip
     env.close()
     return info
 
 
-def _resume_model(cfg: PolicyConfig, env: VecEnv, tb: str, device: str, folder: Path,
-                  state: dict[str, Any]) -> BaseAlgorithm:
-    """The model of a checkpoint (``latest.json``'s ``state``): a fresh network of this run's config filled
-    with the checkpoint's tensors, optimiser state and counters; nothing unpickled."""
-    model = build_model(cfg, env, tb, device)
-    weights, optim = folder / state["weights"], folder / state["optimizer"]
-    for f in (weights, optim):
-        if not f.is_file():
-            raise ValueError(f"checkpoint file {f} named by {folder / 'latest.json'} is missing")
-    load_weights(model, weights, device)
-    try:
-        model.policy.optimizer.load_state_dict(torch.load(optim, map_location=device, weights_only=True))
-    except Exception as exc:  # torch raises several types for a damaged file
-        raise ValueError(f"{optim} is not a readable optimiser state (truncated, corrupt or foreign: "
-                         f"{type(exc).__name__})") from None
-    model.num_timesteps = int(state["timesteps"])
-    model._n_updates = int(state.get("n_updates", 0))
-    if cfg.algo == "dqn":
-        model._n_calls = int(state.get("n_calls", 0))
-    return model
-
-
-def _load_init_policy(cfg: PolicyConfig, run: _Run, config: ScenarioConfig, device: str,
-                      trust_pickle: bool = False) -> LoadedPolicy:
-    """``cfg.init_policy``, after checking that it fits this run (mode, predictor, scenario, algorithm)."""
-    path = Path(cfg.init_policy)
-    if not path.is_file():
-        raise ValueError(f"init_policy {path} does not exist")
-    loaded = load_policy(path, obs_mode=cfg.obs, scenario=config, device=device, trust_pickle=trust_pickle,
-                         predictor=run.predictor_path)  # fmt: skip
-    if loaded.meta.get("algo") != cfg.algo:
-        raise ValueError(f"init_policy {path} is a {loaded.meta.get('algo')} policy, this run trains {cfg.algo}")
-    return loaded
-
-
-def _init_policy(cfg: PolicyConfig, model: BaseAlgorithm, loaded: LoadedPolicy) -> dict[str, Any]:
-    """Copy the weights of the initial policy ``loaded`` (``cfg.init_policy``) into ``model``."""
-    path = Path(cfg.init_policy)
-    state = loaded.model.policy.state_dict()
-    if cfg.freeze_image:  # the image branch runs in the observation wrapper (_frozen_image_encoder)
-        state = {k: v for k, v in state.items() if _IMAGE_BRANCH not in k}
-    try:
-        model.policy.load_state_dict(state)
-    except RuntimeError as exc:
-        raise ValueError(f"init_policy {path} has another network: {str(exc).splitlines()[0]}") from exc
-    log.info("starting from the weights of %s", path)
-    return {"init_policy": str(path.resolve()), "sha256": file_sha256(path)}
-
-
 _IMAGE_BRANCH = ".branches.image."  # in the policy's state-dict keys
 
 
-def _frozen_image_encoder(cfg: PolicyConfig, run: _Run, config: ScenarioConfig,
-                          initial: LoadedPolicy | None) -> ImageEncoder:
-    """The frozen image branch of a ``freeze_image`` run: the initial policy's, kept in the run directory
-    (``image_encoder.pt``) on the first start so that a resume (``initial`` None) does not need that file."""
-    path = run.out / "image_encoder.pt"
+def _build(plan: _Plan, out: Path, state: dict[str, Any], device: str, shield: Shield | None
+           ) -> tuple[VecEnv, VecEnv, ImageEncoder | None, BaseAlgorithm, dict[str, Any] | None]:
+    """The environments (the simulator's, then the observation wrapper's), the frozen image branch of a
+    ``freeze_image`` run, and the model: a checkpoint's when ``state`` names one, else a fresh network,
+    warm-started or started from the initial policy (its weights; its image branch when frozen)."""
+    cfg, initial = plan.cfg, plan.initial
+    base = (LaneChangeSB3VecEnv(cfg.n_envs, plan.scenario) if shield is None
+            else ShieldedSB3VecEnv(cfg.n_envs, plan.scenario, shield))  # fmt: skip
+    encoder = None
+    if cfg.freeze_image:  # kept in the run directory on the first start: a resume does not need init_policy
+        encoder = _frozen_image_encoder(plan, out / "image_encoder.pt")
+    env = policy_vec_env(base, cfg.obs, plan.pred, reward_scale=cfg.reward_scale, image_encoder=encoder,
+                         collision_weight=cfg.collision_weight)
+    model = build_model(cfg, env, str(out / "tb"), device)
+    warm: dict[str, Any] | None = None
+    if state:  # a checkpoint's tensors, optimiser state and counters; nothing unpickled
+        folder = out / "checkpoints"
+        weights, optim = folder / state["weights"], folder / state["optimizer"]
+        for f in (weights, optim):
+            if not f.is_file():
+                raise ValueError(f"checkpoint file {f} named by {folder / 'latest.json'} is missing")
+        load_weights(model, weights, device)
+        try:
+            model.policy.optimizer.load_state_dict(torch.load(optim, map_location=device, weights_only=True))
+        except Exception as exc:  # torch raises several types for a damaged file
+            raise ValueError(f"{optim} is not a readable optimiser state (truncated, corrupt or foreign: "
+                             f"{type(exc).__name__})") from None
+        model.num_timesteps = int(state["timesteps"])
+        model._n_updates = int(state.get("n_updates", 0))
+        if cfg.algo == "dqn":
+            model._n_calls = int(state.get("n_calls", 0))
+    elif cfg.warm_start:
+        from lcmodels.policy.warmstart import warm_start
+
+        warm = warm_start(cfg, model, plan.pred, plan.scenario, say=log.info)
+        write_json(out / "warm_start.json", warm)
+    elif cfg.init_policy:
+        assert initial is not None
+        path, weights = Path(cfg.init_policy), initial.model.policy.state_dict()
+        if cfg.freeze_image:  # the image branch runs in the observation wrapper
+            weights = {k: v for k, v in weights.items() if _IMAGE_BRANCH not in k}
+        try:
+            model.policy.load_state_dict(weights)
+        except RuntimeError as exc:
+            raise ValueError(f"init_policy {path} has another network: {str(exc).splitlines()[0]}") from exc
+        log.info("starting from the weights of %s", path)
+        warm = {"init_policy": str(path.resolve()), "sha256": file_sha256(path)}
+        write_json(out / "warm_start.json", warm)
+    return base, env, encoder, model, warm
+
+
+def _frozen_image_encoder(plan: _Plan, path: Path) -> ImageEncoder:
+    """The image branch of a ``freeze_image`` run with the initial policy's weights, which the first start
+    keeps in the run directory (``path``) so that a resume (no ``initial``) does not need them."""
+    cfg = plan.cfg
     if path.exists():
         try:
             state = torch.load(path, map_location="cpu", weights_only=True)
@@ -595,53 +611,21 @@ def _frozen_image_encoder(cfg: PolicyConfig, run: _Run, config: ScenarioConfig,
             raise ValueError(f"{path} is not readable (truncated, corrupt or not a state dict: "
                              f"{type(exc).__name__})") from None
     else:
-        assert initial is not None, "a first start has the initial policy"
-        policy = initial.model.policy
+        assert plan.initial is not None, "a first start has the initial policy"
+        policy = plan.initial.model.policy
         extractor = policy.q_net.features_extractor if hasattr(policy, "q_net") else policy.features_extractor
         if not isinstance(extractor, HybridExtractor) or "image" not in extractor.branches:
             raise ValueError(f"init_policy {cfg.init_policy} has no image branch to freeze")
         state = {k: v.detach().cpu() for k, v in extractor.branches["image"].state_dict().items()}
         tmp = path.with_suffix(".partial")
         write_atomically(tmp, path, lambda: torch.save(state, tmp))
-    net = make_image_net(cfg.image_net, 3, config.render.image_size_px, cfg.image_features)
+    net = make_image_net(cfg.image_net, 3, plan.scenario.render.image_size_px, cfg.image_features)
     try:
         net.load_state_dict(state)
     except RuntimeError as exc:
         raise ValueError(f"the image branch of {cfg.init_policy} is not a {cfg.image_net} network with "
                          f"{cfg.image_features} features: {str(exc).splitlines()[0]}") from exc
     return ImageEncoder(net, cfg.image_features)
-
-
-def _with_image_branch(cfg: PolicyConfig, model: BaseAlgorithm, encoder: ImageEncoder, env: VecEnv,
-                       device: str) -> BaseAlgorithm:
-    """A plain policy of the mode (``env``: the wrapper without the encoder) with ``model``'s weights and
-    the frozen image branch: the same function of the observation, in a file any loader reads."""
-    plain = build_model(cfg, env, None, device)
-    trained = model.policy.state_dict()
-    image = encoder.state_dict()
-    state = {k: image[k.split(_IMAGE_BRANCH, 1)[1]] if _IMAGE_BRANCH in k else trained[k]
-             for k in plain.policy.state_dict()}
-    plain.policy.load_state_dict(state)
-    plain.num_timesteps = model.num_timesteps
-    return plain
-
-
-def _warm_start(cfg: PolicyConfig, model: BaseAlgorithm, pred: Predictor | None,
-                config: ScenarioConfig) -> dict[str, Any]:
-    from lcmodels.policy.warmstart import bc_loss, every_tenth, load_demonstrations, pretrain
-
-    t0 = time.perf_counter()
-    demos = load_demonstrations(cfg.warm_start, cfg.obs, pred, gamma=cfg.gamma, reward_scale=cfg.reward_scale,
-                                collision_weight=cfg.collision_weight, scenario=config,
-                                progress=every_tenth(log.info, "warm start: read {}/{} episodes"))
-    before = bc_loss(model, demos)
-    epochs = cfg.warm_start_epochs
-    losses = pretrain(model, demos, epochs=epochs, seed=cfg.seed,
-                      progress=lambda e, loss: log.info("warm start: epoch %d/%d, loss %.4f", e, epochs, loss))
-    after = bc_loss(model, demos)
-    log.info("warm start on %d decisions of %d episodes: NLL %.3f -> %.3f", len(demos), demos.episodes, before, after)
-    return {"data": cfg.warm_start, "episodes": demos.episodes, "decisions": len(demos), "nll_before": before,
-            "nll_after": after, "epoch_losses": losses, "wall_s": time.perf_counter() - t0}  # fmt: skip
 
 
 __all__ = [

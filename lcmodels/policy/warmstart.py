@@ -17,9 +17,11 @@ from __future__ import annotations
 
 import dataclasses
 import os
+import time
 from collections.abc import Callable, Iterator
 from dataclasses import dataclass
 from pathlib import Path
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 import torch
@@ -34,6 +36,9 @@ from lcmodels.policy.extractor import HybridExtractor, pooled_images, prepools
 from lcmodels.policy.obs import build_observation, mode_keys
 from lcmodels.predictor.inference import Predictor
 from lcsim.config import ScenarioConfig
+
+if TYPE_CHECKING:
+    from lcmodels.policy.config import PolicyConfig
 
 # Scenario fields that change only what is observed, not the episode: demonstrations recorded with other
 # values are replayed and observed the policy's way (rendering aside: a mode with the image needs it recorded).
@@ -60,7 +65,7 @@ class Demonstrations:
 class RowChunks:
     """Arrays of one dtype and trailing shape read as their concatenation by row indices (``chunks[rows]``),
     never copied into one: DAgger's training set grows by a round at a time, and a concatenation of image
-    observations would hold it twice (about 9 GB each at six rounds of 200 episodes)."""
+    observations would hold it twice (gigabytes each at six rounds of 200 episodes)."""
 
     def __init__(self, parts: list[np.ndarray]) -> None:
         if not parts:
@@ -212,7 +217,7 @@ def pretrain(
     gen = np.random.default_rng(seed)
     n = len(demos)
     is_dqn = isinstance(model, DQN)
-    # Lane changes are rare in driving data (about 2% of a rule driver's decisions): weight each action
+    # Lane changes are rare in driving data (a few of a rule driver's decisions in a hundred): weight each action
     # by the inverse square root of its frequency, or cloning learns "always keep" (which collides).
     counts = np.bincount(demos.actions, minlength=3).astype(np.float64)
     weights = np.where(counts > 0, 1.0 / np.sqrt(np.maximum(counts, 1.0) / n), 0.0)
@@ -272,3 +277,22 @@ def bc_loss(model: BaseAlgorithm, demos: Demonstrations, batch_size: int = 1024)
                 _v, log_prob, _e = policy.evaluate_actions(obs, act)  # type: ignore[attr-defined]
                 total += float(-log_prob.sum())
     return total / len(demos)
+
+
+def warm_start(cfg: PolicyConfig, model: BaseAlgorithm, pred: Predictor | None, scenario: ScenarioConfig,
+               say: Callable[..., None]) -> dict[str, Any]:
+    """Pretrain ``model`` on the episodes of ``cfg.warm_start`` as ``cfg`` says (observation mode, rewards,
+    epochs, seed), observed in ``scenario``; returns what was done (``warm_start.json``). ``say``: where the
+    progress goes (a logger's ``info``: a message and its arguments)."""
+    t0 = time.perf_counter()
+    demos = load_demonstrations(cfg.warm_start, cfg.obs, pred, gamma=cfg.gamma, reward_scale=cfg.reward_scale,
+                                collision_weight=cfg.collision_weight, scenario=scenario,
+                                progress=every_tenth(say, "warm start: read {}/{} episodes"))
+    before = bc_loss(model, demos)
+    epochs = cfg.warm_start_epochs
+    losses = pretrain(model, demos, epochs=epochs, seed=cfg.seed,
+                      progress=lambda e, loss: say("warm start: epoch %d/%d, loss %.4f", e, epochs, loss))
+    after = bc_loss(model, demos)
+    say("warm start on %d decisions of %d episodes: NLL %.3f -> %.3f", len(demos), demos.episodes, before, after)
+    return {"data": cfg.warm_start, "episodes": demos.episodes, "decisions": len(demos), "nll_before": before,
+            "nll_after": after, "epoch_losses": losses, "wall_s": time.perf_counter() - t0}  # fmt: skip

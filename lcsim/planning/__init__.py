@@ -2,27 +2,40 @@
 
 - :mod:`lcsim.planning.perception`: :func:`imagined_copy`, :func:`redraw_future`, :func:`perceive`,
   :func:`estimated_desired_speeds` (what a planner may know).
-- :mod:`lcsim.planning.lookahead`: :class:`LookaheadDriver` (a driver's decision checked against the
-  imagined futures; the safety layer).
+- :mod:`lcsim.planning.safety`: :class:`SafetyLayerConfig` (how the safety layer imagines; the one config of
+  recipes, commands, zoo cards and training behind the layer) and the driver specs that name the layer.
+- :mod:`lcsim.planning.lookahead`: :class:`LookaheadDriver` (the safety layer: a driver's decision checked
+  against the imagined futures).
 - :mod:`lcsim.planning.oracle`: :class:`OracleDriver` (a whole-episode search; the ceiling for any policy).
 
 The physics (:mod:`lcsim.sim`) knows nothing of planners.
 """
 
-from lcsim.planning.lookahead import LookaheadConfig, LookaheadDriver
+from lcsim.planning.lookahead import LookaheadDriver
 from lcsim.planning.oracle import OracleDriver, SearchResult, replay, search_episode, search_from
 from lcsim.planning.perception import estimated_desired_speeds, imagined_copy, perceive, redraw_future
+from lcsim.planning.safety import (
+    PRIVILEGED,
+    SAFETY_LAYER_PREFIX,
+    SafetyLayerConfig,
+    safety_layer_of,
+    split_safety_layer,
+)
 
 __all__ = [
-    "LookaheadConfig",
+    "PRIVILEGED",
+    "SAFETY_LAYER_PREFIX",
     "LookaheadDriver",
     "OracleDriver",
+    "SafetyLayerConfig",
     "SearchResult",
     "estimated_desired_speeds",
     "imagined_copy",
     "perceive",
     "redraw_future",
     "replay",
+    "safety_layer_of",
     "search_episode",
     "search_from",
+    "split_safety_layer",
 ]

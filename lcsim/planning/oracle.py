@@ -161,7 +161,7 @@ class OracleDriver:
     """Drives every episode along the decisions :func:`search_episode` finds for its seed.
 
     A privileged reference, not a policy: it plans each episode once, with the exact future, when it
-    first sees it (0.9 s of CPU per episode on average on the paper scenario), then plays the plan;
+    first sees it (``lc-eval oracle --bound`` reports the search's CPU time per episode), then plays the plan;
     where no winning plan exists it plays the branch that stayed alive longest, then the rule-based
     driver. It only drives episodes from
     their reset (it checks the ego is where the plan put it, and says so otherwise), which is how

@@ -16,13 +16,13 @@ import numpy as np
 
 from lcsim.core import LaneChangeCore
 from lcsim.sim import HighwaySim
-from lcsim.traffic import DriverParams, driver_fields, idm_accel
+from lcsim.traffic import idm_accel
 
 
 def imagined_copy(core: LaneChangeCore) -> LaneChangeCore:
     """A copy of ``core`` to imagine a future in: it shares no state with ``core`` and has no hooks (a
     recorder must not see the imagined future) and no renderer."""
-    return copy.deepcopy(core, {id(core.sim.hooks): [], id(core.renderer): None})
+    return copy.deepcopy(core, {id(core.sim.hooks): [], id(core.sim.log_hooks): [], id(core.renderer): None})
 
 
 def redraw_future(sim: HighwaySim, salt: int | np.ndarray) -> None:
@@ -39,8 +39,7 @@ def redraw_future(sim: HighwaySim, salt: int | np.ndarray) -> None:
     sim.rekey(salt)
 
 
-def perceive(sim: HighwaySim, range_m: float, *, draw_drivers: bool = False,
-             known_drivers: tuple[str, ...] = ()) -> None:
+def perceive(sim: HighwaySim, range_m: float) -> None:
     """Reduce every environment to what its ego's sensors tell about the traffic (for an imagined copy).
 
     Traffic vehicles farther than ``range_m`` from the ego (centre to centre) are moved 100 km behind
@@ -51,14 +50,6 @@ def perceive(sim: HighwaySim, range_m: float, *, draw_drivers: bool = False,
     parameters, reaction time and lane-change habits become the median driver's. A planner that imagines futures in a copy
     so reduced, and redrawn (:func:`redraw_future`), knows the traffic's rules but nothing a sensor of
     that range would not show it.
-
-    With ``draw_drivers`` (human-like traffic), each unseen driver's parameters are instead drawn from the
-    traffic's distribution, from a generator seeded by the copy's random keys (so each redrawn future of
-    :func:`redraw_future` imagines other plausible drivers, and the same state gives the same draws): a
-    planner that imagines several futures then weighs the drivers it cannot tell apart, not only the median.
-
-    ``known_drivers`` (names of :class:`~lcsim.traffic.DriverParams` fields) keeps those parameters of every
-    driver at their true values: a privileged diagnostic, the ceiling of a planner that would estimate them.
     """
     if not range_m > 0:
         raise ValueError(f"range_m must be > 0, got {range_m!r}")
@@ -69,27 +60,11 @@ def perceive(sim: HighwaySim, range_m: float, *, draw_drivers: bool = False,
     far &= traffic
     sim.x = np.where(far, sim.x[:, :1] - 1.0e5 - 50.0 * sim.ids[None, :], sim.x)  # parked, spaced apart
     sim.rebuild_index()
-    true = {name: getattr(sim.drivers, name).copy() for name in driver_fields(known_drivers, "known_drivers")}
-    if sim.human:  # each driver's own parameters show in no sensor: the copy's drivers are the median ones
-        # (or plausible ones drawn), but a lane change under way keeps its pace (its progress shows)
-        if draw_drivers:
-            _draw_drivers(sim, traffic)
-        else:
-            sim.drivers.set_nominal(traffic, sim.config.traffic, sim.dt)
+    if sim.human:  # each driver's own parameters show in no sensor: the copy's drivers are the median ones,
+        # but a lane change under way keeps its pace (its progress shows)
+        sim.drivers.set_nominal(traffic, sim.config.traffic, sim.dt)
         sim.drivers.lc_inv_duration[...] = np.where(sim.lc_active, original_durations, sim.drivers.lc_inv_duration)
-        for name, values in true.items():
-            getattr(sim.drivers, name)[...] = values
     sim.v0 = np.where(traffic, estimated_desired_speeds(sim), sim.v0)
-
-
-def _draw_drivers(sim: HighwaySim, mask: np.ndarray) -> None:
-    """Draw the drivers where ``mask`` is set from the traffic's distribution, seeded by the copy's keys."""
-    keys = np.concatenate([np.asarray(sim.key, dtype=np.uint64), np.asarray(sim.step, dtype=np.uint64)])
-    gen = np.random.default_rng(keys.view(np.uint32))  # the copy's keys (salted per future) and its time
-    drawn = DriverParams.nominal(sim.config.traffic, mask.shape, sim.dt)
-    for e in range(mask.shape[0]):
-        drawn.draw(e, gen, sim.config.traffic, sim.dt, mask.shape[1])
-    sim.drivers.set_where(mask, drawn)
 
 
 def estimated_desired_speeds(sim: HighwaySim) -> np.ndarray:

@@ -24,7 +24,7 @@ import torch
 import lcmodels.policy.train as train_module
 from lcmodels.policy.evaluate import driver_for
 from lcmodels.policy.train import PolicyConfig, train_policy
-from lcsim.planning import LookaheadConfig, LookaheadDriver
+from lcsim.planning import LookaheadDriver, SafetyLayerConfig
 from lcsim.sb3 import LaneChangeSB3VecEnv
 
 ROOT = Path(__file__).resolve().parents[4]
@@ -64,7 +64,7 @@ def main() -> None:
     cfg = PolicyConfig.from_dict({**card["train_config"], "init_policy": args.policy, "timesteps": args.timesteps,
                                   "checkpoint_every": 10_000})
     follower, _ = driver_for(args.follow)
-    ShieldedVecEnv.layer = LookaheadDriver(LookaheadConfig(blind=True, perceived=True, horizon_decisions=32, samples=3),
+    ShieldedVecEnv.layer = LookaheadDriver(SafetyLayerConfig(horizon_decisions=32, samples=3),
                                            rule=follower)
     ShieldedVecEnv.penalty = args.penalty
     train_module.LaneChangeSB3VecEnv = ShieldedVecEnv  # the training environments only

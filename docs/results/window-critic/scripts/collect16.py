@@ -15,7 +15,7 @@ import torch
 
 from lcmodels.policy.evaluate import driver_for
 from lcsim.core import RUNNING, LaneChangeCore
-from lcsim.planning import LookaheadConfig, LookaheadDriver
+from lcsim.planning import LookaheadDriver, SafetyLayerConfig
 from lcsim.envs import episode_seed
 
 
@@ -35,7 +35,7 @@ policy, first, n, out = sys.argv[1], int(sys.argv[2]), int(sys.argv[3]), sys.arg
 drv, cfg = driver_for(policy)
 cfg = dataclasses.replace(cfg, num_neighbours=16)
 pol = FirstSlots(drv)
-planner = LookaheadDriver(LookaheadConfig(horizon_decisions=32, blind=True), rule=pol)
+planner = LookaheadDriver(SafetyLayerConfig(horizon_decisions=32, perceived=False), rule=pol)
 current, alive, actions, t0 = [], [], [], time.perf_counter()
 for start in range(first, first + n, 20):
     seeds = list(range(start, min(start + 20, first + n)))

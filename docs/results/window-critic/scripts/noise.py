@@ -14,13 +14,13 @@ import torch
 
 from lcmodels.policy.evaluate import driver_for
 from lcsim.core import KEEP, RUNNING, LaneChangeCore
-from lcsim.planning import LookaheadConfig, LookaheadDriver
+from lcsim.planning import LookaheadDriver, SafetyLayerConfig
 from lcsim.envs import episode_seed
 
 torch.set_num_threads(1)
 policy, first, n, K = sys.argv[1], int(sys.argv[2]), int(sys.argv[3]), int(sys.argv[4])
 drv, cfg = driver_for(policy)
-planner = LookaheadDriver(LookaheadConfig(horizon_decisions=32, blind=True), rule=drv)
+planner = LookaheadDriver(SafetyLayerConfig(horizon_decisions=32, perceived=False), rule=drv)
 shares, t0 = [], time.perf_counter()
 for start in range(first, first + n, 20):
     seeds = list(range(start, min(start + 20, first + n)))

@@ -1,10 +1,10 @@
 """Which driver each vehicle in sight is, read from its motion: a posterior over candidate drivers.
 
 On human-like traffic every driver has its own car-following parameters (time headway, acceleration, comfortable
-deceleration) and reaction time (:class:`~lcsim.traffic.DriverParams`), which no sensor shows. A perceived planner
-that imagines every driver as the median one misjudges how a vehicle of the target lane will brake; one that knew
-each driver's longitudinal parameters would win about 2.5 points more of the held-out episodes
-(``docs/results/safety-samples``). :class:`DriverEstimator` infers them from what the ego's sensors show at each
+deceleration) and reaction time (:class:`~lcsim.traffic.DriverParams`), which no sensor shows. A perceived safety
+layer that imagines every driver as the median one misjudges how a vehicle of the target lane will brake (what one
+that knew each driver's parameters gains: ``docs/results/safety-samples``). :class:`DriverEstimator` infers them
+from what the ego's sensors show at each
 decision: each vehicle's speed and acceleration, its gap to its leader and the leader's speed, for vehicles whose
 leader is within the sensing range too.
 

@@ -1,0 +1,224 @@
+"""The stage store of an experiment directory: which stages are complete, the record of each, the lock that keeps
+a second invocation out, and the list of invocations.
+
+``stages/<stage>.json`` is written when a stage completes: its config, the content hashes of its inputs (the
+outputs of the stages it reads) and the SHA-256 of each of its own outputs. A stage whose record matches the
+current config and inputs and whose outputs still hash to the recorded values is complete; anything else is
+redone. ``stages/<stage>.pending.json`` is written when a stage starts: a stage interrupted with the same config
+and inputs continues from what it left (``keep``); one whose config or inputs changed starts from an empty
+directory.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import shutil
+import threading
+import time
+from collections.abc import Callable, Iterator, Sequence
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+from lcmodels.experiment.keys import StageKey
+from lcmodels.fileio import file_sha256, read_json, write_json
+from lcmodels.presets import INVOCATIONS, LOCK_NAME, MARKER, STAGES_DIR, StageResult, canonical
+
+Config = dict[str, Any]
+Upgrade = Callable[[Config], Config]
+"""A stored config in today's form (a field added since it was recorded, at the value it stood for)."""
+Resumable = Callable[[Config, Config], bool]
+"""Whether a stage interrupted (or complete) under the first config continues under the second."""
+
+
+def record_paths(out: str | Path, key: StageKey) -> tuple[Path, Path]:
+    """``(complete record, pending record)`` of stage ``key`` in the experiment directory ``out``."""
+    base = Path(out) / STAGES_DIR / key.record_name
+    return base.with_suffix(".json"), base.with_suffix(".pending.json")
+
+
+def read_record(out: str | Path, key: StageKey) -> dict[str, Any] | None:
+    """The complete record of stage ``key`` in ``out`` (None when it has none)."""
+    rec = read_json(record_paths(out, key)[0])
+    return rec if isinstance(rec, dict) else None
+
+
+def hash_outputs(base: Path, names: Sequence[str]) -> dict[str, str] | None:
+    """SHA-256 of each file ``names`` under ``base``; None when one is missing."""
+    out = {}
+    for name in names:
+        p = base / name
+        if not p.is_file():
+            return None
+        out[name] = file_sha256(p)
+    return out
+
+
+@dataclass(frozen=True)
+class Verdict:
+    """What the store holds of a stage against its current config and inputs."""
+
+    complete: bool
+    why: str
+    """``new``, ``resuming an interrupted run``, ``stale: ...``, ``outputs missing or changed`` (empty if complete)."""
+    keep: bool = False
+    """The stage's directory holds a prefix of the work (same inputs, same or a resumable config)."""
+    wall_before: float = 0.0
+    """Recorded wall time of the interrupted parts that ``keep`` goes on from."""
+    record: dict[str, Any] | None = None
+    """The complete record (when ``complete``)."""
+
+
+class Attempt:
+    """A stage under way: its pending record, kept up to date with the time spent (:meth:`save_wall`)."""
+
+    def __init__(self, key: StageKey, path: Path, pending_path: Path, pending: dict[str, Any], before: float,
+                 keep: bool) -> None:  # fmt: skip
+        self.key, self.path, self.keep = key, path, keep
+        self._pending_path, self.pending, self._before = pending_path, pending, before
+        self.t0 = time.perf_counter()
+
+    def elapsed(self) -> float:
+        """The stage's wall time so far: the interrupted parts and this one."""
+        return self._before + time.perf_counter() - self.t0
+
+    def save_wall(self) -> None:
+        """Put the time spent so far into the pending record (an interrupted stage keeps the time of its parts)."""
+        write_json(self._pending_path, self.pending | {"wall_s_parts": self.elapsed()})
+
+
+class StageStore:
+    """The records of the experiment directory ``out``."""
+
+    def __init__(self, out: str | Path) -> None:
+        self.out = Path(out)
+
+    # -- the directory -----------------------------------------------------------------------------
+    def check_out(self) -> None:
+        """``ValueError`` when ``out`` is a file, a non-empty directory that is not an experiment, the filesystem
+        root or the home directory, or a folder nothing can be written in."""
+        from lcdata.fileio import check_output_folder
+
+        check_output_folder(self.out)
+        if self.out.is_dir() and any(q.name != LOCK_NAME for q in self.out.iterdir()) and not (
+                self.out / MARKER).exists():
+            raise ValueError(f"--out {self.out} is a non-empty directory without {MARKER}; "
+                             "choose a new or an experiment directory")  # fmt: skip
+
+    @contextlib.contextmanager
+    def lock(self) -> Iterator[None]:
+        """Hold ``DIR/.lock`` (an advisory ``flock``, released when the process ends however it ends).
+
+        ``ValueError`` when another process holds it: two runs in one directory would overwrite each other.
+        """
+        from lcdata.fileio import folder_lock
+
+        with folder_lock(self.out, "lc-experiment", LOCK_NAME, doing="is running in"):
+            yield
+
+    def marker(self) -> dict[str, Any]:
+        """``experiment.json`` (empty when missing)."""
+        data = read_json(self.out / MARKER)
+        return data if isinstance(data, dict) else {}
+
+    def write_marker(self, data: dict[str, Any]) -> None:
+        write_json(self.out / MARKER, data)
+
+    # -- the records -------------------------------------------------------------------------------
+    def check(self, key: StageKey, config: Config, inputs: dict[str, str], *, upgrade: Upgrade | None = None,
+              resumable: Resumable | None = None) -> Verdict:  # fmt: skip
+        """Whether stage ``key`` is complete under ``config`` and ``inputs`` (both canonical) and, if not, why and
+        whether its directory can be kept."""
+        rec_path, pend_path = record_paths(self.out, key)
+
+        def stored(rec: Any) -> dict[str, Any] | None:
+            if not isinstance(rec, dict):
+                return None
+            # a config stored before a field was added compares as the config it stands for today
+            if upgrade is None or not isinstance(rec.get("config"), dict):
+                return rec
+            return rec | {"config": canonical(upgrade(rec["config"]))}
+
+        record = stored(read_json(rec_path))
+        pending = None
+        if record is not None and record.get("config") == config and record.get("inputs") == inputs:
+            current = hash_outputs(key.path(self.out), list(record.get("outputs", {})))
+            if current is not None and current == record["outputs"]:
+                return Verdict(True, "", record=record)
+            why = "outputs missing or changed"
+        elif record is not None:
+            why = "stale: " + ("config changed" if record.get("config") != config else "inputs changed")
+        elif (pending := stored(read_json(pend_path))) is None:
+            why = "new"
+        elif pending.get("config") == config and pending.get("inputs") == inputs:
+            why = "resuming an interrupted run"
+        else:
+            why = "stale: config or inputs changed since an interrupted run"
+        prior = None if why == "outputs missing or changed" else (record or pending)
+        keep = prior is not None and prior.get("inputs") == inputs and (
+            prior.get("config") == config or (resumable is not None and resumable(prior.get("config", {}), config)))
+        before = float(prior.get("wall_s_parts", 0.0)) if keep and prior is not None else 0.0
+        return Verdict(False, why, keep, before)
+
+    def skipped(self, key: StageKey, verdict: Verdict, t0: float) -> StageResult:
+        """The result of a complete stage (its recorded time and outputs)."""
+        assert verdict.record is not None
+        return StageResult(key.name, "skipped", key.path(self.out), float(verdict.record.get("wall_s", 0.0)),
+                           time.perf_counter() - t0, dict(verdict.record["outputs"]))  # fmt: skip
+
+    def begin(self, key: StageKey, verdict: Verdict, config: Config, inputs: dict[str, str]) -> Attempt:
+        """Make stage ``key`` pending: its directory emptied unless ``verdict.keep``, its pending record written."""
+        path = key.path(self.out)
+        rec_path, pend_path = record_paths(self.out, key)
+        if not verdict.keep and path.exists():
+            shutil.rmtree(path)
+        path.mkdir(parents=True, exist_ok=True)
+        rec_path.unlink(missing_ok=True)
+        pending = {"stage": key.name, "config": config, "inputs": inputs}
+        write_json(pend_path, pending | {"wall_s_parts": verdict.wall_before})
+        return Attempt(key, path, pend_path, pending, verdict.wall_before, verdict.keep)
+
+    def finish(self, attempt: Attempt, outputs: Sequence[str], wall: float | None, t0: float) -> StageResult:
+        """Record the finished stage of ``attempt``: its outputs' hashes and ``wall`` (the compute time behind them;
+        None: the time of its parts). ``RuntimeError`` when an output is missing."""
+        wall = attempt.elapsed() if wall is None else wall
+        hashes = hash_outputs(attempt.path, outputs)
+        if hashes is None:
+            raise RuntimeError(f"stage {attempt.key.name} finished without all of its outputs in {attempt.path}")
+        rec_path, pend_path = record_paths(self.out, attempt.key)
+        write_json(rec_path, {**attempt.pending, "outputs": hashes, "wall_s": wall,
+                              "finished": time.strftime("%Y-%m-%dT%H:%M:%S%z")})  # fmt: skip
+        pend_path.unlink(missing_ok=True)
+        return StageResult(attempt.key.name, "done", attempt.path, wall, time.perf_counter() - t0, hashes)
+
+
+class Invocations:
+    """``invocations.json``: every run of the directory, its command, wall time so far and whether it finished
+    (kept up to date by each progress line, so that a killed invocation keeps the time until its last line)."""
+
+    def __init__(self, out: str | Path) -> None:
+        self.path = Path(out) / INVOCATIONS
+        self.entries: list[dict[str, Any]] = []
+        self._t0: float | None = None
+        self._lock = threading.Lock()  # progress lines of the worker processes come from another thread
+
+    def start(self, command: str, t0: float) -> None:
+        previous = read_json(self.path)
+        self.entries = [*(previous if isinstance(previous, list) else []),
+                        {"started": time.strftime("%Y-%m-%dT%H:%M:%S%z"), "command": command}]
+        self._t0 = t0
+        self.save(finished=False)
+
+    @property
+    def active(self) -> bool:
+        return self._t0 is not None
+
+    def save(self, *, finished: bool) -> None:
+        if self._t0 is None:
+            return
+        with self._lock:
+            self.entries[-1].update(wall_s=time.perf_counter() - self._t0, finished=finished)
+            write_json(self.path, self.entries)
+
+    def stop(self) -> None:
+        self._t0 = None
