@@ -191,7 +191,8 @@ class LaneChangeCore:
         """The arrays :meth:`_observe` fills, and ``shard(i, j)`` that fills their rows ``i .. j - 1`` (environments
         ``ids[i:j]``) from the present state."""
         sim, b = self.sim, len(ids)
-        if b and (ids.min() < 0 or ids.max() >= self.num_envs):
+        every = ids is _vehicle_range(self.num_envs)  # (every environment, in order: nothing to check or gather)
+        if b and not every and (ids.min() < 0 or ids.max() >= self.num_envs):
             raise IndexError(f"environment ids must be in [0, {self.num_envs}), got {ids.tolist()}")
         nb = np.empty((b, self.k), dtype=np.int64)
         cur = np.empty((b, 1 + self.k, self._num_features), dtype=np.float32)
@@ -199,17 +200,19 @@ class LaneChangeCore:
         renderer = self.renderer if image else None
         images = None
         if renderer is not None:
-            every = b == self.num_envs and ids is _vehicle_range(self.num_envs)
-            poses = tuple(a if every else a[ids] for a in (sim.x, sim.y, sim.yaw, sim.length, sim.width))
+            poses = [a if every else a[ids] for a in (sim.x, sim.y, sim.yaw, sim.length, sim.width)]
             images = renderer.empty(b)
             extent = renderer.extent(poses[3], poses[4])
 
         def shard(i: int, j: int) -> None:
-            kernel.observe(ids[i:j], self._nearest_mode, self._slots, self._range2, self.config.observe_acceleration,
-                           sim.road.num_lanes, sim.vf, sim.vi, sim.hist, sim.hist_ptr, sim.hist_count, nb[i:j],
-                           cur[i:j], hist[i:j])
+            whole = i == 0 and j == b  # (one shard: the arrays themselves)
+            kernel.observe(ids if whole else ids[i:j], self._nearest_mode, self._slots, self._range2,
+                           self.config.observe_acceleration, sim.road.num_lanes, sim.vf, sim.vi, sim.hist,
+                           sim.hist_ptr, sim.hist_count, nb if whole else nb[i:j], cur if whole else cur[i:j],
+                           hist if whole else hist[i:j])
             if renderer is not None:
-                renderer.draw(images[i:j], *(a[i:j] for a in poses), extent)
+                renderer.draw(images if whole else images[i:j], *(poses if whole else [a[i:j] for a in poses]),
+                              extent)
 
         return nb, cur, hist, images, shard
 
