@@ -117,15 +117,10 @@ def resolve_driver(label: str, *, safety: SafetyLayerConfig | None = None,
     known, a missing file, or settings that do not apply to it."""
     from lcmodels.policy.evaluate import policy_path_of
     from lcmodels.zoo import resolve_policy_spec
-    from lcsim.planning import split_safety_layer
+    from lcsim.planning import driver_and_layer, split_safety_layer
     from lcsim.registry import DRIVER_NAMES
 
-    name, layer = split_safety_layer(label)
-    if safety is not None:
-        if layer is None:
-            raise ValueError(f"settings of the safety layer apply to a driver behind it (safety-layer:{label}), "
-                             f"not to {label}")  # fmt: skip
-        layer = safety
+    name, layer = driver_and_layer(label, safety)
     if layer is None and label in DRIVER_NAMES:
         return BenchDriver(label, label, {"kind": "driver", "name": label})
     if layer is not None and name in DRIVER_NAMES:  # the rule-based driver behind the layer (built-in lookahead)

@@ -196,15 +196,10 @@ def driver_for(spec: str, *, predictor: str | None = None, device: str = "cpu",
     """
     from lcmodels.policy.checkpoint import load_policy
     from lcsim.drivers import RuleBasedDriver
-    from lcsim.planning import LookaheadDriver, split_safety_layer
+    from lcsim.planning import LookaheadDriver, driver_and_layer
     from lcsim.registry import DRIVER_NAMES, make_driver
 
-    name, layer = split_safety_layer(spec)
-    if safety is not None:
-        if layer is None:
-            raise ValueError(f"settings of the safety layer apply to a driver behind it (safety-layer:{spec}), "
-                             f"not to {spec}")  # fmt: skip
-        layer = safety
+    name, layer = driver_and_layer(spec, safety)
     name = (split_policy_spec(name) or ("policy:", name))[1]
     if layer is not None and name in DRIVER_NAMES:
         if name != "rule":

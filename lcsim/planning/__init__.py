@@ -18,6 +18,7 @@ from lcsim.planning.safety import (
     PRIVILEGED,
     SAFETY_LAYER_PREFIX,
     SafetyLayerConfig,
+    driver_and_layer,
     safety_layer_of,
     split_safety_layer,
 )
@@ -29,6 +30,7 @@ __all__ = [
     "OracleDriver",
     "SafetyLayerConfig",
     "SearchResult",
+    "driver_and_layer",
     "estimated_desired_speeds",
     "imagined_copy",
     "perceive",

@@ -159,6 +159,18 @@ def split_safety_layer(spec: str) -> tuple[str, SafetyLayerConfig | None]:
     return spec, None
 
 
+def driver_and_layer(spec: str, safety: SafetyLayerConfig | None = None) -> tuple[str, SafetyLayerConfig | None]:
+    """:func:`split_safety_layer` with the layer's settings ``safety`` in place of what the spelling means;
+    ``ValueError`` when settings are given for a spec behind no layer."""
+    name, layer = split_safety_layer(spec)
+    if safety is not None:
+        if layer is None:
+            raise ValueError(f"settings of the safety layer apply to a driver behind it (safety-layer:{spec}), "
+                             f"not to {spec}")  # fmt: skip
+        layer = safety
+    return name, layer
+
+
 def safety_layer_of(spec: str, table: Mapping[str, Any] | None = None, follow: str | None = None, *,
                     where: str = "safety layer") -> SafetyLayerConfig | None:  # fmt: skip
     """The safety layer a driver spec drives behind (:func:`split_safety_layer`) with the settings ``table`` (a
