@@ -365,7 +365,7 @@ def _policy_job(ctx: StageContext, key: StageKey, recipe: Recipe, got: Mapping[s
                  f"collision {row['collision_rate']:.2f} return {row['mean_return']:.1f}")
 
     def work(keep: bool, save_wall: Callable[[], None]) -> float:
-        from lcmodels.policy.train import train_policy
+        from lcmodels.policy.train import train_run
 
         shield = None
         if shield_cfg:
@@ -377,13 +377,13 @@ def _policy_job(ctx: StageContext, key: StageKey, recipe: Recipe, got: Mapping[s
                                 shield_cfg["penalty"], cfg.scenario_config(),
                                 str(pred_path) if pred_path else None)  # fmt: skip
         try:
-            res = train_policy(cfg, path, predictor=pred_path, progress=show, shield=shield)
+            res = train_run(cfg, path, predictor=pred_path, progress=show, shield=shield)
         except ValueError as exc:  # the directory holds another run (e.g. moved --out): start over
             if "another configuration" not in str(exc):
                 raise
             shutil.rmtree(path)
             path.mkdir(parents=True)
-            res = train_policy(cfg, path, predictor=pred_path, progress=show, shield=shield)
+            res = train_run(cfg, path, predictor=pred_path, progress=show, shield=shield)
         return res.wall_s
 
     stage_cfg = cfg.to_dict() | {"warm_start": "demos" if cfg.warm_start else "",

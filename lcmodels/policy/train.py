@@ -1,4 +1,5 @@
-"""Online training of the lane-change policy on the batched simulator, resumable, then evaluation.
+"""Online training of the lane-change policy on the batched simulator, resumable (:func:`train_run`), then
+evaluation (:func:`evaluate_run`); :func:`train_policy` does both.
 
 A run directory holds::
 
@@ -104,6 +105,11 @@ class TrainResult:
     timesteps: int
     wall_s: float
     metrics: dict[str, Any] = field(default_factory=dict)
+    """What ``metrics.json`` holds: the config, the training summary and (once evaluated) the evaluation."""
+    config: PolicyConfig | None = None
+    scenario: ScenarioConfig | None = None
+    """The scenario the run trained on (what its policy's card stores)."""
+    predictor: Path | None = None
 
 
 class _Logger(BaseCallback):
@@ -412,12 +418,14 @@ def train_policy(
     overwrite: bool = False,
     shield: Shield | None = None,
 ) -> TrainResult:
-    """Train (or resume, or just finish evaluating) the run in ``out``; see the module docstring.
+    """Train (or resume) the run in ``out`` (:func:`train_run`), then evaluate it on ``cfg.eval_episodes``
+    held-out episodes (:func:`evaluate_run`); see the module docstring.
 
     Args:
         cfg: the run's configuration.
         predictor: predictor checkpoint, required by the ``prediction`` and ``hybrid`` modes.
         progress: called with each progress row (a dict of :data:`PROGRESS_COLUMNS`).
+        eval_progress: called with (episodes done, episodes) while evaluating.
         log_every: timesteps between progress rows (default: one PPO/A2C rollout, 2048 for DQN).
         overwrite: replace a run of another configuration in ``out`` (only its own files go, and only
             after every other check has passed).
@@ -429,6 +437,26 @@ def train_policy(
             or is the filesystem root or the home directory, an unusable initial policy or warm-start
             directory); nothing has been written then.
     """
+    result = train_run(cfg, out, predictor=predictor, device=device, progress=progress, log_every=log_every,
+                       overwrite=overwrite, shield=shield)  # fmt: skip
+    if cfg.eval_episodes > 0:
+        evaluate_run(result, device=device, progress=eval_progress)
+    return result
+
+
+def train_run(
+    cfg: PolicyConfig,
+    out: str | os.PathLike[str],
+    *,
+    predictor: str | os.PathLike[str] | None = None,
+    device: str = "cpu",
+    progress: Callable[[dict[str, Any]], None] | None = None,
+    log_every: int | None = None,
+    overwrite: bool = False,
+    shield: Shield | None = None,
+) -> TrainResult:
+    """Train the run in ``out``, resume it, or find it complete: :func:`train_policy` without the evaluation
+    (the arguments are its own). Writes ``metrics.json`` with the config and the training summary."""
     out = Path(out)
     plan, t_start = _resolve(cfg, out, predictor, device, overwrite)
     run = _Run(plan, out, progress, t_start)
@@ -455,26 +483,36 @@ def train_policy(
                                                                "from_step": run.start_timesteps,
                                                                "to_step": int(train_info.get("timesteps", 0))})
     metrics: dict[str, Any] = {"config": cfg.to_dict(), "train": train_info}
-    eval_json = out / "eval" / "metrics.json"
-    if cfg.eval_episodes > 0:
-        summary = json.loads(eval_json.read_text()) if eval_json.exists() else {}
-        policy_sha = file_sha256(final)  # a run continued to more timesteps has a new policy to evaluate
-        recorded = (out / "eval" / "episodes").is_dir() or not cfg.record_eval
-        if not recorded or (summary.get("episodes"), summary.get("eval_seed"), summary.get("policy_sha256")) != (
-                cfg.eval_episodes, cfg.eval_seed, policy_sha):
-            loaded: LoadedPolicy = load_policy(final, predictor=plan.pred_path, device=device)
-            train_seeds = np.load(run.seeds_path) if run.seeds_path.exists() else None
-            t0 = time.perf_counter()
-            summary, _ = evaluate(PolicyDriver(loaded), plan.scenario, episodes=cfg.eval_episodes,
-                                  seed=cfg.eval_seed, out_dir=out / "eval" / "episodes" if cfg.record_eval else None,
-                                  batch=cfg.eval_batch, overwrite=True, train_seeds=train_seeds,
-                                  progress=eval_progress)  # fmt: skip
-            summary["wall_s"] = time.perf_counter() - t0
-            summary["policy_sha256"] = policy_sha
-            write_json(eval_json, summary)
-        metrics["eval"] = summary
     write_json(out / "metrics.json", metrics)
-    return TrainResult(out, int(train_info.get("timesteps", 0)), float(train_info.get("wall_s", 0.0)), metrics)
+    return TrainResult(out, int(train_info.get("timesteps", 0)), float(train_info.get("wall_s", 0.0)), metrics,
+                       cfg, plan.scenario, plan.pred_path)  # fmt: skip
+
+
+def evaluate_run(result: TrainResult, *, device: str = "cpu",
+                 progress: Callable[[int, int], None] | None = None) -> dict[str, Any]:
+    """Evaluate the policy of a trained run on its config's held-out episodes (``eval/``; reused while the
+    episodes, seed and policy are the same), and add the summary to ``metrics.json`` and ``result.metrics``."""
+    cfg, out = result.config, result.out
+    assert cfg is not None and result.scenario is not None, "a result of train_run"
+    final, eval_json, seeds_path = out / POLICY_FILE, out / "eval" / "metrics.json", out / "train_episode_seeds.npy"
+    summary = json.loads(eval_json.read_text()) if eval_json.exists() else {}
+    policy_sha = file_sha256(final)  # a run continued to more timesteps has a new policy to evaluate
+    recorded = (out / "eval" / "episodes").is_dir() or not cfg.record_eval
+    if not recorded or (summary.get("episodes"), summary.get("eval_seed"), summary.get("policy_sha256")) != (
+            cfg.eval_episodes, cfg.eval_seed, policy_sha):
+        loaded: LoadedPolicy = load_policy(final, predictor=result.predictor, device=device)
+        train_seeds = np.load(seeds_path) if seeds_path.exists() else None
+        t0 = time.perf_counter()
+        summary, _ = evaluate(PolicyDriver(loaded), result.scenario, episodes=cfg.eval_episodes,
+                              seed=cfg.eval_seed, out_dir=out / "eval" / "episodes" if cfg.record_eval else None,
+                              batch=cfg.eval_batch, overwrite=True, train_seeds=train_seeds,
+                              progress=progress)  # fmt: skip
+        summary["wall_s"] = time.perf_counter() - t0
+        summary["policy_sha256"] = policy_sha
+        write_json(eval_json, summary)
+    result.metrics["eval"] = summary
+    write_json(out / "metrics.json", result.metrics)
+    return summary
 
 
 def _resolve(cfg: PolicyConfig, out: Path, predictor: str | os.PathLike[str] | None, device: str,
@@ -636,8 +674,10 @@ __all__ = [
     "build_model",
     "check_run_dir",
     "default_learning_rate",
+    "evaluate_run",
     "remove_run_outputs",
     "stored_config",
     "train_policy",
+    "train_run",
     "versions",
 ]
