@@ -23,7 +23,8 @@ field can be set; the ones most runs change:
   window_features (false)  accel_features (false)  learning_rate (3e-4; 3e-5 for PPO from a warm start or
   an initial policy)  gamma (0.95)  n_steps (128; A2C 8)  collision_weight (1.0)  warm_start_epochs (10)
   freeze_image (false; with --init-policy)  checkpoint_every (20000)  eval_episodes (200)  eval_seed (0)
-  record_eval (true)
+  record_eval (true)  sensor_encoder (mlp|attention)  train_roads ("": the scenario alone; "highway":
+  every road of the benchmark suite, or scenario names joined by commas)
 
 Rerunning with the same --out resumes from the last checkpoint (the step count continues) or, when
 training is complete, only redoes a missing evaluation. A different config in --out is refused.

@@ -237,7 +237,7 @@ class Recipe:
         trains with its clone's): its settings; for a stage that trains online, the fields whose default follows
         the algorithm filled by :meth:`PolicyConfig.of <lcmodels.policy.config.PolicyConfig.of>` (fine-tuning when
         it starts from a previous stage's policy); then ``caps``, which lower integer fields to at most the given
-        values (the tiny and quick presets' budgets)."""
+        values (the tiny and quick presets' budgets; ``n_envs`` never below one environment a training road)."""
         from lcmodels.policy.config import PolicyConfig
 
         settings = self.stage_settings(stage)
@@ -252,6 +252,8 @@ class Recipe:
             cfg = PolicyConfig.of(data, fine_tune=bool(init_policy))
         lowered = {key: cap for key, cap in (caps or {}).items() if isinstance(current := getattr(cfg, key, None), int)
                    and not isinstance(current, bool) and current > cap}  # fmt: skip
+        if "n_envs" in lowered:  # never below one environment a training road
+            lowered["n_envs"] = max(lowered["n_envs"], len(cfg.road_names()))
         return dataclasses.replace(cfg, **lowered) if lowered else cfg
 
     def capped(self, caps: dict[str, int] | None) -> Recipe:

@@ -96,3 +96,111 @@ class LaneChangeSB3VecEnv(VecEnv):
 
     def action_masks(self) -> np.ndarray:
         return self.venv.action_masks()
+
+
+class _RoadCores:
+    """What the wrappers read from a batch's core (:attr:`seeds`, :meth:`action_mask`), over the batches of
+    :class:`MixedRoadsSB3VecEnv` in environment order."""
+
+    def __init__(self, parts: Sequence[LaneChangeSB3VecEnv]) -> None:
+        self.parts = parts
+
+    @property
+    def seeds(self) -> np.ndarray:
+        return np.concatenate([p.venv.core.seeds for p in self.parts])
+
+    def action_mask(self) -> np.ndarray:
+        return np.concatenate([p.venv.core.action_mask() for p in self.parts])
+
+
+class MixedRoadsSB3VecEnv(VecEnv):
+    """One SB3 ``VecEnv`` over several roads: ``num_envs`` environments split into contiguous blocks, one
+    :class:`LaneChangeSB3VecEnv` per road (sizes as even as they go, the first roads one larger), stepped one
+    after the other and seen as one batch. Every road must give the same observation and action spaces (the
+    same observation shapes: neighbours, history, image size). Environment ``i`` keeps its road for good; the
+    seeds :meth:`seed` hands out run over the whole batch (``seed + i``), so each road's episodes differ.
+
+    ``config`` is the first road's (the one a policy card names); :attr:`configs` every road's, in block order.
+    """
+
+    render_mode = None
+
+    def __init__(self, num_envs: int, configs: Sequence[ScenarioConfig], *, threads: int | None = None) -> None:
+        if not configs:
+            raise ValueError("a mix of roads needs at least one road")
+        if num_envs < len(configs):
+            raise ValueError(f"{num_envs} environments cannot drive {len(configs)} roads (one environment a road "
+                             "at least)")  # fmt: skip
+        sizes = [num_envs // len(configs) + (k < num_envs % len(configs)) for k in range(len(configs))]
+        self.parts = [LaneChangeSB3VecEnv(n, c, threads=threads) for n, c in zip(sizes, configs, strict=True)]
+        first = self.parts[0]
+        for k, p in enumerate(self.parts):
+            if p.observation_space != first.observation_space or p.action_space != first.action_space:
+                raise ValueError(f"the roads of a mix must give the same observations: road {k} gives "
+                                 f"{p.observation_space}, road 0 {first.observation_space}")
+        self.configs = tuple(configs)
+        self.config = configs[0]
+        self.core = _RoadCores(self.parts)
+        self._bounds = np.cumsum([0, *sizes])
+        super().__init__(num_envs, first.observation_space, first.action_space)
+        self._actions: np.ndarray | None = None
+
+    def _slices(self) -> list[slice]:
+        return [slice(int(a), int(b)) for a, b in zip(self._bounds[:-1], self._bounds[1:], strict=True)]
+
+    def reset(self) -> dict[str, np.ndarray]:
+        for part, s in zip(self.parts, self._slices(), strict=True):
+            part._seeds, part._options = self._seeds[s], self._options[s]
+        obs = [p.reset() for p in self.parts]
+        self._reset_seeds()
+        self._reset_options()
+        return {k: np.concatenate([o[k] for o in obs]) for k in obs[0]}
+
+    def step_async(self, actions: np.ndarray) -> None:
+        self._actions = np.asarray(actions)
+
+    def step_wait(self) -> VecEnvStepReturn:
+        assert self._actions is not None, "step_async() first"
+        steps = []
+        for part, s in zip(self.parts, self._slices(), strict=True):
+            part.step_async(self._actions[s])
+            steps.append(part.step_wait())
+        obs = {k: np.concatenate([st[0][k] for st in steps]) for k in steps[0][0]}
+        infos: list[dict[str, Any]] = [info for st in steps for info in st[3]]
+        return (obs, np.concatenate([st[1] for st in steps]), np.concatenate([st[2] for st in steps]),
+                infos)  # fmt: skip
+
+    def close(self) -> None:
+        for p in self.parts:
+            p.close()
+
+    def _indices(self, indices: VecEnvIndices) -> Sequence[int]:
+        if indices is None:
+            return range(self.num_envs)
+        if isinstance(indices, int):
+            return [indices]
+        return list(indices)
+
+    def _part_of(self, i: int) -> LaneChangeSB3VecEnv:
+        return self.parts[int(np.searchsorted(self._bounds, i, side="right")) - 1]
+
+    def get_attr(self, attr_name: str, indices: VecEnvIndices = None) -> list[Any]:
+        return [self._part_of(i).get_attr(attr_name, 0)[0] for i in self._indices(indices)]
+
+    def set_attr(self, attr_name: str, value: Any, indices: VecEnvIndices = None) -> None:
+        for p in {id(self._part_of(i)): self._part_of(i) for i in self._indices(indices)}.values():
+            p.set_attr(attr_name, value)
+
+    def env_method(self, method_name: str, *method_args: Any, indices: VecEnvIndices = None,
+                   **method_kwargs: Any) -> list[Any]:
+        if method_name == "action_masks":
+            masks = self.action_masks()
+            return [masks[i] for i in self._indices(indices)]
+        return [self._part_of(i).env_method(method_name, *method_args, indices=0, **method_kwargs)[0]
+                for i in self._indices(indices)]  # fmt: skip
+
+    def env_is_wrapped(self, wrapper_class: type[gym.Wrapper], indices: VecEnvIndices = None) -> list[bool]:
+        return [False for _ in self._indices(indices)]
+
+    def action_masks(self) -> np.ndarray:
+        return np.concatenate([p.action_masks() for p in self.parts])

@@ -24,7 +24,7 @@ from lcmodels.policy.names import (
 )
 from lcsim.config import NEIGHBOUR_SELECTIONS, ScenarioConfig
 from lcsim.registry import SCENARIO_FILE_SUFFIXES, TASK_SCENARIOS, scenario
-from lcsim.suite import MAX_VALIDATION_SEED, SEED_STRIDE
+from lcsim.suite import MAX_VALIDATION_SEED, SEED_STRIDE, SUITES
 
 _LEARNING_RATES = {"ppo": 3e-4, "a2c": 7e-4, "dqn": 1e-4}
 FINE_TUNE_LEARNING_RATES = {"ppo": 3e-5}
@@ -77,6 +77,11 @@ class PolicyConfig(JsonConfig):
     algo: str = "ppo"
     obs: str = "hybrid"
     scenario: str = "paper"
+    train_roads: str = ""
+    """The roads training drives ('' = ``scenario`` alone): a benchmark suite's name (``highway``: every road of
+    :mod:`lcsim.suite`) or registered scenario names joined by commas. The environments are split among them in
+    blocks (:class:`lcsim.sb3.MixedRoadsSB3VecEnv`), each road seen with this config's view; every road must give
+    ``scenario``'s observation shapes. The policy's card keeps ``scenario``."""
     timesteps: int = 100_000
     """Online decisions (environment steps summed over environments); 0 with a warm start gives the
     behaviour-cloned policy itself."""
@@ -146,6 +151,13 @@ class PolicyConfig(JsonConfig):
         check_field(self.obs in OBS_MODES, self, "obs", f"must be one of {', '.join(OBS_MODES)}", self.obs)
         check_field(self.scenario in TASK_SCENARIOS or Path(self.scenario).suffix in SCENARIO_FILE_SUFFIXES, self,
                "scenario", f"must be one of {', '.join(TASK_SCENARIOS)} or a scenario file", self.scenario)
+        roads = self.road_names()
+        check_field(all(r in TASK_SCENARIOS for r in roads), self, "train_roads",
+                    f"must be a suite ({', '.join(SUITES)}) or scenario names joined by commas "
+                    f"({', '.join(TASK_SCENARIOS)})", self.train_roads)  # fmt: skip
+        check_field(len(roads) <= self.n_envs, self, "train_roads",
+                    f"names {len(roads)} roads, more than n_envs {self.n_envs} (one environment a road at least)",
+                    self.train_roads)  # fmt: skip
         check_field(self.neighbours in NEIGHBOUR_SELECTIONS, self, "neighbours",
                f"must be one of {', '.join(NEIGHBOUR_SELECTIONS)}", self.neighbours)
         check_field(not self.window_features or self.neighbours == "lanes", self, "window_features",
@@ -211,6 +223,17 @@ class PolicyConfig(JsonConfig):
             return cls.from_dict(data)
         finally:
             _CARD_SCENARIO.reset(token)
+
+    def road_names(self) -> tuple[str, ...]:
+        """The scenario names of :attr:`train_roads` (empty: ``scenario`` alone)."""
+        if self.train_roads in SUITES:
+            return SUITES[self.train_roads]
+        return tuple(r.strip() for r in self.train_roads.split(",") if r.strip())
+
+    def road_configs(self) -> tuple[ScenarioConfig, ...]:
+        """The scenarios training drives, with this config's view: :attr:`train_roads`, else ``scenario``."""
+        names = self.road_names()
+        return tuple(self.scenario_config(scenario(n)) for n in names) if names else (self.scenario_config(),)
 
     def scenario_config(self, base: ScenarioConfig | None = None) -> ScenarioConfig:
         """The scenario the policy sees: its ``scenario`` with this config's view of the traffic."""

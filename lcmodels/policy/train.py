@@ -79,7 +79,8 @@ from lcmodels.policy.obs import (
 from lcmodels.policy.shield import Shield, ShieldedSB3VecEnv
 from lcmodels.predictor.inference import Predictor
 from lcsim.config import ScenarioConfig
-from lcsim.sb3 import LaneChangeSB3VecEnv
+from lcsim.envs import observation_space
+from lcsim.sb3 import LaneChangeSB3VecEnv, MixedRoadsSB3VecEnv
 
 log = logging.getLogger(__name__)
 
@@ -164,6 +165,8 @@ class _Plan:
     """The run in ``out`` is another one, to be replaced (``overwrite``)."""
     initial: LoadedPolicy | None
     """``cfg.init_policy``, loaded and checked, when the run starts from it (not on a resume)."""
+    roads: tuple[ScenarioConfig, ...] = ()
+    """The scenarios training drives (``cfg.train_roads``; one: ``scenario`` itself)."""
 
     @property
     def predictor_file(self) -> str | None:
@@ -458,6 +461,8 @@ def train_run(
     """Train the run in ``out``, resume it, or find it complete: :func:`train_policy` without the evaluation
     (the arguments are its own). Writes ``metrics.json`` with the config and the training summary."""
     out = Path(out)
+    if shield is not None and cfg.train_roads:
+        raise ValueError("training behind the safety layer drives the scenario alone: train_roads must be ''")
     plan, t_start = _resolve(cfg, out, predictor, device, overwrite)
     run = _Run(plan, out, progress, t_start)
     # Every check has passed: from here on the directory is written.
@@ -548,7 +553,15 @@ def _resolve(cfg: PolicyConfig, out: Path, predictor: str | os.PathLike[str] | N
                               predictor=None if pred_path is None else str(pred_path.resolve()))
         if initial.meta.get("algo") != cfg.algo:
             raise ValueError(f"init_policy {path} is a {initial.meta.get('algo')} policy, this run trains {cfg.algo}")
-    return _Plan(cfg, scenario, pred, pred_path, pred_sha, replace, initial), t_start
+    roads = cfg.road_configs() if cfg.train_roads else (scenario,)
+    for name, road in zip(cfg.road_names(), roads, strict=False):
+        if observation_space(road) != observation_space(scenario):
+            raise ValueError(f"train_roads: {name!r} gives other observations than the scenario {cfg.scenario!r} "
+                             "(neighbours, history or image size): a policy reads one shape")  # fmt: skip
+        if road.reward != scenario.reward:
+            raise ValueError(f"train_roads: {name!r} pays another reward than the scenario {cfg.scenario!r}: the "
+                             "training statistics read one")  # fmt: skip
+    return _Plan(cfg, scenario, pred, pred_path, pred_sha, replace, initial, roads), t_start
 
 
 def _train(plan: _Plan, run: _Run, device: str, log_every: int | None, final: Path,
@@ -593,8 +606,12 @@ def _build(plan: _Plan, out: Path, state: dict[str, Any], device: str, shield: S
     ``freeze_image`` run, and the model: a checkpoint's when ``state`` names one, else a fresh network,
     warm-started or started from the initial policy (its weights; its image branch when frozen)."""
     cfg, initial = plan.cfg, plan.initial
-    base = (LaneChangeSB3VecEnv(cfg.n_envs, plan.scenario) if shield is None
-            else ShieldedSB3VecEnv(cfg.n_envs, plan.scenario, shield))  # fmt: skip
+    if shield is not None:
+        base: VecEnv = ShieldedSB3VecEnv(cfg.n_envs, plan.scenario, shield)
+    elif len(plan.roads) > 1:
+        base = MixedRoadsSB3VecEnv(cfg.n_envs, plan.roads)
+    else:
+        base = LaneChangeSB3VecEnv(cfg.n_envs, plan.scenario)
     encoder = None
     if cfg.freeze_image:  # kept in the run directory on the first start: a resume does not need init_policy
         encoder = _frozen_image_encoder(plan, out / "image_encoder.pt")
