@@ -13,6 +13,15 @@ from lcsim.config import ScenarioConfig
 from lcsim.envs import LaneChangeVectorEnv
 
 
+def env_indices(num_envs: int, indices: VecEnvIndices) -> Sequence[int]:
+    """The environments SB3's ``indices`` name (None: all of them)."""
+    if indices is None:
+        return range(num_envs)
+    if isinstance(indices, int):
+        return [indices]
+    return list(indices)
+
+
 class LaneChangeSB3VecEnv(VecEnv):
     """SB3 view of :class:`~lcsim.envs.LaneChangeVectorEnv`.
 
@@ -68,11 +77,7 @@ class LaneChangeSB3VecEnv(VecEnv):
         self.venv.close()
 
     def _indices(self, indices: VecEnvIndices) -> Sequence[int]:
-        if indices is None:
-            return range(self.num_envs)
-        if isinstance(indices, int):
-            return [indices]
-        return list(indices)
+        return env_indices(self.num_envs, indices)
 
     def get_attr(self, attr_name: str, indices: VecEnvIndices = None) -> list[Any]:
         if attr_name == "render_mode":
@@ -175,11 +180,7 @@ class MixedRoadsSB3VecEnv(VecEnv):
             p.close()
 
     def _indices(self, indices: VecEnvIndices) -> Sequence[int]:
-        if indices is None:
-            return range(self.num_envs)
-        if isinstance(indices, int):
-            return [indices]
-        return list(indices)
+        return env_indices(self.num_envs, indices)
 
     def _part_of(self, i: int) -> LaneChangeSB3VecEnv:
         return self.parts[int(np.searchsorted(self._bounds, i, side="right")) - 1]
