@@ -80,3 +80,31 @@ def test_a_policy_trains_on_two_roads_and_keeps_its_scenario(tmp_path) -> None:
     with pytest.raises(ValueError, match="another configuration"):
         train_policy(tiny_policy(obs="pure", train_roads="tiny", timesteps=64, n_steps=16, eval_episodes=0),
                      tmp_path / "run")  # fmt: skip
+
+
+def test_drawn_roads_span_the_suite_without_being_its_roads() -> None:
+    from lcsim.suite import SUITE_SCENARIOS, drawn_roads
+
+    roads = drawn_roads(64, seed=3)
+    assert roads == drawn_roads(64, seed=3) and roads != drawn_roads(64, seed=4)
+    assert roads[:5] == drawn_roads(5, seed=3)
+    suite_roads = [s.make() for s in SUITE_SCENARIOS.values()]
+    assert not any(r == s for r in roads for s in suite_roads)
+    assert {r.road.num_lanes for r in roads} == {3, 4, 5}
+    assert {r.traffic.human_like for r in roads} == {True, False}
+    for r in roads:
+        assert 22.0 <= r.traffic.speed_kmh <= 52.0 and 1.17 < r.ego.target_speed_kmh / r.traffic.speed_kmh < 1.28
+        assert 22 * 3 <= r.traffic.num_vehicles <= 36 * 5
+        assert abs(r.route_length_m - 0.96 * r.ego.target_speed_kmh / 3.6 * r.time_limit_s) < 0.1
+    with pytest.raises(ValueError, match="count"):
+        drawn_roads(0, seed=0)
+
+
+def test_drawn_roads_follow_the_training_seed() -> None:
+    a = PolicyConfig(obs="pure", train_roads="drawn:4", n_envs=4, seed=1)
+    assert a.road_names() == ("drawn-0", "drawn-1", "drawn-2", "drawn-3")
+    assert a.road_configs() == PolicyConfig(obs="pure", train_roads="drawn:4", n_envs=4, seed=1).road_configs()
+    assert a.road_configs() != PolicyConfig(obs="pure", train_roads="drawn:4", n_envs=4, seed=2).road_configs()
+    for bad in ("drawn:0", "drawn:x", "drawn:-1"):
+        with pytest.raises(ValueError, match="drawn:N"):
+            PolicyConfig(obs="pure", train_roads=bad, n_envs=4)

@@ -24,7 +24,7 @@ from lcmodels.policy.names import (
 )
 from lcsim.config import NEIGHBOUR_SELECTIONS, ScenarioConfig
 from lcsim.registry import SCENARIO_FILE_SUFFIXES, TASK_SCENARIOS, scenario
-from lcsim.suite import MAX_VALIDATION_SEED, SEED_STRIDE, SUITES
+from lcsim.suite import MAX_DRAWN_ROADS, MAX_VALIDATION_SEED, SEED_STRIDE, SUITES, drawn_roads
 
 _LEARNING_RATES = {"ppo": 3e-4, "a2c": 7e-4, "dqn": 1e-4}
 FINE_TUNE_LEARNING_RATES = {"ppo": 3e-5}
@@ -32,6 +32,9 @@ FINE_TUNE_LEARNING_RATES = {"ppo": 3e-5}
 at 3e-4 lost held-out success and at 3e-5 gained it (docs/results/lanes/NOTE.md); PPO from DAgger at 3e-5 gave
 the project's best policy (docs/results/contact). A2C and DQN were not compared that way and keep their rates."""
 
+
+_DRAWN = "drawn:"
+"""``train_roads`` of roads drawn across the suite's dimensions: ``drawn:N``."""
 
 _ROLLOUT_STEPS = {"a2c": 8}
 """PPO / A2C rollout length per environment where it is not PolicyConfig's default (A2C's own default)."""
@@ -79,9 +82,10 @@ class PolicyConfig(JsonConfig):
     scenario: str = "paper"
     train_roads: str = ""
     """The roads training drives ('' = ``scenario`` alone): a benchmark suite's name (``highway``: every road of
-    :mod:`lcsim.suite`) or registered scenario names joined by commas. The environments are split among them in
-    blocks (:class:`lcsim.sb3.MixedRoadsSB3VecEnv`), each road seen with this config's view; every road must give
-    ``scenario``'s observation shapes. The policy's card keeps ``scenario``."""
+    :mod:`lcsim.suite`), registered scenario names joined by commas, or ``drawn:N``: N roads drawn from the training
+    seed across the suite's dimensions (:func:`lcsim.suite.drawn_roads`, none of them a suite road). The
+    environments are split among them in blocks (:class:`lcsim.sb3.MixedRoadsSB3VecEnv`), each road seen with this
+    config's view; every road must give ``scenario``'s observation shapes. The policy's card keeps ``scenario``."""
     timesteps: int = 100_000
     """Online decisions (environment steps summed over environments); 0 with a warm start gives the
     behaviour-cloned policy itself."""
@@ -151,10 +155,12 @@ class PolicyConfig(JsonConfig):
         check_field(self.obs in OBS_MODES, self, "obs", f"must be one of {', '.join(OBS_MODES)}", self.obs)
         check_field(self.scenario in TASK_SCENARIOS or Path(self.scenario).suffix in SCENARIO_FILE_SUFFIXES, self,
                "scenario", f"must be one of {', '.join(TASK_SCENARIOS)} or a scenario file", self.scenario)
+        drawn = self._drawn_count()
         roads = self.road_names()
-        check_field(all(r in TASK_SCENARIOS for r in roads), self, "train_roads",
-                    f"must be a suite ({', '.join(SUITES)}) or scenario names joined by commas "
-                    f"({', '.join(TASK_SCENARIOS)})", self.train_roads)  # fmt: skip
+        check_field(drawn != 0 and (drawn is not None or all(r in TASK_SCENARIOS for r in roads)), self,
+                    "train_roads", f"must be a suite ({', '.join(SUITES)}), scenario names joined by commas "
+                    f"({', '.join(TASK_SCENARIOS)}) or drawn:N with N in 1..{MAX_DRAWN_ROADS}",
+                    self.train_roads)  # fmt: skip
         check_field(len(roads) <= self.n_envs, self, "train_roads",
                     f"names {len(roads)} roads, more than n_envs {self.n_envs} (one environment a road at least)",
                     self.train_roads)  # fmt: skip
@@ -224,14 +230,27 @@ class PolicyConfig(JsonConfig):
         finally:
             _CARD_SCENARIO.reset(token)
 
+    def _drawn_count(self) -> int | None:
+        """N of ``drawn:N`` (0 for a bad N); None for other roads."""
+        if not self.train_roads.startswith(_DRAWN):
+            return None
+        n = self.train_roads[len(_DRAWN):]
+        return int(n) if n.isdigit() and 0 < int(n) <= MAX_DRAWN_ROADS else 0
+
     def road_names(self) -> tuple[str, ...]:
-        """The scenario names of :attr:`train_roads` (empty: ``scenario`` alone)."""
+        """The names of :attr:`train_roads`' roads (empty: ``scenario`` alone; ``drawn-K`` for drawn roads)."""
+        drawn = self._drawn_count()
+        if drawn is not None:
+            return tuple(f"drawn-{k}" for k in range(drawn))
         if self.train_roads in SUITES:
             return SUITES[self.train_roads]
         return tuple(r.strip() for r in self.train_roads.split(",") if r.strip())
 
     def road_configs(self) -> tuple[ScenarioConfig, ...]:
         """The scenarios training drives, with this config's view: :attr:`train_roads`, else ``scenario``."""
+        drawn = self._drawn_count()
+        if drawn:
+            return tuple(self.scenario_config(r) for r in drawn_roads(drawn, self.seed))
         names = self.road_names()
         return tuple(self.scenario_config(scenario(n)) for n in names) if names else (self.scenario_config(),)
 
