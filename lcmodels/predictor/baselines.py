@@ -8,7 +8,7 @@ from __future__ import annotations
 
 import numpy as np
 
-__all__ = ["constant_acceleration", "constant_velocity", "constant_velocity_fit", "last_velocity"]
+__all__ = ["constant_acceleration", "constant_velocity", "constant_velocity_fit", "lane_aware_velocity", "last_velocity"]
 
 
 def last_velocity(history: np.ndarray, mask: np.ndarray | None = None) -> np.ndarray:
@@ -119,3 +119,91 @@ def constant_velocity_fit(history: np.ndarray, future_steps: int, mask: np.ndarr
         v = np.where(fit, slope, v)
     k = np.arange(1, future_steps + 1, dtype=np.float64)[:, None]
     return history[..., -1:, :] + k * v[..., None, :]
+
+
+def _fit_slope(p: np.ndarray, m: np.ndarray, window: int) -> tuple[np.ndarray, np.ndarray]:
+    """Least-squares velocity ``(..., 2)`` of the valid positions among the last ``window`` of ``(..., H, 2)``,
+    and whether it is known ``(...,)`` (at least 3 of them valid, the last one included)."""
+    w = m[..., -window:, None].astype(np.float64)
+    p = np.where(w > 0, p[..., -window:, :], 0.0)
+    t = np.arange(window, dtype=np.float64)[:, None]
+    cnt = w.sum(-2, keepdims=True)
+    t_mean = (w * t).sum(-2, keepdims=True) / np.maximum(cnt, 1.0)
+    p_mean = (w * p).sum(-2, keepdims=True) / np.maximum(cnt, 1.0)
+    dt = (t - t_mean) * w
+    slope = (dt * (p - p_mean)).sum(-2) / np.maximum((dt * (t - t_mean)).sum(-2), 1e-12)
+    return slope, (cnt[..., 0, 0] >= 3) & m[..., -1]
+
+
+def lane_aware_velocity(history: np.ndarray, neighbours: np.ndarray, neighbour_mask: np.ndarray, future_steps: int,
+                        *, window: int = 10, lane_width_m: float = 3.5, margin_m: float = 0.1,
+                        move_mps: float = 0.3, still_mps: float = 0.1, dt_s: float = 0.05) -> np.ndarray:
+    """Fitted velocity along the road, a lane change that ends at the next lane centre, no drift across otherwise.
+
+    The road and its lanes are read from the neighbours, not from a map: the road's direction is the median
+    direction of the neighbours' fitted velocities, and a lane centre's lateral offset is the circular
+    mean, modulo ``lane_width_m``, of the lateral offsets of the neighbours that hold their lane (lateral speed
+    below ``still_mps``). In that road frame the agent keeps its fitted speed along the road; across it, it
+    moves on at its fitted lateral speed when that exceeds ``move_mps`` (a lane change) but stops at the first
+    lane centre more than ``margin_m`` ahead in that direction, and otherwise holds its lateral position.
+    Where no neighbour gives the road (none moving and present at the last step, or none holding its lane)
+    the prediction is :func:`constant_velocity_fit` exactly.
+
+    Args:
+        history: ``(N, H, 2)`` agent positions (every step valid), the agent frame of ``lcdata.corpus``.
+        neighbours: ``(N, K, H, 2)`` in the same frame.
+        neighbour_mask: ``(N, K, H)`` bool presence.
+        future_steps: F.
+        window: steps every velocity is fitted to, ``3 <= window <= H``.
+        lane_width_m: the lanes' width, metres.
+        margin_m: a lane centre nearer than this ahead is the one being left, not the target.
+        move_mps: lateral speed above which the agent counts as changing lanes, m/s.
+        still_mps: lateral speed below which a neighbour counts as holding its lane, m/s.
+        dt_s: the step, seconds.
+
+    Returns:
+        ``(N, F, 2)``.
+    """
+    history = np.asarray(history, dtype=np.float64)
+    neighbours = np.asarray(neighbours, dtype=np.float64)
+    neighbour_mask = np.asarray(neighbour_mask, dtype=bool)
+    n, h, _ = history.shape
+    if not 3 <= window <= h:
+        raise ValueError(f"window must be in [3, {h}], got {window}")
+    if neighbours.shape[:1] + neighbours.shape[2:] != (n, h, 2) or neighbour_mask.shape != neighbours.shape[:-1]:
+        raise ValueError(f"neighbours must be (N, K, H, 2) and their mask (N, K, H) with N={n}, H={h}; got "
+                         f"{neighbours.shape} and {neighbour_mask.shape}")
+    v_agent, _ = _fit_slope(history, np.ones((n, h), dtype=bool), window)  # (N, 2)
+    v_n, ok = _fit_slope(neighbours, neighbour_mask, window)  # (N, K, 2)
+    ok &= np.hypot(v_n[..., 0], v_n[..., 1]) > 0.5 * dt_s  # moving at least 0.5 m/s
+    angle = np.sort(np.where(ok, np.arctan2(v_n[..., 1], v_n[..., 0]), np.inf), axis=1)
+    count = ok.sum(1)
+    middle = np.stack((np.maximum(count - 1, 0) // 2, count // 2), 1)  # the median's one or two angles
+    theta = np.where(count > 0, np.take_along_axis(angle, np.minimum(middle, angle.shape[1] - 1), axis=1).mean(1), 0.0)
+    c, s = np.cos(theta), np.sin(theta)
+
+    def to_road(v: np.ndarray) -> np.ndarray:  # rotate by -theta; v (N, ..., 2)
+        cc, ss = c.reshape((n,) + (1,) * (v.ndim - 2)), s.reshape((n,) + (1,) * (v.ndim - 2))
+        return np.stack((cc * v[..., 0] + ss * v[..., 1], cc * v[..., 1] - ss * v[..., 0]), -1)
+
+    lateral_n = to_road(np.where(neighbour_mask[..., -1:], neighbours[:, :, -1] - history[:, None, -1], 0.0))[..., 1]
+    holding = ok & (np.abs(to_road(v_n)[..., 1]) < still_mps * dt_s)
+    phase_angle = 2 * np.pi * lateral_n / lane_width_m
+    phase = np.arctan2(np.where(holding, np.sin(phase_angle), 0.0).sum(1),
+                       np.where(holding, np.cos(phase_angle), 0.0).sum(1)) * lane_width_m / (2 * np.pi)  # fmt: skip
+    road = holding.any(1)
+    v_road = to_road(v_agent)
+    vy = v_road[:, 1]
+    sign = np.sign(vy)
+    changing = np.abs(vy) > move_mps * dt_s
+    steps = (sign * margin_m - phase) / lane_width_m
+    target = phase + lane_width_m * np.where(sign > 0, np.ceil(steps), np.floor(steps))
+    k = np.arange(1, future_steps + 1, dtype=np.float64)[None, :]
+    across = vy[:, None] * k
+    across = np.where(sign[:, None] > 0, np.minimum(across, target[:, None]), np.maximum(across, target[:, None]))
+    across = np.where(changing[:, None], across, 0.0)
+    along = v_road[:, :1] * k
+    cc, ss = c[:, None], s[:, None]
+    lane = np.stack((cc * along - ss * across, ss * along + cc * across), -1)
+    fitted = v_agent[:, None, :] * k[..., None]
+    return history[:, -1:, :] + np.where(road[:, None, None], lane, fitted)
