@@ -145,14 +145,17 @@ def test_fitted_velocity_is_exact_on_straight_motion_robust_to_measurement_noise
 def _road_scene(lateral_step: float, phi: float = 0.15, neighbours: bool = True) -> tuple[np.ndarray, ...]:
     """An agent 1 m left of its lane's centre moving ``lateral_step`` m per step across a road of 3.5 m lanes
     whose direction is ``phi``, and four neighbours holding their lanes' centres: history (1, 20, 2), future
-    (1, 60, 2) of the agent if it ends a lane change at the next centre (else holds its lateral position),
-    neighbours (1, 4, 20, 2) and their mask, all in a frame rotated by ``phi`` from the road's."""
+    (1, 60, 2) of the agent if it ends a lane change at the next centre, settling over the last 0.8 m (else
+    holds its lateral position), neighbours (1, 4, 20, 2) and their mask, all in a frame rotated by ``phi`` from
+    the road's."""
     k = np.arange(-19, 61, dtype=np.float64)
     along = 10.0 + 0.3 * k
     lateral = 1.0 + lateral_step * np.minimum(k, 0.0)  # the future holds the lateral position ...
-    if abs(lateral_step) * 20 > 0.3:  # ... unless it is a lane change, which stops at the next centre
-        target = 3.5 if lateral_step > 0 else 0.0
-        lateral = np.clip(1.0 + lateral_step * k, min(target, 1.0), max(target, 1.0))
+    if abs(lateral_step) * 20 > 0.2:  # ... unless it is a lane change, which ends at the next centre
+        distance, v = (2.5 if lateral_step > 0 else 1.0), abs(lateral_step)
+        straight = np.minimum(v * k, distance - 0.8)
+        settle = 0.8 * (1 - np.exp(-np.maximum(k - (distance - 0.8) / v, 0.0) * v / 0.8))
+        lateral = np.where(k > 0, 1.0 + np.sign(lateral_step) * (straight + settle), lateral)
     c, s = np.cos(phi), np.sin(phi)
 
     def world(a: np.ndarray, b: np.ndarray) -> np.ndarray:
@@ -172,7 +175,7 @@ def test_lane_aware_base_ends_a_lane_change_at_the_next_lane_centre_and_holds_th
         lateral_step: float) -> None:  # fmt: skip
     hist, fut, nb, mask = _road_scene(lateral_step)
     pred = lane_aware_velocity(hist, nb, mask, 60)
-    if abs(lateral_step) * 20 > 0.3:  # the fitted velocity alone would carry on across the road
+    if abs(lateral_step) * 20 > 0.2:  # the fitted velocity alone would carry on across the road
         assert np.linalg.norm(constant_velocity_fit(hist, 60)[0, -1] - fut[0, -1]) > 1.0
         np.testing.assert_allclose(pred, fut, atol=1e-9)
     else:  # a slow drift (0.06 m/s) within the lane is not extrapolated: the lateral position is held
@@ -186,7 +189,20 @@ def test_lane_aware_base_ends_a_lane_change_at_the_next_lane_centre_and_holds_th
 
 def test_lane_aware_base_without_a_road_is_the_fitted_velocity_and_has_a_torch_twin() -> None:
     hist, _, nb, mask = _road_scene(0.06, neighbours=False)
-    np.testing.assert_array_equal(lane_aware_velocity(hist, nb, mask, 60), constant_velocity_fit(hist, 60))
+    np.testing.assert_allclose(lane_aware_velocity(hist, nb, mask, 60), constant_velocity_fit(hist, 60), atol=1e-9)
+    # along the road: a short window on a smooth track (no lag behind its acceleration), the long one on
+    # positions rounded to the centimetre (the jitter a short one would read as speed)
+    k = np.arange(-19, 11, dtype=np.float64)[:, None]
+    track = (np.array([0.0, 1.0]) + k * np.array([0.3, 0.0]) + 0.5 * k**2 * np.array([0.0025, 0.0]))[None]  # 1 m/s²
+    err = {w: np.abs(constant_velocity_fit(track[:, :20], 10, window=w)[0, -1, 0] - track[0, -1, 0]) for w in (3, 10)}
+    assert err[3] + 0.05 < err[10]  # 0.5 s ahead: the long fit lags 4.5 steps of acceleration, the short one 1
+    ours = lane_aware_velocity(track[:, :20], nb[:, :, :20], mask, 10)
+    np.testing.assert_allclose(ours, constant_velocity_fit(track[:, :20], 10, window=3), atol=1e-9)
+    rounded = np.round(track * 100) / 100
+    np.testing.assert_allclose(lane_aware_velocity(rounded[:, :20], nb, mask, 10),
+                               constant_velocity_fit(rounded[:, :20], 10, window=10), atol=1e-9)  # fmt: skip
+    with pytest.raises(ValueError, match="lateral_window"):
+        lane_aware_velocity(hist, nb, mask, 60, lateral_window=1)
     still = nb.copy()
     still[:] = still[:, :, -1:]  # parked neighbours give no direction
     np.testing.assert_allclose(lane_aware_velocity(hist, still, ~mask, 60), constant_velocity_fit(hist, 60))

@@ -318,6 +318,8 @@ def test_lane_aware_base_config_and_an_untrained_model_is_the_lane_aware_extrapo
         PredictorConfig(base="map")
     with pytest.raises(ValueError, match="lane_width_m"):
         PredictorConfig(base="lane-aware", lane_width_m=0.0)
+    with pytest.raises(ValueError, match="lane_lateral_window"):
+        PredictorConfig(base="lane-aware", lane_lateral_window=1)
     old = {k: v for k, v in PredictorConfig().to_dict().items() if k != "base" and not k.startswith("lane_")}
     assert PredictorConfig.from_dict(old).base == "constant-velocity"  # stored before the choice existed
     cfg = PredictorConfig(d_model=32, ff_dim=64, base="lane-aware")

@@ -9,8 +9,10 @@ the FDE at 0.5 s and 3 s of:
 - least-squares fits of the *state*: position and velocity over the last W steps (the fitted position instead of
   the last measured one), and position, velocity and acceleration over 20 steps with the acceleration decaying
   (time constant 5 steps);
-- the lane-aware base (``lcmodels.predictor.baselines.lane_aware_velocity``) on a grid of its velocity window,
-  margin and lane-change threshold, each row with its change against FV over 10 steps.
+- the lane-aware base (``lcmodels.predictor.baselines.lane_aware_velocity``) with its defaults and with one of
+  its settings changed at a time (and its first form, all four changes at once);
+
+each row with its change against FV over 10 steps.
 
     python tools/bench_bases.py --data lcsim-val=runs/transfer/lcsim-train:val --data sumo=runs/transfer/sumo/corpus
 
@@ -20,7 +22,6 @@ Windows are 20+60 steps, stride 5, at most --max-windows of them per data set (a
 from __future__ import annotations
 
 import argparse
-import itertools
 import pathlib
 import sys
 from collections.abc import Callable, Sequence
@@ -61,10 +62,21 @@ def candidates() -> dict[str, Callable[..., np.ndarray]]:
     for w in (5, 10, 20):
         out[f"position+velocity fit, {w} steps"] = lambda h, n, m, w=w: extrapolate(*state_fit(h, w, 1), FUTURE, None)
     out["position+velocity+acceleration fit, 20 steps, tau 5"] = lambda h, n, m: extrapolate(*state_fit(h, 20, 2), FUTURE, 5.0)
-    for w, margin, move in itertools.product((5, 10), (0.1, 0.2, 0.3), (0.1, 0.2, 0.3)):
-        out[f"lane-aware, {w} steps, margin {margin} m, change above {move} m/s"] = (
-            lambda h, n, m, w=w, margin=margin, move=move: lane_aware_velocity(
-                h, n, m, FUTURE, window=w, margin_m=margin, move_mps=move))  # fmt: skip
+    variants: list[tuple[str, dict[str, float]]] = [
+        ("defaults", {}),
+        ("velocity window 5", {"window": 5}),
+        ("velocity window 7", {"window": 7}),
+        ("no short window on smooth tracks", {"smooth_jitter_m": 0.0}),
+        ("lateral speed over the velocity window", {"lateral_window": 10}),
+        ("lane change stopping at the centre (no approach)", {"approach_m": 0.0}),
+        ("approach 0.5 m", {"approach_m": 0.5}),
+        ("lane change above 0.3 m/s", {"move_mps": 0.3}),
+        ("margin 0.3 m", {"margin_m": 0.3}),
+        ("the first form: velocity window, lane change stopping at the centre above 0.3 m/s",
+         {"smooth_jitter_m": 0.0, "lateral_window": 10, "approach_m": 0.0, "move_mps": 0.3}),
+    ]
+    for label, kwargs in variants:
+        out[f"lane-aware, {label}"] = lambda h, n, m, kw=kwargs: lane_aware_velocity(h, n, m, FUTURE, **kw)  # type: ignore[arg-type]
     return out
 
 

@@ -76,7 +76,8 @@ LIMITS: dict[str, Any] = {
     "history_steps": 1_000, "future_steps": 1_000, "num_neighbours": 64, "d_model": 4_096, "num_heads": 64,
     "num_layers": 64, "num_context_layers": 64, "ff_dim": 16_384, "velocity_window": 1_000,
     "correction_speed_mps": 100.0, "correction_accel_mps2": 100.0, "dt_s": 10.0, "lane_width_m": 20.0,
-    "lane_margin_m": 20.0, "lane_change_mps": 20.0, "lane_hold_mps": 20.0,
+    "lane_margin_m": 20.0, "lane_change_mps": 20.0, "lane_hold_mps": 20.0, "lane_approach_m": 20.0,
+    "lane_smooth_jitter_m": 1.0, "lane_lateral_window": 1_000, "lane_smooth_window": 1_000,
 }  # fmt: skip
 #: The most weights a predictor may have (about 400 MB of float32).
 MAX_PARAMETERS = 100_000_000
@@ -128,8 +129,17 @@ class PredictorConfig:
     """lane-aware: the lanes' width, metres (lcsim's and the SUMO highway's)."""
     lane_margin_m: float = 0.1
     """lane-aware: a lane centre nearer than this ahead of a lane-changing agent is the one it leaves, metres."""
-    lane_change_mps: float = 0.3
+    lane_change_mps: float = 0.2
     """lane-aware: lateral speed above which the agent counts as changing lanes, m/s."""
+    lane_approach_m: float = 0.8
+    """lane-aware: the last stretch of a lane change, covered with an exponentially falling speed, metres."""
+    lane_lateral_window: int = 2
+    """lane-aware: steps the agent's lateral speed is fitted to (2: the last step's difference)."""
+    lane_smooth_window: int = 3
+    """lane-aware: steps the agent's speed along the road is fitted to where its positions do not jitter."""
+    lane_smooth_jitter_m: float = 0.001
+    """lane-aware: the jitter (mean absolute deviation of the second differences from their mean over
+    ``velocity_window`` steps) below which positions count as smooth, metres."""
     lane_hold_mps: float = 0.1
     """lane-aware: lateral speed below which a neighbour counts as holding its lane (so marks a centre), m/s."""
 
@@ -171,8 +181,12 @@ class PredictorConfig:
             raise ValueError(f"correction must be one of {', '.join(CORRECTIONS)}; got {self.correction!r}")
         if not isinstance(self.base, str) or self.base not in BASES:
             raise ValueError(f"base must be one of {', '.join(BASES)}; got {self.base!r}")
+        for name in ("lane_lateral_window", "lane_smooth_window"):
+            value = getattr(self, name)
+            if not isinstance(value, int) or isinstance(value, bool) or not 2 <= value <= LIMITS[name]:
+                raise ValueError(f"{name} must be an int in [2, {LIMITS[name]}], got {value!r}")
         for name in ("correction_speed_mps", "correction_accel_mps2", "dt_s", "lane_width_m", "lane_margin_m",
-                     "lane_change_mps", "lane_hold_mps"):
+                     "lane_change_mps", "lane_hold_mps", "lane_approach_m", "lane_smooth_jitter_m"):
             value = getattr(self, name)
             if not (isinstance(value, int | float) and not isinstance(value, bool) and math.isfinite(value) and value > 0):
                 raise ValueError(f"{name} must be a number > 0, got {value!r}")
@@ -281,39 +295,54 @@ def cv_extrapolate(hist: torch.Tensor, mask: torch.Tensor, future_steps: int, wi
     return hist[:, -1:, :] + k * v.unsqueeze(1)
 
 
+def _masked_slope(p: torch.Tensor, m: torch.Tensor, window: int) -> tuple[torch.Tensor, torch.Tensor]:
+    """Least-squares velocity ``(..., 2)`` of the valid positions among the last ``window`` of ``(..., H, 2)`` and
+    how many there are ``(...,)``."""
+    w = m[..., -window:].to(p.dtype).unsqueeze(-1)
+    q = torch.where(w > 0, p[..., -window:, :], torch.zeros_like(p[..., -window:, :]))
+    t = torch.arange(window, dtype=p.dtype, device=p.device).view(-1, 1)
+    cnt = w.sum(-2, keepdim=True)
+    t_mean = (w * t).sum(-2, keepdim=True) / cnt.clamp_min(1.0)
+    q_mean = (w * q).sum(-2, keepdim=True) / cnt.clamp_min(1.0)
+    dt = (t - t_mean) * w
+    return (dt * (q - q_mean)).sum(-2) / (dt * (t - t_mean)).sum(-2).clamp_min(1e-12), cnt[..., 0, 0]
+
+
 def lane_extrapolate(pos: torch.Tensor, mask: torch.Tensor, future_steps: int, window: int, *,
-                     lane_width_m: float = 3.5, margin_m: float = 0.1, move_mps: float = 0.3, still_mps: float = 0.1,
-                     dt_s: float = 0.05) -> torch.Tensor:
-    """The lane-aware base (torch twin of ``baselines.lane_aware_velocity``, which documents it): the agent's
-    fitted velocity along the road that its neighbours give, a lane change that stops at the next lane centre,
-    no drift across the road otherwise; :func:`cv_extrapolate` where no neighbour gives the road.
+                     smooth_window: int = 3, smooth_jitter_m: float = 0.001, lateral_window: int = 2,
+                     lane_width_m: float = 3.5, margin_m: float = 0.1, approach_m: float = 0.8, move_mps: float = 0.2,
+                     still_mps: float = 0.1, dt_s: float = 0.05) -> torch.Tensor:
+    """The lane-aware base (torch twin of ``baselines.lane_aware_velocity``, which documents it and its arguments).
+
+    An agent history with gaps in its last ``window`` steps counts as jittering (its velocity: that of
+    :func:`cv_extrapolate`), and its lateral speed is that velocity's where the last ``lateral_window`` steps are
+    not all valid.
 
     Args:
         pos: ``(N, 1+K, H, 2)`` token positions, token 0 the agent.
         mask: ``(N, 1+K, H)`` bool presence.
         future_steps: F.
-        window: steps every velocity is fitted to (>= 3 for the neighbours' fit to mean anything).
+        window: steps the velocities are fitted to (at least 3 for the neighbours' fit to mean anything).
 
     Returns:
         ``(N, F, 2)``.
     """
     hist, agent_mask = pos[:, 0], mask[:, 0]
     hist = torch.where(agent_mask.unsqueeze(-1), hist, torch.zeros_like(hist))
-    fitted = cv_extrapolate(hist, agent_mask, future_steps, window)
-    if pos.shape[1] < 2:
-        return fitted
     n = pos.shape[0]
-    v_agent = fitted[:, 0] - hist[:, -1]  # the base's own velocity (the one-step one where the fit is not possible)
+    v_fit = cv_extrapolate(hist, agent_mask, 1, window)[:, 0] - hist[:, -1]  # the fitted velocity, or its fallback
+    complete = agent_mask[:, -window:].all(-1)
+    second = hist[:, -window:][:, 2:] - 2 * hist[:, -window:][:, 1:-1] + hist[:, -window:][:, :-2]
+    jitter = (second - second.mean(1, keepdim=True)).abs().sum(-1).mean(1)
+    smooth = complete & (jitter < smooth_jitter_m)
+    v_agent = torch.where(smooth.unsqueeze(-1), _masked_slope(hist, agent_mask, smooth_window)[0], v_fit)
+    if pos.shape[1] < 2:
+        return hist[:, -1:, :] + torch.arange(1, future_steps + 1, dtype=pos.dtype, device=pos.device).view(1, -1, 1) * v_agent.unsqueeze(1)
+    v_lat, lat_cnt = _masked_slope(hist, agent_mask, lateral_window)
+    v_lateral = torch.where(((lat_cnt >= lateral_window) & agent_mask[:, -1]).unsqueeze(-1), v_lat, v_fit)
     neighbours, n_mask = pos[:, 1:], mask[:, 1:]
-    w = n_mask[..., -window:].to(pos.dtype).unsqueeze(-1)  # (N, K, W, 1)
-    p = torch.where(w > 0, neighbours[..., -window:, :], torch.zeros_like(neighbours[..., -window:, :]))
-    t = torch.arange(window, dtype=pos.dtype, device=pos.device).view(-1, 1)
-    cnt = w.sum(-2, keepdim=True)
-    t_mean = (w * t).sum(-2, keepdim=True) / cnt.clamp_min(1.0)
-    p_mean = (w * p).sum(-2, keepdim=True) / cnt.clamp_min(1.0)
-    dt = (t - t_mean) * w
-    v_n = (dt * (p - p_mean)).sum(-2) / (dt * (t - t_mean)).sum(-2).clamp_min(1e-12)  # (N, K, 2)
-    ok = (cnt[..., 0, 0] >= 3) & n_mask[..., -1] & (v_n.norm(dim=-1) > 0.5 * dt_s)
+    v_n, cnt = _masked_slope(neighbours, n_mask, window)  # (N, K, 2)
+    ok = (cnt >= 3) & n_mask[..., -1] & (v_n.norm(dim=-1) > 0.5 * dt_s)
     inf = torch.full_like(v_n[..., 0], float("inf"))
     angle = torch.where(ok, torch.atan2(v_n[..., 1], v_n[..., 0]), inf).sort(dim=1).values
     count = ok.sum(1)
@@ -326,29 +355,31 @@ def lane_extrapolate(pos: torch.Tensor, mask: torch.Tensor, future_steps: int, w
         cc, ss = c.view(shape), s.view(shape)
         return torch.stack((cc * v[..., 0] + ss * v[..., 1], cc * v[..., 1] - ss * v[..., 0]), -1)
 
-    last = torch.where(n_mask[..., -1:], neighbours[:, :, -1] - hist[:, None, -1], torch.zeros_like(neighbours[:, :, -1]))
-    lateral_n = to_road(last)[..., 1]
+    last_n = torch.where(n_mask[..., -1:], neighbours[:, :, -1] - hist[:, None, -1], torch.zeros_like(neighbours[:, :, -1]))
+    lateral_n = to_road(last_n)[..., 1]
     holding = ok & (to_road(v_n)[..., 1].abs() < still_mps * dt_s)
     phase_angle = 2 * math.pi * lateral_n / lane_width_m
     zero = torch.zeros_like(phase_angle)
     phase = torch.atan2(torch.where(holding, phase_angle.sin(), zero).sum(1),
                         torch.where(holding, phase_angle.cos(), zero).sum(1)) * lane_width_m / (2 * math.pi)  # fmt: skip
-    road = holding.any(1)
-    v_road = to_road(v_agent)
-    vy = v_road[:, 1]
+    road = holding.any(1) & agent_mask[:, -1]
+    vy = to_road(v_lateral)[:, 1]
     sign = torch.sign(vy)
+    speed = vy.abs().clamp_min(1e-9)
     changing = vy.abs() > move_mps * dt_s
     steps = (sign * margin_m - phase) / lane_width_m
-    target = phase + lane_width_m * torch.where(sign > 0, torch.ceil(steps), torch.floor(steps))
+    distance = (phase + lane_width_m * torch.where(sign > 0, torch.ceil(steps), torch.floor(steps))).abs()
+    last = distance.clamp_max(approach_m)
     k = torch.arange(1, future_steps + 1, dtype=pos.dtype, device=pos.device).view(1, -1)
-    across = vy.unsqueeze(1) * k
-    across = torch.where(sign.unsqueeze(1) > 0, torch.minimum(across, target.unsqueeze(1)),
-                         torch.maximum(across, target.unsqueeze(1)))  # fmt: skip
-    across = torch.where(changing.unsqueeze(1), across, torch.zeros_like(across))
-    along = v_road[:, :1] * k
+    straight = torch.minimum(speed.unsqueeze(1) * k, (distance - last).unsqueeze(1))
+    settle = last.unsqueeze(1) * -torch.expm1(-(k - ((distance - last) / speed).unsqueeze(1)).clamp_min(0.0)
+                                              * (speed / last.clamp_min(1e-9)).unsqueeze(1))  # fmt: skip
+    across = torch.where(changing.unsqueeze(1), sign.unsqueeze(1) * (straight + settle), torch.zeros_like(straight))
+    along = to_road(v_agent)[:, :1] * k
     cc, ss = c.unsqueeze(1), s.unsqueeze(1)
-    lane = hist[:, -1:, :] + torch.stack((cc * along - ss * across, ss * along + cc * across), -1)
-    return torch.where((road & agent_mask[:, -1]).view(-1, 1, 1), lane, fitted)
+    lane = torch.stack((cc * along - ss * across, ss * along + cc * across), -1)
+    fitted = v_agent.unsqueeze(1) * k.unsqueeze(-1)
+    return hist[:, -1:, :] + torch.where(road.view(-1, 1, 1), lane, fitted)
 
 
 def _last_velocity(hist: torch.Tensor, mask: torch.Tensor) -> torch.Tensor:
@@ -558,9 +589,11 @@ class TrajectoryTransformer(nn.Module):
         c = self.config
         window = min(c.velocity_window, pos.shape[2])
         if c.base == "lane-aware":
-            return lane_extrapolate(pos, mask, c.future_steps, window, lane_width_m=c.lane_width_m,
-                                    margin_m=c.lane_margin_m, move_mps=c.lane_change_mps, still_mps=c.lane_hold_mps,
-                                    dt_s=c.dt_s)  # fmt: skip
+            return lane_extrapolate(pos, mask, c.future_steps, window, smooth_window=min(c.lane_smooth_window, window),
+                                    smooth_jitter_m=c.lane_smooth_jitter_m,
+                                    lateral_window=min(c.lane_lateral_window, window), lane_width_m=c.lane_width_m,
+                                    margin_m=c.lane_margin_m, approach_m=c.lane_approach_m,
+                                    move_mps=c.lane_change_mps, still_mps=c.lane_hold_mps, dt_s=c.dt_s)  # fmt: skip
         agent = torch.where(mask[:, 0].unsqueeze(-1), pos[:, 0], torch.zeros_like(pos[:, 0]))
         return cv_extrapolate(agent, mask[:, 0], c.future_steps, window)
 
