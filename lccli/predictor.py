@@ -68,6 +68,11 @@ def train_predictor_parser() -> argparse.ArgumentParser:
         "no drift across otherwise) (default: PredictorConfig's)",
     )
     p.add_argument(
+        "--gate-cost", type=float, default=None, metavar="C",
+        help="gated models: loss charged for the gate's mean opening, in units of the typical residual; higher "
+        "keeps the correction closed unless it gains more (default: TrainConfig's)",
+    )
+    p.add_argument(
         "--input-noise",
         type=float,
         default=None,
@@ -133,6 +138,7 @@ def train_predictor_main(argv: list[str] | None = None) -> int:
             stride=args.stride,
             batch_size=args.batch_size,
             **({"input_noise_m": args.input_noise} if args.input_noise is not None else {}),
+            **({"gate_cost": args.gate_cost} if args.gate_cost is not None else {}),
             max_epochs=args.epochs,
             patience=args.patience,
             max_train_windows=args.max_train_windows,

@@ -80,3 +80,12 @@ def test_the_lane_aware_base_is_a_training_option(corpus_dir, tmp_path):
     assert model.config.base == "lane-aware"
     with pytest.raises(SystemExit):
         train_predictor_main(["--data", str(corpus_dir), "--base", "map"])
+
+
+def test_gate_cost_is_a_training_option(corpus_dir, tmp_path, capsys):
+    out = tmp_path / "costly"
+    assert train_predictor_main(["--data", str(corpus_dir), "--out", str(out), "--epochs", "1", "--gate-cost", "1.5", "-q"]) == 0
+    assert json.loads((out / "metrics.json").read_text())["config"]["gate_cost"] == 1.5
+    assert train_predictor_main(["--data", str(corpus_dir), "--out", str(tmp_path / "bad"), "--gate-cost", "-1", "-q"]) == 2
+    err = capsys.readouterr().err
+    assert err.startswith("lc-train-predictor: error:") and err.count("\n") == 1 and "gate_cost" in err, err
