@@ -66,7 +66,7 @@ CLIP = 50.0
 CORRECTIONS = ("plain", "bounded", "gated", "bounded-gated")
 #: The extrapolations the correction is a residual over: ``constant-velocity`` (:func:`cv_extrapolate` with the
 #: fitted velocity) or ``lane-aware`` (:func:`lane_extrapolate`: along the road the neighbours give, a lane change
-#: stopping at the next lane centre).
+#: ending at the next lane centre).
 BASES = ("constant-velocity", "lane-aware")
 #: Share of training windows whose motion counts as familiar to a gated model (the gate's full-trust limit).
 FAMILIAR_QUANTILE = 0.999
