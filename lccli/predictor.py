@@ -62,6 +62,17 @@ def train_predictor_parser() -> argparse.ArgumentParser:
         "step's difference; default PredictorConfig's, 10 = 0.5 s, robust to positions measured with noise)",
     )
     p.add_argument(
+        "--base", choices=("constant-velocity", "lane-aware"), default=None,
+        help="what the correction is a residual over: constant-velocity (the fitted velocity) or lane-aware "
+        "(the fitted speed along the road the neighbours give, a lane change ending at the next lane centre, "
+        "no drift across otherwise) (default: PredictorConfig's)",
+    )
+    p.add_argument(
+        "--gate-cost", type=float, default=None, metavar="C",
+        help="gated models: loss charged for the gate's mean opening, in units of the typical residual; higher "
+        "keeps the correction closed unless it gains more (default: TrainConfig's)",
+    )
+    p.add_argument(
         "--input-noise",
         type=float,
         default=None,
@@ -122,10 +133,12 @@ def train_predictor_main(argv: list[str] | None = None) -> int:
                 future_steps=args.future,
                 **({"correction": args.correction} if args.correction else {}),
                 **({"velocity_window": args.velocity_window} if args.velocity_window else {}),
+                **({"base": args.base} if args.base else {}),
             ),
             stride=args.stride,
             batch_size=args.batch_size,
             **({"input_noise_m": args.input_noise} if args.input_noise is not None else {}),
+            **({"gate_cost": args.gate_cost} if args.gate_cost is not None else {}),
             max_epochs=args.epochs,
             patience=args.patience,
             max_train_windows=args.max_train_windows,

@@ -32,10 +32,14 @@ def test_configs_and_bad_input_give_one_line_errors(tmp_path, capsys) -> None:
     assert bench_transfer.parse_config("20+60/3") == (20, 60, 3)
     with pytest.raises(ValueError, match="HISTORY"):
         bench_transfer.parse_config("20x60")
+    assert bench_transfer.parse_variant("gated") == ("gated", 0.0, None, None)
+    assert bench_transfer.parse_variant("gated:0.003:1") == ("gated", 0.003, 1, None)
+    assert bench_transfer.parse_variant("gated:0.003::lane-aware") == ("gated", 0.003, None, "lane-aware")
     for argv, words in (
         (["--out", str(tmp_path), "--configs", "ten"], "HISTORY+FUTURE"),
         (["--out", str(tmp_path), "--variants", "magic"], "unknown correction"),
         (["--out", str(tmp_path), "--variants", "gated:-1"], "noise"),
+        (["--out", str(tmp_path), "--variants", "gated:0::map"], "unknown base"),
         (["--out", str(tmp_path), "--checkpoint", str(tmp_path / "none.pt")], "does not exist"),
         (["--out", str(tmp_path), "--sumo", str(tmp_path)], "not a folder of .mcap"),
         (["--out", str(tmp_path), "--lcsim-episodes", "0"], "must be >= 1"),

@@ -10,6 +10,7 @@ from lcmodels.predictor.baselines import (
     constant_acceleration,
     constant_velocity,
     constant_velocity_fit,
+    lane_aware_velocity,
     last_velocity,
 )
 from lcmodels.predictor.metrics import (
@@ -22,7 +23,7 @@ from lcmodels.predictor.metrics import (
     miss_rate,
     summary,
 )
-from lcmodels.predictor.model import cv_extrapolate
+from lcmodels.predictor.model import cv_extrapolate, lane_extrapolate
 
 
 def test_metrics_hand_made() -> None:
@@ -139,3 +140,87 @@ def test_fitted_velocity_is_exact_on_straight_motion_robust_to_measurement_noise
         ours = cv_extrapolate(torch.from_numpy(h), torch.from_numpy(m), 7, w).numpy()
         np.testing.assert_allclose(ours, constant_velocity_fit(h, 7, m, window=w), atol=1e-10)
     np.testing.assert_allclose(constant_velocity_fit(h, 7, m, window=10)[5:10], constant_velocity(h, 7, m)[5:10])
+
+
+def _road_scene(lateral_step: float, phi: float = 0.15, neighbours: bool = True) -> tuple[np.ndarray, ...]:
+    """An agent 1 m left of its lane's centre moving ``lateral_step`` m per step across a road of 3.5 m lanes
+    whose direction is ``phi``, and four neighbours holding their lanes' centres: history (1, 20, 2), future
+    (1, 60, 2) of the agent if it ends a lane change at the next centre, settling over the last 0.8 m (else
+    holds its lateral position), neighbours (1, 4, 20, 2) and their mask, all in a frame rotated by ``phi`` from
+    the road's."""
+    k = np.arange(-19, 61, dtype=np.float64)
+    along = 10.0 + 0.3 * k
+    lateral = 1.0 + lateral_step * np.minimum(k, 0.0)  # the future holds the lateral position ...
+    if abs(lateral_step) * 20 > 0.2:  # ... unless it is a lane change, which ends at the next centre
+        distance, v = (2.5 if lateral_step > 0 else 1.0), abs(lateral_step)
+        straight = np.minimum(v * k, distance - 0.8)
+        settle = 0.8 * (1 - np.exp(-np.maximum(k - (distance - 0.8) / v, 0.0) * v / 0.8))
+        lateral = np.where(k > 0, 1.0 + np.sign(lateral_step) * (straight + settle), lateral)
+    c, s = np.cos(phi), np.sin(phi)
+
+    def world(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+        return np.stack((c * a - s * b, s * a + c * b), -1)
+
+    agent = world(along, lateral)
+    hist = world(along[:20], 1.0 + lateral_step * k[:20])[None]
+    lanes = np.array([0.0, 3.5, -3.5, 7.0])
+    speeds = np.array([0.28, 0.31, 0.3, 0.33])
+    nb = np.stack([world(-5.0 + 8.0 * i + speeds[i] * k[:20], np.full(20, lanes[i])) for i in range(4)])[None]
+    mask = np.full((1, 4, 20), neighbours)
+    return hist, agent[None, 20:], nb, mask
+
+
+@pytest.mark.parametrize("lateral_step", [0.06, -0.06, 0.003])
+def test_lane_aware_base_ends_a_lane_change_at_the_next_lane_centre_and_holds_the_lane_otherwise(
+        lateral_step: float) -> None:  # fmt: skip
+    hist, fut, nb, mask = _road_scene(lateral_step)
+    pred = lane_aware_velocity(hist, nb, mask, 60)
+    if abs(lateral_step) * 20 > 0.2:  # the fitted velocity alone would carry on across the road
+        assert np.linalg.norm(constant_velocity_fit(hist, 60)[0, -1] - fut[0, -1]) > 1.0
+        np.testing.assert_allclose(pred, fut, atol=1e-9)
+    else:  # a slow drift (0.06 m/s) within the lane is not extrapolated: the lateral position is held
+        np.testing.assert_allclose(pred, fut, atol=1e-9)
+    # rotation and translation of the frame move the prediction with it
+    rot = np.array([[np.cos(0.4), -np.sin(0.4)], [np.sin(0.4), np.cos(0.4)]])
+    shift = np.array([3.0, -7.0])
+    moved = lane_aware_velocity(hist @ rot.T + shift, nb @ rot.T + shift, mask, 60)
+    np.testing.assert_allclose(moved, pred @ rot.T + shift, atol=1e-9)
+
+
+def test_lane_aware_base_without_a_road_is_the_fitted_velocity_and_has_a_torch_twin() -> None:
+    hist, _, nb, mask = _road_scene(0.06, neighbours=False)
+    np.testing.assert_allclose(lane_aware_velocity(hist, nb, mask, 60), constant_velocity_fit(hist, 60), atol=1e-9)
+    # along the road: a short window on a smooth track (no lag behind its acceleration), the long one on
+    # positions rounded to the centimetre (the jitter a short one would read as speed)
+    k = np.arange(-19, 11, dtype=np.float64)[:, None]
+    track = (np.array([0.0, 1.0]) + k * np.array([0.3, 0.0]) + 0.5 * k**2 * np.array([0.0025, 0.0]))[None]  # 1 m/s²
+    err = {w: np.abs(constant_velocity_fit(track[:, :20], 10, window=w)[0, -1, 0] - track[0, -1, 0]) for w in (3, 10)}
+    assert err[3] + 0.05 < err[10]  # 0.5 s ahead: the long fit lags 4.5 steps of acceleration, the short one 1
+    ours = lane_aware_velocity(track[:, :20], nb[:, :, :20], mask, 10)
+    np.testing.assert_allclose(ours, constant_velocity_fit(track[:, :20], 10, window=3), atol=1e-9)
+    rounded = np.round(track * 100) / 100
+    np.testing.assert_allclose(lane_aware_velocity(rounded[:, :20], nb, mask, 10),
+                               constant_velocity_fit(rounded[:, :20], 10, window=10), atol=1e-9)  # fmt: skip
+    with pytest.raises(ValueError, match="lateral_window"):
+        lane_aware_velocity(hist, nb, mask, 60, lateral_window=1)
+    still = nb.copy()
+    still[:] = still[:, :, -1:]  # parked neighbours give no direction
+    np.testing.assert_allclose(lane_aware_velocity(hist, still, ~mask, 60), constant_velocity_fit(hist, 60))
+    with pytest.raises(ValueError, match="window"):
+        lane_aware_velocity(hist, nb, mask, 60, window=2)
+    with pytest.raises(ValueError, match="neighbours must be"):
+        lane_aware_velocity(hist, nb[:, :, :5], mask[:, :, :5], 60)
+    # random scenes with gaps and garbage behind the mask: numpy and torch agree
+    rng = np.random.default_rng(3)
+    n, k, h = 300, 6, 12
+    hist = np.cumsum(rng.normal([0.3, 0.0], [0.02, 0.03], size=(n, h, 2)), axis=1)
+    nb = rng.normal(0.0, 6.0, size=(n, k, 1, 2)) + np.cumsum(rng.normal([0.3, 0.0], [0.02, 0.01], size=(n, k, h, 2)), axis=2)
+    nmask = rng.random((n, k, h)) > 0.2
+    nb = np.where(nmask[..., None], nb, np.nan)
+    ours = lane_aware_velocity(hist, nb, nmask, 9, window=6)
+    assert np.isfinite(ours).all()
+    pos = torch.from_numpy(np.concatenate((hist[:, None], nb), 1))
+    mask = torch.from_numpy(np.concatenate((np.ones((n, 1, h), dtype=bool), nmask), 1))
+    np.testing.assert_allclose(lane_extrapolate(pos, mask, 9, 6).numpy(), ours, atol=1e-9)
+    moved = (np.abs(ours - constant_velocity_fit(hist, 9, window=6)).max(axis=(1, 2)) > 1e-6).mean()
+    assert 0.2 < moved < 1.0  # most scenes have a road; the lateral drift is held or a lane change ends

@@ -309,3 +309,35 @@ def test_the_parameter_estimate_is_close_to_the_network() -> None:
                    PredictorConfig(d_model=128, ff_dim=512, num_layers=3, num_context_layers=1, history_steps=30)):
         built = sum(p.numel() for p in TrajectoryTransformer(config).parameters())
         assert built <= config.parameter_estimate() <= 1.2 * built
+
+
+def test_lane_aware_base_config_and_an_untrained_model_is_the_lane_aware_extrapolation(tmp_path: Path) -> None:
+    from lcmodels.predictor.baselines import lane_aware_velocity
+
+    with pytest.raises(ValueError, match="base must be one of"):
+        PredictorConfig(base="map")
+    with pytest.raises(ValueError, match="lane_width_m"):
+        PredictorConfig(base="lane-aware", lane_width_m=0.0)
+    with pytest.raises(ValueError, match="lane_lateral_window"):
+        PredictorConfig(base="lane-aware", lane_lateral_window=1)
+    old = {k: v for k, v in PredictorConfig().to_dict().items() if k != "base" and not k.startswith("lane_")}
+    assert PredictorConfig.from_dict(old).base == "constant-velocity"  # stored before the choice existed
+    cfg = PredictorConfig(d_model=32, ff_dim=64, base="lane-aware")
+    torch.manual_seed(0)
+    model = TrajectoryTransformer(cfg).eval()
+    pos, mask = _window_tokens()
+    nb = torch.where(mask[:, 1:].unsqueeze(-1), pos[:, 1:], torch.zeros(()))
+    lane = lane_aware_velocity(pos[:, 0].double().numpy(), nb.double().numpy(), mask[:, 1:].numpy(),
+                               cfg.future_steps, window=cfg.velocity_window)  # fmt: skip
+    fitted = constant_velocity_fit(pos[:, 0].double().numpy(), cfg.future_steps, window=cfg.velocity_window)
+    assert np.abs(lane - fitted).max() > 1e-3  # the two bases differ on these windows
+    with torch.no_grad():
+        np.testing.assert_allclose(model(pos, mask).numpy(), lane, atol=1e-4)  # the head starts at zero
+        future = torch.from_numpy(lane).float() + 0.01
+        model.fit_normalisation(pos, mask, future)  # residuals over the lane-aware base
+        np.testing.assert_allclose(model.residual_mean.numpy(), 0.01, atol=1e-4)
+    path = save_model(model, tmp_path / "lane.pt")
+    loaded, _ = load_model(path)
+    assert loaded.config.base == "lane-aware"
+    with torch.no_grad():
+        torch.testing.assert_close(loaded(pos, mask), model(pos, mask))

@@ -67,3 +67,25 @@ def test_absurd_sizes_and_unfit_folders_are_refused_before_training(corpus_dir, 
         err = capsys.readouterr().err
         assert err.startswith("lc-train-predictor: error:") and message in err and err.count("\n") == 1, err
     assert not (tmp_path / "p1").exists() and not list(home.iterdir())
+
+
+def test_the_lane_aware_base_is_a_training_option(corpus_dir, tmp_path):
+    from lcmodels.predictor import load_model
+
+    out = tmp_path / "lane"
+    rc = train_predictor_main(["--data", str(corpus_dir), "--out", str(out), "--epochs", "1", "--base", "lane-aware", "-q"])
+    assert rc == 0
+    assert json.loads((out / "metrics.json").read_text())["config"]["model"]["base"] == "lane-aware"
+    model, _ = load_model(out / "predictor.pt")
+    assert model.config.base == "lane-aware"
+    with pytest.raises(SystemExit):
+        train_predictor_main(["--data", str(corpus_dir), "--base", "map"])
+
+
+def test_gate_cost_is_a_training_option(corpus_dir, tmp_path, capsys):
+    out = tmp_path / "costly"
+    assert train_predictor_main(["--data", str(corpus_dir), "--out", str(out), "--epochs", "1", "--gate-cost", "1.5", "-q"]) == 0
+    assert json.loads((out / "metrics.json").read_text())["config"]["gate_cost"] == 1.5
+    assert train_predictor_main(["--data", str(corpus_dir), "--out", str(tmp_path / "bad"), "--gate-cost", "-1", "-q"]) == 2
+    err = capsys.readouterr().err
+    assert err.startswith("lc-train-predictor: error:") and err.count("\n") == 1 and "gate_cost" in err, err

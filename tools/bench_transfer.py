@@ -51,14 +51,20 @@ __all__ = ["Setup", "evaluate_checkpoint", "format_table", "main", "parse_config
 log = logging.getLogger("bench_transfer")
 
 CORRECTIONS = ("plain", "bounded", "gated", "bounded-gated")
+BASES = ("constant-velocity", "lane-aware")  # PredictorConfig.base (lcmodels is imported lazily)
 
 
-def parse_variant(text: str) -> tuple[str, float, int | None]:
-    """``"gated"`` -> ``("gated", 0.0, None)``; ``"gated:0.003"`` -> trained with 3 mm of input noise;
+def parse_variant(text: str) -> tuple[str, float, int | None, str | None]:
+    """``"gated"`` -> ``("gated", 0.0, None, None)``; ``"gated:0.003"`` -> trained with 3 mm of input noise;
     ``"gated:0:1"`` -> no noise, the constant-velocity base from the last step's difference (``velocity_window``
-    1; None: PredictorConfig's default)."""
+    1; None: PredictorConfig's default); ``"gated:0.003::lane-aware"`` -> the lane-aware base
+    (``PredictorConfig.base``; None: the default)."""
     correction, _, rest = text.partition(":")
-    noise_text, _, window_text = rest.partition(":")
+    noise_text, _, rest = rest.partition(":")
+    window_text, _, base_text = rest.partition(":")
+    base: str | None = base_text or None
+    if base is not None and base not in BASES:
+        raise ValueError(f"unknown base {base!r} in variant {text!r} (choose from {', '.join(BASES)})")
     window: int | None = None
     if window_text:
         if not window_text.isdigit() or int(window_text) < 1:
@@ -72,7 +78,7 @@ def parse_variant(text: str) -> tuple[str, float, int | None]:
         noise = -1.0
     if not (math.isfinite(noise) and noise >= 0):
         raise ValueError(f"variant {text!r}: the input noise after ':' must be a number of metres >= 0")
-    return correction, noise, window
+    return correction, noise, window, base
 
 
 def parse_config(text: str) -> tuple[int, int, int]:
@@ -165,8 +171,10 @@ def train_one(data: pathlib.Path, out: pathlib.Path, config: str, variant: str, 
     from lcmodels.predictor import PredictorConfig, TrainConfig, train_predictor
 
     h, f, stride = parse_config(config)
-    correction, noise, window = parse_variant(variant)
-    extra = {} if window is None else {"velocity_window": window}
+    correction, noise, window, base = parse_variant(variant)
+    extra: dict[str, Any] = {} if window is None else {"velocity_window": window}
+    if base is not None:
+        extra["base"] = base
     cfg = TrainConfig(model=PredictorConfig(history_steps=h, future_steps=f, correction=correction, **extra), stride=stride,
                       max_train_windows=setup.max_train_windows, max_epochs=setup.max_epochs,
                       time_limit_s=setup.train_time_limit_s, input_noise_m=noise,
@@ -247,9 +255,9 @@ def run(out: pathlib.Path, setup: Setup, checkpoints: Sequence[pathlib.Path] = (
         for config in setup.configs:
             for variant in setup.variants:
                 h, f, _ = parse_config(config)
-                correction, noise, window = parse_variant(variant)
+                correction, noise, window, base = parse_variant(variant)
                 name = f"{h}+{f}-{correction}" + (f"-noise{noise * 1000:g}mm" if noise else "") + (
-                    f"-window{window}" if window is not None else "")
+                    f"-window{window}" if window is not None else "") + (f"-{base}" if base is not None else "")
                 _stage(f"training {name}", quiet)
                 models[name] = train_one(train_data, out / "models" / name, config, variant, setup)
     if lcsim_test is None:
@@ -294,6 +302,8 @@ def format_table(result: dict[str, Any]) -> str:
             if key not in seen:
                 seen.add(key)
                 fit = [("CV, velocity fitted to 0.5 s", e["constant_velocity_fit"])] if "constant_velocity_fit" in e else []
+                if "lane_aware" in e:
+                    fit.append(("lane-aware base (analytic)", e["lane_aware"]))
                 rows = [("CV", e["constant_velocity"]), *fit, ("CA", e["constant_acceleration"]), *rows]
             last = labels[-1]
             cv_fde = e["constant_velocity"]["horizons"][last]["fde"]
@@ -338,10 +348,12 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--configs", type=_csv("configurations", parse_config), default=d.configs,
                    help=f"HISTORY+FUTURE[/STRIDE] steps to train, comma-separated (default {','.join(d.configs)})")
     p.add_argument("--variants", type=_csv("variants", parse_variant), default=d.variants,
-                   help="predictors to train for each configuration, comma-separated: CORRECTION[:NOISE_M[:WINDOW]], "
+                   help="predictors to train for each configuration, comma-separated: CORRECTION[:NOISE_M[:WINDOW[:BASE]]], "
                    f"the correction one of {', '.join(CORRECTIONS)}, NOISE_M the std of the noise added to observed "
                    "positions in training, metres, WINDOW the steps the constant-velocity base fits its velocity "
-                   f"to (1: the last step's difference; default PredictorConfig's) (default {','.join(d.variants)})")
+                   "to (1: the last step's difference; empty or absent: PredictorConfig's default), BASE the "
+                   f"extrapolation the correction is a residual over, one of {', '.join(BASES)} (absent: the "
+                   f"default) (default {','.join(d.variants)})")
     p.add_argument("--lcsim-episodes", type=positive_int, default=d.lcsim_episodes,
                    help=f"lcsim training episodes, 100 s each (default {d.lcsim_episodes})")
     p.add_argument("--lcsim-exact-episodes", type=non_negative_int, default=d.lcsim_exact_episodes,

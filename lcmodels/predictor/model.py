@@ -52,6 +52,7 @@ __all__ = [
     "PredictorConfig",
     "TrajectoryTransformer",
     "cv_extrapolate",
+    "lane_extrapolate",
     "token_features",
 ]
 
@@ -63,6 +64,10 @@ MIN_STD = 1e-6
 CLIP = 50.0
 #: The ways to shape the correction to constant velocity (see the module docstring).
 CORRECTIONS = ("plain", "bounded", "gated", "bounded-gated")
+#: The extrapolations the correction is a residual over: ``constant-velocity`` (:func:`cv_extrapolate` with the
+#: fitted velocity) or ``lane-aware`` (:func:`lane_extrapolate`: along the road the neighbours give, a lane change
+#: ending at the next lane centre).
+BASES = ("constant-velocity", "lane-aware")
 #: Share of training windows whose motion counts as familiar to a gated model (the gate's full-trust limit).
 FAMILIAR_QUANTILE = 0.999
 #: Plausible upper bounds of the sizes and constants of a config: a stored or crafted config beyond them is
@@ -70,12 +75,14 @@ FAMILIAR_QUANTILE = 0.999
 LIMITS: dict[str, Any] = {
     "history_steps": 1_000, "future_steps": 1_000, "num_neighbours": 64, "d_model": 4_096, "num_heads": 64,
     "num_layers": 64, "num_context_layers": 64, "ff_dim": 16_384, "velocity_window": 1_000,
-    "correction_speed_mps": 100.0, "correction_accel_mps2": 100.0, "dt_s": 10.0,
+    "correction_speed_mps": 100.0, "correction_accel_mps2": 100.0, "dt_s": 10.0, "lane_width_m": 20.0,
+    "lane_margin_m": 20.0, "lane_change_mps": 20.0, "lane_hold_mps": 20.0, "lane_approach_m": 20.0,
+    "lane_smooth_jitter_m": 1.0, "lane_lateral_window": 1_000, "lane_smooth_window": 1_000,
 }  # fmt: skip
 #: The most weights a predictor may have (about 400 MB of float32).
 MAX_PARAMETERS = 100_000_000
 #: Values of fields a stored config may lack: what a checkpoint from before the field existed was.
-LEGACY_VALUES: dict[str, Any] = {"correction": "plain", "velocity_window": 1}
+LEGACY_VALUES: dict[str, Any] = {"correction": "plain", "velocity_window": 1, "base": "constant-velocity"}
 
 
 @dataclass(frozen=True, slots=True, kw_only=True)
@@ -113,6 +120,28 @@ class PredictorConfig:
     last step's difference, as checkpoints from before this field). Positions measured with noise (SUMO
     writes centimetres, a dataset its tracker's error) make a one-step velocity jitter; a fit over 0.5 s
     does not, and the correction learns what the fit lags. At most the history is used."""
+    base: str = "constant-velocity"
+    """What the correction is a residual over (:data:`BASES`): the constant-velocity extrapolation, or the
+    lane-aware one (``baselines.lane_aware_velocity``), which reads the road's direction and lane centres from
+    the neighbours, keeps the fitted speed along the road, ends a lane change at the next lane centre and
+    holds the lateral position otherwise."""
+    lane_width_m: float = 3.5
+    """lane-aware: the lanes' width, metres (lcsim's and the SUMO highway's)."""
+    lane_margin_m: float = 0.1
+    """lane-aware: a lane centre nearer than this ahead of a lane-changing agent is the one it leaves, metres."""
+    lane_change_mps: float = 0.2
+    """lane-aware: lateral speed above which the agent counts as changing lanes, m/s."""
+    lane_approach_m: float = 0.8
+    """lane-aware: the last stretch of a lane change, covered with an exponentially falling speed, metres."""
+    lane_lateral_window: int = 2
+    """lane-aware: steps the agent's lateral speed is fitted to (2: the last step's difference)."""
+    lane_smooth_window: int = 3
+    """lane-aware: steps the agent's speed along the road is fitted to where its positions do not jitter."""
+    lane_smooth_jitter_m: float = 0.001
+    """lane-aware: the jitter (mean absolute deviation of the second differences from their mean over
+    ``velocity_window`` steps) below which positions count as smooth, metres."""
+    lane_hold_mps: float = 0.1
+    """lane-aware: lateral speed below which a neighbour counts as holding its lane (so marks a centre), m/s."""
 
     def __post_init__(self) -> None:
         ints = (
@@ -150,7 +179,14 @@ class PredictorConfig:
             raise ValueError(f"velocity_window must be at most {LIMITS['velocity_window']}, got {self.velocity_window}")
         if not isinstance(self.correction, str) or self.correction not in CORRECTIONS:
             raise ValueError(f"correction must be one of {', '.join(CORRECTIONS)}; got {self.correction!r}")
-        for name in ("correction_speed_mps", "correction_accel_mps2", "dt_s"):
+        if not isinstance(self.base, str) or self.base not in BASES:
+            raise ValueError(f"base must be one of {', '.join(BASES)}; got {self.base!r}")
+        for name in ("lane_lateral_window", "lane_smooth_window"):
+            value = getattr(self, name)
+            if not isinstance(value, int) or isinstance(value, bool) or not 2 <= value <= LIMITS[name]:
+                raise ValueError(f"{name} must be an int in [2, {LIMITS[name]}], got {value!r}")
+        for name in ("correction_speed_mps", "correction_accel_mps2", "dt_s", "lane_width_m", "lane_margin_m",
+                     "lane_change_mps", "lane_hold_mps", "lane_approach_m", "lane_smooth_jitter_m"):
             value = getattr(self, name)
             if not (isinstance(value, int | float) and not isinstance(value, bool) and math.isfinite(value) and value > 0):
                 raise ValueError(f"{name} must be a number > 0, got {value!r}")
@@ -257,6 +293,93 @@ def cv_extrapolate(hist: torch.Tensor, mask: torch.Tensor, future_steps: int, wi
         v = torch.where(fit, slope, v)
     k = torch.arange(1, future_steps + 1, dtype=hist.dtype, device=hist.device).view(1, -1, 1)
     return hist[:, -1:, :] + k * v.unsqueeze(1)
+
+
+def _masked_slope(p: torch.Tensor, m: torch.Tensor, window: int) -> tuple[torch.Tensor, torch.Tensor]:
+    """Least-squares velocity ``(..., 2)`` of the valid positions among the last ``window`` of ``(..., H, 2)`` and
+    how many there are ``(...,)``."""
+    w = m[..., -window:].to(p.dtype).unsqueeze(-1)
+    q = torch.where(w > 0, p[..., -window:, :], torch.zeros_like(p[..., -window:, :]))
+    t = torch.arange(window, dtype=p.dtype, device=p.device).view(-1, 1)
+    cnt = w.sum(-2, keepdim=True)
+    t_mean = (w * t).sum(-2, keepdim=True) / cnt.clamp_min(1.0)
+    q_mean = (w * q).sum(-2, keepdim=True) / cnt.clamp_min(1.0)
+    dt = (t - t_mean) * w
+    return (dt * (q - q_mean)).sum(-2) / (dt * (t - t_mean)).sum(-2).clamp_min(1e-12), cnt[..., 0, 0]
+
+
+def lane_extrapolate(pos: torch.Tensor, mask: torch.Tensor, future_steps: int, window: int, *,
+                     smooth_window: int = 3, smooth_jitter_m: float = 0.001, lateral_window: int = 2,
+                     lane_width_m: float = 3.5, margin_m: float = 0.1, approach_m: float = 0.8, move_mps: float = 0.2,
+                     still_mps: float = 0.1, dt_s: float = 0.05) -> torch.Tensor:
+    """The lane-aware base (torch twin of ``baselines.lane_aware_velocity``, which documents it and its arguments).
+
+    An agent history with gaps in its last ``window`` steps counts as jittering (its velocity: that of
+    :func:`cv_extrapolate`), and its lateral speed is that velocity's where the last ``lateral_window`` steps are
+    not all valid.
+
+    Args:
+        pos: ``(N, 1+K, H, 2)`` token positions, token 0 the agent.
+        mask: ``(N, 1+K, H)`` bool presence.
+        future_steps: F.
+        window: steps the velocities are fitted to (at least 3 for the neighbours' fit to mean anything).
+
+    Returns:
+        ``(N, F, 2)``.
+    """
+    hist, agent_mask = pos[:, 0], mask[:, 0]
+    hist = torch.where(agent_mask.unsqueeze(-1), hist, torch.zeros_like(hist))
+    n = pos.shape[0]
+    v_fit = cv_extrapolate(hist, agent_mask, 1, window)[:, 0] - hist[:, -1]  # the fitted velocity, or its fallback
+    complete = agent_mask[:, -window:].all(-1)
+    second = hist[:, -window:][:, 2:] - 2 * hist[:, -window:][:, 1:-1] + hist[:, -window:][:, :-2]
+    jitter = (second - second.mean(1, keepdim=True)).abs().sum(-1).mean(1)
+    smooth = complete & (jitter < smooth_jitter_m)
+    v_agent = torch.where(smooth.unsqueeze(-1), _masked_slope(hist, agent_mask, smooth_window)[0], v_fit)
+    if pos.shape[1] < 2:
+        return hist[:, -1:, :] + torch.arange(1, future_steps + 1, dtype=pos.dtype, device=pos.device).view(1, -1, 1) * v_agent.unsqueeze(1)
+    v_lat, lat_cnt = _masked_slope(hist, agent_mask, lateral_window)
+    v_lateral = torch.where(((lat_cnt >= lateral_window) & agent_mask[:, -1]).unsqueeze(-1), v_lat, v_fit)
+    neighbours, n_mask = pos[:, 1:], mask[:, 1:]
+    v_n, cnt = _masked_slope(neighbours, n_mask, window)  # (N, K, 2)
+    ok = (cnt >= 3) & n_mask[..., -1] & (v_n.norm(dim=-1) > 0.5 * dt_s)
+    inf = torch.full_like(v_n[..., 0], float("inf"))
+    angle = torch.where(ok, torch.atan2(v_n[..., 1], v_n[..., 0]), inf).sort(dim=1).values
+    count = ok.sum(1)
+    middle = torch.stack(((count - 1).clamp_min(0) // 2, count // 2), 1).clamp_max(angle.shape[1] - 1)
+    theta = torch.where(count > 0, angle.gather(1, middle).mean(1), torch.zeros_like(angle[:, 0]))
+    c, s = torch.cos(theta), torch.sin(theta)
+
+    def to_road(v: torch.Tensor) -> torch.Tensor:  # rotate by -theta
+        shape = (n,) + (1,) * (v.dim() - 2)
+        cc, ss = c.view(shape), s.view(shape)
+        return torch.stack((cc * v[..., 0] + ss * v[..., 1], cc * v[..., 1] - ss * v[..., 0]), -1)
+
+    last_n = torch.where(n_mask[..., -1:], neighbours[:, :, -1] - hist[:, None, -1], torch.zeros_like(neighbours[:, :, -1]))
+    lateral_n = to_road(last_n)[..., 1]
+    holding = ok & (to_road(v_n)[..., 1].abs() < still_mps * dt_s)
+    phase_angle = 2 * math.pi * lateral_n / lane_width_m
+    zero = torch.zeros_like(phase_angle)
+    phase = torch.atan2(torch.where(holding, phase_angle.sin(), zero).sum(1),
+                        torch.where(holding, phase_angle.cos(), zero).sum(1)) * lane_width_m / (2 * math.pi)  # fmt: skip
+    road = holding.any(1) & agent_mask[:, -1]
+    vy = to_road(v_lateral)[:, 1]
+    sign = torch.sign(vy)
+    speed = vy.abs().clamp_min(1e-9)
+    changing = vy.abs() > move_mps * dt_s
+    steps = (sign * margin_m - phase) / lane_width_m
+    distance = (phase + lane_width_m * torch.where(sign > 0, torch.ceil(steps), torch.floor(steps))).abs()
+    last = distance.clamp_max(approach_m)
+    k = torch.arange(1, future_steps + 1, dtype=pos.dtype, device=pos.device).view(1, -1)
+    straight = torch.minimum(speed.unsqueeze(1) * k, (distance - last).unsqueeze(1))
+    settle = last.unsqueeze(1) * -torch.expm1(-(k - ((distance - last) / speed).unsqueeze(1)).clamp_min(0.0)
+                                              * (speed / last.clamp_min(1e-9)).unsqueeze(1))  # fmt: skip
+    across = torch.where(changing.unsqueeze(1), sign.unsqueeze(1) * (straight + settle), torch.zeros_like(straight))
+    along = to_road(v_agent)[:, :1] * k
+    cc, ss = c.unsqueeze(1), s.unsqueeze(1)
+    lane = torch.stack((cc * along - ss * across, ss * along + cc * across), -1)
+    fitted = v_agent.unsqueeze(1) * k.unsqueeze(-1)
+    return hist[:, -1:, :] + torch.where(road.view(-1, 1, 1), lane, fitted)
 
 
 def _last_velocity(hist: torch.Tensor, mask: torch.Tensor) -> torch.Tensor:
@@ -393,8 +516,7 @@ class TrajectoryTransformer(nn.Module):
 
         am, asd = masked_stats(feats[:, 0], m[:, 0])
         nm, nsd = masked_stats(feats[:, 1:], m[:, 1:]) if pos.shape[1] > 1 else (am, asd)
-        residual = future.double() - cv_extrapolate(pos[:, 0].double(), mask[:, 0], self.config.future_steps,
-                                                    min(self.config.velocity_window, pos.shape[2]))
+        residual = future.double() - self.base_prediction(pos.double(), mask)
         self.agent_mean.copy_(am)
         self.agent_std.copy_(asd)
         self.neighbour_mean.copy_(nm)
@@ -457,8 +579,23 @@ class TrajectoryTransformer(nn.Module):
         gate = None
         if self.gate is not None:
             gate = torch.sigmoid(self.gate(agent)) * self._familiarity(x).unsqueeze(-1)
+        if self.config.base == "lane-aware":
+            return self.base_prediction(pos, mask), residual, gate
         window = min(self.config.velocity_window, agent_pos.shape[1])
         return cv_extrapolate(agent_pos, mask[:, 0], f, window), residual, gate
+
+    def base_prediction(self, pos: torch.Tensor, mask: torch.Tensor) -> torch.Tensor:
+        """``(N, F, 2)`` the extrapolation the correction is added to (:attr:`PredictorConfig.base`)."""
+        c = self.config
+        window = min(c.velocity_window, pos.shape[2])
+        if c.base == "lane-aware":
+            return lane_extrapolate(pos, mask, c.future_steps, window, smooth_window=min(c.lane_smooth_window, window),
+                                    smooth_jitter_m=c.lane_smooth_jitter_m,
+                                    lateral_window=min(c.lane_lateral_window, window), lane_width_m=c.lane_width_m,
+                                    margin_m=c.lane_margin_m, approach_m=c.lane_approach_m,
+                                    move_mps=c.lane_change_mps, still_mps=c.lane_hold_mps, dt_s=c.dt_s)  # fmt: skip
+        agent = torch.where(mask[:, 0].unsqueeze(-1), pos[:, 0], torch.zeros_like(pos[:, 0]))
+        return cv_extrapolate(agent, mask[:, 0], c.future_steps, window)
 
     def _encode(self, pos: torch.Tensor, mask: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
         """The agent's output token ``(N, d)``, its masked history positions ``(N, H, 2)`` and the token

@@ -24,7 +24,12 @@ from tqdm.auto import tqdm
 
 from lcdata.corpus import Corpus, WindowBatch, WindowOptions, split_episodes
 from lcmodels.predictor import metrics as M
-from lcmodels.predictor.baselines import constant_acceleration, constant_velocity, constant_velocity_fit
+from lcmodels.predictor.baselines import (
+    constant_acceleration,
+    constant_velocity,
+    constant_velocity_fit,
+    lane_aware_velocity,
+)
 from lcmodels.predictor.checkpoint import save_model
 from lcmodels.predictor.model import PredictorConfig, TrajectoryTransformer
 
@@ -168,14 +173,17 @@ def evaluate(
 
     Returns:
         ``{"model"?: summary, "constant_velocity": summary, "constant_velocity_fit": summary (the velocity
-        fitted to the last FIT_WINDOW steps, where the history is that long), "constant_acceleration": summary}``,
+        fitted to the last FIT_WINDOW steps, where the history is that long), "lane_aware": summary (the lane-aware
+        extrapolation, ``lane_aware_velocity`` with its defaults, where the history is that long),
+        "constant_acceleration": summary}``,
         each summary as :func:`lcmodels.predictor.metrics.summary`, plus ``"lane_change"`` with
         the same three on the windows whose future contains a lane change (when there are any).
     """
     f = batch.future.shape[1]
     preds = {
         "constant_velocity": constant_velocity(batch.history, f),
-        **({"constant_velocity_fit": constant_velocity_fit(batch.history, f, window=FIT_WINDOW)}
+        **({"constant_velocity_fit": constant_velocity_fit(batch.history, f, window=FIT_WINDOW),
+            "lane_aware": lane_aware_velocity(batch.history, batch.neighbours, batch.neighbour_mask, f, window=FIT_WINDOW)}
            if batch.history.shape[1] >= FIT_WINDOW else {}),
         "constant_acceleration": constant_acceleration(batch.history, f),
     }
