@@ -237,7 +237,26 @@ def experiment_card(run: str | os.PathLike[str], recipe_name: str, *, seed: int 
                          | ({"follow": follow} if follow else {}) if safety and "test" in safety else None),
         "experiment_command": experiment.get("command", ""), "preset": (experiment.get("preset") or {}).get("name"),
     }  # fmt: skip
+    made = _invocation_of(run, StageKey(recipe.name, seed, recipe.stages[-1]))
+    if made is not None:  # a directory several commands filled: the one that trained this recipe's policy
+        card["experiment_command"] = made.get("command", card["experiment_command"])
+        if made.get("commit"):
+            card["commit"] = made["commit"] + ("+changes" if made.get("dirty") else "")
     return card, policy, needs
+
+
+def _invocation_of(run: Path, key: Any) -> dict[str, Any] | None:
+    """The entry of ``run``'s ``invocations.json`` that computed stage ``key`` (the last one started before the
+    stage finished), None when either record is missing."""
+    from lcmodels.experiment.store import INVOCATIONS, read_record
+
+    finished = (read_record(run, key) or {}).get("finished")
+    entries = read_json(run / INVOCATIONS)
+    if not isinstance(finished, str) or not isinstance(entries, list):
+        return None
+    before = [e for e in entries if isinstance(e, dict) and isinstance(e.get("started"), str)
+              and e["started"] <= finished]  # fmt: skip (ISO times of one clock: they sort as strings)
+    return before[-1] if before else None
 
 
 def publish_from_experiment(run: str | os.PathLike[str], recipe_name: str, *, seed: int = 0, name: str | None = None,

@@ -203,3 +203,24 @@ def test_every_shipped_card_passes_the_card_checks_and_finds_its_predictor_by_di
         if meta.get("predictor"):
             found = find_predictor(meta, card_file)
             assert found is not None and found.resolve() == (copy / "predictor" / "predictor.pt").resolve()
+
+
+def test_a_card_names_the_invocation_that_trained_its_policy(tmp_path) -> None:
+    """A directory several commands filled: the card's command and commit are those of the run that computed the
+    recipe's last stage, not the last run's."""
+    import json
+
+    from lcmodels.experiment.keys import StageKey
+    from lcmodels.zoo import _invocation_of
+
+    key = StageKey("pure-ppo", 0, "train")
+    (tmp_path / "stages").mkdir()
+    (tmp_path / "stages" / f"{key.record_name}.json").write_text(json.dumps({"finished": "2026-12-07T14:37:57+0000"}))
+    runs = [{"started": "2026-12-07T11:21:53+0000", "command": "first", "commit": "aaaaaaa", "dirty": False},
+            {"started": "2026-12-07T14:27:40+0000", "command": "second", "commit": "bbbbbbb", "dirty": True},
+            {"started": "2026-12-07T14:57:48+0000", "command": "third", "commit": "ccccccc", "dirty": False}]
+    (tmp_path / "invocations.json").write_text(json.dumps(runs))
+    assert _invocation_of(tmp_path, key) == runs[1]
+    assert _invocation_of(tmp_path, StageKey("pure-ppo", 1, "train")) is None  # no record of that stage
+    (tmp_path / "invocations.json").unlink()
+    assert _invocation_of(tmp_path, key) is None

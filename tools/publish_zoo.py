@@ -34,6 +34,9 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--overwrite", action="store_true",
                     help="replace zoo entries that exist (publishing into this checkout's zoo always rewrites the recipe's "
                          ".reached.json, a record in git)")
+    ap.add_argument("--commit", default="",
+                    help="the commit the experiment ran at, where its invocations.json does not record it (older "
+                         "directories; default: this checkout's HEAD)")
     ap.add_argument("--reached-only", action="store_true",
                     help="write only lcmodels/recipes/<name>.reached.json, no zoo entry (packaged recipes)")
     args = ap.parse_args(argv)
@@ -44,8 +47,8 @@ def main(argv: list[str] | None = None) -> int:
     from lcmodels.zoo import CHECKOUT_ZOO, experiment_card, publish_from_experiment, weights_sha256, zoo_dir
 
     try:
-        commit = subprocess.run(["git", "rev-parse", "--short", "HEAD"], capture_output=True, text=True,
-                                check=True, cwd=Path(__file__).parent).stdout.strip()  # fmt: skip
+        commit = args.commit or subprocess.run(["git", "rev-parse", "--short", "HEAD"], capture_output=True,
+                                               text=True, check=True, cwd=Path(__file__).parent).stdout.strip()  # fmt: skip
     except (OSError, subprocess.CalledProcessError):
         commit = ""
     # the records describe what this checkout's own zoo/ ships, whatever LC_ZOO says

@@ -203,9 +203,13 @@ class Invocations:
         self._lock = threading.Lock()  # progress lines of the worker processes come from another thread
 
     def start(self, command: str, t0: float) -> None:
+        from lcmodels.bench.ledger import git_commit
+
         previous = read_json(self.path)
+        commit, dirty = git_commit()  # the code the stages of this run are computed with (None: no checkout)
         self.entries = [*(previous if isinstance(previous, list) else []),
-                        {"started": time.strftime("%Y-%m-%dT%H:%M:%S%z"), "command": command}]
+                        {"started": time.strftime("%Y-%m-%dT%H:%M:%S%z"), "command": command, "commit": commit,
+                         "dirty": dirty}]  # fmt: skip
         self._t0 = t0
         self.save(finished=False)
 
