@@ -196,7 +196,8 @@ def follower_mismatches(entries: list[ZooEntry] | None = None) -> list[str]:
 
 def experiment_card(run: str | os.PathLike[str], recipe_name: str, *, seed: int = 0,
                     commit: str = "") -> tuple[dict[str, Any], Path, bool]:
-    """What the ``lc-experiment`` directory ``run`` measured for ``recipe_name`` (training seed ``seed``): the
+    """What the ``lc-experiment`` directory ``run`` measured for ``recipe_name`` (training seed ``seed``; ``commit``:
+    the code's, where the invocation that trained it did not record its own): the
     card of its final policy (recipe, commit, training time, validation figures and the experiment's held-out
     ones (``heldout``: its *test* split, validation episodes in the benchmark's sense), the safety layer's when
     run, the experiment's command; the sealed test figures come from the ledger, ``tools/publish_ledger.py``), the policy file, and whether it reads predictions. ``ValueError``

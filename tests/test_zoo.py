@@ -46,7 +46,10 @@ def test_an_entry_published_from_an_experiment_works_wherever_a_policy_does(
     publish_from_experiment(tiny_run, "pure-ppo", root=root)
     card = json.loads((root / "hybrid-ppo" / "zoo.json").read_text())
     metrics = json.loads((tiny_run / "policies" / "hybrid-ppo" / "seed0" / "eval" / "metrics.json").read_text())
-    assert card["heldout"]["success_rate"] == metrics["test"]["success_rate"] and card["commit"] == "abc1234"
+    ran = json.loads((tiny_run / "invocations.json").read_text())[-1]  # its commit, when run from a checkout
+    made_at = ran["commit"] + ("+changes" if ran["dirty"] else "") if ran.get("commit") else "abc1234"
+    assert card["heldout"]["success_rate"] == metrics["test"]["success_rate"] and card["commit"] == made_at
+    assert card["experiment_command"] == ran["command"]
     assert card["recipe"] == "hybrid-ppo" and card["training_wall_s"] > 0 and card["safety_layer"]["heldout"]
     with pytest.raises(ValueError, match="exists"):
         publish_from_experiment(tiny_run, "hybrid-ppo", root=root)  # nothing is replaced silently
@@ -93,7 +96,8 @@ def test_an_entry_published_from_an_experiment_works_wherever_a_policy_does(
     demo = dataclasses.replace(PRESETS["tiny"], name="tiny-demo", recipes=("quick-pure",), zoo=True, showcase_episodes=2)
     res = Experiment(demo, tmp_path / "demo").run()
     report = res.report.read_text()
-    for name, note in (("hybrid-ppo", " @ abc1234"), ("pure-ppo", "")):
+    own = f" @ {made_at}" if ran.get("commit") else ""  # pure-ppo was published without a commit of the caller's
+    for name, note in (("hybrid-ppo", f" @ {made_at}"), ("pure-ppo", own)):
         z = json.loads((tmp_path / "demo" / "zoo" / name / "metrics.json").read_text())["test"]
         assert z["episodes"] == demo.test_episodes
         ci = z["success_rate_ci95"]
