@@ -54,11 +54,12 @@ with the paper's budgets and observation."""
 BEST_RECIPES = ("hybrid-ppo", "pure-ppo", "pure-ppo-dagger", "prediction-ppo", "image-ppo", "a2c-hybrid",
                 "dqn-hybrid")  # fmt: skip
 """The project's best recipe for each method."""
-OPTIONAL_RECIPES = ("hybrid-ppo-dagger", "attention-ppo")
+OPTIONAL_RECIPES = ("hybrid-ppo-dagger", "attention-ppo", "distil-safety-ppo")
 """Recipes the ``paper`` preset runs only when named (``--recipe``): ``hybrid-ppo-dagger`` trains the image network
 on every state of its six DAgger rounds, several CPU hours (each round adds tens of thousands of states), for a
 route that did not move the pure policy beyond the noise (docs/results/human-traffic); ``attention-ppo`` is a
-research route (the ego-attention sensor branch, docs/results/attention)."""
+research route (the ego-attention sensor branch, docs/results/attention); ``distil-safety-ppo`` labels about
+200k decisions with the safety layer, about an hour of one core (docs/results/distil)."""
 
 
 # ------------------------------------------------------------------------------------------------ presets
