@@ -29,6 +29,9 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--correction-weight", type=float, required=True, help="weight of a corrected state (against 1)")
     ap.add_argument("--epochs", type=positive_int, default=10, help="epochs over all states (10)")
     ap.add_argument("--seed", type=int, default=0, help="shuffling seed (0)")
+    ap.add_argument("--no-balance", action="store_true",
+                    help="every decision alike: no weighting of rare actions by the inverse square root of their "
+                    "frequency (which cloning does by default)")
     ap.add_argument("--out", type=Path, required=True, help="the policy file to write (refused if it exists)")
     args = ap.parse_args(argv)
     if args.out.exists():
@@ -60,7 +63,10 @@ def main(argv: list[str] | None = None) -> int:
     except (ValueError, OSError, KeyError) as exc:
         return fail("reclone", str(exc).splitlines()[0])
     y, a = np.concatenate(labels), np.concatenate(own)
-    weights = np.where(y != a, args.correction_weight, 1.0).astype(np.float32)
+    weights = np.where(y != a, args.correction_weight, 1.0)
+    if args.no_balance:  # cancel pretrain's 1/sqrt(frequency) weight of each label's action (constant factors aside)
+        weights *= np.sqrt(np.bincount(y, minlength=3)[y] / len(y))
+    weights = weights.astype(np.float32)
     data = Demonstrations({k: RowChunks(v) for k, v in obs.items()}, y, np.zeros(len(y), dtype=np.float32), 0, weights)
     t0 = time.perf_counter()
     losses = pretrain(loaded.model, data, epochs=args.epochs, value_coef=0.0, seed=args.seed,
@@ -68,7 +74,8 @@ def main(argv: list[str] | None = None) -> int:
     train_s = time.perf_counter() - t0
     meta = {k: v for k, v in loaded.meta.items() if k not in ("format", "version")}
     meta["reclone"] = {"from": str(args.start), "dagger": str(args.dagger_dir), "states": len(y),
-                       "corrections": int((y != a).sum()), "correction_weight": args.correction_weight}
+                       "corrections": int((y != a).sum()), "correction_weight": args.correction_weight,
+                       "balance_actions": not args.no_balance}
     save_policy(loaded.model, args.out, meta)
     record = {**meta["reclone"], "rounds": [str(p) for p in rounds], "epochs": args.epochs, "epoch_losses": losses,
               "train_s": train_s}
