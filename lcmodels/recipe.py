@@ -26,6 +26,7 @@ evaluation and budget caps::
     rounds = 6
     expert = "oracle"              # or "safety-layer": the followed recipe's policy behind the [safety] layer
     correction_weight = 1.0        # weight of a state whose label differs from the policy's own decision
+    balance_actions = true         # rare actions' states count more (1/sqrt of their frequency)
 
     [train]                        # online RL, from the previous stage's policy when there is one
     timesteps = 1200000
@@ -127,6 +128,8 @@ class DaggerSpec:
     correction_weight: float = 1.0
     """Training weight of a labelled state whose label differs from the student's own decision there, against 1
     (:func:`lcmodels.policy.dagger.dagger`)."""
+    balance_actions: bool = True
+    """Weight each state by the inverse square root of its label's frequency, as cloning does; False: alike."""
 
 
 @dataclass(frozen=True, slots=True, kw_only=True)

@@ -417,7 +417,8 @@ def _dagger_job(ctx: StageContext, key: StageKey, recipe: Recipe, got: Mapping[s
         expert = spec.expert if follow is None else f"safety-layer:{previous_policy(follow)}"
         dagger(start.path, path, rounds=spec.rounds, episodes=spec.episodes, epochs=spec.epochs,
                seed=spec.seed + 10_000 * seed, workers=1, eval_episodes=0, labels=spec.labels,
-               expert=expert, correction_weight=spec.correction_weight, expert_safety=layer,
+               expert=expert, correction_weight=spec.correction_weight, balance_actions=spec.balance_actions,
+               expert_safety=layer,
                resume=keep and (path / "dagger.json").exists(),
                demonstrations=demos.path if demos is not None else None,
                progress=lambda m: ctx.emit(f"[{key}] {m}"))  # fmt: skip
@@ -433,6 +434,6 @@ def _dagger_job(ctx: StageContext, key: StageKey, recipe: Recipe, got: Mapping[s
 
 
 def stored_dagger_config(data: dict[str, Any]) -> dict[str, Any]:
-    """A dagger stage's recorded config in today's form: one recorded before the correction weight was a setting
-    trained at weight 1."""
-    return {"correction_weight": 1.0} | data
+    """A dagger stage's recorded config in today's form: one recorded before the correction weight and the action
+    balance were settings trained at weight 1, balanced."""
+    return {"correction_weight": 1.0, "balance_actions": True} | data
