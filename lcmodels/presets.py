@@ -59,7 +59,7 @@ OPTIONAL_RECIPES = ("hybrid-ppo-dagger", "attention-ppo", "distil-safety-ppo")
 on every state of its six DAgger rounds, several CPU hours (each round adds tens of thousands of states), for a
 route that did not move the pure policy beyond the noise (docs/results/human-traffic); ``attention-ppo`` is a
 research route (the ego-attention sensor branch, docs/results/attention); ``distil-safety-ppo`` labels about
-200k decisions with the safety layer, about an hour of one core (docs/results/distil)."""
+100k decisions with the safety layer, about 25 minutes of one core (docs/results/distil)."""
 
 
 # ------------------------------------------------------------------------------------------------ presets
