@@ -56,6 +56,9 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--correction-weight", type=float, default=1.0,
                     help="weight in training of a state whose label differs from the policy's own decision, "
                     "against 1 for one where they agree (1)")
+    ap.add_argument("--no-action-balance", dest="balance_actions", action="store_false",
+                    help="train every state alike (times its correction weight); by default a state counts by the "
+                    "inverse square root of its label's frequency, so that rare lane changes are heard, as in cloning")
     ap.add_argument("--threads", type=positive_int, default=1,
                     help="torch threads for training (default 1: more collapse when another process shares the cores)")
     ap.add_argument("--demonstrations", default=None, metavar="DIR",
@@ -78,7 +81,8 @@ def main(argv: list[str] | None = None) -> int:
             raise ValueError("--follow and --set safety.KEY=VALUE apply to an expert behind the safety layer")
         dagger(args.run, args.out, rounds=args.rounds, episodes=args.episodes, epochs=args.epochs, seed=args.seed,
                workers=args.workers, eval_episodes=args.eval_episodes, eval_seed=args.eval_seed, labels=args.labels,
-               expert=args.expert, correction_weight=args.correction_weight, resume=args.resume,
+               expert=args.expert, correction_weight=args.correction_weight,
+               balance_actions=args.balance_actions, resume=args.resume,
                expert_safety=layer, demonstrations=args.demonstrations,
                progress=lambda msg: print(msg, flush=True))  # fmt: skip
     except (ValueError, OSError) as exc:

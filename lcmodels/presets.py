@@ -54,12 +54,14 @@ with the paper's budgets and observation."""
 BEST_RECIPES = ("hybrid-ppo", "pure-ppo", "pure-ppo-dagger", "prediction-ppo", "image-ppo", "a2c-hybrid",
                 "dqn-hybrid")  # fmt: skip
 """The project's best recipe for each method."""
-OPTIONAL_RECIPES = ("hybrid-ppo-dagger", "attention-ppo", "roads-ppo", "drawn-roads-ppo")
+OPTIONAL_RECIPES = ("hybrid-ppo-dagger", "attention-ppo", "roads-ppo", "drawn-roads-ppo", "distil-safety-ppo")
 """Recipes the ``paper`` preset runs only when named (``--recipe``): ``hybrid-ppo-dagger`` trains the image network
 on every state of its six DAgger rounds, several CPU hours (each round adds tens of thousands of states), for a
 route that did not move the pure policy beyond the noise (docs/results/human-traffic); ``attention-ppo``,
 ``roads-ppo`` and ``drawn-roads-ppo`` are research routes (the ego-attention sensor branch, docs/results/attention;
-training on every road of the suite at once, and on roads drawn across its dimensions)."""
+training on every road of the suite at once, and on roads drawn across its dimensions, docs/results/roads);
+``distil-safety-ppo`` labels about 100k decisions with the safety layer, about 25 minutes of one core
+(docs/results/distil)."""
 
 
 # ------------------------------------------------------------------------------------------------ presets

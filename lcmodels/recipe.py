@@ -24,6 +24,9 @@ evaluation and budget caps::
 
     [dagger]                       # DAgger rounds from the clone
     rounds = 6
+    expert = "oracle"              # or "safety-layer": the followed recipe's policy behind the [safety] layer
+    correction_weight = 1.0        # weight of a state whose label differs from the policy's own decision
+    balance_actions = true         # rare actions' states count more (1/sqrt of their frequency)
 
     [train]                        # online RL, from the previous stage's policy when there is one
     timesteps = 1200000
@@ -38,6 +41,11 @@ evaluation and budget caps::
     follow = "pure-ppo"            # the recipe whose policy the imagined futures follow
     horizon_decisions = 32
     samples = 3                    # redrawn futures per candidate decision
+
+A dagger stage whose expert is ``"safety-layer"`` distils a layer into a network: the final policy of the recipe
+``safety.follow`` names (same training seed), behind the ``[safety]`` layer, labels the states the student reaches.
+Such a stage may come first (``stages = ["dagger"]``): the student is then that policy itself, and no
+demonstrations join the labels.
 
 The stage tables override ``[policy]`` for their stage (a ``shielded`` stage trains with ``[train]``'s); the
 ``[safety]`` table is a :class:`lcsim.planning.SafetyLayerConfig` (blind and perceived unless it says otherwise;
@@ -99,9 +107,15 @@ class DemoSpec:
     """First user seed (the demonstrations' seeds are kept apart from training's and evaluation's)."""
 
 
+DAGGER_EXPERTS: tuple[str, ...] = ("oracle", "safety-layer")
+"""Who labels a recipe's DAgger states: the oracle (sees the future), or the final policy of the recipe the
+``[safety]`` layer follows, behind that layer."""
+
+
 @dataclass(frozen=True, slots=True, kw_only=True)
 class DaggerSpec:
-    LIMITS: ClassVar[dict[str, int]] = {"rounds": 1_000, "episodes": 100_000, "epochs": 10_000, "seed": 100_000_000}
+    LIMITS: ClassVar[dict[str, float]] = {"rounds": 1_000, "episodes": 100_000, "epochs": 10_000, "seed": 100_000_000,
+                                          "correction_weight": 1_000.0}  # fmt: skip
 
     rounds: int = 2
     episodes: int = 100
@@ -109,7 +123,13 @@ class DaggerSpec:
     epochs: int = 10
     seed: int = 100_000
     expert: str = "oracle"
+    """One of :data:`DAGGER_EXPERTS`."""
     labels: str = "plan"
+    correction_weight: float = 1.0
+    """Training weight of a labelled state whose label differs from the student's own decision there, against 1
+    (:func:`lcmodels.policy.dagger.dagger`)."""
+    balance_actions: bool = True
+    """Weight each state by the inverse square root of its label's frequency, as cloning does; False: alike."""
 
 
 @dataclass(frozen=True, slots=True, kw_only=True)
@@ -163,8 +183,17 @@ class Recipe:
                 set(stages), key=STAGE_KINDS.index):
             raise ValueError(f"{where}: stages must be some of {', '.join(STAGE_KINDS)}, each once and in that "
                              f"order, got {list(self.stages)!r}")  # fmt: skip
-        if "dagger" in stages and "clone" not in stages:
-            raise ValueError(f"{where}: a dagger stage needs a clone stage before it")
+        if self.dagger.expert not in DAGGER_EXPERTS:
+            raise ValueError(f"{where}: dagger.expert must be one of {', '.join(DAGGER_EXPERTS)}, "
+                             f"got {self.dagger.expert!r}")  # fmt: skip
+        distils = self.dagger.expert == "safety-layer"
+        if "dagger" in stages and distils and (self.safety is None or not self.safety.follow
+                                               or self.safety.follow == self.name):
+            raise ValueError(f"{where}: dagger.expert = \"safety-layer\" needs a [safety] table naming the recipe "
+                             "whose policy is the expert behind it (safety.follow, another recipe)")
+        if "dagger" in stages and "clone" not in stages and not distils:
+            raise ValueError(f"{where}: a dagger stage needs a clone stage before it (or the safety layer as its "
+                             "expert, starting from the policy it follows)")
         if "shielded" in stages and (stages[0] == "shielded" or self.safety is None or not self.safety.follow):
             raise ValueError(f"{where}: a shielded stage needs a stage before it and a [safety] table naming the "
                              "recipe its imagined futures follow (safety.follow)")
@@ -187,6 +216,8 @@ class Recipe:
                     hi = cls.LIMITS.get(f.name)
                     if want is not str and want is not bool and hi is not None and v > hi:
                         raise ValueError(f"{where}: {name}.{f.name} must be at most {hi:,}, got {v!r}")
+        if not (math.isfinite(self.dagger.correction_weight) and self.dagger.correction_weight > 0):
+            raise ValueError(f"{where}: dagger.correction_weight must be > 0, got {self.dagger.correction_weight!r}")
         if not math.isfinite(self.shielded.penalty) or self.shielded.penalty < 0:
             raise ValueError(f"{where}: shielded.penalty must be >= 0, got {self.shielded.penalty!r}")
         if "shielded" in stages and self.safety is not None and self.safety.follow == self.name:
@@ -392,6 +423,7 @@ def load_recipe(name_or_path: str | os.PathLike[str]) -> Recipe:
 
 
 __all__ = [
+    "DAGGER_EXPERTS",
     "EXPERIMENT_FIELDS",
     "RECIPES_DIR",
     "RECIPE_KINDS",

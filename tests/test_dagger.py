@@ -136,6 +136,10 @@ def test_dagger_with_a_driver_as_the_expert_labels_every_state_with_its_decision
     with pytest.raises(ValueError, match=r"correction weight: 1\.0 there, 5\.0 asked"):
         dagger(tmp_path / "run", tmp_path / "dg", rounds=2, episodes=3, epochs=1, seed=7, workers=1,
                eval_episodes=0, expert=expert, correction_weight=5.0, resume=True)  # fmt: skip
+    assert records[0]["balance_actions"] is True
+    with pytest.raises(ValueError, match="action balance: True there, False asked"):
+        dagger(tmp_path / "run", tmp_path / "dg", rounds=2, episodes=3, epochs=1, seed=7, workers=1,
+               eval_episodes=0, expert=expert, balance_actions=False, resume=True)  # fmt: skip
     with pytest.raises(ValueError, match="there, oracle asked"):
         dagger(tmp_path / "run", tmp_path / "dg", rounds=2, episodes=3, epochs=1, seed=7, workers=1,
                eval_episodes=0, resume=True)  # fmt: skip

@@ -170,9 +170,11 @@ def check_report_holds_the_numbers_of_the_metrics_files(run_dir: Path) -> None:
                 check_cell(row[col].split(" (`")[0], [100 * stage_metrics(run_dir, chosen, s)["test"]["success_rate"]
                                                       for s in range(SEEDS)])  # fmt: skip
     every = {re.search(r"\(`([^`]+)`\)$", r["row"]).group(1): r for r in md_table(report, "## Every row")}
-    assert set(every) == {RULE_KEY, ORACLE_KEY, *RECIPES, "hybrid-ppo+safety"}
+    behind = {f"{n}+safety" for n in RECIPES if load_recipe(n).safety is not None}  # also behind their layer
+    assert behind == {"hybrid-ppo+safety", "distil-safety-ppo+safety"}
+    assert set(every) == {RULE_KEY, ORACLE_KEY, *RECIPES, *behind}
     refs = {re.search(r"\(`([^`]+)`\)$", r["driver"]).group(1): r for r in md_table(report, "## References")}
-    assert set(refs) == {RULE_KEY, ORACLE_KEY, "hybrid-ppo+safety"}
+    assert set(refs) == {RULE_KEY, ORACLE_KEY, *behind}
     rule = stage_metrics(run_dir, RULE_KEY)["test"]
     assert refs[RULE_KEY]["success %"] == every[RULE_KEY]["held-out success %"]
     assert every[RULE_KEY]["held-out success %"].startswith(f"{100 * rule['success_rate']:.1f} [")
@@ -341,8 +343,8 @@ def check_rerun_skips_everything_and_a_changed_recipe_is_stale(run_dir: Path, ca
     assert {p: p.stat().st_mtime_ns for p in policies} == before
 
     # A recipe file with other demonstration episodes: its demos, clone, train and evaluation are stale, and so
-    # is the shielded stage of hybrid-ppo, whose safety layer follows it; the packaged recipe sharing the old
-    # demonstrations and every other recipe stay complete.
+    # are the shielded stage of hybrid-ppo, whose safety layer follows it, and distil-safety-ppo, whose DAgger
+    # starts from it; the packaged recipe sharing the old demonstrations and every other recipe stay complete.
     changed = load_recipe("pure-ppo").with_settings(["demos.seed=6000"])
     path = run_dir.parent / "pure-ppo.toml"
     path.write_text(changed.to_toml())
@@ -353,7 +355,8 @@ def check_rerun_skips_everything_and_a_changed_recipe_is_stale(run_dir: Path, ca
     # the plan lists every stage of the graph: the evaluations and safety stages after a stale policy wait for it
     assert stale == {"demos/oracle-s6000-n2"} | {f"pure-ppo/seed{s}/{st}" for s in range(SEEDS) for st in ("clone", "train")} \
         | {f"hybrid-ppo/seed{s}/shielded" for s in range(SEEDS)} \
-        | {f"pure-ppo/seed{s}/eval" for s in range(SEEDS)} | {f"hybrid-ppo/seed{s}/{st}" for s in range(SEEDS) for st in ("eval", "safety")}
+        | {f"pure-ppo/seed{s}/eval" for s in range(SEEDS)} | {f"hybrid-ppo/seed{s}/{st}" for s in range(SEEDS) for st in ("eval", "safety")} \
+        | {f"distil-safety-ppo/seed{s}/{st}" for s in range(SEEDS) for st in ("dagger", "eval", "safety")}
     assert plan["demos/oracle-s6000-n2"] == "would run (new)"
     assert all(plan[n].startswith("would run (after ") for n in stale - {"demos/oracle-s6000-n2"})
     assert len(plan) == n_stages + 1  # the new demonstrations besides the old ones, which other recipes read
@@ -609,3 +612,38 @@ def test_skip_train_lists_the_stages_waiting_for_a_follower_as_not_run(tmp_path:
     for st in (*load_recipe("hybrid-ppo").stages, "eval"):  # the shielded stage and what follows it too
         assert stages[f"hybrid-ppo/seed0/{st}"] == "not run", st
     assert stages["pure-ppo/seed0/eval"] == "not run"
+
+
+def test_a_dagger_stage_taught_by_the_safety_layer_starts_from_the_policy_it_follows(tmp_path: Path) -> None:
+    """``distil-safety-ppo``: its DAgger stage comes first, starts from pure-ppo's policy of the same seed, and has
+    that policy behind the recipe's safety layer label the states, corrections weighted as the recipe says."""
+    preset = dataclasses.replace(PRESETS["tiny"], recipes=("distil-safety-ppo",), oracle=False)
+    run_dir = tmp_path / "run"
+    exp = Experiment(preset, run_dir)
+    recipe = next(r for r in exp.recipes() if r.name == "distil-safety-ppo")
+    for key in ("demos/oracle-s5000-n2", "pure-ppo/seed0/clone", "pure-ppo/seed0/train", "distil-safety-ppo/seed0/dagger"):
+        assert exp.run_stage(StageKey.parse(key)).status == "done", key
+    follow = json.loads((run_dir / "stages" / "pure-ppo__seed0__train.json").read_text())
+    rec = json.loads((run_dir / "stages" / "distil-safety-ppo__seed0__dagger.json").read_text())
+    assert rec["inputs"] == {"clone": outputs_digest(follow["outputs"]), "expert": outputs_digest(follow["outputs"])}
+    assert rec["config"]["correction_weight"] == 4.0 and rec["config"]["safety"]["samples"] == recipe.safety.samples
+    start = policy_dir(run_dir, "pure-ppo", 0) / "train"
+    book = json.loads((policy_dir(run_dir, "distil-safety-ppo", 0) / "dagger" / "dagger.json").read_text())
+    assert Path(book["run_dir"]) == start and book["demonstrations"] == ""
+    (r1,) = book["rounds"]
+    assert r1["expert"] == f"safety-layer:{(start / 'policy.safetensors').resolve()}"
+    assert r1["expert_safety_layer"] == {"blind": True, "follow": "", "perceived": True,
+                                         "horizon_decisions": recipe.safety.horizon_decisions,
+                                         "samples": recipe.safety.samples}  # fmt: skip
+    assert r1["correction_weight"] == 4.0 and r1["training_states"] == r1["states_labelled"] > 0
+    with np.load(policy_dir(run_dir, "distil-safety-ppo", 0) / "dagger" / "round1" / "states.npz") as states:
+        assert r1["agreement"] == pytest.approx(float((states["labels"] == states["actions"]).mean()))
+    # a stage recorded before the weight was a setting trained at weight 1: complete for a recipe asking 1, stale here
+    path = run_dir / "stages" / "distil-safety-ppo__seed0__dagger.json"
+    rec["config"].pop("correction_weight")
+    path.write_text(json.dumps(rec))
+    unweighted = tmp_path / "distil-safety-ppo.toml"
+    unweighted.write_text(load_recipe("distil-safety-ppo").with_settings(["dagger.correction_weight=1.0"]).to_toml())
+    again = Experiment(dataclasses.replace(preset, recipes=(str(unweighted),)), run_dir)
+    assert again.run_stage(StageKey.parse("distil-safety-ppo/seed0/dagger")).status == "skipped"
+    assert exp.run_stage(StageKey.parse("distil-safety-ppo/seed0/dagger")).status == "done"

@@ -66,6 +66,9 @@ def test_the_tiny_graph_has_every_stage_of_every_recipe_each_after_what_it_reads
     assert graph.needed(StageKey("pure-ppo", 0, "train")) == [StageKey("pure-ppo", 0, "clone")]
     assert StageKey.of("predictor") in graph.needed(StageKey("hybrid-ppo", 0, "eval"))
     assert [k.stage for k in graph.needed(StageKey("pure-ppo-dagger", 1, "dagger"))] == ["demos", "clone"]
+    # DAgger with the safety layer as the expert, first: it starts from the followed policy, no demonstrations
+    for s in range(2):
+        assert graph.needed(StageKey("distil-safety-ppo", s, "dagger")) == [StageKey("pure-ppo", s, "train")]
     # the safety layer's follower: the shielded and safety stages read pure-ppo's final policy of the same seed
     for s in range(2):
         follower = StageKey("pure-ppo", s, "train")

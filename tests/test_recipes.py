@@ -61,6 +61,13 @@ def write(tmp_path: Path, text: str, name: str = "mine") -> Path:
         ("[shielded]\npenalty = nan\n", "shielded.penalty must be >= 0"),
         ('stages = ["train", "shielded"]\n[safety]\nfollow = "mine"\n', "cannot follow the recipe itself"),
         ("[shielded]\nepisodes = 3\n", "[shielded] has no key(s) ['episodes']"),
+        ('[dagger]\nexpert = "runs/x/policy.safetensors"\n', "dagger.expert must be one of oracle, safety-layer"),
+        ('stages = ["dagger"]\n[dagger]\nexpert = "safety-layer"\n', "needs a [safety] table naming the recipe"),
+        ('stages = ["dagger"]\n[dagger]\nexpert = "safety-layer"\n[safety]\nfollow = "mine"\n',
+         "needs a [safety] table naming the recipe"),
+        ('[dagger]\ncorrection_weight = 0.0\n', "dagger.correction_weight must be > 0"),
+        ('[dagger]\ncorrection_weight = nan\n', "dagger.correction_weight must be > 0"),
+        ('[dagger]\ncorrection_weight = "high"\n', "dagger.correction_weight must be of type float"),
     ],
 )
 def test_a_bad_recipe_is_one_line_naming_the_file_and_the_problem(tmp_path: Path, text: str, message: str) -> None:
@@ -164,6 +171,7 @@ def test_safety_layers_whose_followers_loop_are_one_line_errors(
     ('stages = ["train", "shielded"]\n[safety]\nfollow = "pure-ppo"\n[shielded]\ntimesteps = 10000000000000\n',
      "shielded.timesteps must be at most"),
     ("[shielded]\npenalty = 1e300\n", "shielded.penalty must be at most"),
+    ("[dagger]\ncorrection_weight = 1e9\n", "dagger.correction_weight must be at most"),
     ("[safety]\nhorizon = 1000000000\n", "horizon_decisions must be at most"),
     ('stages = [{a = 1}]\n', "stages"),
     ("x = " + "[" * 5000 + "]" * 5000 + "\n", "nested too deeply"),

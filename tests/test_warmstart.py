@@ -91,6 +91,23 @@ def test_sample_weights_decide_between_conflicting_labels(heavier: int) -> None:
     assert (chosen == heavier).all(), chosen
 
 
+@pytest.mark.parametrize("balance", [True, False])
+def test_the_action_balance_makes_rare_labels_count_more_and_can_be_turned_off(balance: bool) -> None:
+    """Each state labelled right four times and left once at weight 3: balanced (left counts 1/sqrt of its share,
+    twice right's) left weighs more; without the balance right does."""
+    space = policy_observation_space(tiny_scenario(), "pure")
+    distinct = np.stack([space["current"].sample() for _ in range(4)])
+    states = np.concatenate([distinct] * 5)
+    labels = np.array([0] * 16 + [2] * 4)
+    weights = np.where(labels == 2, 3.0, 1.0)
+    env = policy_vec_env(LaneChangeSB3VecEnv(2, scenario_for_mode(tiny_scenario(), "pure")), "pure")
+    model = build_model(tiny_policy(obs="pure"), env)
+    pretrain(model, Demonstrations({"current": states}, labels, np.zeros(20, np.float32), 0, weights),
+             epochs=300, batch_size=20, value_coef=0.0, balance_actions=balance)  # fmt: skip
+    chosen, _ = model.predict({"current": distinct}, deterministic=True)
+    assert (chosen == (2 if balance else 0)).all(), chosen
+
+
 def test_zero_timesteps_with_a_warm_start_gives_the_behaviour_cloned_policy(
         tmp_path: Path, caplog: pytest.LogCaptureFixture) -> None:
     config = scenario_for_mode(tiny_scenario(), "pure")

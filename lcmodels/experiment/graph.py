@@ -6,11 +6,12 @@ each naming the stages it reads.
     corpus ──► predictor ──────────────────────────────► every stage whose policy reads predictions
     demos/<key> ──► <recipe>/seed<k>/clone ──► dagger ──► train ──► shielded ──► eval
                                                                         └──────► safety
-    <followed recipe>/seed<k>/<its final stage> ───────► shielded, safety
+    <followed recipe>/seed<k>/<its final stage> ───────► shielded, safety, a dagger stage the layer labels
     rule, oracle    zoo/<entry>, zoo-safety/<entry>    zoo/* ──► showcase
 
 A recipe's ``shielded`` and ``safety`` stages read the final stage of the recipe its safety layer follows (same
-training seed). Recipes whose layers follow each other in a loop are refused in one line (:class:`GraphCycle`), as
+training seed), and so does a ``dagger`` stage whose expert is that policy behind the layer (when it comes first,
+it starts from that policy). Recipes whose layers follow each other in a loop are refused in one line (:class:`GraphCycle`), as
 are stages that would wait on each other. Plans, dry runs and the stages the report reads are queries of the
 graph.
 """
@@ -261,11 +262,11 @@ def build_graph(preset: Preset, recipes: Sequence[Recipe], seeds: Mapping[str, i
             previous: tuple[tuple[str, StageKey], ...] = ()
             for j, st in enumerate(r.stages):
                 needs = list(pred)
-                if st in ("clone", "dagger"):
+                if st == "clone" or (st == "dagger" and "clone" in r.stages):
                     needs.append(("demos", demos[demos_key(r.demos)]))
                 needs += previous
-                if st == "shielded":
-                    needs += follow
+                if st == "shielded" or (st == "dagger" and r.dagger.expert == "safety-layer"):
+                    needs += follow  # the layer's follower: the policy behind it (and a first dagger's student)
                 key = add(Stage(StageKey(r.name, seed, st), tuple(needs), "recipes", prio("recipes", rank[r.name], seed, i, j),
                                 recipe=r))  # fmt: skip
                 previous = (("previous", key),)

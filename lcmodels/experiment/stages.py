@@ -396,20 +396,44 @@ def _policy_job(ctx: StageContext, key: StageKey, recipe: Recipe, got: Mapping[s
 
 
 def _dagger_job(ctx: StageContext, key: StageKey, recipe: Recipe, got: Mapping[str, StageResult]) -> StageJob:
+    """DAgger rounds of ``recipe``. ``got``: ``previous`` (its clone), ``demos`` (the clone's demonstrations), and
+    for the safety layer as the expert ``follow``: the followed recipe's final policy, which behind the layer labels
+    the states and, when the stage comes first, is the student it starts from."""
     spec = recipe.dagger
-    clone, demos = got["previous"], got.get("demos")
+    follow, demos = got.get("follow"), got.get("demos")
+    start = got.get("previous") or follow
+    assert start is not None
     path = key.path(ctx.out)
     seed = key.seed
     assert seed is not None
+    layer = None
+    if spec.expert == "safety-layer":
+        assert follow is not None and recipe.safety is not None
+        layer = dataclasses.replace(recipe.safety, follow="")  # the imagined futures follow the expert's own policy
 
     def work(keep: bool, save_wall: Callable[[], None]) -> None:
         from lcmodels.policy.dagger import dagger
 
-        dagger(clone.path, path, rounds=spec.rounds, episodes=spec.episodes, epochs=spec.epochs,
+        expert = spec.expert if follow is None else f"safety-layer:{previous_policy(follow)}"
+        dagger(start.path, path, rounds=spec.rounds, episodes=spec.episodes, epochs=spec.epochs,
                seed=spec.seed + 10_000 * seed, workers=1, eval_episodes=0, labels=spec.labels,
-               expert=spec.expert, resume=keep and (path / "dagger.json").exists(),
+               expert=expert, correction_weight=spec.correction_weight, balance_actions=spec.balance_actions,
+               expert_safety=layer,
+               resume=keep and (path / "dagger.json").exists(),
                demonstrations=demos.path if demos is not None else None,
                progress=lambda m: ctx.emit(f"[{key}] {m}"))  # fmt: skip
 
     cfg = dataclasses.asdict(spec) | {"training_seed": seed}
-    return StageJob(cfg, {"clone": clone.digest}, lambda: [f"round{spec.rounds}/{POLICY_FILE}", "dagger.json"], work)
+    inputs = {"clone": start.digest}
+    if layer is not None:
+        assert follow is not None
+        cfg["safety"] = recipe_lookahead(recipe)
+        inputs["expert"] = follow.digest
+    return StageJob(cfg, inputs, lambda: [f"round{spec.rounds}/{POLICY_FILE}", "dagger.json"], work,
+                    upgrade=stored_dagger_config)
+
+
+def stored_dagger_config(data: dict[str, Any]) -> dict[str, Any]:
+    """A dagger stage's recorded config in today's form: one recorded before the correction weight and the action
+    balance were settings trained at weight 1, balanced."""
+    return {"correction_weight": 1.0, "balance_actions": True} | data

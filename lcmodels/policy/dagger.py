@@ -198,7 +198,8 @@ _STATES = "states.npz"
 
 
 def _finished_rounds(out: Path, run_dir: Path, *, episodes: int, seed: int, labels: str, expert: str,
-                    correction_weight: float, expert_layer: dict[str, Any] | None) -> list[dict[str, Any]]:
+                    correction_weight: float, balance_actions: bool,
+                    expert_layer: dict[str, Any] | None) -> list[dict[str, Any]]:
     """The records of the rounds in ``out`` that can be resumed, checked against the arguments."""
     try:
         book = json.loads((out / "dagger.json").read_text())
@@ -217,6 +218,7 @@ def _finished_rounds(out: Path, run_dir: Path, *, episodes: int, seed: int, labe
         ("episodes", first.get("episodes"), episodes), ("seed", first.get("user_seeds", [None])[0], seed),
         ("labels", first.get("labels"), labels), ("expert", first.get("expert", ORACLE), expert),
         ("correction weight", first.get("correction_weight", 1.0), correction_weight),
+        ("action balance", first.get("balance_actions", True), balance_actions),
         ("expert's safety layer", _recorded_layer(first), expert_layer)) if have != want]
     if differs:
         raise ValueError(f"cannot resume {out}: " + "; ".join(differs))
@@ -261,6 +263,7 @@ def dagger(
     labels: str = "plan",
     expert: str = ORACLE,
     correction_weight: float = 1.0,
+    balance_actions: bool = True,
     expert_safety: SafetyLayerConfig | None = None,
     resume: bool = False,
     demonstrations: str | os.PathLike[str] | None = None,
@@ -281,6 +284,10 @@ def dagger(
         correction_weight: how much more a labelled state counts in training when its label differs from
             the decision the policy took there (a correction), than one where they agree. An expert
             that corrects one decision in a hundred needs this above 1 to be heard.
+        balance_actions: weight each state by the inverse square root of its label's frequency in training, as
+            cloning demonstrations does (:func:`lcmodels.policy.warmstart.pretrain`); False: every state alike
+            (times its correction weight), for a student whose lane changes are already about as frequent as the
+            expert's (a trained policy taught by its own safety layer).
         expert_safety: the settings of the expert's safety layer (:class:`lcsim.planning.SafetyLayerConfig`, for
             example ``horizon_decisions=32``, 16 s; default: what the expert's spec means); ``ValueError`` for an
             expert behind no safety layer.
@@ -310,7 +317,8 @@ def dagger(
         if not resume:
             raise FileExistsError(f"{out} exists and is not empty; choose a new directory, or resume its rounds")
         done = _finished_rounds(out, run_dir, episodes=episodes, seed=seed, labels=labels, expert=expert,
-                                correction_weight=correction_weight, expert_layer=expert_layer)
+                                correction_weight=correction_weight, balance_actions=balance_actions,
+                                expert_layer=expert_layer)
     elif resume:
         raise FileNotFoundError(f"{out} holds no DAgger rounds to resume")
     policy_path = run_dir / POLICY_FILE
@@ -391,7 +399,7 @@ def dagger(
         train = Demonstrations({k: RowChunks(v) for k, v in data.items()}, all_labels,
                                np.zeros(len(all_labels), dtype=np.float32), 0, np.concatenate(weights))  # fmt: skip
         t1 = time.perf_counter()
-        losses = pretrain(model, train, epochs=epochs, value_coef=0.0, seed=r)
+        losses = pretrain(model, train, epochs=epochs, value_coef=0.0, seed=r, balance_actions=balance_actions)
         train_s = time.perf_counter() - t1
         current = out / f"round{r}" / POLICY_FILE
         meta = {k: v for k, v in loaded.meta.items() if k not in ("format", "version")}
@@ -402,7 +410,7 @@ def dagger(
             "round": r, "episodes": episodes, "user_seeds": [seeds[0], seeds[-1]], "states_labelled": states,
             "agreement": sum(g.agreed for g in got) / max(states, 1), "searches": sum(g.searches for g in got),
             "labels": labels, "expert": expert, "expert_safety_layer": expert_layer,
-            "correction_weight": correction_weight,
+            "correction_weight": correction_weight, "balance_actions": balance_actions,
             "harmless_deviations": sum(g.harmless for g in got),
             "policy_success_in_collection": outcomes.count("success") / len(outcomes),
             "training_states": len(all_labels), "epoch_losses": losses, "collect_s": collect_s,

@@ -204,11 +204,15 @@ def pretrain(
     value_coef: float = 0.5,
     margin: float = 0.8,
     seed: int = 0,
+    balance_actions: bool = True,
     progress: Callable[[int, float], None] | None = None,
 ) -> list[float]:
     """Pretrain ``model``'s policy on ``demos``; returns the mean loss of each epoch.
 
     Args:
+        balance_actions: weight each decision by the inverse square root of its action's frequency (rare lane
+            changes count more); False: every decision alike (times ``demos.weights``), as when distilling a
+            policy whose lane changes are already as frequent as they should be.
         progress: called with (epoch, mean loss) after each epoch.
     """
     policy = model.policy
@@ -220,7 +224,7 @@ def pretrain(
     # Lane changes are rare in driving data (a few of a rule driver's decisions in a hundred): weight each action
     # by the inverse square root of its frequency, or cloning learns "always keep" (which collides).
     counts = np.bincount(demos.actions, minlength=3).astype(np.float64)
-    weights = np.where(counts > 0, 1.0 / np.sqrt(np.maximum(counts, 1.0) / n), 0.0)
+    weights = np.where(counts > 0, 1.0 / np.sqrt(np.maximum(counts, 1.0) / n), 0.0) if balance_actions else np.ones(3)
     weights = torch.as_tensor(weights / weights[demos.actions].mean(), dtype=torch.float32, device=policy.device)
     sample_w = None if demos.weights is None else torch.as_tensor(demos.weights / demos.weights.mean(),
                                                                    dtype=torch.float32, device=policy.device)
