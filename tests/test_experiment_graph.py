@@ -150,3 +150,19 @@ def test_a_stage_runs_alone_only_when_what_it_reads_is_complete(tmp_path: Path) 
     with pytest.raises(ValueError, match="has no stage nowhere/seed0/train"):
         exp.run_stage(StageKey("nowhere", 0, "train"))
     assert not (tmp_path / "run" / "predictor").exists()
+
+
+def test_a_predictor_stage_recorded_before_a_model_field_existed_stays_complete() -> None:
+    import dataclasses as dc
+
+    from lcmodels.experiment.stages import predictor_config, stored_predictor_config
+    from lcmodels.predictor import PredictorConfig
+    from lcmodels.presets import PRESETS
+
+    tc = predictor_config(PRESETS["quick"], 1)
+    now = {k: v for k, v in dc.asdict(tc).items() if k not in ("progress", "num_threads")}
+    added = [f.name for f in dc.fields(PredictorConfig) if f.name == "base" or f.name.startswith("lane_")]
+    assert added, "the fields this test drops"
+    old = now | {"model": {k: v for k, v in now["model"].items() if k not in added}}
+    assert stored_predictor_config(old) == now
+    assert stored_predictor_config({"model": "not a table"}) == {"model": "not a table"}

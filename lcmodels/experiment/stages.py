@@ -172,7 +172,22 @@ def _predictor_job(ctx: StageContext, key: StageKey, corpus: StageResult) -> Sta
                  f"{m['constant_velocity']['fde']:.4f})")  # fmt: skip
 
     cfg = {k: v for k, v in dataclasses.asdict(tc).items() if k not in ("progress", "num_threads")}
-    return StageJob(cfg, {"corpus": corpus.digest}, lambda: ["predictor.pt", "metrics.json"], work)
+    return StageJob(cfg, {"corpus": corpus.digest}, lambda: ["predictor.pt", "metrics.json"], work,
+                    upgrade=stored_predictor_config)
+
+
+def stored_predictor_config(data: dict[str, Any]) -> dict[str, Any]:
+    """A predictor stage's recorded config in today's form: a model field added since reads as a checkpoint
+    without it does (:meth:`lcmodels.predictor.PredictorConfig.from_dict`), so the model it trained is the same."""
+    from lcmodels.predictor import PredictorConfig
+
+    model = data.get("model")
+    if not isinstance(model, dict):
+        return data
+    try:
+        return data | {"model": dataclasses.asdict(PredictorConfig.from_dict(model))}
+    except (TypeError, ValueError):
+        return data
 
 
 # ----------------------------------------------------------------------------------------------- evaluations
