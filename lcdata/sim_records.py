@@ -257,7 +257,8 @@ def _stamp(out: np.ndarray, p: int, time_ns: int) -> int:
 
 
 @njit(cache=True)
-def _copy(out: np.ndarray, p: int, src: np.ndarray) -> int:
+def copy_into(out: np.ndarray, p: int, src: np.ndarray) -> int:
+    """Copy ``src`` (N,) (any layout, cast to ``out``'s dtype) to ``out[p:]``; returns the position after it."""
     # (a loop over a slice: a memcpy once compiled; numba's slice assignment from an array checks for overlap and
     # copies first, and indexing out[p + i] checks for negative indices, which keeps the loop from being vectorised)
     dst = out[p : p + src.size]
@@ -329,21 +330,21 @@ def _log_records(out: np.ndarray, p: int, index: np.ndarray, m: int, log: np.nda
         p = _double(out, p, 0x11, t, scratch)
         if n:
             p = _packed_key(out, p, 0x1A, 4 * n)
-            p = _copy(out, p, ids_b)
+            p = copy_into(out, p, ids_b)
             for j in range(5):  # x, y, yaw, speed, accel: fields 4 .. 8
                 at = 8 * (LOG_HEAD + j * n)
                 p = _packed_key(out, p, 0x22 + 8 * j, 8 * n)
-                p = _copy(out, p, row_b[at : at + 8 * n])
+                p = copy_into(out, p, row_b[at : at + 8 * n])
             for j in range(5, 7):  # lane, target_lane: fields 9, 10 as int32
                 lanes = row[LOG_HEAD + j * n : LOG_HEAD + (j + 1) * n]
                 for v in range(n):
                     lanes32[v] = np.int32(lanes[v])
                 p = _packed_key(out, p, 0x22 + 8 * j, 4 * n)
-                p = _copy(out, p, lanes_b)
+                p = copy_into(out, p, lanes_b)
             p = _packed_key(out, p, 0x5A, 8 * n)
-            p = _copy(out, p, length_b)
+            p = copy_into(out, p, length_b)
             p = _packed_key(out, p, 0x62, 8 * n)
-            p = _copy(out, p, width_b)
+            p = copy_into(out, p, width_b)
         p = _close(out, start, p, vehicles_id, time_ns)
         start = p
         m = _open(index, m, ego_id, time_ns, start)
@@ -401,11 +402,11 @@ def decision_records(out: np.ndarray, p: int, index: np.ndarray, m: int, channel
         start = p
         m = _open(index, m, tf_id, time_ns, start)
         p = _stamp(out, p + MESSAGE_HEADER_BYTES, time_ns)
-        p = _copy(out, p, consts[spans[S_TF_HEAD, 0] : spans[S_TF_HEAD, 1]])
+        p = copy_into(out, p, consts[spans[S_TF_HEAD, 0] : spans[S_TF_HEAD, 1]])
         p = _double(out, p, 0x09, x, scratch)
         p = _double(out, p, 0x11, y, scratch)
         p = _double(out, p, 0x19, 0.0, scratch)
-        p = _copy(out, p, consts[spans[S_TF_ROTATION, 0] : spans[S_TF_ROTATION, 1]])
+        p = copy_into(out, p, consts[spans[S_TF_ROTATION, 0] : spans[S_TF_ROTATION, 1]])
         p = _double(out, p, 0x09, 0.0, scratch)
         p = _double(out, p, 0x11, 0.0, scratch)
         p = _double(out, p, 0x19, qz, scratch)
@@ -425,11 +426,11 @@ def decision_records(out: np.ndarray, p: int, index: np.ndarray, m: int, channel
                 break
             p = _packed_key(out, p, 0x12, stamp_size + head.size + body)
             p = _stamp(out, p, time_ns)
-            p = _copy(out, p, head)
+            p = copy_into(out, p, head)
             if entity == 1:
-                p = _copy(out, p, consts[spans[S_LANES, 0] : spans[S_LANES, 1]])
+                p = copy_into(out, p, consts[spans[S_LANES, 0] : spans[S_LANES, 1]])
                 break
-            p = _copy(out, p, cubes)
+            p = copy_into(out, p, cubes)
             base = p - cubes.size
             fields = spans[S_CUBE_FIELDS : S_CUBE_FIELDS + 6, 0]  # px, py, qz, qw, sx, sy in a cube record
             for v in range(n):
@@ -446,7 +447,7 @@ def decision_records(out: np.ndarray, p: int, index: np.ndarray, m: int, channel
         start = p
         m = _open(index, m, image_id, time_ns, start)
         p = _stamp(out, p + MESSAGE_HEADER_BYTES, time_ns)
-        p = _copy(out, p, consts[spans[S_IMAGE_HEAD, 0] : spans[S_IMAGE_HEAD, 1]])
+        p = copy_into(out, p, consts[spans[S_IMAGE_HEAD, 0] : spans[S_IMAGE_HEAD, 1]])
         c, h, w = image.shape
         hw = h * w
         pixels, planes = out[p : p + c * hw], image.ravel()  # (C, H, W) -> (H, W, C)
@@ -458,7 +459,7 @@ def decision_records(out: np.ndarray, p: int, index: np.ndarray, m: int, channel
                 for k in range(c):
                     pixels[c * i + k] = planes[k * hw + i]
         p += c * hw
-        p = _copy(out, p, consts[spans[S_IMAGE_TAIL, 0] : spans[S_IMAGE_TAIL, 1]])
+        p = copy_into(out, p, consts[spans[S_IMAGE_TAIL, 0] : spans[S_IMAGE_TAIL, 1]])
         p = _close(out, start, p, image_id, time_ns)
     p, m = _log_records(out, p, index, m, log, ids, length, width, origin_ns, channels[3], channels[4])
     if event >= 0:
@@ -494,14 +495,14 @@ def decision_records(out: np.ndarray, p: int, index: np.ndarray, m: int, channel
             out[p], out[p + 1] = 0x60, 0x01
             p += 2
         outcome = S_OUTCOMES + np.int64(rl[RL_OUTCOME])
-        p = _copy(out, p, consts[spans[outcome, 0] : spans[outcome, 1]])
+        p = copy_into(out, p, consts[spans[outcome, 0] : spans[outcome, 1]])
         if current.size:
             values = np.empty(current.size, dtype=np.float32)
             for i in range(current.shape[0]):
                 for j in range(current.shape[1]):
                     values[i * current.shape[1] + j] = np.float32(current[i, j])
             p = _packed_key(out, p, 0x72, 4 * values.size)
-            p = _copy(out, p, values.view(np.uint8))
+            p = copy_into(out, p, values.view(np.uint8))
         if current.ndim:
             size = 0
             for d in current.shape:

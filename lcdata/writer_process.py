@@ -50,7 +50,7 @@ from typing import Any, BinaryIO
 import numpy as np
 from numba import njit
 
-from lcdata.sim_records import LOG_HEAD, RL_FIELDS, decision_records, log_event_row
+from lcdata.sim_records import LOG_HEAD, RL_FIELDS, copy_into, decision_records, log_event_row
 from lcdata.writer import OUTCOME_CODES, OUTCOMES, EpisodeSink, EpisodeWriter
 
 log = logging.getLogger(__name__)
@@ -91,15 +91,6 @@ _NO_IMAGE = np.zeros((0, 0, 0), dtype=np.uint8)
 
 
 @njit(cache=True)
-def _put_1d(f: np.ndarray, at: int, values: np.ndarray) -> int:
-    """Copy ``values`` (N,) (any layout, cast to float64) to ``f[at:]``."""
-    dst = f[at : at + values.size]
-    for i in range(values.size):
-        dst[i] = values[i]
-    return at + values.size
-
-
-@njit(cache=True)
 def _put_2d(f: np.ndarray, at: int, values: np.ndarray) -> int:
     """Copy ``values`` (R, C) (any layout, cast to float64) to ``f[at:]`` in row-major order."""
     rows, cols = values.shape
@@ -118,9 +109,9 @@ def _pack_arrays(u8: np.ndarray, at: int, ids: np.ndarray, length: np.ndarray, w
     ids, length, width, the pose (when it has rows), the log, the observation and the image (when not empty)."""
     f = u8.view(np.float64)
     a = at // 8
-    a = _put_1d(f, a, ids)
-    a = _put_1d(f, a, length)
-    a = _put_1d(f, a, width)
+    a = copy_into(f, a, ids)
+    a = copy_into(f, a, length)
+    a = copy_into(f, a, width)
     if pose.shape[0]:
         a = _put_2d(f, a, pose)
     a = _put_2d(f, a, log)

@@ -147,14 +147,12 @@ class MixedRoadsSB3VecEnv(VecEnv):
         self.config = configs[0]
         self.core = _RoadCores(self.parts)
         self._bounds = np.cumsum([0, *sizes])
+        self._slices = [slice(int(a), int(b)) for a, b in zip(self._bounds[:-1], self._bounds[1:], strict=True)]
         super().__init__(num_envs, first.observation_space, first.action_space)
         self._actions: np.ndarray | None = None
 
-    def _slices(self) -> list[slice]:
-        return [slice(int(a), int(b)) for a, b in zip(self._bounds[:-1], self._bounds[1:], strict=True)]
-
     def reset(self) -> dict[str, np.ndarray]:
-        for part, s in zip(self.parts, self._slices(), strict=True):
+        for part, s in zip(self.parts, self._slices, strict=True):
             part._seeds, part._options = self._seeds[s], self._options[s]
         obs = [p.reset() for p in self.parts]
         self._reset_seeds()
@@ -167,7 +165,7 @@ class MixedRoadsSB3VecEnv(VecEnv):
     def step_wait(self) -> VecEnvStepReturn:
         assert self._actions is not None, "step_async() first"
         steps = []
-        for part, s in zip(self.parts, self._slices(), strict=True):
+        for part, s in zip(self.parts, self._slices, strict=True):
             part.step_async(self._actions[s])
             steps.append(part.step_wait())
         obs = {k: np.concatenate([st[0][k] for st in steps]) for k in steps[0][0]}
@@ -189,8 +187,8 @@ class MixedRoadsSB3VecEnv(VecEnv):
         return [self._part_of(i).get_attr(attr_name, 0)[0] for i in self._indices(indices)]
 
     def set_attr(self, attr_name: str, value: Any, indices: VecEnvIndices = None) -> None:
-        for p in {id(self._part_of(i)): self._part_of(i) for i in self._indices(indices)}.values():
-            p.set_attr(attr_name, value)
+        for k in sorted({int(np.searchsorted(self._bounds, i, side="right")) - 1 for i in self._indices(indices)}):
+            self.parts[k].set_attr(attr_name, value)
 
     def env_method(self, method_name: str, *method_args: Any, indices: VecEnvIndices = None,
                    **method_kwargs: Any) -> list[Any]:
