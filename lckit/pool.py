@@ -195,7 +195,21 @@ class WorkerPool:
     def submit(self, fn: Callable[..., Any], /, *args: Any, **kwargs: Any) -> Future[Any]:
         """``fn(*args, **kwargs)`` in a worker (``fn`` a module-level function: it is pickled by name)."""
         with _thread_environment(self.threads):  # a worker it starts inherits its thread count
-            return self._executor.submit(fn, *args, **kwargs)
+            try:
+                return self._executor.submit(fn, *args, **kwargs)
+            except (OSError, ValueError) as exc:
+                # A worker started while another is being killed can fail on the dead one's pipes (OSError, or
+                # ValueError "bad value(s) in fds_to_keep" from the spawn): that is the pool breaking, not a bug.
+                if self._a_worker_died():
+                    raise BrokenProcessPool(f"a worker process died while another was started ({exc})") from exc
+                raise
+
+    def _a_worker_died(self, processes: dict[int, Any] | None = None) -> bool:
+        if getattr(self._executor, "_broken", False):
+            return True
+        if processes is None:
+            processes = getattr(self._executor, "_processes", None) or {}
+        return any(p.exitcode not in (None, 0) for p in list(processes.values()))
 
     def map(self, fn: Callable[..., Any], jobs: Iterable[Any], *, star: bool = False, ordered: bool = True,
             progress: Callable[[int, int], Any] | None = None) -> Iterator[Any]:  # fmt: skip
@@ -239,10 +253,21 @@ class WorkerPool:
         if self._closed:
             return
         self._closed = True
+        # The executor's own threads and processes, kept before shutdown drops its references to them: a worker
+        # started by a submit racing a dead worker's cleanup is added to this dict, and the cleanup would wait
+        # for it forever; it is terminated here instead.
+        manager = getattr(self._executor, "_executor_manager_thread", None)
+        processes = getattr(self._executor, "_processes", None) or {}
         if kill:
-            for proc in list((getattr(self._executor, "_processes", None) or {}).values()):
+            for proc in list(processes.values()):
                 proc.terminate()
-        self._executor.shutdown(wait=True, cancel_futures=True)
+        self._executor.shutdown(wait=False, cancel_futures=True)
+        while manager is not None and manager.is_alive():
+            manager.join(0.2)
+            if kill or self._a_worker_died(processes):
+                for proc in list(processes.values()):
+                    if proc.exitcode is None:
+                        proc.terminate()
         if self._queue is not None and self._pump is not None:
             self._queue.put(None)
             self._pump.join()

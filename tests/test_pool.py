@@ -143,3 +143,19 @@ def test_each_worker_runs_the_threads_it_is_given_and_reports_lines() -> None:
     assert sorted(lines) == ["job 0 here", "job 1 here", "job 2 here"]
     with pytest.raises(ValueError, match="workers"):
         WorkerPool(0)
+
+
+def test_jobs_submitted_while_a_worker_is_killed_end_as_a_dead_worker() -> None:
+    """A worker killed while the pool starts another (the out-of-memory killer during a run) breaks the pool:
+    the caller sees a dead worker (``BrokenProcessPool`` from ``submit``, :class:`WorkerDied` from ``map``),
+    never the spawn's own error on the dead worker's pipes."""
+    from concurrent.futures.process import BrokenProcessPool
+
+    for _ in range(6):  # the race is not forced: several tries
+        with WorkerPool(2) as pool:
+            first = pool.submit(_square, 3)
+            assert first.result() == 9
+            os.kill(pool.pids[0], signal.SIGKILL)
+            with pytest.raises((BrokenProcessPool, WorkerDied)):
+                futures = [pool.submit(_square, k) for k in range(8)]
+                list(pool._results(futures, True, None))
