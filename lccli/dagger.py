@@ -68,8 +68,9 @@ def main(argv: list[str] | None = None) -> int:
                     help="continue the rounds already in --out (same run, --episodes, --seed, --labels) up to "
                     "--rounds in all")
     args = ap.parse_args(argv)
-    if args.seed >= 1_000_000_000:
-        return fail("lc-dagger", f"--seed must be < 1000000000 (evaluation's seeds start there), got {args.seed}")
+    if args.seed + args.rounds * args.episodes > 1_000_000_000:
+        return fail("lc-dagger", f"--seed {args.seed} + --rounds x --episodes ({args.rounds * args.episodes}) must stay "
+                    "<= 1000000000 (evaluation's seeds start there)")
     import torch
 
     from lcmodels.policy.dagger import dagger

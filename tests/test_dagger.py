@@ -163,3 +163,19 @@ def test_dagger_with_a_driver_as_the_expert_labels_every_state_with_its_decision
                       eval_episodes=0, expert=expert, expert_safety=short_layer, resume=True)) == 1  # fmt: skip
     with np.load(tmp_path / "dg-short" / "round1" / "states.npz") as kept:
         assert np.array_equal(kept["labels"], short.labels)
+
+
+def test_dagger_refuses_rounds_whose_seeds_reach_the_validation_episodes(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    """The rounds drive user seeds ``seed .. seed + rounds * episodes - 1``: the last must stay below the first
+    validation seed, or the policy would be trained on the episodes it is chosen on."""
+    from lccli.dagger import main
+    from lcmodels.policy.dagger import dagger
+    from lcsim.suite import VALIDATION_SEED_BASE
+
+    with pytest.raises(ValueError, match="validation episodes' seeds"):
+        dagger(tmp_path / "run", tmp_path / "out", rounds=2, episodes=10, seed=VALIDATION_SEED_BASE - 19)
+    assert not (tmp_path / "out").exists()
+    code = main([str(tmp_path / "run"), "--out", str(tmp_path / "out"), "--rounds", "3", "--episodes", "5",
+                 "--seed", str(VALIDATION_SEED_BASE - 14)])  # fmt: skip
+    err = capsys.readouterr().err
+    assert code == 2 and "evaluation's seeds start there" in err and "Traceback" not in err

@@ -44,6 +44,7 @@ from lcmodels.policy.warmstart import Demonstrations, RowChunks, every_tenth, lo
 from lcsim.core import KEEP, SUCCESS, LaneChangeCore, StepResult
 from lcsim.episodes import EpisodeHook, run_episodes
 from lcsim.planning import LookaheadDriver, SafetyLayerConfig, SearchResult, safety_layer_of, search_from
+from lcsim.suite import VALIDATION_SEED_BASE
 
 LABELS = ("plan", "winning")
 """How :func:`collect` labels a state (see there)."""
@@ -306,6 +307,9 @@ def dagger(
         raise ValueError("rounds, episodes, epochs and workers must be >= 1")
     if not correction_weight > 0:
         raise ValueError(f"correction_weight must be > 0, got {correction_weight}")
+    if not 0 <= seed <= VALIDATION_SEED_BASE - rounds * episodes:
+        raise ValueError(f"seed {seed} + {rounds} rounds x {episodes} episodes reaches the validation episodes' seeds "
+                         f"(from {VALIDATION_SEED_BASE}); training seeds must stay below them")
     layer = safety_layer_of(expert, where="expert") if expert != ORACLE else None
     if expert_safety is not None:
         if layer is None:
