@@ -382,8 +382,10 @@ def read_episode(path: str | os.PathLike[str]) -> Episode:
     ours = topics.METADATA_NAME in scan.metadata or any(
         c.schema_name in topics.SCHEMA_TYPES for c in scan.channels.values()
     )
+    # a scan stops early at the file's end (truncated) or at a record it cannot decode (damaged)
+    broken = "damaged" if scan.stop_reason.startswith("corrupt record") else "truncated"
     if not ours and not scan.complete and scan.messages == 0:
-        raise ValueError(f"{path}: truncated MCAP file ({path.stat().st_size} bytes, {scan.stop_reason}) with no "
+        raise ValueError(f"{path}: {broken} MCAP file ({path.stat().st_size} bytes, {scan.stop_reason}) with no "
                          "complete lc-toolkit record to recover")
     if not ours:
         raise ValueError(
@@ -396,7 +398,7 @@ def read_episode(path: str | os.PathLike[str]) -> Episode:
                              f"{expected.DESCRIPTOR.full_name!r}")  # fmt: skip
     if not scan.complete:
         warnings.warn(
-            f"{path}: truncated MCAP file ({scan.stop_reason}); recovered {scan.messages} messages "
+            f"{path}: {broken} MCAP file ({scan.stop_reason}); recovered {scan.messages} messages "
             f"from {scan.chunks} complete chunks",
             TruncatedFileWarning,
             stacklevel=2,

@@ -128,6 +128,26 @@ def test_truncated_file_recovers_complete_chunks(
     assert episode.complete and len(episode.tracks) == len(s["x"].ravel())
 
 
+def test_a_record_that_cannot_be_decoded_reads_as_a_damaged_file_not_a_truncated_one(
+    episode_file: tuple[pathlib.Path, dict[str, np.ndarray]], tmp_path: pathlib.Path
+) -> None:
+    """A file whose bytes are all there but hold a record that does not decode is damaged: the warning says so,
+    with the record's place, and the chunks before it are recovered as from a truncated file."""
+    path, _ = episode_file
+    data = path.read_bytes()
+    pos = len(MAGIC)
+    while data[pos] != OP_CHUNK:  # to the end of the first chunk
+        pos += 9 + struct.unpack_from("<Q", data, pos + 1)[0]
+    pos += 9 + struct.unpack_from("<Q", data, pos + 1)[0]
+    topic = b"\xff\xfe"  # not UTF-8
+    body = struct.pack("<HHI", 99, 0, len(topic)) + topic + struct.pack("<I", 0) + struct.pack("<I", 0)
+    bad = tmp_path / "damaged.mcap"
+    bad.write_bytes(data[:pos] + struct.pack("<BQ", OP_CHANNEL, len(body)) + body + data[pos:])
+    with pytest.warns(TruncatedFileWarning, match=r"damaged MCAP file \(corrupt record \(opcode 0x04 at byte"):
+        episode = read_episode(bad)
+    assert not episode.complete and episode.message_count > 0
+
+
 def test_non_mcap_file_raises(tmp_path: pathlib.Path) -> None:
     bad = tmp_path / "notes.mcap"
     bad.write_text("hello, not an mcap\n")
