@@ -68,9 +68,6 @@ def main(argv: list[str] | None = None) -> int:
                     help="continue the rounds already in --out (same run, --episodes, --seed, --labels) up to "
                     "--rounds in all")
     args = ap.parse_args(argv)
-    if args.seed + args.rounds * args.episodes > 1_000_000_000:
-        return fail("lc-dagger", f"--seed {args.seed} + --rounds x --episodes ({args.rounds * args.episodes}) must stay "
-                    "<= 1000000000 (evaluation's seeds start there)")
     import torch
 
     from lcmodels.policy.dagger import dagger

@@ -180,14 +180,17 @@ class MixedRoadsSB3VecEnv(VecEnv):
     def _indices(self, indices: VecEnvIndices) -> Sequence[int]:
         return env_indices(self.num_envs, indices)
 
+    def _part_index(self, i: int) -> int:
+        return int(np.searchsorted(self._bounds, i, side="right")) - 1
+
     def _part_of(self, i: int) -> LaneChangeSB3VecEnv:
-        return self.parts[int(np.searchsorted(self._bounds, i, side="right")) - 1]
+        return self.parts[self._part_index(i)]
 
     def get_attr(self, attr_name: str, indices: VecEnvIndices = None) -> list[Any]:
         return [self._part_of(i).get_attr(attr_name, 0)[0] for i in self._indices(indices)]
 
     def set_attr(self, attr_name: str, value: Any, indices: VecEnvIndices = None) -> None:
-        for k in sorted({int(np.searchsorted(self._bounds, i, side="right")) - 1 for i in self._indices(indices)}):
+        for k in sorted({self._part_index(i) for i in self._indices(indices)}):
             self.parts[k].set_attr(attr_name, value)
 
     def env_method(self, method_name: str, *method_args: Any, indices: VecEnvIndices = None,

@@ -18,7 +18,6 @@ which command and commit (a zoo elsewhere, --zoo DIR, leaves those records alone
 from __future__ import annotations
 
 import argparse
-import subprocess
 import sys
 import time
 from pathlib import Path
@@ -42,15 +41,12 @@ def main(argv: list[str] | None = None) -> int:
     args = ap.parse_args(argv)
     if args.reached_only and (args.zoo is not None or args.overwrite):
         ap.error("--zoo and --overwrite apply to zoo entries; --reached-only writes none")
+    from lcmodels.bench.ledger import git_commit
     from lcmodels.fileio import write_json
     from lcmodels.recipe import RECIPES_DIR, recipe_path
     from lcmodels.zoo import CHECKOUT_ZOO, experiment_card, publish_from_experiment, weights_sha256, zoo_dir
 
-    try:
-        commit = args.commit or subprocess.run(["git", "rev-parse", "--short", "HEAD"], capture_output=True,
-                                               text=True, check=True, cwd=Path(__file__).parent).stdout.strip()  # fmt: skip
-    except (OSError, subprocess.CalledProcessError):
-        commit = ""
+    commit = args.commit or git_commit()[0] or ""
     # the records describe what this checkout's own zoo/ ships, whatever LC_ZOO says
     own_zoo = (args.zoo if args.zoo is not None else zoo_dir()).resolve() == CHECKOUT_ZOO
     if not args.reached_only:  # a safety layer's figure holds only for the follower it was measured with

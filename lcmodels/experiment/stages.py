@@ -421,15 +421,15 @@ def _dagger_job(ctx: StageContext, key: StageKey, recipe: Recipe, got: Mapping[s
     path = key.path(ctx.out)
     seed = key.seed
     assert seed is not None
-    layer = None
+    layer, expert = None, spec.expert
     if spec.expert == "safety-layer":
         assert follow is not None and recipe.safety is not None
         layer = dataclasses.replace(recipe.safety, follow="")  # the imagined futures follow the expert's own policy
+        expert = f"safety-layer:{previous_policy(follow)}"
 
     def work(keep: bool, save_wall: Callable[[], None]) -> None:
         from lcmodels.policy.dagger import dagger
 
-        expert = spec.expert if follow is None else f"safety-layer:{previous_policy(follow)}"
         dagger(start.path, path, rounds=spec.rounds, episodes=spec.episodes, epochs=spec.epochs,
                seed=spec.seed + 10_000 * seed, workers=1, eval_episodes=0, labels=spec.labels,
                expert=expert, correction_weight=spec.correction_weight, balance_actions=spec.balance_actions,

@@ -309,7 +309,7 @@ def dagger(
         raise ValueError(f"correction_weight must be > 0, got {correction_weight}")
     if not 0 <= seed <= VALIDATION_SEED_BASE - rounds * episodes:
         raise ValueError(f"seed {seed} + {rounds} rounds x {episodes} episodes reaches the validation episodes' seeds "
-                         f"(from {VALIDATION_SEED_BASE}); training seeds must stay below them")
+                         f"(evaluation's seeds start there, at {VALIDATION_SEED_BASE}); training seeds stay below")
     layer = safety_layer_of(expert, where="expert") if expert != ORACLE else None
     if expert_safety is not None:
         if layer is None:
