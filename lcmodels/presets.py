@@ -62,6 +62,14 @@ route that did not move the pure policy beyond the noise (docs/results/human-tra
 training on every road of the suite at once, and on roads drawn across its dimensions, docs/results/roads);
 ``distil-safety-ppo`` labels about 100k decisions with the safety layer, about 25 minutes of one core
 (docs/results/distil)."""
+ABLATION_INPUTS = ("pure", "image", "prediction", "hybrid", "lane-aware")
+"""The inputs of the controlled ablation: the paper's Table IV in its order, then the prediction input fed by the
+analytic lane-aware base in place of the learned predictor."""
+ABLATION_RECIPES = tuple(f"ablation-{block}{mode}" for block in ("", "roads-") for mode in ABLATION_INPUTS)
+"""The controlled input ablation: one recipe per input and training block (the paper's road; every road of the
+suite), identical but for the input (``[policy].obs`` and the predictor behind it; docs/results/ablation)."""
+ABLATION_SEEDS = 3
+"""Training seeds of every ablation recipe."""
 
 
 # ------------------------------------------------------------------------------------------------ presets
@@ -143,7 +151,7 @@ PRESETS: dict[str, Preset] = {
         name="tiny", scenario="tiny", corpus_episodes=3, corpus_steps=200, record_workers=1,
         predictor_d_model=16, predictor_heads=2, predictor_layers=1, predictor_ff_dim=32, predictor_epochs=1,
         predictor_time_limit_s=None, predictor_max_train_windows=2_000, predictor_stride=5,
-        predictor_tensorboard=False, recipes=(*PAPER_RECIPES, *BEST_RECIPES, *OPTIONAL_RECIPES, "quick-pure"),
+        predictor_tensorboard=False, recipes=(*PAPER_RECIPES, *BEST_RECIPES, *OPTIONAL_RECIPES, "quick-pure", "ablation-lane-aware"),
         caps=_TINY_CAPS,
         val_episodes=4, val_seeds=(0,), test_episodes=4, oracle=True,
     ),
@@ -158,6 +166,14 @@ PRESETS: dict[str, Preset] = {
     # The paper's setting: every recipe at its own budget, Hybrid-PPO with two training seeds (hours on a CPU;
     # it resumes).
     "paper": Preset(name="paper", recipe_seeds=(("hybrid-ppo", 2),)),
+    # The controlled input ablation: every input with the same trunk, algorithm, budget and stages, three training
+    # seeds each, on the paper's road and across the suite (a night on 2 cores; it resumes). The suite's figures
+    # come from lc-bench over the trained policies (docs/results/ablation).
+    "ablation": Preset(
+        name="ablation", recipes=ABLATION_RECIPES,
+        recipe_seeds=tuple((r, ABLATION_SEEDS) for r in ABLATION_RECIPES), val_episodes=200, val_seeds=(0,),
+        test_episodes=200, oracle=False,
+    ),
 }
 
 

@@ -35,7 +35,8 @@ def published_files(run: Path, *, weights: bool = False) -> list[Path]:
     files = [Path(n) for n in TOP] + [Path(n) for n in OPTIONAL_TOP if (run / n).is_file()]
     files += sorted(p.relative_to(run) for p in run.glob("*.png"))
     files += sorted(p.relative_to(run) for p in (run / STAGES_DIR).glob("*.json") if not p.name.endswith(".pending.json"))
-    stage_dirs = [run / "predictor", run / RULE_KEY, run / ORACLE_KEY, *sorted(run.glob("policies/*/seed*/*")),
+    stage_dirs = [run / "predictor", *sorted(p for p in (run / "predictor").glob("*") if p.is_dir()), run / RULE_KEY,
+                  run / ORACLE_KEY, *sorted(run.glob("policies/*/seed*/*")),
                   *sorted(run.glob("policies/*/seed*/dagger/round*")), *sorted(run.glob("zoo/*"))]
     per_stage = PER_STAGE + WEIGHTS if weights else PER_STAGE
     for d in stage_dirs:

@@ -7,7 +7,7 @@ evaluation and budget caps::
     name = "hybrid-ppo"            # the file's stem
     version = 1                    # raised when a change alters what the recipe reaches
     row = "ppo-hybrid"             # the table row it fills (lcmodels.presets.ROWS)
-    kind = "best"                  # paper (faithful to the paper), best (the project's best), demo
+    kind = "best"                  # paper (faithful to the paper), best (the project's best), demo, ablation
     stages = ["clone", "train"]    # in order, from: clone, dagger, train, shielded
 
     [policy]                       # PolicyConfig fields of every stage (not seed, scenario, paths, evaluation)
@@ -71,7 +71,7 @@ from lcsim.planning.safety import SafetyLayerConfig
 
 RECIPES_DIR = Path(__file__).parent / "recipes"
 STAGE_KINDS: tuple[str, ...] = ("clone", "dagger", "train", "shielded")
-RECIPE_KINDS: tuple[str, ...] = ("paper", "best", "demo")
+RECIPE_KINDS: tuple[str, ...] = ("paper", "best", "demo", "ablation")
 EXPERIMENT_FIELDS: tuple[str, ...] = ("seed", "scenario", "warm_start", "init_policy", "eval_episodes", "eval_seed",
                                       "record_eval")  # fmt: skip
 """PolicyConfig fields the experiment sets (the training seed, the preset's scenario and evaluation, the paths
@@ -143,6 +143,9 @@ class ShieldedSpec:
     500)."""
 
 
+PREDICTOR_SOURCES: tuple[str, ...] = ("learned", "lane-aware")
+"""What may fill a recipe's prediction input (:attr:`Recipe.predictor`)."""
+
 _SPECS: dict[str, type] = {"demos": DemoSpec, "dagger": DaggerSpec, "shielded": ShieldedSpec, "safety": SafetyLayerConfig}
 _STAGE_TABLES = ("clone", "train")
 
@@ -165,6 +168,10 @@ class Recipe:
     shielded: ShieldedSpec = ShieldedSpec()
     safety: SafetyLayerConfig | None = None
     """The safety layer its final policy is also evaluated behind (and a ``shielded`` stage trains behind)."""
+    predictor: str = "learned"
+    """What fills the prediction input of a mode that reads it: ``learned`` (the experiment's trained predictor) or
+    an analytic base (:data:`PREDICTOR_SOURCES`: ``lane-aware``, the extrapolation along the road the learned model
+    corrects, with no correction)."""
 
     def __post_init__(self) -> None:
         from lcmodels.presets import ROWS
@@ -183,6 +190,13 @@ class Recipe:
                 set(stages), key=STAGE_KINDS.index):
             raise ValueError(f"{where}: stages must be some of {', '.join(STAGE_KINDS)}, each once and in that "
                              f"order, got {list(self.stages)!r}")  # fmt: skip
+        from lcmodels.policy.names import needs_predictor
+
+        if self.predictor not in PREDICTOR_SOURCES:
+            raise ValueError(f"{where}: predictor must be one of {', '.join(PREDICTOR_SOURCES)}, got {self.predictor!r}")
+        if self.predictor != "learned" and not needs_predictor(self.obs):
+            raise ValueError(f"{where}: predictor = {self.predictor!r} needs an observation mode with predictions "
+                             f"(prediction, hybrid), not {self.obs!r}")
         if self.dagger.expert not in DAGGER_EXPERTS:
             raise ValueError(f"{where}: dagger.expert must be one of {', '.join(DAGGER_EXPERTS)}, "
                              f"got {self.dagger.expert!r}")  # fmt: skip
@@ -309,6 +323,8 @@ class Recipe:
         out: dict[str, Any] = {"name": self.name, "version": self.version, "row": self.row, "kind": self.kind,
                                "label": self.label, "description": self.description, "stages": list(self.stages),
                                "policy": dict(self.policy)}  # fmt: skip
+        if self.predictor != "learned":  # said only when not the default: the older records' identities stay
+            out["predictor"] = self.predictor
         for name in _STAGE_TABLES:
             out[name] = dict(getattr(self, name))
         for name in _SPECS:
@@ -345,7 +361,7 @@ class Recipe:
             if not isinstance(kwargs["stages"], list | tuple):
                 raise ValueError(f"{where}: stages must be a list, got {kwargs['stages']!r}")
             kwargs["stages"] = tuple(kwargs["stages"])
-        for key in ("name", "label", "description", "row", "kind"):
+        for key in ("name", "label", "description", "row", "kind", "predictor"):
             if key in kwargs and not isinstance(kwargs[key], str):
                 raise ValueError(f"{where}: {key} must be a string, got {kwargs[key]!r}")
         try:

@@ -166,3 +166,31 @@ def test_a_predictor_stage_recorded_before_a_model_field_existed_stays_complete(
     old = now | {"model": {k: v for k, v in now["model"].items() if k not in added}}
     assert stored_predictor_config(old) == now
     assert stored_predictor_config({"model": "not a table"}) == {"model": "not a table"}
+
+
+def test_the_ablation_recipes_differ_only_in_their_input_and_an_analytic_base_is_a_stage_of_its_own(
+        tmp_path: Path) -> None:
+    from lcmodels.presets import ABLATION_INPUTS, ABLATION_RECIPES, ABLATION_SEEDS
+
+    recipes = [load_recipe(name) for name in ABLATION_RECIPES]
+    assert len(recipes) == 2 * len(ABLATION_INPUTS)
+    for r in recipes:  # the same stages, budgets and trunk; only what the policy reads (and the road block) differs
+        base = recipes[0] if r.train.get("train_roads") is None else recipes[len(ABLATION_INPUTS)]
+        for stage in r.stages:
+            mine, theirs = r.stage_settings(stage), base.stage_settings(stage)
+            differ = {k for k in mine.keys() | theirs.keys() if mine.get(k) != theirs.get(k)}
+            assert differ <= {"obs", "image_net", "freeze_image"}, (r.name, differ)
+        assert (r.stages, r.demos) == (base.stages, base.demos)
+    graph = build_graph(PRESETS["ablation"], recipes, {r.name: ABLATION_SEEDS for r in recipes})
+    lane = dict(graph[StageKey("ablation-lane-aware", 2, "clone")].needs)
+    assert lane["predictor"] == StageKey.of("predictor", "lane-aware")
+    assert dict(graph[StageKey("ablation-hybrid", 0, "train")].needs)["predictor"] == StageKey.of("predictor")
+    assert "predictor" not in dict(graph[StageKey("ablation-pure", 0, "train")].needs)
+    assert not graph.needed(StageKey.of("predictor", "lane-aware"))  # nothing to train: no corpus
+    pure = dataclasses.replace(load_recipe("ablation-pure"), name="x")
+    with pytest.raises(ValueError, match="needs an observation mode with predictions"):
+        dataclasses.replace(pure, predictor="lane-aware")
+    with pytest.raises(ValueError, match="predictor must be one of"):
+        dataclasses.replace(recipes[2], predictor="oracle")
+    assert "predictor" not in load_recipe("ablation-prediction").to_dict()  # older records keep their identity
+    assert load_recipe("ablation-lane-aware").to_dict()["predictor"] == "lane-aware"

@@ -224,3 +224,28 @@ def test_lane_aware_base_without_a_road_is_the_fitted_velocity_and_has_a_torch_t
     np.testing.assert_allclose(lane_extrapolate(pos, mask, 9, 6).numpy(), ours, atol=1e-9)
     moved = (np.abs(ours - constant_velocity_fit(hist, 9, window=6)).max(axis=(1, 2)) > 1e-6).mean()
     assert 0.2 < moved < 1.0  # most scenes have a road; the lateral drift is held or a lane change ends
+
+
+def test_an_analytic_predictor_is_its_lane_aware_base_and_loads_as_a_checkpoint(tmp_path) -> None:
+    from lcmodels.predictor import Predictor, PredictorConfig, analytic_model, save_model
+
+    config = PredictorConfig(d_model=16, num_heads=2, num_layers=1, ff_dim=32, base="lane-aware")
+    rng = np.random.default_rng(5)
+    n, k, h = 64, 8, config.history_steps
+    agent = np.cumsum(rng.normal([0.3, 0.0], [0.02, 0.03], size=(n, 1, h, 2)), axis=2)
+    nb = rng.normal(0.0, 6.0, size=(n, k, 1, 2)) + np.cumsum(rng.normal([0.3, 0.0], [0.02, 0.01], size=(n, k, h, 2)), axis=2)
+    pos = torch.from_numpy(np.concatenate((agent, nb), 1)).float()
+    mask = torch.from_numpy(rng.random((n, k + 1, h)) > 0.2)
+    mask[:, 0] = True
+    expected = lane_extrapolate(pos, mask, config.future_steps, config.velocity_window,
+                                smooth_window=config.lane_smooth_window, smooth_jitter_m=config.lane_smooth_jitter_m,
+                                lateral_window=config.lane_lateral_window, lane_width_m=config.lane_width_m,
+                                margin_m=config.lane_margin_m, approach_m=config.lane_approach_m,
+                                move_mps=config.lane_change_mps, still_mps=config.lane_hold_mps, dt_s=config.dt_s)  # fmt: skip
+    loaded = Predictor.load(save_model(analytic_model(config), tmp_path / "predictor.pt"))
+    with torch.no_grad():
+        got = loaded.model(pos, mask)
+    np.testing.assert_allclose(got.numpy(), expected.numpy(), atol=1e-5)
+    assert not np.allclose(got.numpy(), cv_extrapolate(pos[:, 0], mask[:, 0], config.future_steps, 10).numpy())
+    with pytest.raises(ValueError, match="analytic predictor needs base"):
+        analytic_model(PredictorConfig())

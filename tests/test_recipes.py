@@ -27,7 +27,8 @@ def test_every_packaged_recipe_round_trips_file_config_file(tmp_path: Path) -> N
         assert any(r.row == row and r.kind == "paper" for r in recipes), row
     for row in ("ppo-hybrid", "a2c-hybrid", "dqn-hybrid", "ppo-pure", "ppo-image", "ppo-prediction"):
         assert any(r.row == row and r.kind == "best" for r in recipes), row
-    assert set(PRESETS["paper"].recipes) == {r.name for r in recipes if r.kind != "demo"} - set(OPTIONAL_RECIPES)
+    assert set(PRESETS["paper"].recipes) == {r.name for r in recipes if r.kind in ("paper", "best")} - set(OPTIONAL_RECIPES)
+    assert set(PRESETS["ablation"].recipes) == {r.name for r in recipes if r.kind == "ablation"}
     assert set(OPTIONAL_RECIPES) <= set(PRESETS["tiny"].recipes)  # the tests still run them
 
 

@@ -4,6 +4,7 @@ each naming the stages it reads.
 ::
 
     corpus ──► predictor ──────────────────────────────► every stage whose policy reads predictions
+               predictor/<base> (analytic: no training) ──► the stages of a recipe with predictor = <base>
     demos/<key> ──► <recipe>/seed<k>/clone ──► dagger ──► train ──► shielded ──► eval
                                                                         └──────► safety
     <followed recipe>/seed<k>/<its final stage> ───────► shielded, safety, a dagger stage the layer labels
@@ -242,6 +243,17 @@ def build_graph(preset: Preset, recipes: Sequence[Recipe], seeds: Mapping[str, i
 
     corpus = add(Stage(StageKey.of("corpus"), group="data", priority=prio("data", 0)))
     predictor = add(Stage(StageKey.of("predictor"), (("corpus", corpus),), "data", prio("data", 1)))
+    bases: dict[str, StageKey] = {}
+
+    def predictor_of(r: Recipe) -> StageKey:
+        """The predictor stage a recipe's prediction input reads: the trained one, or an analytic base's."""
+        if r.predictor == "learned":
+            return predictor
+        if r.predictor not in bases:
+            bases[r.predictor] = add(Stage(StageKey.of("predictor", r.predictor), group="data",
+                                           priority=prio("data", 1, len(bases) + 1)))  # fmt: skip
+        return bases[r.predictor]
+
     demos: dict[str, StageKey] = {}
     for r in recipes:
         if "clone" in r.stages and (k := demos_key(r.demos)) not in demos:
@@ -256,7 +268,7 @@ def build_graph(preset: Preset, recipes: Sequence[Recipe], seeds: Mapping[str, i
         for i, r in enumerate(recipes):
             if seed >= seeds[r.name]:
                 continue
-            pred = (("predictor", predictor),) if needs_predictor(r.obs) else ()
+            pred = (("predictor", predictor_of(r)),) if needs_predictor(r.obs) else ()
             f = follows(r)
             follow = (("follow", StageKey(f, seed, _final(recipes, f))),) if f else ()
             previous: tuple[tuple[str, StageKey], ...] = ()

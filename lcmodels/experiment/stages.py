@@ -81,6 +81,8 @@ def stage_job(ctx: StageContext, stage: Stage, got: Mapping[str, StageResult]) -
             raise ValueError(f"no such recipe stage: {k}")
     elif k.stage == "corpus":
         job = _corpus_job(ctx, k)
+    elif k.stage == "predictor" and k.part is not None:
+        job = _analytic_predictor_job(ctx, k)
     elif k.stage == "predictor":
         job = _predictor_job(ctx, k, got["corpus"])
     elif k.stage == "demos":
@@ -174,6 +176,20 @@ def _predictor_job(ctx: StageContext, key: StageKey, corpus: StageResult) -> Sta
     cfg = {k: v for k, v in dataclasses.asdict(tc).items() if k not in ("progress", "num_threads")}
     return StageJob(cfg, {"corpus": corpus.digest}, lambda: ["predictor.pt", "metrics.json"], work,
                     upgrade=stored_predictor_config)
+
+
+def _analytic_predictor_job(ctx: StageContext, key: StageKey) -> StageJob:
+    """``predictor.pt`` of the analytic base ``key.part`` (:func:`lcmodels.predictor.analytic_model`) with the
+    horizons and network of the preset's trained predictor: nothing to train, a policy reads it as it reads that."""
+    model = dataclasses.replace(predictor_config(ctx.preset, ctx.threads).model, base=key.part)
+    path = key.path(ctx.out)
+
+    def work(keep: bool, save_wall: Callable[[], None]) -> None:
+        from lcmodels.predictor import analytic_model, save_model
+
+        save_model(analytic_model(model), path / "predictor.pt", extra={"analytic": key.part})
+
+    return StageJob({"analytic": key.part, "model": dataclasses.asdict(model)}, {}, lambda: ["predictor.pt"], work)
 
 
 def stored_predictor_config(data: dict[str, Any]) -> dict[str, Any]:

@@ -27,17 +27,19 @@ Public API::
 """
 
 from lcmodels.predictor.baselines import constant_acceleration, constant_velocity
-from lcmodels.predictor.checkpoint import load_model, save_model
+from lcmodels.predictor.checkpoint import ANALYTIC_BASES, analytic_model, load_model, save_model
 from lcmodels.predictor.inference import Predictor
 from lcmodels.predictor.metrics import ade, error_curve, fde, miss_rate
 from lcmodels.predictor.model import PredictorConfig, TrajectoryTransformer
 from lcmodels.predictor.train import TrainConfig, evaluate, train_predictor
 
 __all__ = [
+    "ANALYTIC_BASES",
     "Predictor",
     "PredictorConfig",
     "TrainConfig",
     "TrajectoryTransformer",
+    "analytic_model",
     "ade",
     "constant_acceleration",
     "constant_velocity",

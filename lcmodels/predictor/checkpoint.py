@@ -18,7 +18,7 @@ import torch
 from lcdata.fileio import loads_json, write_atomically
 from lcmodels.predictor.model import MAX_PARAMETERS, PredictorConfig, TrajectoryTransformer
 
-__all__ = ["CHECKPOINT_FORMAT", "load_model", "save_model"]
+__all__ = ["ANALYTIC_BASES", "CHECKPOINT_FORMAT", "analytic_model", "load_model", "save_model"]
 
 CHECKPOINT_FORMAT = "lc-toolkit/predictor"
 CHECKPOINT_VERSION = 1
@@ -107,3 +107,24 @@ def load_model(
         raise ValueError(f"{path}: weights do not match the stored config: {detail}") from None
     model.eval()
     return model, extra
+
+
+ANALYTIC_BASES = ("lane-aware",)
+"""The extrapolations :func:`analytic_model` can stand in for a trained predictor."""
+
+
+def analytic_model(config: PredictorConfig) -> TrajectoryTransformer:
+    """A predictor that is its base extrapolation alone (``config.base``, one of :data:`ANALYTIC_BASES`): the
+    network is built as ``config`` says but its correction is zero, so it predicts exactly what the analytic base
+    does (:func:`lcmodels.predictor.model.lane_extrapolate`) and loads wherever a trained ``predictor.pt`` does.
+    The policy's prediction input fed by an analytic predictor tells whether a learned one earns its place."""
+    if config.base not in ANALYTIC_BASES:
+        raise ValueError(f"an analytic predictor needs base one of {', '.join(ANALYTIC_BASES)}, got {config.base!r}")
+    model = TrajectoryTransformer(config)
+    with torch.no_grad():
+        model.head[-1].weight.zero_()  # already zero at construction: said here, since the claim rests on it
+        model.head[-1].bias.zero_()
+        model.residual_mean.zero_()
+        if model.gate is not None:
+            model.familiar_limit.fill_(1.0)  # finite, so the checkpoint holds no inf; the correction is zero anyway
+    return model.eval()
