@@ -37,7 +37,10 @@ nothing on them.
 Writes --out/BENCH.md and --out/bench.json: per scenario the ceiling, the floor and each driver's success
 and collision with Wilson 95% intervals over episodes and the normalised score (success / ceiling's
 success); per driver the suite's mean normalised score and McNemar's exact test against the first driver on
-the same episodes; per method (a recipe's training seeds) the IQM with rliable's bootstrap interval.
+the same episodes; per method (a recipe's training seeds) the IQM with rliable's bootstrap interval and
+McNemar's test against the first method, its runs paired in the order given. Beside them, two figures (PNG
+and SVG, embedded in BENCH.md): each method's normalised score per scenario with its interval
+(bench_normalised), and rliable's interval estimates of the IQM and mean (bench_intervals).
 """
 
 
@@ -68,6 +71,8 @@ def bench_parser() -> argparse.ArgumentParser:
     p.add_argument("--batch", type=positive_int, default=20, help="episodes simulated together (default 20)")
     p.add_argument("--threads", type=positive_int, default=1, help="torch threads per process (default 1)")
     p.add_argument("-q", "--quiet", action="store_true", help="no episode counts while a cell runs (a line per cell stays)")
+    p.add_argument("--no-figures", action="store_true",
+                   help="do not draw bench_normalised and bench_intervals (PNG and SVG beside BENCH.md)")
     where = p.add_argument_group("where the episodes run")
     add_executor_arguments(where, "each cell's episodes cut into Ray tasks", "this machine")
     where.add_argument("--workers", type=positive_int, default=1,
@@ -184,6 +189,11 @@ def main(argv: list[str] | None = None) -> int:
     summary["command"] = command
     markdown = suite_markdown(summary, command)
     out.mkdir(parents=True, exist_ok=True)
+    if not args.no_figures:
+        from lcmodels.bench.figures import figures_markdown, write_figures
+
+        write_figures(summary, out)
+        markdown += "\n" + figures_markdown()
     (out / "BENCH.md").write_text(markdown)
     (out / "bench.json").write_text(json.dumps(summary, indent=1, sort_keys=True) + "\n")
     print()

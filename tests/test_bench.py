@@ -126,6 +126,9 @@ def test_lc_bench_validation_table_and_resume(tiny_suite: Path, tmp_path: Path, 
     assert keep_row["mcnemar_vs_first"]["first"] == "keep" and 0 <= keep_row["mcnemar_vs_first"]["p_value"] <= 1
     md = (out / "BENCH.md").read_text()
     assert "ceiling: oracle" in md and "Wilson 95%" in md and "McNemar p" in md
+    for stem in ("bench_normalised", "bench_intervals"):  # the figures beside the table, embedded in it
+        assert (out / f"{stem}.png").stat().st_size > 0 and (out / f"{stem}.svg").stat().st_size > 0
+        assert f"({stem}.svg)" in md
     assert not tiny_suite.exists()  # validation never writes the ledger
     assert bench_main(argv) == 0  # a rerun resumes: every cell from the cache, the same table
     assert json.loads((out / "bench.json").read_text()) == summary

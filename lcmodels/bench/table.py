@@ -77,7 +77,34 @@ def suite_summary(cells: dict[tuple[str, str], dict[str, Any]], drivers: Sequenc
                     "mean": float(np.mean(rates)), "t95": list(t_interval(rates)), "runs": len(rates)}
             del sc_index
         per_group.append(entry)
+    _group_tests(per_group, cells, scenarios)
     return {"suite": suite, "split": split, "scenarios": rows, "drivers": per_driver, "groups": per_group}
+
+
+def _group_tests(per_group: list[dict[str, Any]], cells: dict[tuple[str, str], dict[str, Any]],
+                 scenarios: Sequence[Any]) -> None:
+    """McNemar of every method against the first, pooled over runs paired in the order given (the k-th run of
+    one with the k-th of the other, on the same episodes: training seed with training seed when both are listed
+    in seed order), over the suite and per scenario; methods with different numbers of runs pair the first
+    ``min`` runs. Stored as ``mcnemar_vs_first_group`` with the pairs it made."""
+    if len(per_group) < 2:
+        return
+    first = per_group[0]
+    for g in per_group[1:]:
+        pairs = list(zip(first["runs"], g["runs"], strict=False))
+
+        def won(labels: Sequence[str], names: Sequence[str]) -> np.ndarray:
+            return np.concatenate([_won(cells[(lb, sc)]) for lb in labels for sc in names])
+
+        names = [sc.name for sc in scenarios]
+        a, b = won([p[0] for p in pairs], names), won([p[1] for p in pairs], names)
+        test = mcnemar(a, b)
+        g["mcnemar_vs_first_group"] = {
+            "first": first["group"], "pairs": [list(p) for p in pairs], **test.as_dict(),
+            "verdict": test.verdict(first["group"], g["group"]),
+            "per_scenario": {sc: mcnemar(won([p[0] for p in pairs], [sc]), won([p[1] for p in pairs], [sc])).as_dict()
+                             for sc in names},
+        }  # fmt: skip
 
 
 def _pct(rate: float, ci: Sequence[float]) -> str:
@@ -122,6 +149,17 @@ def suite_markdown(summary: dict[str, Any], command: str = "") -> str:
                 ci = a["ci95"]
                 cells.append(f"{a['value']:.3f}" + (f" [{ci[0]:.3f}, {ci[1]:.3f}]" if ci else ""))
             lines.append(f"| {g['group']} | {len(g['runs'])} | {cells[0]} | {cells[1]} |")
+    tested = [g for g in summary["groups"] if "mcnemar_vs_first_group" in g]
+    if tested and any(len(g["runs"]) > 1 for g in summary["groups"]):
+        first = tested[0]["mcnemar_vs_first_group"]["first"]
+        lines += ["", f"Per method against `{first}`: McNemar's test on every episode of the suite, the runs paired "
+                  "in the order given (first with first: training seed with training seed when listed in seed "
+                  "order).", "", "| method | pairs | only the first won | only this won | p | verdict |",
+                  "|---|---|---|---|---|---|"]  # fmt: skip
+        for g in tested:
+            t = g["mcnemar_vs_first_group"]
+            lines.append(f"| {g['group']} | {len(t['pairs'])} runs, {t['n']} episodes | {t['only_a']} | {t['only_b']} "
+                         f"| {t['p_value']:.2g} | {t['verdict']} |")
     seeds = [g for g in summary["groups"] if "success_over_seeds" in g]
     if seeds:
         lines += ["", "Success over training seeds: mean with the t 95% interval over seeds.", "",
