@@ -4,7 +4,8 @@ read against today's argparse parsers (built in-process, nothing run). A command
 no longer accepted, an older spelling hidden from ``--help`` (a flag kept only so that old command lines keep
 working; a document writes today's), a value outside a flag's choices, a subcommand that is gone, and a
 ``python tools/...`` or ``python -m experiments...`` script that no longer exists all fail, naming the document
-and line.
+and line. The Python scripts kept beside the notes (docs/) and in experiments/ may import, read or patch only
+names the packages still have.
 
 The rule for history: a note whose title is followed (within its first five lines) by the banner
 
@@ -342,3 +343,73 @@ def test_code_blocks_join_continuations_and_skip_other_languages():
     assert [(q.where, q.text) for q in code_lines(text, "d")] == [
         ("d:3", "lc-eval rule  --episodes 5"), ("d:5", "# lc-nothing --x")]  # fmt: skip
     assert [rot(q) for q in code_lines(text, "d")] == [[], []]
+
+
+PACKAGES = ("lckit", "lcsim", "lcdata", "lcmodels", "lccli", "experiments", "tools")
+"""The repository's own importable top-level names."""
+
+
+def study_scripts() -> list[Path]:
+    """The Python files kept beside the notes (docs/) and in experiments/."""
+    return sorted(p for folder in ("docs", "experiments") for p in (ROOT / folder).rglob("*.py"))
+
+
+def missing_names(path: Path) -> list[str]:
+    """What ``path`` imports from the repository's packages, or reads or patches on a class or module it
+    imported from them, that no longer exists (found by reading the file, nothing of it run)."""
+    import ast
+    import importlib
+    import inspect
+
+    tree = ast.parse(path.read_text(encoding="utf-8"), str(path))
+    known: dict[str, object] = {}
+    found = []
+    for node in ast.walk(tree):
+        if isinstance(node, ast.Import):
+            for alias in node.names:
+                if alias.name.split(".")[0] in PACKAGES:
+                    try:
+                        module = importlib.import_module(alias.name)
+                    except ImportError as exc:
+                        found.append(f"{path.name}:{node.lineno}: import {alias.name}: {exc}")
+                        continue
+                    known[alias.asname or alias.name] = module if alias.asname else importlib.import_module(
+                        alias.name.split(".")[0])  # fmt: skip
+        elif isinstance(node, ast.ImportFrom) and node.level == 0 and (node.module or "").split(".")[0] in PACKAGES:
+            try:
+                module = importlib.import_module(str(node.module))
+            except ImportError as exc:
+                found.append(f"{path.name}:{node.lineno}: from {node.module}: {exc}")
+                continue
+            for alias in node.names:
+                if hasattr(module, alias.name):
+                    known[alias.asname or alias.name] = getattr(module, alias.name)
+                else:
+                    try:
+                        known[alias.asname or alias.name] = importlib.import_module(f"{node.module}.{alias.name}")
+                    except ImportError:
+                        found.append(f"{path.name}:{node.lineno}: {node.module} has no {alias.name}")
+    for node in ast.walk(tree):
+        if isinstance(node, ast.Attribute) and isinstance(node.value, ast.Name) and node.value.id in known:
+            owner = known[node.value.id]
+            if (inspect.ismodule(owner) or inspect.isclass(owner)) and not hasattr(owner, node.attr):
+                try:
+                    importlib.import_module(f"{owner.__name__}.{node.attr}")
+                except (ImportError, AttributeError):
+                    found.append(f"{path.name}:{node.lineno}: {node.value.id}.{node.attr} does not exist")
+    return found
+
+
+@pytest.mark.parametrize("script", study_scripts(), ids=lambda p: str(p.relative_to(ROOT)))
+def test_a_study_script_imports_and_patches_only_what_exists(script: Path):
+    assert missing_names(script) == [], "fix the script, or remove it and say in its note what it did"
+
+
+def test_a_script_patching_a_method_that_is_gone_is_caught(tmp_path: Path):
+    script = tmp_path / "patch.py"
+    script.write_text("from lcsim.sim import HighwaySim\nimport lcsim.planning as planning\n"
+                      "full = HighwaySim.no_such_method\nplanning.no_such_function(1)\n"
+                      "from experiments.no_such_study import x\n")  # fmt: skip
+    assert [m.split(": ", 1)[1] for m in missing_names(script)] == [
+        "from experiments.no_such_study: No module named 'experiments.no_such_study'",
+        "HighwaySim.no_such_method does not exist", "planning.no_such_function does not exist"]  # fmt: skip
