@@ -32,7 +32,7 @@ from lccli.common import (
 )
 
 
-def main(argv: list[str] | None = None) -> int:
+def dagger_parser() -> argparse.ArgumentParser:
     ap = argparse.ArgumentParser(prog="lc-dagger", description=__doc__.split("\n\n")[0],
                                  formatter_class=argparse.RawDescriptionHelpFormatter,
                                  epilog="\n\n".join(__doc__.split("\n\n")[1:]))  # fmt: skip
@@ -67,7 +67,11 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--resume", action="store_true",
                     help="continue the rounds already in --out (same run, --episodes, --seed, --labels) up to "
                     "--rounds in all")
-    args = ap.parse_args(argv)
+    return ap
+
+
+def main(argv: list[str] | None = None) -> int:
+    args = dagger_parser().parse_args(argv)
     import torch
 
     from lcmodels.policy.dagger import dagger

@@ -27,7 +27,7 @@ SWEEP.md and sweep.json (every trial's held-out success and collision rate with 
 """
 
 
-def main(argv: list[str] | None = None) -> int:
+def tune_parser() -> argparse.ArgumentParser:
     p = argparse.ArgumentParser(prog="lc-tune", description=__doc__.split("\n\n")[0], epilog=EPILOG,
                                 formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("sweep", type=Path, help="the sweep file (.toml or .json)")
@@ -36,7 +36,11 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--threads", type=positive_int, default=1, help="torch threads (and Ray CPUs) per trial (1)")
     add_executor_arguments(p, "each trial a Ray Tune trial", "trials one after the other here")
     p.add_argument("-q", "--quiet", action="store_true", help="no progress lines")
-    args = p.parse_args(argv)
+    return p
+
+
+def main(argv: list[str] | None = None) -> int:
+    args = tune_parser().parse_args(argv)
     from lcmodels.sweep import SWEEP_MD, Sweep, run_sweep
 
     if args.predictor is not None and not args.predictor.is_file():

@@ -8,8 +8,8 @@ traffic's median, and the desired speed's RMSE against the motion-based estimate
 
 import numpy as np
 
-from lcsim.core import RUNNING, LaneChangeCore
 from experiments.imagined_drivers.estimate import LONGITUDINAL, DriverEstimator
+from lcsim.core import RUNNING, LaneChangeCore
 from lcsim.planning.perception import estimated_desired_speeds
 from lcsim.registry import make_driver, scenario
 

@@ -15,8 +15,8 @@ import torch
 
 from lcmodels.policy.evaluate import driver_for
 from lcsim.core import RUNNING, LaneChangeCore
-from lcsim.planning import LookaheadDriver, SafetyLayerConfig
 from lcsim.envs import episode_seed
+from lcsim.planning import LookaheadDriver, SafetyLayerConfig
 
 
 class FirstSlots:
@@ -46,7 +46,9 @@ for start in range(first, first + n, 20):
         a = pol(obs, mask, core)
         planner(obs, mask, core)  # labels only: the policy drives
         choice = ~np.isnan(planner.last_alive[:, 1])
-        current.append(obs["current"][choice]); alive.append(planner.last_alive[choice]); actions.append(a[choice])
+        current.append(obs["current"][choice])
+        alive.append(planner.last_alive[choice])
+        actions.append(a[choice])
         core.step(a)
     print(f"{start - first + len(seeds)}/{n} episodes, {sum(map(len, actions))} states, "
           f"{time.perf_counter() - t0:.0f} s", file=sys.stderr, flush=True)

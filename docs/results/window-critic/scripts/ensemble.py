@@ -30,7 +30,7 @@ class Ensemble:
         return pr.argmax(axis=1)
 
 torch.set_num_threads(1)
-seed = int(sys.argv[1]); paths = sys.argv[2:]
+seed, paths = int(sys.argv[1]), sys.argv[2:]
 pols = [load_policy(p, predictor="runs/predictor/predictor.pt") for p in paths]
 cfg = scenario_for_mode(pols[0].scenario, "hybrid" if any(p.obs_mode in ("hybrid", "image") for p in pols) else "pure")
 t = time.perf_counter()

@@ -35,11 +35,13 @@ class Guard:
         self.n += int(choice.sum())
         for i in np.flatnonzero(choice):
             if self.veto and a[i] != 1 and not can[a[i]][i]:
-                a[i] = 1; self.n_veto += 1
+                a[i] = 1
+                self.n_veto += 1
             if self.rescue_s is not None and a[i] == 1 and trap[i] < self.rescue_s:
                 sides = [s for s in (0, 2) if mask[i, s] and can[s][i]]
                 if sides:
-                    a[i] = max(sides, key=lambda s: closes[s][i]); self.n_rescue += 1
+                    a[i] = max(sides, key=lambda s: closes[s][i])
+                    self.n_rescue += 1
         return a
 
 spec, seed = sys.argv[1], int(sys.argv[2])

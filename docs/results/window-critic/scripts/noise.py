@@ -14,8 +14,8 @@ import torch
 
 from lcmodels.policy.evaluate import driver_for
 from lcsim.core import KEEP, RUNNING, LaneChangeCore
-from lcsim.planning import LookaheadDriver, SafetyLayerConfig
 from lcsim.envs import episode_seed
+from lcsim.planning import LookaheadDriver, SafetyLayerConfig
 
 torch.set_num_threads(1)
 policy, first, n, K = sys.argv[1], int(sys.argv[2]), int(sys.argv[3]), int(sys.argv[4])
@@ -24,7 +24,8 @@ planner = LookaheadDriver(SafetyLayerConfig(horizon_decisions=32, perceived=Fals
 shares, t0 = [], time.perf_counter()
 for start in range(first, first + n, 20):
     seeds = list(range(start, min(start + 20, first + n)))
-    core = LaneChangeCore(cfg, len(seeds)); core.reset(np.arange(len(seeds)), [episode_seed(u) for u in seeds])
+    core = LaneChangeCore(cfg, len(seeds))
+    core.reset(np.arange(len(seeds)), [episode_seed(u) for u in seeds])
     while (core.outcome == RUNNING).any():
         obs, mask = core.observe(), core.action_mask()
         actions = drv(obs, mask, core)

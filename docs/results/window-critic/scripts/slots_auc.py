@@ -11,7 +11,7 @@ import sys
 import numpy as np
 import torch
 
-from tools.safety_critic import score_states, train_critics
+from experiments.safety_critic.safety_critic import score_states, train_critics
 
 torch.set_num_threads(1)
 fit, score = np.load(sys.argv[1]), np.load(sys.argv[2])
