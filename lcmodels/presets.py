@@ -111,6 +111,13 @@ class Preset:
     """Test: held-out episodes of an evaluation seed never used for any choice; the report's figures."""
     oracle: bool = True
     """Evaluate the oracle (the ceiling of any policy) on the same episodes."""
+    suite: str = ""
+    """A benchmark suite (:data:`lcsim.suite.SUITES`) every recipe's final policy is also measured on, on
+    validation episodes, next to each road's ceiling and floor: lc-bench's table, paired tests and figures in
+    ``DIR/bench`` ("": none)."""
+    suite_episodes: int = 100
+    suite_seed: int = 0
+    """Validation episodes per road of :attr:`suite`, and their evaluation seed (``lc-bench --episodes --seed``)."""
     zoo: bool = False
     """Also evaluate every policy of the zoo on the test episodes (``make demo``)."""
     record_eval: bool = False
@@ -131,6 +138,14 @@ class Preset:
         for name, n in self.recipe_seeds:
             if not isinstance(n, int) or isinstance(n, bool) or n < 1:
                 raise ValueError(f"Preset.recipe_seeds: {name!r} needs an integer >= 1, got {n!r}")
+        if self.suite:
+            from lcsim.suite import SUITES
+
+            if self.suite not in SUITES:
+                raise ValueError(f"Preset.suite must be one of {', '.join(SUITES)} or empty, got {self.suite!r}")
+        if self.suite_episodes < 1 or self.suite_seed < 0:
+            raise ValueError(f"Preset.suite_episodes must be >= 1 and suite_seed >= 0, got {self.suite_episodes}, "
+                             f"{self.suite_seed}")
         if self.test_seed in self.val_seeds:
             raise ValueError(f"Preset.test_seed {self.test_seed} must not be a validation seed {self.val_seeds}")
 
@@ -167,12 +182,12 @@ PRESETS: dict[str, Preset] = {
     # it resumes).
     "paper": Preset(name="paper", recipe_seeds=(("hybrid-ppo", 2),)),
     # The controlled input ablation: every input with the same trunk, algorithm, budget and stages, three training
-    # seeds each, on the paper's road and across the suite (a night on 2 cores; it resumes). The suite's figures
-    # come from lc-bench over the trained policies (docs/results/ablation).
+    # seeds each, on the paper's road and across the suite (a night on 2 cores; it resumes); every policy measured
+    # on every road of the suite, the tables, paired tests and figures in DIR/bench (docs/results/ablation).
     "ablation": Preset(
         name="ablation", recipes=ABLATION_RECIPES,
         recipe_seeds=tuple((r, ABLATION_SEEDS) for r in ABLATION_RECIPES), val_episodes=200, val_seeds=(0,),
-        test_episodes=200, oracle=False,
+        test_episodes=200, oracle=False, suite="highway", suite_episodes=100,
     ),
 }
 

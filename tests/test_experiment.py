@@ -648,3 +648,38 @@ def test_a_dagger_stage_taught_by_the_safety_layer_starts_from_the_policy_it_fol
     again = Experiment(dataclasses.replace(preset, recipes=(str(unweighted),)), run_dir)
     assert again.run_stage(StageKey.parse("distil-safety-ppo/seed0/dagger")).status == "skipped"
     assert exp.run_stage(StageKey.parse("distil-safety-ppo/seed0/dagger")).status == "done"
+
+
+def test_a_preset_with_a_suite_measures_every_run_on_its_roads_and_tables_them_with_figures(
+        tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    """The ablation's shape, small: two recipes with two seeds each, every final policy on every road of a suite
+    next to the ceiling and floor, one table with the methods' paired tests and the figures; a rerun is complete."""
+    import json
+
+    from lcsim import suite as suite_mod
+    from lcsim.config import tiny_scenario
+    from lcsim.suite import SuiteScenario
+
+    for name, block in (("tiny-a", 900), ("tiny-b", 901)):
+        monkeypatch.setitem(suite_mod.SUITE_SCENARIOS, name, SuiteScenario(name=name, block=block, test_episodes=6,
+                                                                            what="tiny", make=tiny_scenario))  # fmt: skip
+    monkeypatch.setitem(suite_mod.SUITES, "tiny", ("tiny-a", "tiny-b"))
+    preset = dataclasses.replace(PRESETS["tiny"], recipes=("paper-ppo-pure", "ablation-lane-aware"), oracle=False,
+                                 recipe_seeds=(("paper-ppo-pure", 2), ("ablation-lane-aware", 2)), suite="tiny",
+                                 suite_episodes=3)  # fmt: skip
+    out = tmp_path / "run"
+    Experiment(preset, out).run()
+    summary = json.loads((out / "bench" / "bench.json").read_text())
+    assert [g["group"] for g in summary["groups"]] == ["paper-ppo-pure", "ablation-lane-aware"]
+    assert summary["groups"][0]["runs"] == ["paper-ppo-pure/seed0", "paper-ppo-pure/seed1"]
+    test = summary["groups"][1]["mcnemar_vs_first_group"]
+    assert test["pairs"] == [["paper-ppo-pure/seed0", "ablation-lane-aware/seed0"],
+                             ["paper-ppo-pure/seed1", "ablation-lane-aware/seed1"]] and test["n"] == 2 * 2 * 3
+    for row in summary["scenarios"]:
+        assert {"oracle", "rule", "ablation-lane-aware/seed1"} <= set(row["drivers"]) and row["episodes"] == 3
+    md = (out / "bench" / "BENCH.md").read_text()
+    assert "(bench_normalised.svg)" in md and (out / "bench" / "bench_intervals.png").stat().st_size > 0
+    cells = json.loads((out / "policies" / "ablation-lane-aware" / "seed0" / "suite" / "suite.json").read_text())
+    assert set(cells["cells"]) == {"tiny-a", "tiny-b"} and len(cells["cells"]["tiny-a"]["outcomes"]) == 3
+    again = Experiment(preset, out).plan()
+    assert {s.status for s in again} == {"skipped"}

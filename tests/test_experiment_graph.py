@@ -53,6 +53,7 @@ def test_the_tiny_graph_has_every_stage_of_every_recipe_each_after_what_it_reads
         assert all(k in graph.dependents(n) for n in graph.needed(k))
     recipes = {r.name: r for r in exp.recipes()}
     want = {StageKey.of("corpus"), StageKey.of("predictor"), StageKey.of("rule"), StageKey.of("oracle")}
+    want |= {StageKey.of("predictor", r.predictor) for r in recipes.values() if r.predictor != "learned"}
     want |= {StageKey.of("demos", f"{r.demos.driver}-s{r.demos.seed}-n{r.demos.episodes}") for r in recipes.values()
              if "clone" in r.stages}  # fmt: skip
     for r in recipes.values():

@@ -8,6 +8,8 @@ each naming the stages it reads.
     demos/<key> ──► <recipe>/seed<k>/clone ──► dagger ──► train ──► shielded ──► eval
                                                                         └──────► safety
     <followed recipe>/seed<k>/<its final stage> ───────► shielded, safety, a dagger stage the layer labels
+    <recipe>/seed<k>/<final> ──► suite ─┐   suite/oracle, suite/rule ──► bench (the preset's suite: lc-bench's
+                                        └────────────────────────────►  table and figures of every run)
     rule, oracle    zoo/<entry>, zoo-safety/<entry>    zoo/* ──► showcase
 
 A recipe's ``shielded`` and ``safety`` stages read the final stage of the recipe its safety layer follows (same
@@ -260,6 +262,7 @@ def build_graph(preset: Preset, recipes: Sequence[Recipe], seeds: Mapping[str, i
             demos[k] = add(Stage(StageKey.of("demos", k), group="data", priority=prio("data", 2, len(demos)),
                                  demos=r.demos))  # fmt: skip
     rank = recipe_ranks(recipes)
+    suite_runs: list[StageKey] = []
     names = {r.name for r in recipes}
     for r in recipes:
         if (f := follows(r)) and f not in names:
@@ -289,6 +292,15 @@ def build_graph(preset: Preset, recipes: Sequence[Recipe], seeds: Mapping[str, i
             if has_layer(r):
                 add(Stage(StageKey(r.name, seed, "safety"), (*pred, *final, *follow), "recipes",
                           prio("recipes", rank[r.name], seed, i, n + 1), recipe=r))  # fmt: skip
+            if preset.suite:
+                suite_runs.append(add(Stage(StageKey(r.name, seed, "suite"), (*pred, *final), "recipes",
+                                            prio("recipes", rank[r.name], seed, i, n + 2), recipe=r)))  # fmt: skip
+    if preset.suite:  # every final policy on the suite's roads, next to each road's ceiling and floor
+        ends = [add(Stage(StageKey.of("suite", who), group="references", priority=prio("references", 2, j)))
+                for j, who in enumerate((ORACLE_KEY, RULE_KEY))]
+        add(Stage(StageKey.of("bench"), (("ceiling", ends[0]), ("floor", ends[1]),
+                                         *((f"run:{k}", k) for k in suite_runs)),
+                  group="references", priority=prio("references", 3)))  # fmt: skip
     add(Stage(StageKey.of(RULE_KEY), group="references", priority=prio("references", 0)))
     if preset.oracle:
         add(Stage(StageKey.of(ORACLE_KEY), group="references", priority=prio("references", 1)))

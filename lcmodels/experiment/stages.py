@@ -77,6 +77,10 @@ def stage_job(ctx: StageContext, stage: Stage, got: Mapping[str, StageResult]) -
             job = _recipe_eval_job(ctx, k, stage.recipe, got)
         elif k.stage == "safety":
             job = _safety_job(ctx, k, stage.recipe, got)
+        elif k.stage == "suite":
+            final = got["policy"]
+            job = _suite_job(ctx, k, str(previous_policy(final)), {"policy": final.digest}, group=k.recipe,
+                             predictor=_predictor_file(stage.recipe, got))  # fmt: skip
         else:
             raise ValueError(f"no such recipe stage: {k}")
     elif k.stage == "corpus":
@@ -87,6 +91,10 @@ def stage_job(ctx: StageContext, stage: Stage, got: Mapping[str, StageResult]) -
         job = _predictor_job(ctx, k, got["corpus"])
     elif k.stage == "demos":
         job = _demos_job(ctx, k, stage.demos)
+    elif k.stage == "suite" and k.part is not None:
+        job = _suite_job(ctx, k, k.part, {}, group=k.part)
+    elif k.stage == "bench":
+        job = _bench_job(ctx, k, got)
     elif k.stage in (RULE_KEY, ORACLE_KEY):
         job = _reference_job(ctx, k)
     elif k.stage == "zoo":
@@ -263,6 +271,71 @@ def _reference_job(ctx: StageContext, key: StageKey) -> StageJob:
 
     config = PolicyConfig(scenario=ctx.preset.scenario, obs="pure").scenario_config()
     return _evaluation_job(ctx, key, key.stage, {}, scenario=config)
+
+
+def _suite_job(ctx: StageContext, key: StageKey, spec: str, inputs: dict[str, str], *, group: str,
+               predictor: Path | None = None) -> StageJob:
+    """``suite.json``: driver ``spec`` on every road of the preset's suite, ``suite_episodes`` validation episodes
+    of ``suite_seed`` each, as lc-bench measures a cell (each road's cell kept as it ends: a rerun resumes)."""
+    p = ctx.preset
+    path = key.path(ctx.out)
+    label = f"{key.recipe}/seed{key.seed}" if key.recipe is not None else spec
+    cfg = {"driver": label, "suite": p.suite, "episodes": p.suite_episodes, "seed": p.suite_seed}
+
+    def work(keep: bool, save_wall: Callable[[], None]) -> float:
+        from lcmodels.bench.run import Runner, bench_cell, resolve_driver
+        from lcsim.suite import suite
+
+        driver = dataclasses.replace(resolve_driver(spec, predictor=str(predictor) if predictor else None),
+                                     label=label)  # fmt: skip
+        cells = {}
+        for sc in suite(p.suite):
+            cell = bench_cell(driver, sc, Runner(threads=ctx.threads), episodes=p.suite_episodes, seed=p.suite_seed,
+                              final=False, cache_dir=path / "cells")  # fmt: skip
+            cells[sc.name] = cell.record
+            save_wall()
+            ctx.emit(f"[{key}] {sc.name}: success {100 * cell.record['success_rate']:.1f}% "
+                     f"({cell.record['episodes']} episodes{', cached' if cell.source == 'cache' else ''})")
+        write_json(path / "suite.json", {"config": cfg, "label": label, "group": group, "cells": cells})
+        return float(sum(c["wall_s"] for c in cells.values()))
+
+    return StageJob(cfg, inputs, lambda: ["suite.json"], work)
+
+
+def _bench_job(ctx: StageContext, key: StageKey, got: Mapping[str, StageResult]) -> StageJob:
+    """lc-bench's table of every run the preset's suite measured (``suite`` stages), grouped by recipe (its runs:
+    the training seeds, first listed first), with the paired tests and figures: ``BENCH.md``, ``bench.json``."""
+    p = ctx.preset
+    path = key.path(ctx.out)
+    # the runs by recipe in the preset's order (the first recipe is the paired tests' reference), seed by seed
+    keys = [StageKey.parse(role.removeprefix("run:")) for role in got if role.startswith("run:")]
+    order = list(dict.fromkeys(k.recipe for k in keys))
+    runs = [f"run:{k}" for k in sorted(keys, key=lambda k: (order.index(k.recipe), k.seed))]
+
+    def work(keep: bool, save_wall: Callable[[], None]) -> None:
+        from lcmodels.bench.figures import figures_markdown, write_figures
+        from lcmodels.bench.table import CEILING, FLOOR, suite_markdown, suite_summary
+        from lcsim.suite import suite
+
+        cells: dict[tuple[str, str], dict[str, Any]] = {}
+        drivers = []
+        for role, as_label in (("ceiling", CEILING), ("floor", FLOOR), *((r, None) for r in runs)):
+            data = read_json(got[role].path / "suite.json") or {}
+            label = as_label or str(data.get("label"))
+            for sc, rec in (data.get("cells") or {}).items():
+                cells[(label, sc)] = rec
+            if as_label is None:
+                drivers.append((label, str(data.get("group"))))
+        summary = suite_summary(cells, drivers, suite(p.suite), suite=p.suite, split=f"validation seed {p.suite_seed}")
+        summary["command"] = "lc-experiment --preset " + p.name
+        markdown = suite_markdown(summary, summary["command"])
+        write_figures(summary, path)
+        write_json(path / "bench.json", summary)
+        (path / "BENCH.md").write_text(markdown + "\n" + figures_markdown())
+
+    cfg = {"suite": p.suite, "episodes": p.suite_episodes, "seed": p.suite_seed, "runs": [r[4:] for r in runs]}
+    inputs = {role: got[role].digest for role in got}
+    return StageJob(cfg, inputs, lambda: ["BENCH.md", "bench.json"], work)
 
 
 def _predictor_file(recipe: Recipe, got: Mapping[str, StageResult]) -> Path | None:
