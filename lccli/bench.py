@@ -185,7 +185,8 @@ def main(argv: list[str] | None = None) -> int:
     except (ValueError, OSError) as exc:
         return error(str(exc).splitlines()[0])
     summary = suite_summary(cells, [(d.label, d.group) for d in drivers], scenarios,
-                            suite=args.suite or DEFAULT_SUITE, split=split)  # fmt: skip
+                            suite=args.suite or DEFAULT_SUITE, split=split,
+                            pair_keys={d.label: d.about.get("training_seed") for d in drivers})  # fmt: skip
     summary["command"] = command
     markdown = suite_markdown(summary, command)
     out.mkdir(parents=True, exist_ok=True)

@@ -51,7 +51,22 @@ def test_methods_are_tested_against_the_first_run_with_run_on_the_same_episodes(
     assert groups["image"]["mcnemar_vs_first_group"]["pairs"] == [["h0", "i0"]]  # fewer runs: the first pairs
     assert set(pure["per_scenario"]) == {"a", "b", "c"}
     md = suite_markdown(summary)
-    assert "| pure | 3 runs, 1800 episodes |" in md
+    assert "| pure | 3 runs, 1800 episodes | order given |" in md
+
+
+def test_runs_pair_by_training_seed_where_every_run_has_one() -> None:
+    rng = np.random.default_rng(1)
+    rates = {CEILING: 0.9, FLOOR: 0.5, "h0": 0.8, "h2": 0.8, "p1": 0.6, "p2": 0.6}
+    cells = _cells(rng, rates, ["a"], 50)
+    scenarios = [SuiteScenario(name="a", block=0, test_episodes=10, what="a", make=lambda: None)]
+    keys = {"h0": 0, "h2": 2, "p1": 1, "p2": 2}
+    s = suite_summary(cells, [("h0", "h"), ("h2", "h"), ("p1", "p"), ("p2", "p")], scenarios, suite="t",
+                      split="validation seed 0", pair_keys=keys)  # fmt: skip
+    test = s["groups"][1]["mcnemar_vs_first_group"]
+    assert test["pairs"] == [["h2", "p2"]] and test["paired_by"] == "key" and test["n"] == 50  # seed 2 alone
+    order = suite_summary(cells, [("h0", "h"), ("h2", "h"), ("p1", "p"), ("p2", "p")], scenarios, suite="t",
+                          split="validation seed 0")["groups"][1]["mcnemar_vs_first_group"]  # fmt: skip
+    assert order["pairs"] == [["h0", "p1"], ["h2", "p2"]] and order["paired_by"] == "order"
 
 
 def test_the_figures_are_written_beside_the_table_and_show_its_numbers(summary: dict, tmp_path: Path) -> None:

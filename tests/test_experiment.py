@@ -673,7 +673,7 @@ def test_a_preset_with_a_suite_measures_every_run_on_its_roads_and_tables_them_w
     assert [g["group"] for g in summary["groups"]] == ["paper-ppo-pure", "ablation-lane-aware"]
     assert summary["groups"][0]["runs"] == ["paper-ppo-pure/seed0", "paper-ppo-pure/seed1"]
     test = summary["groups"][1]["mcnemar_vs_first_group"]
-    assert test["pairs"] == [["paper-ppo-pure/seed0", "ablation-lane-aware/seed0"],
+    assert test["paired_by"] == "key" and test["pairs"] == [["paper-ppo-pure/seed0", "ablation-lane-aware/seed0"],
                              ["paper-ppo-pure/seed1", "ablation-lane-aware/seed1"]] and test["n"] == 2 * 2 * 3
     for row in summary["scenarios"]:
         assert {"oracle", "rule", "ablation-lane-aware/seed1"} <= set(row["drivers"]) and row["episodes"] == 3

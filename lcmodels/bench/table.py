@@ -21,7 +21,8 @@ def _won(record: dict[str, Any]) -> np.ndarray:
 
 
 def suite_summary(cells: dict[tuple[str, str], dict[str, Any]], drivers: Sequence[tuple[str, str]],
-                  scenarios: Sequence[Any], *, suite: str, split: str) -> dict[str, Any]:
+                  scenarios: Sequence[Any], *, suite: str, split: str,
+                  pair_keys: dict[str, Any] | None = None) -> dict[str, Any]:
     """The table as data.
 
     Args:
@@ -30,6 +31,8 @@ def suite_summary(cells: dict[tuple[str, str], dict[str, Any]], drivers: Sequenc
         drivers: ``(label, group)`` of the drivers benchmarked, in the user's order (the first is the
             reference of the paired tests).
         scenarios: the suite's :class:`lcsim.suite.SuiteScenario` s.
+        pair_keys: ``{label: key}`` by which the methods' paired test pairs their runs (the training seed): runs
+            with the same key; where a run has none, the runs pair in the order given.
     """
     rows = []
     for sc in scenarios:
@@ -77,21 +80,32 @@ def suite_summary(cells: dict[tuple[str, str], dict[str, Any]], drivers: Sequenc
                     "mean": float(np.mean(rates)), "t95": list(t_interval(rates)), "runs": len(rates)}
             del sc_index
         per_group.append(entry)
-    _group_tests(per_group, cells, scenarios)
+    _group_tests(per_group, cells, scenarios, pair_keys or {})
     return {"suite": suite, "split": split, "scenarios": rows, "drivers": per_driver, "groups": per_group}
 
 
+def _pairs(a: Sequence[str], b: Sequence[str], keys: dict[str, Any]) -> list[tuple[str, str]]:
+    """Runs of two methods paired: by their keys where every run has one (runs whose key the other method lacks
+    are left out), else in the order given (the first ``min`` runs)."""
+    if all(keys.get(lb) is not None for lb in (*a, *b)):
+        theirs = {keys[lb]: lb for lb in b}
+        return [(lb, theirs[keys[lb]]) for lb in a if keys[lb] in theirs]
+    return list(zip(a, b, strict=False))
+
+
 def _group_tests(per_group: list[dict[str, Any]], cells: dict[tuple[str, str], dict[str, Any]],
-                 scenarios: Sequence[Any]) -> None:
-    """McNemar of every method against the first, pooled over runs paired in the order given (the k-th run of
-    one with the k-th of the other, on the same episodes: training seed with training seed when both are listed
-    in seed order), over the suite and per scenario; methods with different numbers of runs pair the first
-    ``min`` runs. Stored as ``mcnemar_vs_first_group`` with the pairs it made."""
+                 scenarios: Sequence[Any], keys: dict[str, Any]) -> None:
+    """McNemar of every method against the first, pooled over their runs paired on the same episodes (by
+    ``keys``, the training seed: seed with seed; else in the order given), over the suite and per scenario.
+    Stored as ``mcnemar_vs_first_group`` with the pairs it made and how (``paired_by``)."""
     if len(per_group) < 2:
         return
     first = per_group[0]
     for g in per_group[1:]:
-        pairs = list(zip(first["runs"], g["runs"], strict=False))
+        pairs = _pairs(first["runs"], g["runs"], keys)
+        if not pairs:
+            continue
+        by = "key" if all(keys.get(lb) is not None for lb in (*first["runs"], *g["runs"])) else "order"
 
         def won(labels: Sequence[str], names: Sequence[str]) -> np.ndarray:
             return np.concatenate([_won(cells[(lb, sc)]) for lb in labels for sc in names])
@@ -100,7 +114,7 @@ def _group_tests(per_group: list[dict[str, Any]], cells: dict[tuple[str, str], d
         a, b = won([p[0] for p in pairs], names), won([p[1] for p in pairs], names)
         test = mcnemar(a, b)
         g["mcnemar_vs_first_group"] = {
-            "first": first["group"], "pairs": [list(p) for p in pairs], **test.as_dict(),
+            "first": first["group"], "pairs": [list(p) for p in pairs], "paired_by": by, **test.as_dict(),
             "verdict": test.verdict(first["group"], g["group"]),
             "per_scenario": {sc: mcnemar(won([p[0] for p in pairs], [sc]), won([p[1] for p in pairs], [sc])).as_dict()
                              for sc in names},
@@ -152,14 +166,15 @@ def suite_markdown(summary: dict[str, Any], command: str = "") -> str:
     tested = [g for g in summary["groups"] if "mcnemar_vs_first_group" in g]
     if tested and any(len(g["runs"]) > 1 for g in summary["groups"]):
         first = tested[0]["mcnemar_vs_first_group"]["first"]
-        lines += ["", f"Per method against `{first}`: McNemar's test on every episode of the suite, the runs paired "
-                  "in the order given (first with first: training seed with training seed when listed in seed "
-                  "order).", "", "| method | pairs | only the first won | only this won | p | verdict |",
-                  "|---|---|---|---|---|---|"]  # fmt: skip
+        lines += ["", f"Per method against `{first}`: McNemar's test on every episode of the suite, pooled over the "
+                  "runs paired training seed with training seed (or, where a run's seed is unknown, in the order "
+                  "given).", "", "| method | pairs | paired by | only the first won | only this won | p | verdict |",
+                  "|---|---|---|---|---|---|---|"]  # fmt: skip
         for g in tested:
             t = g["mcnemar_vs_first_group"]
-            lines.append(f"| {g['group']} | {len(t['pairs'])} runs, {t['n']} episodes | {t['only_a']} | {t['only_b']} "
-                         f"| {t['p_value']:.2g} | {t['verdict']} |")
+            by = "training seed" if t["paired_by"] == "key" else "order given"
+            lines.append(f"| {g['group']} | {len(t['pairs'])} runs, {t['n']} episodes | {by} | {t['only_a']} | "
+                         f"{t['only_b']} | {t['p_value']:.2g} | {t['verdict']} |")
     seeds = [g for g in summary["groups"] if "success_over_seeds" in g]
     if seeds:
         lines += ["", "Success over training seeds: mean with the t 95% interval over seeds.", "",

@@ -326,7 +326,9 @@ def _bench_job(ctx: StageContext, key: StageKey, got: Mapping[str, StageResult])
                 cells[(label, sc)] = rec
             if as_label is None:
                 drivers.append((label, str(data.get("group"))))
-        summary = suite_summary(cells, drivers, suite(p.suite), suite=p.suite, split=f"validation seed {p.suite_seed}")
+        seeds = {f"{k.recipe}/seed{k.seed}": k.seed for k in keys}
+        summary = suite_summary(cells, drivers, suite(p.suite), suite=p.suite, split=f"validation seed {p.suite_seed}",
+                                pair_keys=seeds)  # fmt: skip
         summary["command"] = "lc-experiment --preset " + p.name
         markdown = suite_markdown(summary, summary["command"])
         write_figures(summary, path)
