@@ -2,7 +2,7 @@
 
 :func:`publish` copies ``REPORT.md``, the figures, ``experiment.json``, ``invocations.json``, the complete
 stage records (``stages/*.json``) and, per stage, ``metrics.json`` / ``run.json`` / ``progress.csv`` /
-``warm_start.json`` / ``dagger.json``: every figure the report shows, and nothing large (no checkpoints,
+``warm_start.json`` / ``dagger.json`` / a suite stage's ``suite.json`` and finished roads / the bench stage's table and figures: every figure the report shows, and nothing large (no checkpoints,
 TensorBoard logs or MCAP episodes). It refuses a run without a report or with unfinished stages, and a
 destination that exists unless ``overwrite``; then it replaces only files of that layout (and removes
 those of it the run no longer has), keeping anything else there (a note written by hand).
@@ -23,25 +23,32 @@ from lcmodels.presets import INVOCATIONS, MARKER, ORACLE_KEY, REPORT_NAME, RULE_
 
 TOP = (REPORT_NAME, MARKER)
 OPTIONAL_TOP = (INVOCATIONS,)  # runs of lc-toolkit versions before it have none
-PER_STAGE = ("metrics.json", "run.json", "progress.csv", "warm_start.json", "dagger.json")
+PER_STAGE = ("metrics.json", "run.json", "progress.csv", "warm_start.json", "dagger.json", "suite.json", "BENCH.md",
+             "bench.json")
 WEIGHTS = ("policy.safetensors", "predictor.pt")
 """A stage's final weights (not its checkpoints): what a later stage reads from a finished one."""
 SPLIT_FILES = "*-seed*.json"
 """An evaluation stage's finished splits (``val-seed0.json``, ``test-seed9.json``): an interrupted one's too."""
+SUITE_CELLS = "cells/*.json"
+"""A suite stage's finished roads (lc-bench's cells): an interrupted one's too."""
 
 
 def published_files(run: Path, *, weights: bool = False) -> list[Path]:
     """Paths (relative to ``run``) of the files to publish (``weights``: the stages' final weights too)."""
-    files = [Path(n) for n in TOP] + [Path(n) for n in OPTIONAL_TOP if (run / n).is_file()]
+    files = [Path(n) for n in TOP if n != REPORT_NAME or (run / n).is_file()]  # a stopped run may have no report yet
+    files += [Path(n) for n in OPTIONAL_TOP if (run / n).is_file()]
     files += sorted(p.relative_to(run) for p in run.glob("*.png"))
     files += sorted(p.relative_to(run) for p in (run / STAGES_DIR).glob("*.json") if not p.name.endswith(".pending.json"))
     stage_dirs = [run / "predictor", *sorted(p for p in (run / "predictor").glob("*") if p.is_dir()), run / RULE_KEY,
                   run / ORACLE_KEY, *sorted(run.glob("policies/*/seed*/*")),
-                  *sorted(run.glob("policies/*/seed*/dagger/round*")), *sorted(run.glob("zoo/*"))]
+                  *sorted(run.glob("policies/*/seed*/dagger/round*")), *sorted(run.glob("zoo/*")),
+                  *sorted(p for p in run.glob("suite/*") if p.is_dir()), run / "bench"]
     per_stage = PER_STAGE + WEIGHTS if weights else PER_STAGE
     for d in stage_dirs:
         files += [(d / n).relative_to(run) for n in per_stage if (d / n).is_file()]
         files += sorted(p.relative_to(run) for p in d.glob(SPLIT_FILES))  # an evaluation's finished splits
+        files += sorted(p.relative_to(run) for p in d.glob(SUITE_CELLS))  # a suite stage's finished roads
+        files += sorted(p.relative_to(run) for p in d.glob("bench_*.*") if d.name == "bench")  # its figures
     return files
 
 
@@ -58,7 +65,7 @@ def publish(run: Path, dest: Path, *, overwrite: bool = False, allow_pending: bo
             ``overwrite``.
     """
     run, dest = Path(run), Path(dest)
-    if not all((run / n).is_file() for n in TOP):
+    if not (run / MARKER).is_file() or not ((run / REPORT_NAME).is_file() or allow_pending):
         raise ValueError(f"{run} is not an lc-experiment directory with a {REPORT_NAME}")
     pending = sorted(p.name for p in (run / STAGES_DIR).glob("*.pending.json"))
     if pending and not allow_pending:
