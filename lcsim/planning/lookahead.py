@@ -46,9 +46,7 @@ class LookaheadDriver:
         self.config = config or SafetyLayerConfig()
         self.rule = rule or RuleBasedDriver()
         self.proposer = proposer
-        self.imagined_paths = check_imagined_paths(imagined_paths)
-        """Imagined futures per candidate whose ego path :attr:`last_report` keeps (0: none; at most
-        :data:`~lcsim.planning.report.MAX_IMAGINED_FUTURES`, and at most ``config.samples``)."""
+        self.imagined_paths = imagined_paths
         self.choices = self.overrides = 0  # decisions with a choice seen, and those where the layer overrode
         self.last_alive: np.ndarray | None = None
         """``(E, 3)`` after each call: the share of imagined futures each decision survived, NaN where it was
@@ -67,6 +65,17 @@ class LookaheadDriver:
         if not isinstance(self.rule, RuleBasedDriver) or self.proposer is not None:
             name += f"-{_driver_name(self.rule)}"
         return name if self.proposer is None else f"{_driver_name(self.proposer)}+{name}"
+
+    @property
+    def imagined_paths(self) -> int:
+        """Imagined futures per candidate whose ego path :attr:`last_report` keeps (0: none; at most
+        :data:`~lcsim.planning.report.MAX_IMAGINED_FUTURES`, and there are ``config.samples``); ``ValueError`` for
+        another value."""
+        return self._imagined_paths
+
+    @imagined_paths.setter
+    def imagined_paths(self, futures: int) -> None:
+        self._imagined_paths = check_imagined_paths(futures)
 
     @property
     def last_prediction(self) -> np.ndarray | None:
