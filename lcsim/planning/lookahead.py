@@ -180,3 +180,11 @@ class LookaheadDriver:
         assert self.last_alive is not None
         self.last_report = DecisionReport(scores=self.last_alive, proposed=proposed, executed=executed,
                                           overridden=overridden, paths=paths)  # fmt: skip
+
+
+def rule_behind_layer(layer: SafetyLayerConfig, spec: str = "safety-layer:rule") -> LookaheadDriver:
+    """The rule-based driver behind the safety layer ``layer`` (the driver spec ``spec``, named in errors): its
+    imagined futures follow the rule too; ``ValueError`` when ``layer`` names another driver to follow."""
+    if layer.follow not in ("", "rule"):
+        raise ValueError(f"a driver to follow applies to a policy behind the safety layer, not to {spec}")
+    return LookaheadDriver(layer, rule=RuleBasedDriver())
