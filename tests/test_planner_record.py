@@ -64,6 +64,12 @@ def test_the_report_says_what_the_layer_scored_and_keeping_paths_changes_nothing
             assert ((counts >= 2) & (counts <= LAYER.horizon_decisions + 2)).all()
             np.testing.assert_array_equal(mine.xy[mine.offsets[:-1]], np.repeat(ego[e][None], len(counts), axis=0))
         assert not np.isin(paths.env, np.flatnonzero(~report.choice)).any()
+    # one future of the two kept: the first, once per candidate scored, and still the same decisions
+    one, one_reports, _, c = drive(1)
+    assert all(np.array_equal(x, y) for x, y in zip(plain, one, strict=True)) and np.array_equal(a.sim.x, c.sim.x)
+    for report in one_reports:
+        if report.paths is not None:
+            assert (report.paths.future == 0).all() and len(report.paths.env) == np.isfinite(report.scores).sum()
 
 
 @pytest.fixture(scope="module")
