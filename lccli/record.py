@@ -27,6 +27,7 @@ from lcdata.record import DRIVERS, episode_filename, iter_record_episodes
 from lcdata.writer import MAX_START_TIME_NS
 from lcdata.writer_process import WRITER_MODES
 from lcsim.config import ScenarioConfig
+from lcsim.planning import MAX_IMAGINED_FUTURES, rule_behind_layer, split_safety_layer
 from lcsim.registry import SCENARIOS, scenario, scenario_label, split_policy_spec
 from lcsim.suite import SEALED_SEED_BASE, SEALED_SEED_END, is_sealed
 
@@ -40,6 +41,7 @@ EXAMPLES = """\
 examples:
   lc-record --scenario paper --episodes 100 --seed 0 --driver rule --out runs/rule --workers 2
   lc-record --scenario corpus --episodes 50 --out data/corpus      # 20 autopilot vehicles, 2000 steps
+  lc-record --scenario light --driver safety-layer:rule --imagined-paths 1 --out runs/thought   # what it thought
 
 Episode i uses seed S+i and is written to OUT/<scenario>_<driver>_s<seed>.mcap (7-digit seed), e.g.
 runs/rule/paper_rule_s0000003.mcap, so the files do not depend on --workers. Files are written
@@ -71,13 +73,27 @@ _non_negative_int = int_at_least(0)
 def _driver_spec(text: str) -> str:
     text = zoo_spec(text)
     policy = split_policy_spec(text)
-    if policy is not None and policy[0] != "policy:" and policy[1] in DRIVERS:
-        raise argparse.ArgumentTypeError(f"{text}: behind the safety layer lc-record takes a policy; the rule-based "
-                                         "driver behind it is the built-in lookahead-blind (or lookahead)")
+    if policy is not None and policy[0] != "policy:" and policy[1] in DRIVERS and policy[1] != "rule":
+        raise argparse.ArgumentTypeError(f"{text}: behind the safety layer lc-record takes a policy or the rule-based "
+                                         "driver (safety-layer:rule)")  # fmt: skip
     if text in DRIVERS or policy:
         return text
     raise argparse.ArgumentTypeError(f"invalid choice: {text!r} (choose from {', '.join(DRIVERS)}, policy:CKPT, "
-                                     "zoo:NAME, safety-layer:CKPT)")
+                                     "zoo:NAME, safety-layer:CKPT, safety-layer:rule)")
+
+
+def _imagined_paths(text: str) -> int:
+    value = _non_negative_int(text)
+    if value > MAX_IMAGINED_FUTURES:
+        raise argparse.ArgumentTypeError(f"must be at most {MAX_IMAGINED_FUTURES}, got {value}")
+    return value
+
+
+def _is_layered_rule(spec: str) -> bool:
+    """Whether a driver spec is the rule-based driver behind the safety layer built here (``safety-layer:rule`` and
+    its older spellings with a prefix; the built-in ``lookahead`` drivers are made by name where they record)."""
+    name, layer = split_safety_layer(spec)
+    return spec not in DRIVERS and name == "rule" and layer is not None
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -95,12 +111,18 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--episodes", type=positive_int, default=1, help="number of episodes (default: 1)")
     p.add_argument("--seed", type=_non_negative_int, default=0, help="seed of the first episode (default: 0)")
     p.add_argument("--driver", type=_driver_spec, default=None,
-                   metavar="{" + ",".join(DRIVERS) + ",policy:CKPT,safety-layer:CKPT}",
+                   metavar="{" + ",".join(DRIVERS) + ",policy:CKPT,safety-layer:CKPT,safety-layer:rule}",
                    help="who drives the ego (default: autopilot for corpus, else rule); "
                    "policy:CKPT drives with a trained policy (a policy.safetensors from lc-train-policy); "
                    "safety-layer:CKPT with that policy behind the safety layer (older spellings: lookahead:CKPT, "
-                   "lookahead-blind:CKPT)")  # fmt: skip
+                   "lookahead-blind:CKPT), safety-layer:rule the rule-based driver behind it. Behind the layer, "
+                   "/planner/decision holds what the layer scored for right / keep / left at each decision with a "
+                   "choice (lc-view draws it)")  # fmt: skip
     add_safety_layer_arguments(p)
+    p.add_argument("--imagined-paths", type=_imagined_paths, default=0, metavar="K",
+                   help="behind the safety layer: also record the ego's path in K of the futures the layer imagined "
+                   f"for each candidate decision (at most {MAX_IMAGINED_FUTURES}, and there are safety.samples; "
+                   "default 0: none). The decisions are the same with and without")  # fmt: skip
     p.add_argument("--out", type=pathlib.Path, required=True, help="output directory (created if missing)")
     p.add_argument("--workers", type=positive_int, default=1, help="parallel processes (default: 1)")
     p.add_argument("--overwrite", action="store_true", help="replace episode files that already exist")
@@ -189,7 +211,9 @@ def record_flags(args: argparse.Namespace, driver: str, scenario_name: str,
         "lookahead_follow": args.follow,  # the safety layer's follower and settings given (names kept: resumable)
         "lookahead": given_safety_settings(args),
     }  # fmt: skip
-    if split_policy_spec(driver):
+    if args.imagined_paths:  # only when asked: the flags of earlier recordings stay what they were
+        flags["imagined_paths"] = args.imagined_paths
+    if split_policy_spec(driver) and not _is_layered_rule(driver):
         from lcdata.fileio import file_sha256
 
         for key, spec in (("driver_sha256", driver), ("lookahead_follow_sha256", args.follow)):
@@ -269,6 +293,16 @@ def _policy_driver(spec: str, args: argparse.Namespace, config: ScenarioConfig):
     return policy, dataclasses.replace(policy_config, render_image=policy_config.render_image or not args.no_images)
 
 
+def _layered_rule(spec: str, args: argparse.Namespace) -> object:
+    """The rule-based driver behind the safety layer of ``spec``, ``--follow`` and ``--set safety.KEY=VALUE``."""
+    try:
+        layer = safety_layer_from_args(spec, args)
+        assert layer is not None
+        return rule_behind_layer(layer, spec)
+    except ValueError as exc:
+        raise UsageError(str(exc).splitlines()[0]) from None
+
+
 def _policy_scenario_label(spec: str) -> str:
     """The scenario name a policy was trained in, from its card (the label of its recordings)."""
     from lcmodels.policy.checkpoint import read_meta
@@ -288,7 +322,15 @@ def record_main(argv: Sequence[str] | None = None) -> int:
         except ValueError as exc:
             raise UsageError(str(exc)) from None
         content = None
-        if split_policy_spec(driver):
+        if args.imagined_paths and split_safety_layer(driver)[1] is None:
+            raise UsageError(f"--imagined-paths: {driver} imagines no futures; a driver behind the safety layer does "
+                             "(safety-layer:rule, safety-layer:CKPT, lookahead-blind)")  # fmt: skip
+        if _is_layered_rule(driver):
+            if args.executor == "ray":
+                raise UsageError(f"--executor ray records built-in drivers by name; {driver} is built here "
+                                 "(record it with the local executor)")  # fmt: skip
+            driver = _layered_rule(driver, args)
+        elif split_policy_spec(driver):
             if args.executor == "ray":
                 raise UsageError("--executor ray records built-in drivers; a policy drives in this process "
                                  "(lc-eval --executor ray shards a policy's episodes)")
@@ -298,7 +340,7 @@ def record_main(argv: Sequence[str] | None = None) -> int:
                 content = config.to_dict()
         elif args.follow is not None or args.settings:
             raise UsageError("--follow and --set safety.KEY=VALUE need --driver safety-layer:CKPT (a policy behind "
-                             "the safety layer)")
+                             "the safety layer) or safety-layer:rule")
         label = scenario_label(scenario_name)
         start_ns = start_time_ns(args.start_time)
         seeds = [args.seed + i for i in range(args.episodes)]
@@ -362,7 +404,8 @@ def _record(args: argparse.Namespace, config: ScenarioConfig, driver: object, la
             for result in iter_record_episodes(config, todo, driver, args.out, scenario=label, workers=workers,
                                                overwrite=args.overwrite, images=not args.no_images,
                                                writer=args.writer, start_time_ns=start_ns,
-                                               executor=args.executor):  # fmt: skip
+                                               executor=args.executor,
+                                               imagined_paths=args.imagined_paths):  # fmt: skip
                 outcomes[result.outcome] += 1
                 messages += result.messages
                 size += result.bytes

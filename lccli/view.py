@@ -48,7 +48,9 @@ def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(
         prog="lc-view",
         description="Show recorded lane-change episodes (lc-toolkit MCAP files) in Rerun: the top-down "
-        "scene, the bird's-eye semantic image, speed / reward / return / lane plots and the event log.",
+        "scene, the bird's-eye semantic image, speed / reward / return / lane plots and the event log; for a driver "
+        "behind the safety layer, what it scored for each candidate decision and the futures it imagined "
+        "(lc-record --imagined-paths).",
         epilog=_EXAMPLES,
         formatter_class=argparse.RawDescriptionHelpFormatter,
     )

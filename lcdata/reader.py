@@ -24,7 +24,7 @@ import pandas as pd
 from foxglove_schemas_protobuf.Log_pb2 import Log
 from foxglove_schemas_protobuf.RawImage_pb2 import RawImage
 
-from lcdata import topics
+from lcdata import decider_records, topics
 from lcdata.fast_tracks import decode_tracks_fast
 from lcdata.mcap_scan import ChannelData, ScanResult, scan_mcap
 from lcdata.proto import lc_pb2
@@ -221,6 +221,23 @@ class Episode:
                 {name: [] for name in PREDICTION_COLUMNS}, PREDICTION_COLUMNS, ints=("step", "slot", "k")
             )
         return pd.concat(parts, ignore_index=True)
+
+    @functools.cached_property
+    @_decoding
+    def decisions(self) -> pd.DataFrame:
+        """``/planner/decision``: one row per decision where a planning driver had a choice,
+        :data:`lcdata.decider_records.DECISION_COLUMNS` (``score_right|keep|left``: the share of its imagined futures
+        each candidate survived, NaN where not scored); empty if absent."""
+        channel = self._payloads(topics.PLANNER_DECISION)
+        return decider_records.planner_decisions(channel.payloads if channel else [])
+
+    @functools.cached_property
+    @_decoding
+    def imagined_paths(self) -> pd.DataFrame:
+        """The ego's paths in the futures the planner imagined (``lc-record --imagined-paths``), decoded on first
+        access: :data:`lcdata.decider_records.IMAGINED_PATH_COLUMNS`, one row per point; empty if none."""
+        channel = self._payloads(topics.PLANNER_DECISION)
+        return decider_records.imagined_paths(channel.payloads if channel else [])
 
     # -- images -----------------------------------------------------------------------------------
     @functools.cached_property

@@ -48,6 +48,8 @@ from lcsim.core import KEEP, RUNNING, SUCCESS, LaneChangeCore, StepResult
 from lcsim.drivers import Driver
 from lcsim.envs import episode_seed as lcsim_episode_seed
 from lcsim.episodes import EpisodeHook, run_episodes
+from lcsim.planning import DecisionReport
+from lcsim.planning.report import check_imagined_paths
 from lcsim.registry import DRIVER_NAMES, make_driver
 from lcsim.sim import HighwaySim
 
@@ -203,6 +205,21 @@ class EpisodeRecorder:
         xy = from_frame(np.asarray(predictions, dtype=np.float64), origin, sim.yaw[e, 0])
         self.writer.write_prediction(int(sim.step[e]), float(sim.t_s[e]), ids, xy)
 
+    def write_planner_decision(self, report: DecisionReport) -> None:
+        """``/planner/decision`` for this decision from a planning driver's report of the batch
+        (:attr:`lcsim.planning.LookaheadDriver.last_report`), when the planner had a choice in this environment (none
+        is written otherwise); call between :meth:`before_step` and ``core.step``."""
+        e = self.env
+        if not report.choice[e]:
+            return
+        self._flush()
+        sim = self.core.sim
+        self.writer.write_planner_decision(
+            int(sim.step[e]), float(sim.t_s[e]), decision=self.decisions, scores=report.scores[e],
+            proposed=int(report.proposed[e]), executed=int(report.executed[e]), overridden=bool(report.overridden[e]),
+            paths=None if report.paths is None else report.paths.of(e),
+        )  # fmt: skip
+
     def after_step(self, result: StepResult) -> None:
         """Call right after ``core.step``: writes the decision (its view, its steps, ``/rl/step``) and the outcome
         event when the episode ends."""
@@ -285,6 +302,20 @@ def resolve_driver(driver: str | Driver, seed: int) -> tuple[Any, bool, str, str
     return driver, False, name, desc
 
 
+def keep_imagined_paths(driver: Any, futures: int) -> None:
+    """Ask a planning driver to keep the ego's path in ``futures`` imagined futures per candidate (its
+    ``imagined_paths``; 0 asks nothing of any driver). ``ValueError`` for a driver that imagines none, or a number out
+    of ``[0, lcsim.planning.MAX_IMAGINED_FUTURES]``."""
+    futures = check_imagined_paths(futures)
+    if not futures:
+        return
+    if not hasattr(driver, "imagined_paths"):
+        name = getattr(driver, "name", type(driver).__name__)
+        raise ValueError(f"imagined paths: the driver {name} imagines no futures (a driver behind the safety layer "
+                         "does)")  # fmt: skip
+    driver.imagined_paths = futures
+
+
 _CONFIG_JSON: dict[int, tuple[ScenarioConfig, str]] = {}  # config_json's, by the id of configs it keeps alive
 
 
@@ -323,6 +354,7 @@ def record_episode(
     images: bool = True,
     start_time_ns: int | None = None,
     writer: str = "process",
+    imagined_paths: int = 0,
 ) -> RecordResult:
     """Run one episode (``LaneChangeEnv.reset(seed=seed)`` semantics) and write it to ``path``.
 
@@ -340,11 +372,14 @@ def record_episode(
         writer: where the file is encoded and written (:data:`lcdata.writer_process.WRITER_MODES`):
             ``process`` (default: a helper process on another core, see
             :class:`~lcdata.writer_process.ProcessEpisodeWriter`), ``thread`` or ``inline``. Same bytes.
+        imagined_paths: for a planning driver (the safety layer), the imagined futures per candidate whose ego path
+            ``/planner/decision`` holds (0, default: none; :func:`keep_imagined_paths`). The decisions are the same.
 
     Returns:
         A :class:`RecordResult` with the final path and the outcome.
     """
     policy, autopilot, name, desc = resolve_driver(driver, seed)
+    keep_imagined_paths(policy, imagined_paths)
     fixed = start_time_ns
     hook = RecordingHook(
         lambda u: pathlib.Path(path),
@@ -361,7 +396,8 @@ def record_episode(
 
 class RecordingHook(EpisodeHook):
     """Records every episode of :func:`lcsim.episodes.run_episodes` to its own MCAP file (an
-    :class:`EpisodeRecorder` per environment), with the predictions a policy driver saw.
+    :class:`EpisodeRecorder` per environment), with the predictions a policy driver saw and what a planning driver
+    scored at each decision where it had a choice (``last_report``: ``/planner/decision``).
 
     Args:
         path_of: the file of the episode with a user seed.
@@ -401,11 +437,14 @@ class RecordingHook(EpisodeHook):
     def before_step(self, core: LaneChangeCore, obs: dict[str, np.ndarray], mask: np.ndarray, actions: np.ndarray,
                     running: np.ndarray) -> None:
         predictions = getattr(self._driver, "last_prediction", None)  # what a policy driver saw, if any
+        report = getattr(self._driver, "last_report", None)  # what a planning driver scored, if it is one
         for i, recorder in enumerate(self._recorders):
             if running[i]:
                 recorder.before_step(obs, mask, actions)
                 if predictions is not None:
                     recorder.write_predictions(predictions[i])
+                if isinstance(report, DecisionReport):
+                    recorder.write_planner_decision(report)
 
     def after_step(self, core: LaneChangeCore, result: StepResult, running: np.ndarray) -> None:
         for i, recorder in enumerate(self._recorders):
@@ -430,11 +469,11 @@ class RecordingHook(EpisodeHook):
 
 
 def _record_one(config_json: str, seed: int, driver: str | Driver, path: str, scenario: str, overwrite: bool,
-                images: bool, writer: str, start_time_ns: int | None) -> RecordResult:  # fmt: skip
+                images: bool, writer: str, start_time_ns: int | None, imagined_paths: int = 0) -> RecordResult:  # fmt: skip
     """Worker entry point (module level so that a process pool can pickle it)."""
     config = ScenarioConfig.from_json(config_json)
     return record_episode(config, seed, driver, path, scenario=scenario, overwrite=overwrite, images=images,
-                          writer=writer, start_time_ns=start_time_ns)  # fmt: skip
+                          writer=writer, start_time_ns=start_time_ns, imagined_paths=imagined_paths)  # fmt: skip
 
 
 def iter_record_episodes(
@@ -451,6 +490,7 @@ def iter_record_episodes(
     skip_existing: bool = False,
     start_time_ns: int | None = None,
     executor: str = "local",
+    imagined_paths: int = 0,
 ) -> Iterator[RecordResult]:
     """Record one episode per seed into ``out_dir`` (file names from :func:`episode_filename`).
 
@@ -464,7 +504,7 @@ def iter_record_episodes(
     derived from each seed, :func:`seed_start_time_ns`). Worker processes (:class:`lckit.pool.WorkerPool`) die
     with this process: a killed run leaves no orphan writing on. ``executor="ray"``
     records each episode as a Ray task in the open :func:`lcdata.executors.ray_session` (a driver name only:
-    an object is not shipped); the files are the same.
+    an object is not shipped); the files are the same. ``imagined_paths``: as in :func:`record_episode`.
     """
     if workers < 1:
         raise ValueError(f"workers must be >= 1, got {workers}")
@@ -480,8 +520,10 @@ def iter_record_episodes(
         raise FileExistsError(f"{len(existing)} of {len(paths)} episode files already exist in {out} "
                               f"(e.g. {existing[0].name}); pass overwrite=True to replace them")  # fmt: skip
     out.mkdir(parents=True, exist_ok=True)
-    args = [(config.to_json(), int(s), driver, str(p), scenario, overwrite, images, writer, start_time_ns)
-            for s, p in zip(seeds, paths, strict=True) if overwrite or not p.exists()]  # fmt: skip
+    if imagined_paths:  # a driver that imagines nothing is refused before anything is written
+        keep_imagined_paths(resolve_driver(driver, 0)[0], imagined_paths)
+    args = [(config.to_json(), int(s), driver, str(p), scenario, overwrite, images, writer, start_time_ns,
+             imagined_paths) for s, p in zip(seeds, paths, strict=True) if overwrite or not p.exists()]  # fmt: skip
     if executor == "ray":
         if not isinstance(driver, str):
             raise ValueError("a driver object is not shipped to Ray tasks: record it with the local executor")

@@ -19,6 +19,7 @@ SCENE = "/scene"
 LOG = "/log"
 RL_STEP = "/rl/step"
 PREDICTION = "/prediction"
+PLANNER_DECISION = "/planner/decision"
 
 #: topic -> protobuf message class written on it.
 TOPIC_TYPES: dict[str, type[Message]] = {
@@ -31,6 +32,7 @@ TOPIC_TYPES: dict[str, type[Message]] = {
     LOG: Log,
     RL_STEP: lc_pb2.RLStep,
     PREDICTION: lc_pb2.Prediction,
+    PLANNER_DECISION: lc_pb2.PlannerDecision,
 }
 
 #: fully qualified schema name -> message class, for the reader.

@@ -14,6 +14,7 @@ topic                         schema                     rate
 ``/log``                      ``foxglove.Log``           events (name = kind, file:line = step:<n>)
 ``/rl/step``                  ``lc.RLStep``              every RL decision
 ``/prediction``               ``lc.Prediction``          every RL decision, when a predictor runs
+``/planner/decision``         ``lc.PlannerDecision``     decisions where a planning driver had a choice
 ============================  =========================  ==========================================
 
 ``log_time = publish_time = start_time_ns + round(t_s * 1e9)``. The file is written to
@@ -53,10 +54,11 @@ from google.protobuf.message import Message
 from mcap_protobuf.schema import build_file_descriptor_set
 
 from lcdata import encode, mcap_write, sim_records, topics
+from lcdata.decider_records import DeciderStreams
 from lcdata.mcap_write import COMPRESSION_LEVEL, McapStreamWriter
 from lcdata.proto import lc_pb2
 from lcdata.sim_records import SimStepEncoder
-from lcdata.wire import f_double, f_packed, f_string, f_varint
+from lcdata.wire import f_string
 from lcsim import kernel
 from lcsim.core import OUTCOMES as EPISODE_OUTCOMES
 from lcsim.core import RUNNING
@@ -349,7 +351,7 @@ class EpisodeSink:
             self.abort()
 
 
-class EpisodeWriter(EpisodeSink):
+class EpisodeWriter(EpisodeSink, DeciderStreams):
     """Stream one episode to ``path`` (an ``.mcap`` file). Use as a context manager.
 
     Args:
@@ -753,19 +755,6 @@ class EpisodeWriter(EpisodeSink):
             None if obs_current is None else np.asarray(obs_current, dtype=np.float32),
         )  # fmt: skip
         self._write(topics.RL_STEP, t_s, data)
-
-    def write_prediction(self, step: int, t_s: float, vehicle_ids: np.ndarray, xy: np.ndarray) -> None:
-        """``/prediction``: ``vehicle_ids`` (S,) (-1 = empty slot), ``xy`` (S, F, 2) world frame."""
-        xy = np.asarray(xy, dtype=np.float64)
-        if xy.ndim != 3 or xy.shape[2] != 2 or xy.shape[0] != len(vehicle_ids):
-            raise ValueError(f"xy must be (S, F, 2) with S = len(vehicle_ids), got {xy.shape}")
-        data = b"".join(
-            (
-                f_varint(1, step), f_double(2, t_s), f_varint(3, xy.shape[1]),
-                f_varint(4, xy.shape[0]), f_packed(5, vehicle_ids, "<i4"), f_packed(6, xy, "<f8"),
-            )
-        )  # fmt: skip
-        self._write(topics.PREDICTION, t_s, data)
 
     # -- life cycle -------------------------------------------------------------------------------
     @property

@@ -492,7 +492,7 @@ class ProcessEpisodeWriter(EpisodeSink):
     write_collision = _pickled("write_collision")
     write_lane_markings = _pickled("write_lane_markings")
     write_event = _pickled("write_event")
-    write_prediction = _pickled("write_prediction")
+    write_prediction, write_planner_decision = _pickled("write_prediction"), _pickled("write_planner_decision")
 
     def write_rl_step(
         self, step: int, t_s: float, *, action: int, action_mask: np.ndarray, reward: float,

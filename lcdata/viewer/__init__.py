@@ -12,9 +12,13 @@ entity                         content
 ``world/ego``                  the ego frame (translation per step), followed by the scene view
 ``world/ego/box``              the ego's box, highlighted
 ``world/prediction/*``         predicted vs. actual trajectories of the nearest vehicles
+``world/planner/imagined``     the ego's paths in the futures a planning driver imagined, by candidate (``/planner/decision``)
+``world/planner/crashes``      where the imagined futures the ego did not survive ended
 ``camera/bev``                 bird's-eye semantic image (SegmentationImage, named classes)
 ``plots/speed|reward|return|lane``  time series
-``log/events``, ``log/decisions``   text logs
+``plots/planner/right|keep|left``  each candidate's score at each decision where a planning driver had a choice
+``plots/planner/overridden``   the executed candidate's score where the planner overrode the proposal
+``log/events``, ``log/decisions``, ``log/planner``   text logs
 =============================  ==============================================================
 
 Time lines: ``step`` (simulation step) and ``sim_time`` (simulation time). The scene is drawn
@@ -48,6 +52,7 @@ def log_episode(rec: rr.RecordingStream, episode: Episode, prefix: str = "", ind
     streams.log_vehicles(rec, episode, prefix, grid, tracks)
     streams.log_ego(rec, episode, prefix, grid, tracks)
     streams.log_predictions(rec, episode, prefix, grid)
+    streams.log_planner(rec, episode, prefix)
     streams.log_camera(rec, episode, prefix)
     streams.log_speed(rec, episode, prefix, grid, tracks, rgb)
     streams.log_rewards(rec, episode, prefix, rgb)

@@ -17,7 +17,7 @@ FOLLOW_Y_M = (-16.0, 16.0)
 
 
 _PLOTS = (("speed", "speed (km/h)"), ("reward", "reward per decision"), ("return", "return"),
-          ("lane", "lane / target lane / action"))
+          ("lane", "lane / target lane / action"), ("planner", "planner: share of imagined futures survived"))
 """The time-series views: (view in :data:`~lcdata.viewer.streams.VIEWS`, title), entity ``plots/<view>``."""
 
 

@@ -15,6 +15,7 @@ import numpy as np
 import pandas as pd
 import rerun as rr
 
+from lcdata.decider_records import CANDIDATES
 from lcdata.reader import Episode
 from lcdata.viewer.geometry import TrackGrid, box_corners, screen
 from lcsim.core import ACTION_NAMES
@@ -37,6 +38,7 @@ SERIES_RGB = {
     "total": TEAL, "forward": GREEN, "collision": RED, "off_road": ORANGE, "success": BLUE,  # plots/reward
     "return": TEAL,  # plots/return
     "target_lane": PURPLE, "action": MAGENTA,  # plots/lane (with "ego")
+    "right": MAGENTA, "keep": TEAL, "left": ORANGE, "overridden": RED,  # plots/planner, and the imagined paths
 }  # fmt: skip
 """Colour of each time series by key (every series has one)."""
 EPISODE_RGB = (GOLD, TEAL, RED, GREEN, MAGENTA, BROWN, ORANGE)
@@ -236,6 +238,77 @@ def log_predictions(rec: rr.RecordingStream, episode: Episode, prefix: str, grid
         rec.send_columns(entity, indexes=idx, columns=rr.LineStrips2D.columns(strips=pts).partition(per_step))
 
 
+IMAGINED_RADIUS_M, EXECUTED_RADIUS_M = 0.1, 0.3
+"""The width of an imagined path drawn, and of the paths of the candidate executed."""
+
+
+def log_planner(rec: rr.RecordingStream, episode: Episode, prefix: str) -> None:
+    """What a planning driver thought at each decision where it had a choice (``/planner/decision`` only).
+
+    ``plots/planner/right|keep|left``: each candidate's score (the share of its imagined futures it survived; none
+    where it was not scored); ``plots/planner/overridden``: a point at the executed candidate's score where the
+    planner overrode the proposal; ``log/planner``: a line per decision (overrides at INFO, the rest at DEBUG);
+    ``world/planner/imagined``: the ego's paths in the imagined futures kept, in the colour of their candidate, the
+    executed candidate's wider; ``world/planner/crashes``: where the imagined futures not survived ended. Both are
+    emptied at the decisions without paths, so that a path shows only at its own decision.
+    """
+    decisions = episode.decisions
+    if not len(decisions):
+        return
+    s, t = decisions["step"].to_numpy(), decisions["t"].to_numpy()
+    scores = decisions[[f"score_{name}" for name in CANDIDATES]].to_numpy()
+    for k, name in enumerate(CANDIDATES):
+        scored = np.isfinite(scores[:, k])
+        _series(rec, path(prefix, "plots/planner", name), s[scored], t[scored], scores[scored, k], name)
+    executed, proposed = decisions["executed"].to_numpy(), decisions["proposed"].to_numpy()
+    over = decisions["overridden"].to_numpy()
+    entity = path(prefix, "plots/planner/overridden")
+    rec.log(entity, rr.SeriesPoints(names="overridden", colors=[SERIES_RGB["overridden"]], marker_sizes=4.0),
+            static=True)  # fmt: skip
+    if over.any():
+        rec.send_columns(entity, indexes=times(s[over], t[over]),
+                         columns=rr.Scalars.columns(scalars=scores[np.flatnonzero(over), executed[over]]))  # fmt: skip
+    names = np.asarray(CANDIDATES, dtype=object)
+    text = [f"decision {d}: {names[p]} proposed, {names[e]} executed{' (overridden)' if o else ''}; survived: "
+            + ", ".join(f"{n} {v:.2f}" for n, v in zip(CANDIDATES, row, strict=True) if np.isfinite(v))
+            for d, p, e, o, row in zip(decisions["decision"], proposed, executed, over, scores, strict=True)]  # fmt: skip
+    rec.send_columns(path(prefix, "log/planner"), indexes=times(s, t),
+                     columns=rr.TextLog.columns(text=text, level=np.where(over, "INFO", "DEBUG").tolist()))  # fmt: skip
+    _log_imagined_paths(rec, episode, prefix, dict(zip(s.tolist(), executed.tolist(), strict=True)))
+
+
+def _log_imagined_paths(rec: rr.RecordingStream, episode: Episode, prefix: str, executed: dict[int, int]) -> None:
+    """``world/planner/imagined`` and ``world/planner/crashes`` (see :func:`log_planner`); ``executed``: the
+    decision executed at each step with a report."""
+    points = episode.imagined_paths
+    if not len(points):
+        return
+    points = points.sort_values("step", kind="stable")  # a path's points stay in their order
+    steps = episode.steps
+    at = pd.concat([steps[["step", "t"]], points[["step", "t"]]]).drop_duplicates("step").sort_values("step")
+    s = points["step"].to_numpy()
+    starts = np.flatnonzero(points["k"].to_numpy() == 0)  # every path starts at its decision (k = 0)
+    xy = screen(points["x"].to_numpy(), points["y"].to_numpy())
+    strips = np.split(xy, starts[1:])
+    strip_step, action = s[starts], points["action"].to_numpy()[starts]
+    chosen = action == np.array([executed.get(k, -1) for k in strip_step.tolist()], dtype=np.int64)
+    rgb = np.array([SERIES_RGB[name] for name in CANDIDATES], dtype=np.uint8)[action]
+    ends = np.r_[starts[1:], len(s)] - 1
+    crashed = ~points["survived"].to_numpy()[starts]
+    steps_at = at["step"].to_numpy()
+    per_step = np.searchsorted(strip_step, steps_at, side="right") - np.searchsorted(strip_step, steps_at)
+    crash_step = strip_step[crashed]
+    per_crash = np.searchsorted(crash_step, steps_at, side="right") - np.searchsorted(crash_step, steps_at)
+    idx = times(steps_at, at["t"].to_numpy())
+    entity = path(prefix, "world/planner/imagined")
+    rec.log(entity, rr.LineStrips2D.from_fields(draw_order=4.5), static=True)
+    rec.send_columns(entity, indexes=idx, columns=rr.LineStrips2D.columns(
+        strips=strips, colors=rgb, radii=np.where(chosen, EXECUTED_RADIUS_M, IMAGINED_RADIUS_M)).partition(per_step))  # fmt: skip
+    entity = path(prefix, "world/planner/crashes")
+    rec.log(entity, rr.Points2D.from_fields(colors=[RED], radii=0.6, draw_order=4.6), static=True)
+    rec.send_columns(entity, indexes=idx, columns=rr.Points2D.columns(positions=xy[ends[crashed]]).partition(per_crash))
+
+
 # -- camera -----------------------------------------------------------------------------------------
 def class_ids(chw: np.ndarray) -> np.ndarray:
     """``(..., 3, H, W)`` palette image -> ``(..., H, W)`` uint8 class ids (255 for other colours)."""
@@ -378,7 +451,7 @@ def log_events(rec: rr.RecordingStream, episode: Episode, prefix: str) -> None:
 
 
 # -- what the layout shows --------------------------------------------------------------------------
-VIEWS = ("world", "camera", "speed", "reward", "return", "lane", "log")
+VIEWS = ("world", "camera", "speed", "reward", "return", "lane", "planner", "log")
 """The views of an episode's layout (:func:`lcdata.viewer.layout.episode_views`), named after their entities."""
 
 
@@ -394,7 +467,8 @@ def views_with_data(episode: Episode) -> frozenset[str]:
         "reward": len(steps) > 0,
         "return": len(steps) > 0,
         "lane": ego.any() or len(steps) > 0,
-        "log": len(episode.events) > 0 or len(steps) > 0,
+        "planner": len(episode.decisions) > 0,
+        "log": len(episode.events) > 0 or len(steps) > 0 or len(episode.decisions) > 0,
     }
     return frozenset(view for view, has in filled.items() if has)
 

@@ -195,8 +195,7 @@ def driver_for(spec: str, *, predictor: str | None = None, device: str = "cpu",
     Returns the driver and, for a policy, the scenario it drives in (``None`` for lcsim drivers).
     """
     from lcmodels.policy.checkpoint import load_policy
-    from lcsim.drivers import RuleBasedDriver
-    from lcsim.planning import LookaheadDriver, driver_and_layer
+    from lcsim.planning import LookaheadDriver, driver_and_layer, rule_behind_layer
     from lcsim.registry import DRIVER_NAMES, make_driver
 
     name, layer = driver_and_layer(spec, safety)
@@ -205,9 +204,7 @@ def driver_for(spec: str, *, predictor: str | None = None, device: str = "cpu",
         if name != "rule":
             raise ValueError(f"the safety layer guards a policy or the rule-based driver (safety-layer:rule), not "
                              f"{name}")  # fmt: skip
-        if layer.follow not in ("", "rule"):
-            raise ValueError(f"a driver to follow applies to a policy behind the safety layer, not to {spec}")
-        return LookaheadDriver(layer, rule=RuleBasedDriver()), None
+        return rule_behind_layer(layer, spec), None
     if name in DRIVER_NAMES:
         return make_driver(name), None
     path = Path(name)

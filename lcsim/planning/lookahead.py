@@ -8,6 +8,7 @@ import numpy as np
 from lcsim.core import KEEP, RUNNING, SUCCESS, TIMEOUT, LaneChangeCore
 from lcsim.drivers import Driver, RuleBasedDriver
 from lcsim.planning.perception import perceive, redraw_future
+from lcsim.planning.report import DecisionReport, ImaginedPaths, check_imagined_paths
 from lcsim.planning.safety import SafetyLayerConfig
 
 
@@ -34,17 +35,25 @@ class LookaheadDriver:
     ``proposer``, when given, makes the decision the layer checks instead of ``rule``: the layer in front of a
     driver that reads what the imagined futures cannot show (a policy that reads the image), with ``rule`` as
     the model of how the ego drives on after the decision.
+
+    After each decision :attr:`last_report` says what the layer scored for each candidate (a
+    :class:`~lcsim.planning.DecisionReport`); with ``imagined_paths = K`` (default 0) it also keeps the ego's path in
+    the first ``K`` imagined futures of each candidate, which changes no decision.
     """
 
     def __init__(self, config: SafetyLayerConfig | None = None, rule: Driver | None = None,
-                 proposer: Driver | None = None) -> None:
+                 proposer: Driver | None = None, *, imagined_paths: int = 0) -> None:
         self.config = config or SafetyLayerConfig()
         self.rule = rule or RuleBasedDriver()
         self.proposer = proposer
+        self.imagined_paths = imagined_paths
         self.choices = self.overrides = 0  # decisions with a choice seen, and those where the layer overrode
         self.last_alive: np.ndarray | None = None
         """``(E, 3)`` after each call: the share of imagined futures each decision survived, NaN where it was
         not imagined (not allowed, or no choice to make): the labels a learned safety critic is fitted to."""
+        self.last_report: DecisionReport | None = None
+        """After each call: the scores (:attr:`last_alive`), the proposal, the decision executed, whether the layer
+        overrode the proposal, and the imagined paths kept (:attr:`imagined_paths`)."""
         self._observe = bool(getattr(self.rule, "needs_observation", False))
         self._prediction: np.ndarray | None = None
 
@@ -56,6 +65,17 @@ class LookaheadDriver:
         if not isinstance(self.rule, RuleBasedDriver) or self.proposer is not None:
             name += f"-{_driver_name(self.rule)}"
         return name if self.proposer is None else f"{_driver_name(self.proposer)}+{name}"
+
+    @property
+    def imagined_paths(self) -> int:
+        """Imagined futures per candidate whose ego path :attr:`last_report` keeps (0: none; at most
+        :data:`~lcsim.planning.report.MAX_IMAGINED_FUTURES`, and there are ``config.samples``); ``ValueError`` for
+        another value."""
+        return self._imagined_paths
+
+    @imagined_paths.setter
+    def imagined_paths(self, futures: int) -> None:
+        self._imagined_paths = check_imagined_paths(futures)
 
     @property
     def last_prediction(self) -> np.ndarray | None:
@@ -72,14 +92,29 @@ class LookaheadDriver:
     def _survives(self, future: LaneChangeCore, actions: np.ndarray, salt: int | np.ndarray,
                   rows: np.ndarray) -> np.ndarray:  # fmt: skip
         """:meth:`survives` in ``future``, a copy the call may change of the environments ``rows``."""
+        return self._imagine_futures(future, actions, salt, rows)[0]
+
+    def _imagine_futures(self, future: LaneChangeCore, actions: np.ndarray, salt: int | np.ndarray, rows: np.ndarray,
+                         track: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray, np.ndarray]:  # fmt: skip
+        """:meth:`_survives`, and the ego's (x, y) in the copies ``track`` ((B,) bool; None: none): ``(survived (B,),
+        points (T, Bt, 2), counts (Bt,))``, the points before the decision and after each decision imagined
+        (``T <= horizon_decisions + 2``), of which the first ``counts`` of each copy count (up to the end of its
+        imagined episode). Reading the copies changes nothing in them."""
         self.imagine(future, salt, rows)
+        tracked = np.flatnonzero(track) if track is not None else np.zeros(0, dtype=np.int64)
+        points = [np.stack([future.sim.x[tracked, 0], future.sim.y[tracked, 0]], axis=-1)]
+        counts = np.zeros(len(tracked), dtype=np.int64)  # 0: still running
         future.step(actions)
-        for _ in range(self.config.horizon_decisions):
-            if (future.outcome != RUNNING).all():  # ended environments stay frozen; nothing left to see
-                break
+        for k in range(self.config.horizon_decisions + 1):
+            if len(tracked):
+                points.append(np.stack([future.sim.x[tracked, 0], future.sim.y[tracked, 0]], axis=-1))
+                counts[(counts == 0) & (future.outcome[tracked] != RUNNING)] = len(points)
+            if k == self.config.horizon_decisions or (future.outcome != RUNNING).all():
+                break  # ended environments stay frozen; nothing left to see
             obs = future.observe() if self._observe else {}
             future.step(self.rule(obs, future.action_mask(), future))
-        return np.isin(future.outcome, (RUNNING, SUCCESS, TIMEOUT))
+        counts[counts == 0] = len(points)
+        return np.isin(future.outcome, (RUNNING, SUCCESS, TIMEOUT)), np.stack(points), counts
 
     def imagine(self, future: LaneChangeCore, salt: int | np.ndarray, rows: np.ndarray) -> None:
         """Turn ``future``, a fresh copy of the environments ``rows`` of the real core, into the future the layer
@@ -103,14 +138,15 @@ class LookaheadDriver:
         surviving alternative does better in the imagined futures (what :meth:`__call__` does with the
         proposer's or the rule's decisions; training behind the layer passes the policy's)."""
         mask = np.asarray(action_mask, dtype=bool).reshape(-1, 3)
-        planned = np.asarray(planned, dtype=np.int64).reshape(len(mask))
+        proposed = np.asarray(planned, dtype=np.int64).reshape(len(mask)).copy()
         # a proposal the mask refuses becomes a keep, which the layer then checks: it never passes on a
         # refused decision (rewarded off_road under "refuse", leaving the road under "leave_road")
-        planned = np.where(mask[np.arange(len(mask)), planned], planned, KEEP)
+        planned = np.where(mask[np.arange(len(mask)), proposed], proposed, KEEP)
         # during a lane change only keep is allowed, and an ended episode is frozen: nothing to look at
         choice = (mask.sum(axis=1) > 1) & (core.outcome == RUNNING)
         self.last_alive = np.full(mask.shape, np.nan)
         if not choice.any():
+            self._report(proposed, planned, np.zeros(len(mask), dtype=bool))
             return planned
         # Every (environment with a choice, decision it may take, sample) is one environment of a single imagined
         # batch: all the futures run side by side in the compiled core.
@@ -118,7 +154,8 @@ class LookaheadDriver:
         samples = self.config.samples
         env, action = np.repeat(env, samples), np.repeat(action, samples)
         salt = np.tile(np.arange(1, samples + 1), len(env) // samples)
-        survived = self._survives(core.replicate(env), action, salt, env)
+        track = salt <= self.imagined_paths if self.imagined_paths else None
+        survived, points, counts = self._imagine_futures(core.replicate(env), action, salt, env, track)
         alive = np.zeros(mask.shape)  # share of the imagined futures each decision survives
         np.add.at(alive, (env, action), survived)
         alive /= samples
@@ -128,4 +165,26 @@ class LookaheadDriver:
         override = choice & (alive[np.arange(len(planned)), planned] < best)
         self.choices += int(choice.sum())
         self.overrides += int(override.sum())
-        return np.where(override, fallback, planned).astype(np.int64)
+        executed = np.where(override, fallback, planned).astype(np.int64)
+        paths = None
+        if track is not None:
+            xy = np.concatenate([np.zeros((0, 2)), *(points[:c, i] for i, c in enumerate(counts))])
+            paths = ImaginedPaths(env=env[track], action=action[track], future=salt[track] - 1,
+                                  survived=survived[track].astype(bool), xy=xy,
+                                  offsets=np.concatenate([[0], np.cumsum(counts)]))  # fmt: skip
+        self._report(proposed, executed, override, paths)
+        return executed
+
+    def _report(self, proposed: np.ndarray, executed: np.ndarray, overridden: np.ndarray,
+                paths: ImaginedPaths | None = None) -> None:  # fmt: skip
+        assert self.last_alive is not None
+        self.last_report = DecisionReport(scores=self.last_alive, proposed=proposed, executed=executed,
+                                          overridden=overridden, paths=paths)  # fmt: skip
+
+
+def rule_behind_layer(layer: SafetyLayerConfig, spec: str = "safety-layer:rule") -> LookaheadDriver:
+    """The rule-based driver behind the safety layer ``layer`` (the driver spec ``spec``, named in errors): its
+    imagined futures follow the rule too; ``ValueError`` when ``layer`` names another driver to follow."""
+    if layer.follow not in ("", "rule"):
+        raise ValueError(f"a driver to follow applies to a policy behind the safety layer, not to {spec}")
+    return LookaheadDriver(layer, rule=RuleBasedDriver())
