@@ -237,7 +237,14 @@ def sealed_test_table(exp: ReportInput) -> str:
     entries it evaluated) and the references as the ledger has them on the sealed test episodes of the paper's
     road: found by the policy's weights, never run here (``lc-bench POLICY... --suite paper --final`` measures
     them)."""
-    from lcmodels.bench.ledger import cell_key, find_entry, read_ledger
+    from lcmodels.bench.ledger import (
+        NOT_COMMITTED,
+        cell_key,
+        find_entry,
+        is_committed,
+        ledger_path,
+        read_ledger,
+    )
     from lcmodels.bench.run import policy_identity, scenario_sha256
     from lcmodels.fileio import POLICY_FILE
     from lcmodels.zoo import zoo_dir
@@ -284,7 +291,8 @@ def sealed_test_table(exp: ReportInput) -> str:
     if not found:
         return (f"No policy of this run is in the ledger yet: `lc-bench POLICY... --suite {sc.name} --final` measures "
                 f"one on the {len(seeds)} sealed test episodes of `{sc.name}` and appends it.")
-    lines = [f"{len(seeds)} sealed test episodes of `{sc.name}`; Wilson 95% intervals over episodes.\n",
+    mark = "" if is_committed() else f" Every figure here is **{NOT_COMMITTED}** ({ledger_path()})."
+    lines = [f"{len(seeds)} sealed test episodes of `{sc.name}`; Wilson 95% intervals over episodes.{mark}\n",
              "| policy | success % [Wilson 95%] | collision % [Wilson 95%] | ledger entry (date, commit) |",
              "|---|---|---|---|"]  # fmt: skip
     for label, e in found:
