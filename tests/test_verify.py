@@ -2,8 +2,9 @@
 
 ``test_every_line_whose_weights_are_here_replays`` runs in CI (no ``slow`` marker): one episode of each of the
 committed ledger's 84 lines, all of whose weights the checkout keeps (zoo/ and docs/results/): about 40 s of one
-core's time (92 s of wall clock measured on a two-core machine shared with other work), a third of it the two
-lines behind the safety layer. A whole line: docs/results/benchmark/NOTE.md, section *Verify by replay*."""
+core's time (the same run by the command: 41 s, docs/results/benchmark/verify/sample.txt; 1.5 to 2 min of wall
+clock on a two-core machine shared with other work), a third of it the two lines behind the safety layer. A whole
+line: docs/results/benchmark/NOTE.md, section *Verify by replay*."""
 
 from __future__ import annotations
 
