@@ -25,6 +25,8 @@ EPILOG = """examples:
   lc-bench zoo:hybrid-ppo safety-layer:zoo:hybrid-ppo --follow zoo:pure-ppo --set safety.horizon_decisions=32 \\
       --set safety.samples=3 --suite paper --final --workers 2   # alone and behind its safety layer
   lc-bench mypkg.policies:act --episodes 50                # your own policy: act(obs[, action_mask]) -> actions
+  lc-bench --verify                                        # replay 10 episodes of every ledger line, compare
+  lc-bench --verify --verify-episodes all 7c68e9a44fc1      # one line, every episode of it
 
 Validation (default): --episodes episodes of evaluation seed --seed on every scenario, cached under
 --out/cells/, so a rerun resumes. Use them for every choice.
@@ -32,7 +34,15 @@ Validation (default): --episodes episodes of evaluation seed --seed on every sce
 Each result is looked up in the ledger (docs/results/benchmark/ledger.jsonl; LC_LEDGER or --ledger
 elsewhere) and, when missing, run and appended to it with the commit, the date and every episode's outcome:
 a policy is measured once, a changed one gets a new entry. Quote test figures from the ledger, and decide
-nothing on them.
+nothing on them. Every figure is derived from the line's outcome letters (a line whose stored figures or key
+disagree with them is refused); with another ledger than the committed one, every figure printed says so.
+
+--verify: replay ledger lines (all, or the KEYs named in place of POLICY) with the weights each names and
+compare every replayed episode's outcome with the line's letter: a deterministic random sample of
+--verify-episodes per line (default 10; `all` replays every episode), drawn with --verify-seed. A line
+prints `checked K/N episodes, ok`, `MISMATCH` (the first episode that differs; the command then exits 1
+with one line per mismatching line), or `not checkable` with the reason (weights not present, a road whose
+config changed since). A file whose weights differ from the line's digest is refused.
 
 Writes --out/BENCH.md and --out/bench.json: per scenario the ceiling, the floor and each driver's success
 and collision with Wilson 95% intervals over episodes and the normalised score (success / ceiling's
@@ -53,7 +63,7 @@ def bench_parser() -> argparse.ArgumentParser:
     p.add_argument("policies", nargs="*", metavar="POLICY",
                    help="zoo:NAME, a policy.safetensors, a built-in driver (rule, oracle, lookahead, keep, ...), "
                    "safety-layer:POLICY (behind the safety layer; older spelling lookahead-blind:POLICY), or "
-                   "package.module:callable")
+                   "package.module:callable; with --verify, ledger keys (default: every line)")
     p.add_argument("--list", action="store_true", help="list the suites and their scenarios, then exit")
     p.add_argument("--suite", default=None, help="the suite (default highway; --list shows them)")
     p.add_argument("--scenario", action="append", default=None, metavar="NAME",
@@ -65,6 +75,13 @@ def bench_parser() -> argparse.ArgumentParser:
     p.add_argument("--seed", type=int_at_least(0), default=None,
                    help="validation evaluation seed (default 0; not with --final)")
     p.add_argument("--ledger", type=Path, default=None, help="the ledger (default: LC_LEDGER, else the checkout's)")
+    check = p.add_argument_group("verifying the ledger by replay")
+    check.add_argument("--verify", action="store_true",
+                       help="replay ledger lines' episodes and compare their outcome letters (see below)")
+    check.add_argument("--verify-episodes", type=_episodes_or_all, default=None, metavar="N|all",
+                       help="episodes replayed per line: a deterministic random sample, or all (default 10)")
+    check.add_argument("--verify-seed", type=int_at_least(0), default=None, metavar="S",
+                       help="the seed the sample of episodes is drawn with (default 0)")
     p.add_argument("--out", type=Path, default=None,
                    help="where the table and the cached cells go (default runs/bench, or runs/bench-final)")
     add_safety_layer_arguments(p)
@@ -78,6 +95,60 @@ def bench_parser() -> argparse.ArgumentParser:
     where.add_argument("--workers", type=positive_int, default=1,
                        help="processes on this machine, each cell's episodes cut over them (default 1)")
     return p
+
+
+def _episodes_or_all(text: str) -> int | str:
+    """``--verify-episodes``: a positive count, or ``all``."""
+    return text if text == "all" else positive_int(text)
+
+
+def _verify(args: argparse.Namespace) -> int:
+    """``lc-bench --verify``: replay the ledger's lines (or those named) and compare their letters."""
+    from lcmodels.bench.ledger import NOT_COMMITTED, is_committed, ledger_path, read_ledger
+    from lcmodels.bench.run import FINAL_BATCH, Runner
+    from lcmodels.bench.verify import DEFAULT_EPISODES, select_entries, verify_ledger
+
+    error = lambda msg: fail("lc-bench", msg)  # noqa: E731
+    used = [flag for flag, value in (("--final", args.final), ("--episodes", args.episodes), ("--seed", args.seed),
+                                     ("--suite", args.suite), ("--scenario", args.scenario), ("--out", args.out),
+                                     ("--follow", args.follow), ("--set", args.settings)) if value]  # fmt: skip
+    if used:
+        return error(f"--verify replays ledger lines as they were run: drop {', '.join(used)}")
+    if args.workers > 1 and args.executor == "ray":
+        return error("--workers is for this machine; with --executor ray the lines' episodes become Ray tasks")
+    ledger = args.ledger or ledger_path()
+    try:
+        entries = select_entries(read_ledger(ledger), args.policies)
+    except (ValueError, OSError) as exc:
+        return error(str(exc).splitlines()[0])
+    episodes = None if args.verify_episodes == "all" else args.verify_episodes or DEFAULT_EPISODES
+    mark = "" if is_committed(ledger) else f" ({NOT_COMMITTED})"
+    print(f"lc-bench: verifying {len(entries)} line(s) of ledger {ledger}{mark} by replay, "
+          f"{'every episode' if episodes is None else f'{episodes} episode(s) a line'}", flush=True)
+    import torch
+
+    torch.set_num_threads(args.threads)
+    runner = Runner(workers=args.workers, executor=args.executor, threads=args.threads, batch=FINAL_BATCH,
+                    ray_address=args.ray_address)  # fmt: skip
+    verdicts = []
+    try:
+        with runner.session():
+            for i, verdict in enumerate(verify_ledger(entries, runner, episodes=episodes,
+                                                      seed=args.verify_seed or 0), 1):  # fmt: skip
+                verdicts.append(verdict)
+                print(f"[{i}/{len(entries)}] {verdict.line()}", flush=True)
+    except KeyboardInterrupt:
+        print("\nlc-bench: interrupted", file=sys.stderr)
+        return 130
+    except (ValueError, OSError) as exc:
+        return error(str(exc).splitlines()[0])
+    by = {s: [v for v in verdicts if v.status == s] for s in ("ok", "not checkable", "mismatch")}
+    print(f"lc-bench: {len(by['ok'])} line(s) ok ({sum(v.checked for v in by['ok'])} episodes replayed, "
+          f"{sum(v.wall_s for v in verdicts):.0f} s), {len(by['not checkable'])} not checkable, "
+          f"{len(by['mismatch'])} mismatching")  # fmt: skip
+    for v in by["mismatch"]:
+        print(f"lc-bench: error: ledger line {v.key} ({v.what}): MISMATCH at {v.detail}", file=sys.stderr)
+    return 1 if by["mismatch"] else 0
 
 
 def _list() -> str:
@@ -98,11 +169,15 @@ def main(argv: list[str] | None = None) -> int:
     if args.list:
         print(_list())
         return 0
+    if args.verify:
+        return _verify(args)
+    if args.verify_episodes is not None or args.verify_seed is not None:
+        return error("--verify-episodes and --verify-seed go with --verify")
     if not args.policies:
         return error("name at least one POLICY (or --list)")
     command = "lc-bench " + shlex.join(sys.argv[1:] if argv is None else argv)
 
-    from lcmodels.bench.ledger import ledger_path, read_ledger
+    from lcmodels.bench.ledger import NOT_COMMITTED, is_committed, ledger_path, read_ledger
     from lcmodels.bench.run import Runner, bench_cell, resolve_driver
     from lcmodels.bench.table import CEILING, FLOOR, suite_markdown, suite_summary
     from lcsim.suite import DEFAULT_SUITE, MAX_VALIDATION_SEED, SUITE_SCENARIOS, suite
@@ -153,8 +228,9 @@ def main(argv: list[str] | None = None) -> int:
     todo = [(d, sc) for sc in scenarios for d in [*(r for r in references.values() if r.label not in labels),
                                                   *drivers]]  # fmt: skip
     split = "test" if args.final else f"validation seed {seed}"
+    mark = f" [{NOT_COMMITTED}]" if args.final and not is_committed(ledger) else ""
     print(f"lc-bench: {len(drivers)} driver(s) x {len(scenarios)} scenario(s) of suite {args.suite or DEFAULT_SUITE}, "
-          f"{split} episodes; ceiling oracle, floor rule" + (f"; ledger {ledger}" if args.final else ""),
+          f"{split} episodes; ceiling oracle, floor rule" + (f"; ledger {ledger}{mark}" if args.final else ""),
           flush=True)  # fmt: skip
     show = None if args.quiet else (lambda k, n: print(f"\r  {k}/{n} episodes", end="", flush=True))
     runner = Runner(workers=args.workers, executor=args.executor, threads=args.threads, batch=args.batch,
@@ -177,7 +253,7 @@ def main(argv: list[str] | None = None) -> int:
                 sources[cell.source] = sources.get(cell.source, 0) + 1
                 print(f"[{i}/{len(todo)}] {driver.label} on {sc.name}: success {100 * rec['success_rate']:.1f}%, "
                       f"collision {100 * rec['collision_rate']:.1f}% of {rec['episodes']} ({where}"
-                      + (f", {rec['wall_s']} s" if cell.source in ("run", "ledger+") else "") + ")", flush=True)
+                      + (f", {rec['wall_s']} s" if cell.source in ("run", "ledger+") else "") + ")" + mark, flush=True)
                 cells[(driver.label, sc.name)] = rec
     except KeyboardInterrupt:
         print("\nlc-bench: interrupted; finished cells are kept (a rerun resumes)", file=sys.stderr)
@@ -188,6 +264,8 @@ def main(argv: list[str] | None = None) -> int:
                             suite=args.suite or DEFAULT_SUITE, split=split,
                             pair_keys={d.label: d.about.get("training_seed") for d in drivers})  # fmt: skip
     summary["command"] = command
+    if args.final:
+        summary["ledger"] = {"path": str(ledger), "committed": is_committed(ledger)}
     markdown = suite_markdown(summary, command)
     out.mkdir(parents=True, exist_ok=True)
     if not args.no_figures:

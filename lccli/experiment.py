@@ -16,10 +16,10 @@ EXPERIMENT_EPILOG = """stages (each skipped when complete, redone when missing o
   demos       demonstrations a recipe clones, shared between recipes    DIR/demos/<driver>-s<seed>-n<episodes>/
   recipes     per recipe and training seed: clone, dagger, train, shielded (as the recipe says; shielded:
               more PPO behind the safety layer, once the policy it follows is trained), then eval on the
-              validation and test episodes, and safety (behind the safety layer) where it asks
+              validation and held-out episodes, and safety (behind the safety layer) where it asks
                                                                         DIR/policies/<recipe>/seed<k>/<stage>/
   rule, oracle  the references on the same episodes                    DIR/rule/, DIR/oracle/
-  zoo         (quick) the shipped policies on the test episodes (and behind their safety layer), a few
+  zoo         (quick) the shipped policies on the held-out episodes (and behind their safety layer), a few
               recorded                                          DIR/zoo/, DIR/zoo-safety/, DIR/showcase/
   report      DIR/REPORT.md, DIR/fig5_safe_forward.png, DIR/fig6_total_reward.png
 A stage runs once the stages it reads are complete; --dry-run lists every stage: complete, would run (why), or
@@ -30,7 +30,11 @@ the project's best per method; quick-pure: make demo's), or a .toml file of your
 
 presets: tiny (seconds, for tests: every recipe with tiny budgets), quick (make demo: the zoo, one quick
 recipe, minutes on 2 cores), paper (every recipe at its own budget but hybrid-ppo-dagger and attention-ppo,
-which run when named, hybrid-ppo with 2 training seeds, 1000 test episodes: hours).
+which run when named, hybrid-ppo with 2 training seeds, 1000 held-out episodes: hours).
+
+episodes: validation (evaluation seeds 0 and 1, what recipes are chosen on) and held-out (evaluation seed 9,
+which no recipe here is chosen on); both are validation episodes in the benchmark's sense. The sealed test
+episodes run only through lc-bench --final, which appends them to the ledger; the report quotes them from it.
 
 examples:
   lc-experiment --preset quick --out runs/demo
@@ -47,7 +51,7 @@ def experiment_parser() -> argparse.ArgumentParser:
         prog="lc-experiment",
         description="Reproduce the paper's tables and figures end to end from recipes: record the trajectory "
         "corpus, train the predictor, run every recipe's stages (demonstrations, cloning, DAgger, RL) with K "
-        "training seeds, evaluate on validation and test episodes and write DIR/REPORT.md. Resumable: a rerun "
+        "training seeds, evaluate on validation and held-out episodes and write DIR/REPORT.md. Resumable: a rerun "
         "skips what is complete.",
         epilog=EXPERIMENT_EPILOG,
         formatter_class=argparse.RawDescriptionHelpFormatter,

@@ -137,23 +137,32 @@ def check_output_file(path: str | os.PathLike[str], flag: str) -> None:
 
 @contextlib.contextmanager
 def folder_lock(folder: str | os.PathLike[str], what: str, name: str = ".lock",
-                doing: str = "is writing in") -> Iterator[None]:
+                doing: str = "is writing in", wait_s: float = 0.0) -> Iterator[None]:
     """Hold ``folder/name`` (an advisory ``flock``, released however the process ends) while a command writes in
     ``folder``: a second command there gets a one-line ``ValueError`` naming the holder's pid instead of two
-    writers interleaving their files. ``folder`` must exist. Not POSIX: no lock."""
+    writers interleaving their files, after waiting up to ``wait_s`` seconds for the holder to let go (a holder
+    that keeps the lock only for a moment). ``folder`` must exist. Not POSIX: no lock."""
     try:
         import fcntl
     except ImportError:  # pragma: no cover - not POSIX
         yield
         return
+    import time
+
+    deadline = time.monotonic() + max(0.0, wait_s)
     with open(Path(folder) / name, "a+") as fh:
-        try:
-            fcntl.flock(fh, fcntl.LOCK_EX | fcntl.LOCK_NB)
-        except BlockingIOError:
-            fh.seek(0)
-            holder = fh.read(32).strip() or "unknown"
-            raise ValueError(f"another {what} (pid {holder}) {doing} {folder}; wait for it to finish or stop "
-                             "it first") from None
+        while True:
+            try:
+                fcntl.flock(fh, fcntl.LOCK_EX | fcntl.LOCK_NB)
+                break
+            except BlockingIOError:
+                if time.monotonic() < deadline:
+                    time.sleep(0.05)
+                    continue
+                fh.seek(0)
+                holder = fh.read(32).strip() or "unknown"
+                raise ValueError(f"another {what} (pid {holder}) {doing} {folder}; wait for it to finish or stop "
+                                 "it first") from None
         fh.seek(0)
         fh.truncate()
         fh.write(str(os.getpid()))

@@ -169,7 +169,7 @@ def rate_cell(evals: list[dict[str, Any]], rate: str) -> str:
 
 def _best_of_kind(runs: dict[str, MethodRuns], row: str, kind: str) -> MethodRuns | None:
     """The recipe of ``kind`` for ``row`` with the highest mean validation success (the choice is never made on
-    the test episodes)."""
+    the held-out episodes)."""
     found = [r for r in runs.values() if r.row == row and r.kind == kind and r.evals and "+" not in r.key]
 
     def validation(r: MethodRuns) -> float:
@@ -180,7 +180,7 @@ def _best_of_kind(runs: dict[str, MethodRuns], row: str, kind: str) -> MethodRun
 
 
 def outcome_table(runs: dict[str, MethodRuns], rows: tuple[str, ...], paper: dict[str, tuple[float, ...]]) -> str:
-    """Per row: the paper's figures, the paper-faithful recipe's and the project's best recipe's (test set), and
+    """Per row: the paper's figures, the paper-faithful recipe's and the project's best recipe's (held-out), and
     the shipped checkpoint's (zoo) when the experiment evaluated the zoo."""
     titles = {"paper": "paper-faithful recipe", "best": "best recipe", "zoo": "shipped checkpoint (zoo)",
               "demo": "quick recipe (trained now)"}
@@ -205,7 +205,7 @@ def outcome_table(runs: dict[str, MethodRuns], rows: tuple[str, ...], paper: dic
 
 
 def reference_table(runs: dict[str, MethodRuns]) -> str:
-    """The rule-based driver, the oracle and every policy behind the safety layer, on the test episodes."""
+    """The rule-based driver, the oracle and every policy behind the safety layer, on the held-out episodes."""
     lines = ["| driver | success % | collision % |", "|---|---|---|"]
     for r in runs.values():
         if r.evals and (r.key in (RULE_KEY, ORACLE_KEY) or r.key.endswith("+safety")):
@@ -214,7 +214,7 @@ def reference_table(runs: dict[str, MethodRuns]) -> str:
 
 
 def all_runs_table(runs: dict[str, MethodRuns]) -> str:
-    """Every row of the experiment: test figures, validation success per evaluation seed, training time."""
+    """Every row of the experiment: held-out figures, validation success per evaluation seed, training time."""
     lines = ["| row | kind | seeds | held-out success % | collision % | timeout % | validation success % (eval seed) "
              "| training min | safety layer overrides |", "|" + "---|" * 9]
     for r in runs.values():
@@ -237,7 +237,14 @@ def sealed_test_table(exp: ReportInput) -> str:
     entries it evaluated) and the references as the ledger has them on the sealed test episodes of the paper's
     road: found by the policy's weights, never run here (``lc-bench POLICY... --suite paper --final`` measures
     them)."""
-    from lcmodels.bench.ledger import cell_key, find_entry, read_ledger
+    from lcmodels.bench.ledger import (
+        NOT_COMMITTED,
+        cell_key,
+        find_entry,
+        is_committed,
+        ledger_path,
+        read_ledger,
+    )
     from lcmodels.bench.run import policy_identity, scenario_sha256
     from lcmodels.fileio import POLICY_FILE
     from lcmodels.zoo import zoo_dir
@@ -284,7 +291,8 @@ def sealed_test_table(exp: ReportInput) -> str:
     if not found:
         return (f"No policy of this run is in the ledger yet: `lc-bench POLICY... --suite {sc.name} --final` measures "
                 f"one on the {len(seeds)} sealed test episodes of `{sc.name}` and appends it.")
-    lines = [f"{len(seeds)} sealed test episodes of `{sc.name}`; Wilson 95% intervals over episodes.\n",
+    mark = "" if is_committed() else f" Every figure here is **{NOT_COMMITTED}** ({ledger_path()})."
+    lines = [f"{len(seeds)} sealed test episodes of `{sc.name}`; Wilson 95% intervals over episodes.{mark}\n",
              "| policy | success % [Wilson 95%] | collision % [Wilson 95%] | ledger entry (date, commit) |",
              "|---|---|---|---|"]  # fmt: skip
     for label, e in found:
@@ -384,7 +392,7 @@ def plot_curves(runs: dict[str, MethodRuns], key: str, ylabel: str, title: str, 
         elif n > 1:  # one logged point: the band as an error bar
             ax.errorbar(x, mean, yerr=[mean - lo, hi - mean], color=colors(i % 10), capsize=3, lw=1)
     if reference is not None and math.isfinite(reference):
-        ax.axhline(reference, color="black", ls=":", lw=1, label=f"{RULE_LABEL}, test episodes")
+        ax.axhline(reference, color="black", ls=":", lw=1, label=f"{RULE_LABEL}, held-out episodes")
     ax.set_xlabel("training timesteps (decisions over all environments)")
     ax.set_ylabel(ylabel)
     ax.set_title(title)
@@ -437,7 +445,7 @@ def write_report(exp: ReportInput, *, wall_s: float) -> Path:
     more = ", ".join(f"`{n}` {k}" for n, k in counts.items() if k != usual)
     add(f"- recipes: {', '.join(f'`{r.name}`' for r in exp.recipes)}; training seeds per recipe: **{usual}** "
         f"(from 0){f'; more for {more}' if more else ''}")
-    add(f"- **held-out** (the tables' *test* columns): {p.test_episodes} episodes of evaluation seed {p.test_seed}, "
+    add(f"- **held-out**: {p.test_episodes} episodes of evaluation seed {p.test_seed}, "
         f"which no recipe here is chosen on; **validation**: {p.val_episodes} episodes of evaluation seed(s) "
         f"{', '.join(str(v) for v in p.val_seeds)}, the episodes the recipes are chosen on (last table). Both are "
         "validation episodes in the benchmark's sense (seed 9 informed earlier choices of the project): the "
@@ -500,7 +508,7 @@ def write_report(exp: ReportInput, *, wall_s: float) -> Path:
     add(f"![Fig. 6: total reward]({FIG6_NAME})\n")
     add("One curve per recipe with an online training stage (solid: paper-faithful, from scratch; dashed: the "
         "project's recipes, from a clone): the mean over seeds of the rolling value over the last 100 training "
-        "episodes, with a min–max band over seeds; the dotted line is the rule-based driver on the test "
+        "episodes, with a min–max band over seeds; the dotted line is the rule-based driver on the held-out "
         "episodes.\n")
 
     add("## Stages\n")

@@ -21,6 +21,7 @@ from gymnasium.vector.utils import batch_space
 from lcsim.config import ScenarioConfig
 from lcsim.core import RUNNING, LaneChangeCore, StepResult, current_features
 from lcsim.render import BevRenderer
+from lcsim.suite import check_unsealed
 
 _BOUND = 1.0e4
 
@@ -79,6 +80,8 @@ class LaneChangeEnv(gym.Env):
         self._started = False
 
     def reset(self, *, seed: int | None = None, options: dict[str, Any] | None = None):
+        if seed is not None:
+            check_unsealed([seed])  # the sealed test episodes run only through the benchmark's final path
         super().reset(seed=seed)
         self.core.reset([0], [_episode_seed(self.np_random)])
         self._started = True
@@ -143,6 +146,7 @@ class LaneChangeVectorEnv(VectorEnv):
             if len(seed) != self.num_envs:
                 raise ValueError(f"expected {self.num_envs} seeds, got {len(seed)}")
             seeds = list(seed)
+        check_unsealed(s for s in seeds if s is not None)  # the sealed test episodes: the benchmark's final path only
         self._rngs = [seeding.np_random(s)[0] for s in seeds]
         ids = np.arange(self.num_envs)
         self.core.reset(ids, [_episode_seed(g) for g in self._rngs])

@@ -22,6 +22,7 @@ import numpy as np
 from lcsim.config import ScenarioConfig
 from lcsim.core import RUNNING, LaneChangeCore, StepResult
 from lcsim.envs import episode_seed
+from lcsim.suite import check_unsealed
 
 
 class EpisodeHook:
@@ -59,7 +60,7 @@ class EpisodeResult:
 
 def run_episodes(driver: Callable[..., np.ndarray], config: ScenarioConfig, user_seeds: Sequence[int], *,
                  batch: int = 16, hooks: Sequence[EpisodeHook] = (), autopilot_ego: bool = False,
-                 progress: Callable[[int, int], None] | None = None) -> list[EpisodeResult]:
+                 progress: Callable[[int, int], None] | None = None, sealed: bool = False) -> list[EpisodeResult]:
     """Drive one episode per user seed with ``driver(obs, action_mask, core) -> actions (E,)``.
 
     Args:
@@ -67,12 +68,15 @@ def run_episodes(driver: Callable[..., np.ndarray], config: ScenarioConfig, user
         hooks: told of every batch and decision (see :class:`EpisodeHook`), in this order.
         autopilot_ego: the traffic's autopilot drives the ego (the driver's actions are ignored).
         progress: called with (episodes done, episodes in all) after each batch.
+        sealed: the benchmark's final path's leave to run its sealed test episodes
+            (:func:`lcsim.suite.check_unsealed`); without it a sealed user seed is refused (``ValueError``).
 
     Returns:
         One :class:`EpisodeResult` per user seed, in their order.
     """
     if batch < 1:
         raise ValueError(f"batch must be >= 1, got {batch}")
+    check_unsealed(user_seeds, sealed=sealed)
     results: list[EpisodeResult] = []
     for start in range(0, len(user_seeds), batch):
         chunk = [int(u) for u in user_seeds[start : start + batch]]

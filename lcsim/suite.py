@@ -20,7 +20,7 @@ Seeds. Episode ``i`` is the episode ``reset(seed=u)`` gives for a *user seed* ``
 from __future__ import annotations
 
 import dataclasses
-from collections.abc import Callable
+from collections.abc import Callable, Iterable
 from dataclasses import dataclass
 
 import numpy as np
@@ -57,6 +57,19 @@ def observed_by(world: ScenarioConfig, sensors: ScenarioConfig) -> ScenarioConfi
 def is_sealed(user_seed: int) -> bool:
     """Whether ``user_seed`` is one of the sealed test episodes' (only the benchmark's final path runs these)."""
     return SEALED_SEED_BASE <= int(user_seed) < SEALED_SEED_END
+
+
+def check_unsealed(user_seeds: Iterable[int], *, sealed: bool = False) -> None:
+    """``ValueError`` in one line when ``user_seeds`` reach the sealed test episodes, unless ``sealed``: the
+    explicit leave that only the benchmark's final path gives (``lcmodels.bench.run.bench_cell`` with ``final``,
+    which appends what it measures to the ledger, and ``lc-bench --verify``, which replays the ledger's own
+    episodes). Every library path that runs episodes from user seeds asks here."""
+    if sealed:
+        return
+    found = next((int(u) for u in user_seeds if is_sealed(u)), None)
+    if found is not None:
+        raise ValueError(f"user seed {found} is one of the benchmark's sealed test episodes ({SEALED_SEED_BASE} to "
+                         f"{SEALED_SEED_END - 1}), which only lc-bench --final runs; choose others")
 
 
 @dataclass(frozen=True, slots=True, kw_only=True)
@@ -190,6 +203,7 @@ __all__ = [
     "SUITE_SCENARIOS",
     "VALIDATION_SEED_BASE",
     "SuiteScenario",
+    "check_unsealed",
     "drawn_roads",
     "is_sealed",
     "observed_by",

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import os
 import time
+from pathlib import Path
 
 import pytest
 
@@ -106,6 +107,28 @@ class CountingPool:
 
     def __exit__(self, *exc) -> None:
         self.pool.__exit__(*exc)
+
+
+@pytest.fixture
+def tiny_suite(monkeypatch: pytest.MonkeyPatch, tmp_path: Path) -> Path:
+    """A suite of two tiny roads with 6 sealed test episodes each, and a ledger of its own (``LC_LEDGER``)."""
+    import dataclasses
+
+    from lcsim import suite as suite_mod
+    from lcsim.config import tiny_scenario
+    from lcsim.suite import SuiteScenario
+
+    for name, block, lanes in (("tiny-a", 900, 4), ("tiny-b", 901, 3)):
+        def make(lanes=lanes):
+            base = tiny_scenario()
+            return dataclasses.replace(base, road=dataclasses.replace(base.road, num_lanes=lanes))
+
+        monkeypatch.setitem(suite_mod.SUITE_SCENARIOS, name, SuiteScenario(name=name, block=block, test_episodes=6,
+                                                                            what="tiny", make=make))  # fmt: skip
+    monkeypatch.setitem(suite_mod.SUITES, "tiny", ("tiny-a", "tiny-b"))
+    ledger = tmp_path / "ledger.jsonl"
+    monkeypatch.setenv("LC_LEDGER", str(ledger))
+    return ledger
 
 
 @pytest.fixture

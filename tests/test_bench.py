@@ -14,8 +14,6 @@ from lccli.evaluate import eval_main
 from lccli.record import record_main
 from lcmodels.bench.ledger import read_ledger
 from lcmodels.policy.evaluate import eval_user_seeds
-from lcsim import suite as suite_mod
-from lcsim.config import tiny_scenario
 from lcsim.envs import observation_space
 from lcsim.planning import SafetyLayerConfig, safety_layer_of
 from lcsim.registry import scenario
@@ -24,7 +22,6 @@ from lcsim.suite import (
     SEALED_SEED_BASE,
     SUITE_SCENARIOS,
     SUITES,
-    SuiteScenario,
     is_sealed,
 )
 
@@ -87,24 +84,6 @@ def test_a_trained_policy_drives_on_another_road_when_its_observation_fits(tmp_p
     assert eval_main(["zoo:pure-ppo", "--scenario", str(odd), "--episodes", "2", "--no-record", "-q"]) == 2
     err = capsys.readouterr().err.strip()
     assert "cannot drive in that scenario" in err and len(err.splitlines()) == 1
-
-
-@pytest.fixture
-def tiny_suite(monkeypatch: pytest.MonkeyPatch, tmp_path: Path) -> Path:
-    """A suite of two tiny roads with 6 sealed test episodes each, and a ledger of its own."""
-    for name, block, lanes in (("tiny-a", 900, 4), ("tiny-b", 901, 3)):
-        def make(lanes=lanes):
-            import dataclasses
-
-            base = tiny_scenario()
-            return dataclasses.replace(base, road=dataclasses.replace(base.road, num_lanes=lanes))
-
-        monkeypatch.setitem(suite_mod.SUITE_SCENARIOS, name, SuiteScenario(name=name, block=block, test_episodes=6,
-                                                                            what="tiny", make=make))  # fmt: skip
-    monkeypatch.setitem(suite_mod.SUITES, "tiny", ("tiny-a", "tiny-b"))
-    ledger = tmp_path / "ledger.jsonl"
-    monkeypatch.setenv("LC_LEDGER", str(ledger))
-    return ledger
 
 
 def test_lc_bench_validation_table_and_resume(tiny_suite: Path, tmp_path: Path, capsys):

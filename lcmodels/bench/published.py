@@ -20,7 +20,7 @@ import numpy as np
 from lckit.config import read_data_file
 from lcmodels.bench.ledger import cell_key, find_entry, read_ledger
 from lcmodels.bench.run import resolve_driver, scenario_sha256
-from lcmodels.stats import mcnemar, t_interval
+from lcmodels.stats import McNemar, mcnemar, t_interval
 from lcsim.planning import safety_layer_of, split_safety_layer
 from lcsim.suite import SUITE_SCENARIOS, suite
 
@@ -119,16 +119,47 @@ def _rows_table(table: dict[str, Any], entries: list[dict[str, Any]], base: str)
             collision = f"{100 * np.mean([f.entry['collision_rate'] for f in done if f.entry]):.1f} (mean)"
         lines.append(f"| {row['label']} | {recipe_cell} | {success} | {collision} | {row.get('shipped', '')} |")
     for cmp in table.get("compare", []):
-        a_runs, b_runs = found_by_label[cmp["a"]], found_by_label[cmp["b"]]
-        pairs = [(a.entry, b.entry) for a, b in zip(a_runs, b_runs, strict=False) if a.entry and b.entry]
-        if not pairs:
-            continue
-        won = [np.frombuffer(e["outcomes"].encode(), np.uint8) == ord("s") for p in pairs for e in p]
-        test = mcnemar(np.concatenate(won[0::2]), np.concatenate(won[1::2]))
-        lines += ["", f"{cmp['a']} against {cmp['b']}: these policies paired episode by episode ({test.n} pairs: "
-                  f"{len(pairs)} training seed(s) of each, seed with seed): {test.only_a} won by the first alone, "
-                  f"{test.only_b} by the second alone; {test.verdict(cmp.get('a_short', 'the first'), cmp.get('b_short', 'the second'))}."]  # fmt: skip
+        a_runs = [[f.entry] for f in found_by_label[cmp["a"]] if f.entry]
+        b_runs = [[f.entry] for f in found_by_label[cmp["b"]] if f.entry]
+        for pairing, runs, test in paired_tests(a_runs, b_runs):
+            lines += ["", f"{cmp['a']} against {cmp['b']}: these policies paired episode by episode ({test.n} pairs: "
+                      f"{runs} training seed(s) of each, {pairing}): {test.only_a} won by the first alone, "
+                      f"{test.only_b} by the second alone; {test.verdict(cmp.get('a_short', 'the first'), cmp.get('b_short', 'the second'))}."]  # fmt: skip
     return "\n".join(lines)
+
+
+def _training_seed(run: list[dict[str, Any]]) -> Any:
+    return (run[0].get("about") or {}).get("training_seed") if run else None
+
+
+def _won(run: list[dict[str, Any]]) -> np.ndarray:
+    return np.concatenate([np.frombuffer(e["outcomes"].encode(), np.uint8) == ord("s") for e in run])
+
+
+def paired_tests(a_runs: list[list[dict[str, Any]]],
+                 b_runs: list[list[dict[str, Any]]]) -> list[tuple[str, int, McNemar]]:
+    """McNemar's test of two methods' runs (each run: its ledger entries, one per road, in the same order), as
+    ``[(how the runs are paired, runs paired, test)]``: the runs paired in the order given, named as they are
+    paired (``seed with seed`` only when each pair shares its training seed); and when that pairs different
+    training seeds, beside it the runs of the same training seed paired (when there are any)."""
+    pairs = list(zip(a_runs, b_runs, strict=False))
+    if not pairs:
+        return []
+
+    def test(chosen: list[tuple[list[dict[str, Any]], list[dict[str, Any]]]]) -> McNemar:
+        return mcnemar(np.concatenate([_won(a) for a, _ in chosen]), np.concatenate([_won(b) for _, b in chosen]))
+
+    seeds = [(_training_seed(a), _training_seed(b)) for a, b in pairs]
+    if all(x == y and x is not None for x, y in seeds):
+        return [("seed with seed", len(pairs), test(pairs))]
+    named = ", ".join(f"training seed {x} of the first with training seed {y} of the second" for x, y in seeds)
+    out = [(named, len(pairs), test(pairs))]
+    of_b = {_training_seed(b): b for b in b_runs if _training_seed(b) is not None}
+    same = [(a, of_b[_training_seed(a)]) for a in a_runs if _training_seed(a) in of_b]
+    if same:
+        which = ", ".join(str(_training_seed(a)) for a, _ in same)
+        out.append((f"seed with seed: training seed {which} of each", len(same), test(same)))
+    return out
 
 
 def _suite_table(table: dict[str, Any], entries: list[dict[str, Any]], base: str) -> str:
@@ -179,15 +210,12 @@ def _suite_table(table: dict[str, Any], entries: list[dict[str, Any]], base: str
                 parts.append(f"{a['value']:.3f}" + (f" [{a['ci95'][0]:.3f}, {a['ci95'][1]:.3f}]" if a["ci95"] else ""))
             lines.append(f"| {g['group']} | {len(g['runs'])} | {parts[0]} | {parts[1]} |")
     for cmp in table.get("compare", []):
-        a_labels, b_labels = cmp["a"], cmp["b"]
-        won_a = np.concatenate([np.frombuffer(cells[(a, sc.name)]["outcomes"].encode(), np.uint8) == ord("s")
-                                for a in a_labels for sc in scenarios])  # fmt: skip
-        won_b = np.concatenate([np.frombuffer(cells[(b, sc.name)]["outcomes"].encode(), np.uint8) == ord("s")
-                                for b in b_labels for sc in scenarios])  # fmt: skip
-        test = mcnemar(won_a, won_b)
-        lines += ["", f"{cmp['a_name']} against {cmp['b_name']} on every episode of the suite, paired ({test.n} "
-                  f"pairs, seed with seed): {test.only_a} won by the first alone, {test.only_b} by the second alone; "
-                  f"{test.verdict(cmp['a_name'], cmp['b_name'])}."]  # fmt: skip
+        a_runs = [[cells[(a, sc.name)] for sc in scenarios] for a in cmp["a"]]
+        b_runs = [[cells[(b, sc.name)] for sc in scenarios] for b in cmp["b"]]
+        for pairing, _, test in paired_tests(a_runs, b_runs):
+            lines += ["", f"{cmp['a_name']} against {cmp['b_name']} on every episode of the suite, paired ({test.n} "
+                      f"pairs, {pairing}): {test.only_a} won by the first alone, {test.only_b} by the second alone; "
+                      f"{test.verdict(cmp['a_name'], cmp['b_name'])}."]  # fmt: skip
     return "\n".join(lines)
 
 
@@ -335,6 +363,7 @@ __all__ = [
     "SUITE_FILE",
     "link_base",
     "load_spec",
+    "paired_tests",
     "render_table",
     "stale_blocks",
     "suite_record",

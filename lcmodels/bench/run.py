@@ -18,6 +18,7 @@ import dataclasses
 import hashlib
 import importlib
 import inspect
+import logging
 import re
 import time
 from collections.abc import Callable, Iterator
@@ -28,13 +29,16 @@ from typing import Any
 import numpy as np
 
 from lcmodels.bench.ledger import (
+    LETTER_OUTCOMES,
     append_entry,
     canonical,
     cell_key,
     counts,
+    derived_problem,
     find_entry,
     outcome_string,
     read_ledger,
+    with_derived_figures,
 )
 from lcmodels.fileio import file_sha256, read_json, write_json
 from lcsim.planning import SafetyLayerConfig
@@ -46,6 +50,7 @@ FINAL_BATCH = 20
 """Episodes simulated together in every sealed test evaluation."""
 SHARD_EPISODES = 100
 """Episodes per shard of a cell run on workers or Ray: progress as shards end, the load balanced."""
+logger = logging.getLogger(__name__)
 
 
 @dataclass(frozen=True)
@@ -232,8 +237,10 @@ class Runner:
         else:
             yield self
 
-    def run(self, driver: BenchDriver, config: Any, scenario: str, user_seeds: list[int]) -> dict[str, Any]:
-        """The driver's episodes ``user_seeds`` in ``config``: counts, means and per-episode outcomes."""
+    def run(self, driver: BenchDriver, config: Any, scenario: str, user_seeds: list[int], *,
+            sealed: bool = False) -> dict[str, Any]:
+        """The driver's episodes ``user_seeds`` in ``config``: counts, means and per-episode outcomes.
+        ``sealed``: the final path's leave to run sealed test episodes (:func:`lcsim.suite.check_unsealed`)."""
         from lcmodels.policy.evaluate import driver_for, evaluate, evaluate_sharded
 
         start = time.perf_counter()
@@ -248,7 +255,7 @@ class Runner:
                                         scenario=config)
                 run_config = own or config
             summary, results = evaluate(built, run_config, user_seeds=user_seeds, batch=self.batch,
-                                        progress=self.progress, scenario=scenario)
+                                        progress=self.progress, scenario=scenario, sealed=sealed)
             if hasattr(built, "overrides"):
                 extra = {"planner_choices": built.choices, "planner_overrides": built.overrides}
         else:
@@ -256,7 +263,7 @@ class Runner:
                 driver.spec, config, episodes=len(user_seeds), user_seeds=user_seeds,
                 shards=max(self.workers, -(-len(user_seeds) // SHARD_EPISODES)), executor=self.executor,
                 pool=self._pool, predictor=driver.predictor, safety=driver.safety, scenario=scenario,
-                batch=self.batch, progress=self.progress)  # fmt: skip
+                batch=self.batch, progress=self.progress, sealed=sealed)  # fmt: skip
             extra = {k: summary[k] for k in ("planner_choices", "planner_overrides") if k in summary}
         outcomes = outcome_string(r.outcome for r in results)
         return {"outcomes": outcomes, **counts(outcomes),
@@ -303,21 +310,49 @@ def bench_cell(driver: BenchDriver, sc: SuiteScenario, runner: Runner, *, final:
         found = find_entry(read_ledger(ledger), key)
         if found is not None:
             return Cell(driver, sc, found, "ledger")
-    elif cache_dir is not None and (cache_dir / f"{key}.json").is_file():
-        cached = read_json(cache_dir / f"{key}.json")
-        if cached.get("key") == key and len(cached.get("outcomes", "")) == len(seeds):
+    elif cache_dir is not None:
+        cached = cached_cell(cache_dir / f"{key}.json", key, len(seeds))
+        if cached is not None:
             return Cell(driver, sc, cached, "cache")
-    result = runner.run(driver, config, sc.name, seeds)
+    result = runner.run(driver, config, sc.name, seeds, sealed=final)
     record = {"key": key, "label": driver.label, "group": driver.group, "identity": driver.identity,
               "about": driver.about,
               "scenario": sc.name, "scenario_sha256": digest, "user_seeds": [seeds[0], seeds[-1]],
               "split": "test" if final else f"validation seed {seed}", "batch": runner.batch, **result,
               "command": command}  # fmt: skip
     if final:
-        return Cell(driver, sc, append_entry(record, ledger), "ledger+")
+        entry, appended = append_entry(record, ledger)  # (another run may have appended the key meanwhile)
+        return Cell(driver, sc, entry, "ledger+" if appended else "ledger")
     if cache_dir is not None:
         write_json(cache_dir / f"{key}.json", {"v": 1, **record})
     return Cell(driver, sc, record, "run")
+
+
+def cached_cell(path: Path, key: str, episodes: int) -> dict[str, Any] | None:
+    """The validation cell cached at ``path`` with its figures derived from its outcome letters, or None when
+    there is none. A cell that is not what its name says (unreadable, not JSON, another key, other episodes, a key
+    or a stored figure that disagrees with what it holds: :func:`lcmodels.bench.ledger.derived_problem`) is never
+    served: a warning says why, and the cell is run again and written anew."""
+    if not path.exists() and not path.is_symlink():
+        return None
+    cached = read_json(path) if path.is_file() else None
+    problem = "not a readable JSON object"
+    if isinstance(cached, dict):
+        cached = {k: v for k, v in cached.items() if k != "v"}
+        missing = [k for k in ("key", "identity", "scenario_sha256", "user_seeds", "outcomes", "batch") if k not in cached]
+        outcomes = cached.get("outcomes")
+        if missing:
+            problem = f"missing {', '.join(missing)}"
+        elif not isinstance(outcomes, str) or set(outcomes) - set(LETTER_OUTCOMES):
+            problem = "outcomes must be a string of the letters s, c, o, t"
+        elif cached["key"] != key or len(outcomes) != episodes:
+            problem = f"holds {cached['key']!r} on {len(outcomes)} episodes, not {key} on {episodes}"
+        else:
+            problem = derived_problem(cached, batch_in_key=True)
+        if not problem:
+            return with_derived_figures(cached)
+    logger.warning("cached cell %s: %s; discarded, run again", path, problem)
+    return None
 
 
 def identity_digest(identity: dict[str, Any]) -> str:
@@ -330,6 +365,7 @@ __all__ = [
     "Cell",
     "Runner",
     "bench_cell",
+    "cached_cell",
     "episodes_for",
     "policy_identity",
     "resolve_driver",

@@ -11,6 +11,7 @@ from typing import Any
 
 import numpy as np
 
+from lcmodels.bench.ledger import NOT_COMMITTED
 from lcmodels.stats import aggregate_scores, mcnemar, t_interval
 
 CEILING, FLOOR = "oracle", "rule"
@@ -129,8 +130,12 @@ def suite_markdown(summary: dict[str, Any], command: str = "") -> str:
     """The table as Markdown."""
     split = summary["split"]
     lines = [f"## Suite `{summary['suite']}`: {split} episodes", ""]
-    if split == "test":
+    ledger = summary.get("ledger") or {"committed": True}
+    if split == "test" and ledger["committed"]:
         lines += ["Sealed test episodes; every figure is a ledger entry (docs/results/benchmark/ledger.jsonl).", ""]
+    elif split == "test":
+        lines += [f"Sealed test episodes; every figure is an entry of ledger {ledger['path']}, **{NOT_COMMITTED}** "
+                  "(docs/results/benchmark/ledger.jsonl).", ""]  # fmt: skip
     lines += ["Success and collision in % of episodes with Wilson 95% intervals over episodes; normalised = "
               "success / the ceiling's (oracle) success on the same episodes.", "",
               "| scenario | driver | success % [Wilson 95%] | collision % [Wilson 95%] | normalised |",

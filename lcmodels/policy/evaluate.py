@@ -32,7 +32,7 @@ from lcsim.core import OUTCOMES, LaneChangeCore
 from lcsim.drivers import Driver
 from lcsim.episodes import EpisodeHook, run_episodes
 from lcsim.registry import split_policy_spec
-from lcsim.suite import MAX_VALIDATION_SEED, SEED_STRIDE, VALIDATION_SEED_BASE, observed_by
+from lcsim.suite import MAX_VALIDATION_SEED, SEED_STRIDE, VALIDATION_SEED_BASE, check_unsealed, observed_by
 
 if TYPE_CHECKING:
     from lcsim.planning import SafetyLayerConfig
@@ -110,6 +110,7 @@ def evaluate(
     progress: Callable[[int, int], None] | None = None,
     hooks: Sequence[EpisodeHook] = (),
     user_seeds: Sequence[int] | None = None,
+    sealed: bool = False,
 ) -> tuple[dict[str, Any], list[EpisodeStats]]:
     """Run ``episodes`` held-out episodes with ``driver`` and summarise them.
 
@@ -123,12 +124,15 @@ def evaluate(
         progress: called with (done, total) after each batch.
         hooks: more watchers of the episodes (:class:`lcsim.episodes.EpisodeHook`, e.g. an analysis).
         user_seeds: run these episodes instead of the ``episodes`` of evaluation seed ``seed`` (a shard).
+        sealed: the benchmark's final path's leave to run sealed test episodes (:func:`lcsim.suite.check_unsealed`:
+            without it they are refused with a ``ValueError``); nothing else passes it.
 
     Returns:
         ``(summary, per-episode statistics)``; the summary has the keys of
         :func:`summarize_with_intervals` plus ``seeds``, ``overlap_with_training`` and ``driver``.
     """
     user_seeds = eval_user_seeds(episodes, seed) if user_seeds is None else [int(u) for u in user_seeds]
+    check_unsealed(user_seeds, sealed=sealed)
     name = str(getattr(driver, "name", type(driver).__name__))
     out_path = Path(out_dir) if out_dir is not None else None
     if out_path is not None:
@@ -146,7 +150,7 @@ def evaluate(
                                        driver_description=f"{name}: evaluation episode of user seed {u}"),
             overwrite=overwrite, images=images, writer="thread",
         ))  # fmt: skip
-    done = run_episodes(driver, config, user_seeds, batch=batch, hooks=hooks, progress=progress)
+    done = run_episodes(driver, config, user_seeds, batch=batch, hooks=hooks, progress=progress, sealed=sealed)
     results = [EpisodeStats.of(r.outcome, r.total_reward, r.decisions, r.forward_reward, config.reward.forward_per_m,
                                r.episode_seed) for r in done]  # fmt: skip
     summary = summarize_with_intervals(results)
@@ -280,7 +284,7 @@ def _evaluate_shard(index: int, spec: str, scenario_json: str | None, user_seeds
         config = target
     out_dir = options["out_dir"]
     _, results = evaluate(driver, config, out_dir=out_dir, scenario=options["scenario"], batch=options["batch"],
-                          overwrite=options["overwrite"], user_seeds=user_seeds)
+                          overwrite=options["overwrite"], user_seeds=user_seeds, sealed=options["sealed"])
     planner = driver if isinstance(driver, LookaheadDriver) else None
     return (index, str(getattr(driver, "name", type(driver).__name__)), [dataclasses.asdict(r) for r in results],
             planner.choices if planner else 0, planner.overrides if planner else 0)
@@ -307,7 +311,8 @@ def evaluate_sharded(spec: str, config: ScenarioConfig | None, *, episodes: int 
                      overwrite: bool = False, train_seeds: np.ndarray | None = None,
                      progress: Callable[[int, int], None] | None = None,
                      driver_name: str | None = None, pool: WorkerPool | None = None,
-                     user_seeds: Sequence[int] | None = None) -> tuple[dict[str, Any], list[EpisodeStats]]:
+                     user_seeds: Sequence[int] | None = None,
+                     sealed: bool = False) -> tuple[dict[str, Any], list[EpisodeStats]]:
     """:func:`evaluate` of the driver spec ``spec`` (as :func:`driver_for` takes it) with the episodes cut into
     ``shards`` parts, each run where ``executor`` says (``local``: one after the other here, or at once in the
     processes of ``pool``; ``ray``: as Ray tasks in the open :func:`lcdata.executors.ray_session`), each shard
@@ -318,7 +323,8 @@ def evaluate_sharded(spec: str, config: ScenarioConfig | None, *, episodes: int 
     policy drives in instead of its own (``None``: its own); ``safety``: as :func:`driver_for` takes it. The summary
     also has ``planner_choices`` / ``planner_overrides`` behind the safety layer. ``driver_name``: the driver's name,
     when the caller has built it already (else it is built here once, to check for existing files).
-    ``user_seeds``: run these episodes instead of the ``episodes`` of evaluation seed ``seed``."""
+    ``user_seeds``: run these episodes instead of the ``episodes`` of evaluation seed ``seed``; ``sealed``: as
+    :func:`evaluate` takes it."""
     from lcdata.executors import EXECUTORS, ray_map
     from lcdata.executors import shards as cut
 
@@ -327,6 +333,7 @@ def evaluate_sharded(spec: str, config: ScenarioConfig | None, *, episodes: int 
     if spec == "random" and (shards > 1 or executor == "ray"):
         raise ValueError("the random driver's draws follow its calls: it is evaluated in one process (no shards)")
     user_seeds = eval_user_seeds(episodes, seed) if user_seeds is None else [int(u) for u in user_seeds]
+    check_unsealed(user_seeds, sealed=sealed)
     if out_dir is not None and not overwrite:  # refuse before any shard writes, as evaluate() does
         name = driver_name
         if name is None:  # (the name the files carry: build the driver once here to learn it)
@@ -338,7 +345,7 @@ def evaluate_sharded(spec: str, config: ScenarioConfig | None, *, episodes: int 
                                   "or another output directory")
     options = {"predictor": predictor, "safety": None if safety is None else safety.to_dict(),
                "out_dir": None if out_dir is None else str(out_dir), "scenario": scenario, "batch": batch,
-               "overwrite": overwrite}  # fmt: skip
+               "overwrite": overwrite, "sealed": sealed}  # fmt: skip
     scenario_json = None if config is None else config.to_json()
     # whole batches per shard: an episode then runs at the same place of the same batch as in evaluate(),
     # so even what a recording says of its batch (the environment's index) is the same
