@@ -200,3 +200,15 @@ def test_positions_stay_finite_through_interpolation(tmp_path: pathlib.Path) -> 
     import_sumo_fcd(tmp_path / "far.xml", tmp_path / "out", ImportOptions(min_episode_steps=2))
     [tracks] = load_tracks(tmp_path / "out")
     assert np.isfinite(tracks[["x", "y", "speed", "accel", "length", "width"]].to_numpy()).all()
+
+
+def test_a_timestep_holds_a_bounded_number_of_vehicles(tmp_path: pathlib.Path, monkeypatch) -> None:
+    """Each vehicle of a timestep is kept until the timestep ends: their number is bounded as they are read
+    (the limit lowered to 2 here)."""
+    import lcdata.importers.sumo
+
+    monkeypatch.setattr(lcdata.importers.sumo, "MAX_VEHICLES_PER_SAMPLE", 2)
+    cars = "".join(f'<vehicle id="{i}" x="{5 * i}" y="0" angle="90" speed="1"/>' for i in range(3))
+    (tmp_path / "many.xml").write_text(f'<fcd-export>\n<timestep time="0">\n{cars}</timestep></fcd-export>')
+    with pytest.raises(ValueError, match="line 3: the timestep of line 2 holds more than 2 vehicles"):
+        import_sumo_fcd(tmp_path / "many.xml", tmp_path / "out")

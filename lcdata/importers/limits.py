@@ -35,6 +35,8 @@ MIN_DT_S, MAX_DT_S = 0.001, 1.0
 STEPS_PER_SAMPLE = 1000
 """Grid steps an import may write per source sample read (and vehicle-rows per vehicle-row read) unless
 ``--max-steps`` says otherwise: a source at 1 Hz resampled at 1 kHz."""
+MAX_VEHICLES_PER_SAMPLE = 200_000
+"""The most vehicles one source sample (a SUMO timestep) may hold: each is kept until its sample is read."""
 MAX_VEHICLE_ID = 2**31 - 1
 """The largest source vehicle id (highD's are small integers; 0 is the ego's)."""
 MAX_LANE_INDEX = MAX_LANES - 1

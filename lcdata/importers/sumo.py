@@ -48,6 +48,7 @@ from lcdata.importers.limits import (
     HEADING,
     LANE,
     LENGTH,
+    MAX_VEHICLES_PER_SAMPLE,
     POSITION,
     SPEED,
     TIME,
@@ -135,6 +136,9 @@ class FcdReader:
             elif depth == 2 and name == "timestep" and root[0] == ROOT_TAG:
                 timestep[:] = [attrs.get("time"), parser.CurrentLineNumber, []]
             elif depth == 3 and name == "vehicle" and timestep:
+                if len(timestep[2]) >= MAX_VEHICLES_PER_SAMPLE:
+                    raise self._error(f"the timestep of line {timestep[1]} holds more than {MAX_VEHICLES_PER_SAMPLE} "
+                                      "vehicles", parser.CurrentLineNumber)  # fmt: skip
                 timestep[2].append((attrs, parser.CurrentLineNumber))
 
         def end(name: str) -> None:
