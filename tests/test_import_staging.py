@@ -110,3 +110,15 @@ def test_signals_wait_while_the_episodes_move_into_place() -> None:
             time.sleep(0.05)  # where an unheld SIGINT would have raised
             moved = True
     assert moved
+
+
+def test_a_stale_staging_folder_whose_lock_is_a_link_is_refused_and_the_target_kept(tmp_path: pathlib.Path) -> None:
+    fcd = write_fcd(tmp_path / "fcd.xml")
+    staging = tmp_path / "out" / STAGING
+    staging.mkdir(parents=True)
+    target = tmp_path / "thesis.tex"
+    target.write_text("years of work")
+    (staging / EpisodeFiles.LOCK_NAME).symlink_to(target)
+    with pytest.raises(ValueError, match="is a link, not a lock an import made"):
+        import_sumo_fcd(fcd, tmp_path / "out")
+    assert target.read_text() == "years of work" and staging.is_dir()

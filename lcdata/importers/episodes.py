@@ -157,10 +157,14 @@ class EpisodeFiles:
         return self
 
     def _remove_stale(self) -> None:
-        """Remove a staging folder whose import is gone (its lock free); refuse while its import runs."""
+        """Remove a staging folder whose import is gone (its lock free); refuse while its import runs, and when its
+        lock file is a link (no import made it: opening it would write where it points)."""
+        if (self.staging / self.LOCK_NAME).is_symlink():
+            raise ValueError(f"{self.staging / self.LOCK_NAME} is a link, not a lock an import made; remove "
+                             f"{self.staging} if nothing is importing into {self.out}")  # fmt: skip
         with folder_lock(self.staging, "import of this source", self.LOCK_NAME, doing="is writing into"):
             left = len(list(self.staging.glob(f"*{self.STAGED_SUFFIX}")))
-        shutil.rmtree(self.staging)
+            shutil.rmtree(self.staging)  # with the lock held: no other import starts in it meanwhile
         log.warning("removed %s, left by an import that did not finish (%d staged files; not resumed)",
                     self.staging, left)  # fmt: skip
 

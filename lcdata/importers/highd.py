@@ -20,6 +20,10 @@ fitted to the median lateral position of every lane and ``y`` shifted so that la
 ``(k + 0.5) * width`` (docs/INTERFACES.md), the road ``lc-view`` draws from the episode's config. Speed is
 the norm of the velocity, yaw its direction, acceleration its component along the velocity.
 
+Every value is checked against :mod:`lcdata.importers.limits` (:data:`BOUNDS`) as the table is read, frames
+for their span before anything is sized by them, and the lane ids of each carriageway for the lanes they span;
+one that fails is refused naming the file, the data row and the column.
+
 Dropped: the surrounding-vehicle ids, ``dhw``, ``thw``, ``ttc``, sight distances (all derivable from the
 tracks), ``XX_recordingMeta.csv`` (not read) and the per-vehicle statistics of the meta file.
 """
@@ -142,9 +146,8 @@ def _read_csv(path: pathlib.Path, columns: tuple[str, ...], what: str) -> pd.Dat
 
 
 def _check_span(rows: pd.DataFrame, path: pathlib.Path, frame_rate_hz: float, options: ImportOptions) -> None:
-    """``ValueError`` naming the data row for a frame whose time is implausible or too far from the first frame's,
-    and for a carriageway whose lane ids span more lanes than a road has: checked on the table as read, before
-    anything is sized by them."""
+    """``ValueError`` naming the data row for a frame whose time is implausible or too far from the first frame's
+    (``options.max_duration_s``): checked on the table as read, before anything is sized by the frames."""
     frame = rows["frame"].to_numpy(np.float64)
     time = frame / frame_rate_hz
     if (row := TIME.first_bad(time)) is not None:
