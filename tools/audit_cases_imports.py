@@ -131,10 +131,10 @@ def build(root: Path, Case: Any) -> list[Any]:
         return " ".join(f'{k}="{v}"' for k, v in base.items())
 
     # lc-calibrate reads an imported recording (its lane change and two lanes are all the checks need)
-    data = root / "calibrate_data"
-    from lccli.importer import main as import_main
+    from lcdata.importers import import_highd
 
-    assert import_main(["highd", str(_highd(root / "highd_ok")), "--out", str(data), "-q"]) == 0
+    data = root / "calibrate_data"
+    import_highd(_highd(root / "highd_ok"), data)
 
     # a stale staging folder (its import killed outright) and one held by a running import
     stale_out, held_out = root / "stale_out", root / "held_out"
