@@ -59,6 +59,7 @@ class _Parser(argparse.ArgumentParser):
 def build_parser() -> argparse.ArgumentParser:
     from lcsim.calibrate import CalibrationOptions
     from lcsim.registry import SCENARIOS
+    from lcsim.stats import MAX_BOOTSTRAP_DRAWS, MAX_TRACK_BYTES
 
     d = CalibrationOptions()
     p = _Parser(
@@ -76,21 +77,24 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--base", default="paper", metavar="{" + ",".join(SCENARIOS) + ",FILE}",
                    help="the scenario whose traffic is fitted and whose other settings the file keeps; its own "
                    "traffic is the 'default' column (default paper)")
-    p.add_argument("--iterations", type=int_at_least(1), default=d.iterations, metavar="N",
-                   help=f"simulated evaluations of the search, the start included (default {d.iterations}); "
-                   "each simulates --episodes x --seconds")
-    p.add_argument("--episodes", type=int_at_least(1), default=d.episodes, metavar="N",
-                   help=f"environments simulated side by side per evaluation (default {d.episodes})")
+    p.add_argument("--iterations", type=int_at_least(1, d.MAX_ITERATIONS), default=d.iterations, metavar="N",
+                   help=f"simulated evaluations of the search, the start included (default {d.iterations}, at most "
+                   f"{d.MAX_ITERATIONS}); each simulates --episodes x --seconds")
+    p.add_argument("--episodes", type=int_at_least(1, d.MAX_EPISODES), default=d.episodes, metavar="N",
+                   help=f"environments simulated side by side per evaluation (default {d.episodes}, at most "
+                   f"{d.MAX_EPISODES}, and no more than {MAX_TRACK_BYTES >> 30} GiB of tracks with --seconds: the "
+                   "command says so before it simulates)")
     p.add_argument("--seconds", type=positive_float, default=None, metavar="S",
                    help="simulated seconds per episode, the first 5 left out (default: the base scenario's time limit, "
                    "75 s for paper)")
-    p.add_argument("--report-episodes", type=int_at_least(1), default=d.report_episodes, metavar="N",
-                   help=f"episodes of the final measurement of the default and the result, on other seeds than the "
-                   f"search's (default {d.report_episodes})")
+    p.add_argument("--report-episodes", type=int_at_least(1, d.MAX_EPISODES), default=d.report_episodes,
+                   metavar="N", help=f"episodes of the final measurement of the default and the result, on other "
+                   f"seeds than the search's (default {d.report_episodes}, at most {d.MAX_EPISODES}, as --episodes)")
     p.add_argument("--seed", type=int_at_least(0), default=d.seed,
                    help="seed of the search's episodes (the report uses SEED + 1) and of the bootstrap (default 0)")
-    p.add_argument("--bootstrap", type=int_at_least(10), default=200, metavar="N",
-                   help="bootstrap draws of the recorded statistics' 95%% intervals, resampling vehicles (default 200)")
+    p.add_argument("--bootstrap", type=int_at_least(10, MAX_BOOTSTRAP_DRAWS), default=200, metavar="N",
+                   help="bootstrap draws of the recorded statistics' 95%% intervals, resampling vehicles (default 200, "
+                   f"at most {MAX_BOOTSTRAP_DRAWS})")
     p.add_argument("--keep-road", action="store_true",
                    help="keep the base scenario's lanes and lane width instead of the recording's")
     p.add_argument("--json", type=pathlib.Path, default=None, metavar="FILE",
@@ -171,7 +175,14 @@ def main(argv: Sequence[str] | None = None) -> int:
     setup_logging(PROG, verbose=args.verbose)
     from lcdata.fileio import check_output_file, write_atomically, write_json
     from lcdata.recorded import recorded_traffic
-    from lcsim.calibrate import CalibrationOptions, RecordedRoad, calibrate, distance, tolerances
+    from lcsim.calibrate import (
+        CalibrationOptions,
+        RecordedRoad,
+        calibrate,
+        check_memory,
+        distance,
+        tolerances,
+    )
     from lcsim.registry import scenario, scenario_label
     from lcsim.stats import WARMUP_S, sampling_intervals, summarise, traffic_samples
 
@@ -202,14 +213,15 @@ def main(argv: Sequence[str] | None = None) -> int:
         samples = traffic_samples(rec.tracks)
         if samples.vehicles == 0 or not len(samples.speed):
             raise ValueError(f"{args.data}: no vehicles")
+        size = RecordedRoad(num_lanes=rec.num_lanes, lane_width_m=rec.lane_width_m, length_m=rec.length_m,
+                            width_m=rec.width_m, density_per_lane_km=rec.density_per_lane_km)  # fmt: skip
+        check_memory(options, base, size)  # before the bootstrap: a refusal comes first
         say(f"{len(rec.tracks)} episodes, {rec.seconds:.0f} s, {samples.vehicles} vehicles, {rec.num_lanes} lanes of "
             f"{rec.lane_width_m:.2f} m, {rec.density_per_lane_km:.1f} vehicles per lane-km; bootstrap of the "
             f"recorded statistics ({args.bootstrap} draws) ...")  # fmt: skip
         intervals = sampling_intervals(samples, reps=args.bootstrap, seed=args.seed)
         samples_stats = summarise(samples)
         tol = tolerances(samples_stats, intervals)
-        size = RecordedRoad(num_lanes=rec.num_lanes, lane_width_m=rec.lane_width_m, length_m=rec.length_m,
-                            width_m=rec.width_m, density_per_lane_km=rec.density_per_lane_km)  # fmt: skip
 
         def progress(it: int, total: int, cost: float, stats: dict[str, float]) -> None:
             within = sum(abs(stats[k] - samples_stats[k]) <= tol[k] for k in tol)

@@ -19,8 +19,9 @@ def fail(prog: str, msg: str) -> int:
     return 2
 
 
-def int_at_least(minimum: int) -> Callable[[str], int]:
-    """An argparse ``type`` accepting integers >= ``minimum`` with a one-line message otherwise."""
+def int_at_least(minimum: int, at_most: int | None = None) -> Callable[[str], int]:
+    """An argparse ``type`` accepting integers >= ``minimum`` (and <= ``at_most``, if given) with a one-line
+    message otherwise."""
 
     def parse(text: str) -> int:
         try:
@@ -29,6 +30,8 @@ def int_at_least(minimum: int) -> Callable[[str], int]:
             raise argparse.ArgumentTypeError(f"expected an integer, got {text!r}") from None
         if value < minimum:
             raise argparse.ArgumentTypeError(f"must be >= {minimum}, got {value}")
+        if at_most is not None and value > at_most:
+            raise argparse.ArgumentTypeError(f"must be <= {at_most}, got {value}")
         return value
 
     parse.__name__ = f"int>={minimum}"
@@ -48,6 +51,22 @@ def positive_float(text: str) -> float:
     if not (math.isfinite(value) and value > 0):
         raise argparse.ArgumentTypeError(f"must be > 0, got {text}")
     return value
+
+
+def float_in(low: float, high: float) -> Callable[[str], float]:
+    """An argparse ``type`` accepting finite numbers in ``[low, high]`` with a one-line message otherwise."""
+
+    def parse(text: str) -> float:
+        try:
+            value = float(text)
+        except ValueError:
+            raise argparse.ArgumentTypeError(f"expected a number, got {text!r}") from None
+        if not low <= value <= high:  # NaN too
+            raise argparse.ArgumentTypeError(f"must be in [{low:g}, {high:g}], got {text}")
+        return value
+
+    parse.__name__ = f"float in [{low:g}, {high:g}]"
+    return parse
 
 
 class _SetAlias(argparse.Action):

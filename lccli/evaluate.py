@@ -251,7 +251,6 @@ def eval_main(argv: list[str] | None = None) -> int:
 
     error = functools.partial(fail, "lc-eval")
 
-    import numpy as np
     import torch
 
     from lcmodels.policy.checkpoint import read_meta
@@ -314,8 +313,12 @@ def eval_main(argv: list[str] | None = None) -> int:
             out = ckpt.parent / f"eval-{ckpt.stem}-s{args.seed}"
     train_seeds = None
     if not is_driver:
-        seeds_file = ckpt.parent / "train_episode_seeds.npy"
-        train_seeds = np.load(seeds_file) if seeds_file.exists() else None
+        from lcmodels.fileio import read_train_seeds
+
+        try:
+            train_seeds = read_train_seeds(ckpt.parent)
+        except ValueError as exc:
+            return error(str(exc))
     if is_driver or args.scenario is not None:
         scenario_label = registry_label(args.scenario or "paper")
     else:

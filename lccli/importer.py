@@ -3,12 +3,18 @@
 from __future__ import annotations
 
 import argparse
+import contextlib
 import functools
 import pathlib
+import signal
 import sys
-from collections.abc import Sequence
+from collections.abc import Callable, Iterator, Sequence
+from typing import TYPE_CHECKING
 
-from lccli.common import fail, int_at_least, positive_float, setup_logging
+from lccli.common import fail, float_in, int_at_least, positive_float, setup_logging
+
+if TYPE_CHECKING:
+    from lcdata.importers import ImportedEpisode, ImportOptions
 
 PROG = "lc-import"
 EXAMPLES = """\
@@ -23,6 +29,14 @@ file, each vehicle's centre in a frame with x forward, y to the left and lane 0 
 Files: OUT/sumo_<stem>_<i>.mcap, OUT/highd_<XX>_dir<1|2>_<i>.mcap (highD's two driving directions are
 separate episodes, each turned to drive +x). The same input gives the same bytes. Files of an earlier
 import of the same source are kept unless --overwrite; a failed import writes nothing.
+
+Limits: a value that is not finite or not plausible (a time, position, speed, acceleration, vehicle size,
+lane or id; lcdata.importers.limits) is refused, naming the file, line or data row and field. An import
+spans at most --max-duration seconds of source time and writes at most --max-steps steps (by default
+{per} per source sample read, and as many vehicle-steps per vehicle-step read: a gap in the source or a
+small --dt cannot fill the disk). The episodes are written to OUT/.<name>.import-staging first and moved
+into place at the end; Ctrl-C or SIGTERM removes that folder, and one left by an import that was killed
+outright is removed by the next import of the same source (nothing is resumed).
 See docs/INTERFACES.md (Importers) for the conventions and what is dropped.
 """
 
@@ -38,27 +52,46 @@ class _Parser(argparse.ArgumentParser):
 
 def _common(p: argparse.ArgumentParser) -> None:
     from lcdata.importers import CORPUS_DT_S, CORPUS_EPISODE_STEPS
+    from lcdata.importers.limits import (
+        DEFAULT_MAX_DURATION_S,
+        MAX_ABS_TIME_S,
+        MAX_DT_S,
+        MIN_DT_S,
+        STEPS_PER_SAMPLE,
+    )
+    from lcsim.config import ScenarioConfig
 
     p.add_argument("--out", type=pathlib.Path, required=True, help="output directory (created if missing)")
     p.add_argument("--overwrite", action="store_true",
                    help="replace the episodes of an earlier import of the same source in --out")
-    p.add_argument("--dt", type=positive_float, default=CORPUS_DT_S, metavar="SECONDS",
-                   help=f"step of the written episodes (default {CORPUS_DT_S:g}: the corpus's 20 Hz)")
-    p.add_argument("--episode-steps", type=int_at_least(1), default=CORPUS_EPISODE_STEPS, metavar="N",
-                   help=f"steps per episode file; a longer recording is cut (default {CORPUS_EPISODE_STEPS})")
-    p.add_argument("--min-episode-steps", type=int_at_least(1), default=20, metavar="N",
+    p.add_argument("--dt", type=float_in(MIN_DT_S, MAX_DT_S), default=CORPUS_DT_S, metavar="SECONDS",
+                   help=f"step of the written episodes, {MIN_DT_S:g} to {MAX_DT_S:g} (default {CORPUS_DT_S:g}: the "
+                   "corpus's 20 Hz)")
+    p.add_argument("--episode-steps", type=int_at_least(1, ScenarioConfig.MAX_STEPS), default=CORPUS_EPISODE_STEPS,
+                   metavar="N", help=f"steps per episode file; a longer recording is cut (default "
+                   f"{CORPUS_EPISODE_STEPS}, at most {ScenarioConfig.MAX_STEPS})")
+    p.add_argument("--min-episode-steps", type=int_at_least(1, ScenarioConfig.MAX_STEPS), default=20, metavar="N",
                    help="skip an episode whose traffic spans fewer steps (default 20: 1 s)")
+    p.add_argument("--max-duration", type=float_in(MIN_DT_S, 2 * MAX_ABS_TIME_S), default=DEFAULT_MAX_DURATION_S,
+                   metavar="SECONDS", help=f"refuse a source whose times span more than this (default "
+                   f"{DEFAULT_MAX_DURATION_S:g}: a day)")
+    p.add_argument("--max-steps", type=int_at_least(1), default=None, metavar="N",
+                   help=f"refuse an import that would write more steps than this, all episodes together (default: "
+                   f"{STEPS_PER_SAMPLE} per source sample read, and {STEPS_PER_SAMPLE} vehicle-steps per vehicle-step "
+                   "read; raise it to bridge a long gap in the source)")
     p.add_argument("-q", "--quiet", action="store_true", help="no progress bar")
     p.add_argument("-v", "--verbose", action="store_true", help="log what was read")
 
 
 def build_parser() -> argparse.ArgumentParser:
+    from lcdata.importers.limits import STEPS_PER_SAMPLE
+
     p = _Parser(
         prog=PROG,
         description="Import traffic recorded elsewhere into the trajectory corpus: one MCAP episode file per\n"
         "100 s, as lc-record --scenario corpus writes them, for lc-train-predictor and lc-view.\n"
         "lc-import FORMAT --help describes a format.",
-        epilog=EXAMPLES,
+        epilog=EXAMPLES.format(per=STEPS_PER_SAMPLE),
         formatter_class=argparse.RawDescriptionHelpFormatter,
     )
     sub = p.add_subparsers(dest="format", metavar="FORMAT", required=True, parser_class=_Parser)
@@ -105,7 +138,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     setup_logging(PROG, verbose=args.verbose)
     from tqdm import tqdm
 
-    from lcdata.importers import HighdOptions, ImportOptions, SumoOptions, import_highd, import_sumo_fcd
+    from lcdata.importers import ImportOptions
 
     bar: tqdm | None = None
 
@@ -127,22 +160,21 @@ def main(argv: Sequence[str] | None = None) -> int:
     if args.format == "highd" and args.meta is None and not args.file.name.endswith("_tracks.csv"):
         return error(f"{args.file}: a highD tracks file is named XX_tracks.csv, its meta file XX_tracksMeta.csv "
                      "beside it; name the meta file with --meta")
+    stopped: list[int] = []
     try:
-        options = ImportOptions(dt_s=args.dt, episode_steps=args.episode_steps,
-                                min_episode_steps=args.min_episode_steps)  # fmt: skip
-        if args.format == "sumo-fcd":
-            sumo = SumoOptions(vehicle_length_m=args.vehicle_length, vehicle_width_m=args.vehicle_width)
-            written = import_sumo_fcd(args.file, args.out, options, sumo, overwrite=args.overwrite, progress=progress)
-        else:
-            written = import_highd(args.file, args.out, options, HighdOptions(frame_rate_hz=args.frame_rate),
-                                   meta=args.meta, overwrite=args.overwrite, progress=progress)  # fmt: skip
+        options = ImportOptions(dt_s=args.dt, episode_steps=args.episode_steps, min_episode_steps=args.min_episode_steps,
+                                max_duration_s=args.max_duration, max_steps=args.max_steps)  # fmt: skip
+        with _sigterm_interrupts(stopped):
+            written = _import(args, options, progress)
     except FileExistsError as exc:
         return error(str(exc).replace("overwrite=True", "--overwrite"))
     except (ValueError, OSError) as exc:
         return error(str(exc))
-    except KeyboardInterrupt:
-        print(f"{PROG}: interrupted; nothing was written", file=sys.stderr)
-        return 130
+    except KeyboardInterrupt as exc:
+        what = "SIGTERM" if stopped else "interrupted"
+        done = "its episodes were all written" if getattr(exc, "published", False) else "nothing was written"
+        print(f"{PROG}: {what}; {done}", file=sys.stderr)
+        return 128 + (stopped[0] if stopped else signal.SIGINT)
     finally:
         if bar is not None:
             bar.close()
@@ -150,6 +182,38 @@ def main(argv: Sequence[str] | None = None) -> int:
     print(f"imported {len(written)} episode{'s' * (len(written) != 1)} ({steps} steps, {steps * args.dt:.1f} s of "
           f"traffic, {sum(e.rows for e in written)} vehicle-steps) from {args.file} to {args.out}")  # fmt: skip
     return 0
+
+
+def _import(args: argparse.Namespace, options: ImportOptions, progress: Callable[[int, int], None]
+            ) -> list[ImportedEpisode]:  # fmt: skip
+    from lcdata.importers import HighdOptions, SumoOptions, import_highd, import_sumo_fcd
+
+    if args.format == "sumo-fcd":
+        sumo = SumoOptions(vehicle_length_m=args.vehicle_length, vehicle_width_m=args.vehicle_width)
+        return import_sumo_fcd(args.file, args.out, options, sumo, overwrite=args.overwrite, progress=progress)
+    return import_highd(args.file, args.out, options, HighdOptions(frame_rate_hz=args.frame_rate), meta=args.meta,
+                        overwrite=args.overwrite, progress=progress)  # fmt: skip
+
+
+@contextlib.contextmanager
+def _sigterm_interrupts(stopped: list[int]) -> Iterator[None]:
+    """SIGTERM raises ``KeyboardInterrupt`` in the block, as Ctrl-C does, so that the import cleans up as it does
+    for Ctrl-C (its staging folder removed); ``stopped`` gets the signal's number. The handler before is put
+    back at the end (no handler outside the main thread, where Python cannot set one)."""
+
+    def handler(signum: int, _frame: object) -> None:
+        stopped.append(signum)
+        raise KeyboardInterrupt
+
+    try:
+        before = signal.signal(signal.SIGTERM, handler)
+    except ValueError:  # not the main thread
+        yield
+        return
+    try:
+        yield
+    finally:
+        signal.signal(signal.SIGTERM, before)
 
 
 if __name__ == "__main__":

@@ -23,7 +23,7 @@ from lccli.common import (
     setup_logging,
     zoo_spec,
 )
-from lcdata.record import DRIVERS, episode_filename, iter_record_episodes
+from lcdata.record import DRIVERS, MAX_USER_SEED, episode_filename, iter_record_episodes
 from lcdata.writer import MAX_START_TIME_NS
 from lcdata.writer_process import WRITER_MODES
 from lcsim.config import ScenarioConfig
@@ -109,7 +109,8 @@ def build_parser() -> argparse.ArgumentParser:
                    "corpus: the trajectory corpus (20 autopilot vehicles, 2000 steps, no image); or a scenario "
                    "file (.toml/.json of ScenarioConfig fields). Default: paper; a policy drives in its own")  # fmt: skip
     p.add_argument("--episodes", type=positive_int, default=1, help="number of episodes (default: 1)")
-    p.add_argument("--seed", type=_non_negative_int, default=0, help="seed of the first episode (default: 0)")
+    p.add_argument("--seed", type=int_at_least(0, MAX_USER_SEED), default=0,
+                   help=f"seed of the first episode (default: 0; at most {MAX_USER_SEED})")
     p.add_argument("--driver", type=_driver_spec, default=None,
                    metavar="{" + ",".join(DRIVERS) + ",policy:CKPT,safety-layer:CKPT,safety-layer:rule}",
                    help="who drives the ego (default: autopilot for corpus, else rule); "
@@ -343,6 +344,10 @@ def record_main(argv: Sequence[str] | None = None) -> int:
                              "the safety layer) or safety-layer:rule")
         label = scenario_label(scenario_name)
         start_ns = start_time_ns(args.start_time)
+        if args.seed + args.episodes - 1 > MAX_USER_SEED:
+            raise UsageError(f"--seed {args.seed} with --episodes {args.episodes} reaches seed "
+                             f"{args.seed + args.episodes - 1}; seeds go up to {MAX_USER_SEED} (the last whose "
+                             "start time, 2024 plus the seed in seconds, a recording can hold)")  # fmt: skip
         seeds = [args.seed + i for i in range(args.episodes)]
         if any(is_sealed(s) for s in (seeds[0], seeds[-1])) or seeds[0] < SEALED_SEED_BASE <= seeds[-1]:
             raise UsageError(f"seeds {SEALED_SEED_BASE} to {SEALED_SEED_END - 1} are the benchmark's sealed test "

@@ -39,7 +39,7 @@ import numpy as np
 
 from lcdata.corpus import from_frame
 from lcdata.executors import EXECUTORS, ray_map
-from lcdata.writer import OUTCOME_CODES, EpisodeWriter, package_version
+from lcdata.writer import MAX_START_TIME_NS, OUTCOME_CODES, EpisodeWriter, package_version
 from lcdata.writer_process import WRITER_MODES, ProcessEpisodeWriter, open_writer
 from lckit.pool import WorkerPool
 from lcsim import kernel
@@ -61,6 +61,10 @@ DRIVERS = ("autopilot", *DRIVER_NAMES)
 
 SEED_EPOCH_NS = 1_704_067_200 * 1_000_000_000
 """2024-01-01T00:00:00Z: the time origin of seed-derived start times (:func:`seed_start_time_ns`)."""
+
+
+MAX_USER_SEED = (MAX_START_TIME_NS - SEED_EPOCH_NS) // 1_000_000_000
+"""The largest user seed a recording takes: the last whose seed-derived start time an MCAP file can hold."""
 
 
 def seed_start_time_ns(seed: int) -> int:

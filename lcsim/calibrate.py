@@ -53,11 +53,12 @@ import logging
 import math
 from collections.abc import Callable
 from dataclasses import dataclass, field
+from typing import ClassVar
 
 import numpy as np
 
 from lcsim.config import WANDER_CLIP_SIGMAS, RoadConfig, ScenarioConfig, TrafficConfig
-from lcsim.stats import COMPARED, WARMUP_S, TrafficSamples, summarise, traffic_statistics
+from lcsim.stats import COMPARED, WARMUP_S, TrafficSamples, check_track_bytes, summarise, traffic_statistics
 
 log = logging.getLogger(__name__)
 
@@ -96,6 +97,8 @@ class CalibrationOptions:
     iterations: int = 30
     """Simulated evaluations of the search (the first is the start)."""
     episodes: int = 32
+    """Environments simulated side by side per evaluation, at most :attr:`MAX_EPISODES` (and what
+    :data:`lcsim.stats.MAX_TRACK_BYTES` holds: :func:`check_memory`)."""
     seconds: float | None = None
     """Simulated seconds per episode (the first :data:`lcsim.stats.WARMUP_S` left out); None: the base scenario's
     time limit, the traffic as an episode of it sees it (the traffic's statistics drift as platoons form)."""
@@ -107,11 +110,16 @@ class CalibrationOptions:
     keep_road: bool = False
     """Keep the base scenario's road (lanes, lane width) instead of the recording's."""
 
+    MAX_EPISODES: ClassVar[int] = 1024
+    """The most environments of one evaluation (``episodes``, ``report_episodes``)."""
+    MAX_ITERATIONS: ClassVar[int] = 10_000
+
     def __post_init__(self) -> None:
-        for name in ("iterations", "episodes", "report_episodes"):
+        for name, most in (("iterations", self.MAX_ITERATIONS), ("episodes", self.MAX_EPISODES),
+                           ("report_episodes", self.MAX_EPISODES)):  # fmt: skip
             value = getattr(self, name)
-            if not isinstance(value, int) or isinstance(value, bool) or value < 1:
-                raise ValueError(f"{name} must be an integer >= 1, got {value!r}")
+            if not isinstance(value, int) or isinstance(value, bool) or not 1 <= value <= most:
+                raise ValueError(f"{name} must be an integer in [1, {most}], got {value!r}")
         if self.seconds is not None and not (math.isfinite(self.seconds) and self.seconds > WARMUP_S + 5.0):
             raise ValueError(f"seconds must be more than {WARMUP_S + 5.0:g} (the first {WARMUP_S:g} are left out), "
                              f"got {self.seconds!r}")  # fmt: skip
@@ -205,14 +213,20 @@ def _spawn_window_km(tc: TrafficConfig) -> float:
     return (tc.spawn_behind_m + tc.spawn_ahead_m - 1.5 * tc.ego_clearance_m) / 1000.0
 
 
+def max_vehicles(base: ScenarioConfig, road: RoadConfig, size: RecordedRoad) -> int:
+    """The most traffic vehicles :func:`scenario_of` puts on ``road`` (as many as its spawn window holds)."""
+    window_m = _spawn_window_km(base.traffic) * 1000.0
+    per_lane_max = int(window_m / (size.length_m + base.traffic.min_spawn_gap_m))
+    return per_lane_max * road.num_lanes - road.num_lanes
+
+
 def scenario_of(params: Params, base: ScenarioConfig, road: RoadConfig, size: RecordedRoad) -> ScenarioConfig:
     """The base scenario with the recording's road and vehicle size and the parameters ``params``."""
     t0 = base.traffic
     spread_margin = 2.0 * max(params.speed_spread_kmh, 2.0)
     window_m = _spawn_window_km(t0) * 1000.0
-    per_lane_max = int(window_m / (size.length_m + t0.min_spawn_gap_m))
     per_lane = params.density * window_m / 1000.0
-    num = int(np.clip(round(per_lane * road.num_lanes) - 1, 1, per_lane_max * road.num_lanes - road.num_lanes))
+    num = int(np.clip(round(per_lane * road.num_lanes) - 1, 1, max_vehicles(base, road, size)))
     # spawned vehicles start at their desired speeds: space them at least at a car-following gap, or the first
     # seconds brake hard (and collide) wherever two are spawned close
     following = t0.idm_min_gap_m + params.idm_time_headway_s * params.speed_kmh / 3.6
@@ -339,6 +353,22 @@ def update_slopes(slopes: dict[str, float], before: tuple[Params, dict[str, floa
     return out
 
 
+def check_memory(options: CalibrationOptions, base: ScenarioConfig, size: RecordedRoad) -> RoadConfig:
+    """The road the search simulates; ``ValueError`` when it cannot be built, or when an evaluation's tracks (the
+    most vehicles the road may get, ``episodes`` or ``report_episodes`` environments, ``seconds``) would take more
+    than :data:`lcsim.stats.MAX_TRACK_BYTES`: checked before anything is simulated."""
+    if options.keep_road:
+        road = base.road
+    else:
+        if not 2 <= size.num_lanes <= 6:
+            raise ValueError(f"the recording has {size.num_lanes} lanes; the simulator builds 2 to 6 (keep the base "
+                             "scenario's road instead)")  # fmt: skip
+        road = dataclasses.replace(base.road, num_lanes=size.num_lanes, lane_width_m=round(size.lane_width_m, 3))
+    vehicles = max(max_vehicles(base, road, size), base.traffic.num_vehicles, 1) + 1
+    check_track_bytes(max(options.episodes, options.report_episodes), options.seconds_for(base), base.dt_s, vehicles)
+    return road
+
+
 def calibrate(recorded: TrafficSamples | dict[str, float], intervals: dict[str, tuple[float, float]],
               size: RecordedRoad, base: ScenarioConfig, options: CalibrationOptions | None = None,
               progress: Callable[[int, int, float, dict[str, float]], None] | None = None) -> CalibrationResult:  # fmt: skip
@@ -356,13 +386,7 @@ def calibrate(recorded: TrafficSamples | dict[str, float], intervals: dict[str, 
             raise ValueError(f"the recording has no {what} to match")
     if not math.isfinite(rec["lane_change_duration_mean_s"]):
         raise ValueError("the recording has no complete lane change whose duration could be measured")
-    if options.keep_road:
-        road = base.road
-    else:
-        if not 2 <= size.num_lanes <= 6:
-            raise ValueError(f"the recording has {size.num_lanes} lanes; the simulator builds 2 to 6 (keep the base "
-                             "scenario's road instead)")  # fmt: skip
-        road = dataclasses.replace(base.road, num_lanes=size.num_lanes, lane_width_m=round(size.lane_width_m, 3))
+    road = check_memory(options, base, size)
     tol = tolerances(rec, intervals)
     params = start(rec, base, size)
     best: tuple[float, Params, dict[str, float]] | None = None

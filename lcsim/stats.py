@@ -282,10 +282,37 @@ def summarise(samples: TrafficSamples, vehicle_weights: np.ndarray | None = None
     }  # fmt: skip
 
 
+MAX_BOOTSTRAP_DRAWS = 10_000
+"""The most draws :func:`sampling_intervals` makes: the Monte Carlo error of a 95% interval's ends is long
+negligible by then, and each draw summarises every sample once."""
+TRACK_BYTES_PER_CELL = 41
+"""What :func:`simulate_tracks` holds per step, environment and vehicle: four float64 arrays, one int64, a flag."""
+MAX_TRACK_BYTES = 4 << 30
+"""The most memory the tracks of one :func:`simulate_tracks` call may take (4 GiB)."""
+
+
+def track_bytes(episodes: int, seconds: float, dt_s: float, vehicles: int) -> int:
+    """The memory :func:`simulate_tracks` takes for ``episodes`` environments of ``vehicles`` vehicles (the ego
+    included) over ``seconds`` of ``dt_s`` steps."""
+    return (round(seconds / dt_s) + 1) * episodes * vehicles * TRACK_BYTES_PER_CELL
+
+
+def check_track_bytes(episodes: int, seconds: float, dt_s: float, vehicles: int) -> None:
+    """``ValueError`` (one line, with the figures) when those tracks would take more than :data:`MAX_TRACK_BYTES`."""
+    need = track_bytes(episodes, seconds, dt_s, vehicles)
+    if need > MAX_TRACK_BYTES:
+        raise ValueError(f"{episodes} episodes x {seconds:g} s of {vehicles} vehicles at {dt_s:g} s steps would hold "
+                         f"{need / 2**30:.1f} GiB of tracks, more than {MAX_TRACK_BYTES / 2**30:g} GiB; simulate fewer "
+                         "episodes or seconds")  # fmt: skip
+
+
 def sampling_intervals(samples: TrafficSamples, reps: int = 200, seed: int = 0,
                        level: float = 0.95) -> dict[str, tuple[float, float]]:  # fmt: skip
     """Percentile-bootstrap intervals of every statistic, resampling vehicles (a vehicle's samples are correlated,
-    vehicles nearly independent), from a generator seeded with ``seed``."""
+    vehicles nearly independent), from a generator seeded with ``seed``; ``reps`` draws, 1 to
+    :data:`MAX_BOOTSTRAP_DRAWS` (``ValueError`` otherwise)."""
+    if not (isinstance(reps, int) and 1 <= reps <= MAX_BOOTSTRAP_DRAWS):
+        raise ValueError(f"the bootstrap takes 1 to {MAX_BOOTSTRAP_DRAWS} draws, got {reps!r}")
     gen = np.random.default_rng(seed)
     n = samples.vehicles
     fields = {f.name: getattr(samples, f.name) for f in dataclasses.fields(TrafficSamples)}
@@ -310,7 +337,9 @@ def sampling_intervals(samples: TrafficSamples, reps: int = 200, seed: int = 0,
 
 def simulate_tracks(config: ScenarioConfig, episodes: int, seconds: float, seed: int = 0) -> tuple[list[TrackArrays], int]:
     """Tracks of ``episodes`` environments of ``config``'s traffic (all on autopilot, the ego too) over ``seconds``
-    (episode seeds ``seed * 100_000 + k``), and the number of collisions among the traffic."""
+    (episode seeds ``seed * 100_000 + k``), and the number of collisions among the traffic. ``ValueError`` before
+    anything is allocated when they would take more than :data:`MAX_TRACK_BYTES` (:func:`check_track_bytes`)."""
+    check_track_bytes(episodes, seconds, config.dt_s, config.traffic.num_vehicles + 1)
     sim = HighwaySim(dataclasses.replace(config, render_image=False), episodes, autopilot_ego=True)
     sim.reset(np.arange(episodes), [seed * 100_000 + k for k in range(episodes)])
     steps = round(seconds / sim.dt)

@@ -218,3 +218,37 @@ def test_help_has_an_example(capsys: pytest.CaptureFixture[str]):
     assert main(["--help"]) == 0
     text = capsys.readouterr().out
     assert "lc-calibrate runs/sumo/corpus --out scenarios/sumo.toml" in text and "--iterations" in text
+
+
+@pytest.mark.parametrize(
+    ("argv", "words"),
+    [
+        (["--bootstrap", "100000000"], ("--bootstrap", "must be <= 10000")),
+        (["--episodes", "1000000"], ("--episodes", "must be <= 1024")),
+        (["--report-episodes", "1000000"], ("--report-episodes", "must be <= 1024")),
+        (["--iterations", "100000000"], ("--iterations", "must be <=")),
+        (["--episodes", "1000", "--seconds", "3000"], ("1000 episodes x 3000 s", "GiB of tracks", "more than 4 GiB")),
+        (["--seconds", "1e9"], ("GiB of tracks",)),
+    ],
+)  # fmt: skip
+def test_sizes_are_bounded_before_anything_is_simulated(recorded: pathlib.Path, tmp_path: pathlib.Path,
+                                                        capsys: pytest.CaptureFixture[str], argv, words) -> None:
+    """The bootstrap and the simulated episodes have stated caps, and an evaluation's tracks must fit in
+    ``MAX_TRACK_BYTES`` (refused after reading the recording, before the bootstrap)."""
+    assert main([str(recorded), "--out", str(tmp_path / "s.toml"), "-q", *argv]) == 2
+    one_line_error(capsys, *words)
+    assert not list(tmp_path.iterdir())
+
+
+def test_the_library_bounds_what_it_simulates_and_draws() -> None:
+    from lcsim.calibrate import CalibrationOptions
+    from lcsim.stats import MAX_BOOTSTRAP_DRAWS, TrafficSamples
+
+    for bad in ({"episodes": 10**6}, {"report_episodes": 0}, {"iterations": 10**8}):
+        with pytest.raises(ValueError, match=next(iter(bad))):
+            CalibrationOptions(**bad)
+    with pytest.raises(ValueError, match="GiB of tracks"):  # before the simulator allocates anything
+        simulate_tracks(TRUTH, 10**6, 75.0)
+    empty = TrafficSamples(**{f: np.zeros(0) for f in TrafficSamples.__dataclass_fields__})
+    with pytest.raises(ValueError, match=f"1 to {MAX_BOOTSTRAP_DRAWS} draws"):
+        sampling_intervals(empty, reps=10**8)

@@ -521,3 +521,65 @@ def test_a_resume_record_of_the_wrong_types_is_corrupt(run_dir: Path, tmp_path: 
     (out / "checkpoints" / "latest.json").write_text(json.dumps(state))
     with pytest.raises(ValueError, match=r"checkpoints/latest\.json is corrupt"):
         train_policy(_tiny(timesteps=128), out)
+
+
+def relabelled(src: Path, dest: Path, dtype: str = "I32") -> tuple[Path, str]:
+    """A copy of the safetensors file ``src`` whose first float tensor's header says ``dtype`` (the same size
+    per element: the bytes load, as numbers of another kind); and that tensor's name."""
+    data = src.read_bytes()
+    n = int.from_bytes(data[:8], "little")
+    header = json.loads(data[8 : 8 + n])
+    name = next(k for k, v in sorted(header.items()) if k != "__metadata__" and v["dtype"] == "F32")
+    header[name]["dtype"] = dtype
+    text = json.dumps(header, separators=(",", ":")).encode()
+    text += b" " * (n - len(text))  # the header keeps its length: the tensors' offsets stay right
+    assert len(text) == n
+    dest.write_bytes(data[:8] + text + data[8 + n :])
+    return dest, name
+
+
+def test_a_tensor_relabelled_to_another_dtype_is_refused_not_cast(run_dir: Path, tmp_path: Path,
+                                                                  capsys: pytest.CaptureFixture[str]) -> None:
+    bad, name = relabelled(run_dir / "policy.safetensors", tmp_path / "relabelled.safetensors")
+    with pytest.raises(ValueError, match=rf"tensor {name} is stored as torch.int32, the network holds torch.float32"):
+        load_policy(bad)
+    assert eval_main([str(bad), "--episodes", "1", "--no-record"]) == 2
+    err = capsys.readouterr().err
+    assert err.startswith("lc-eval: error:") and "torch.int32" in err and err.count("\n") == 1
+
+
+@pytest.mark.parametrize("content", ["strings", "objects", "floats", "two_d", "npz", "random", "truncated"])
+def test_a_bad_train_episode_seeds_file_beside_a_policy_is_one_line(run_dir: Path, tmp_path: Path, content: str,
+                                                                    capsys: pytest.CaptureFixture[str]) -> None:
+    import shutil
+
+    from lcmodels.fileio import TRAIN_SEEDS_FILE, read_train_seeds
+
+    out = tmp_path / "run"
+    shutil.copytree(run_dir, out)
+    seeds = out / TRAIN_SEEDS_FILE
+    good = read_train_seeds(out)
+    assert good is not None and good.dtype == np.int64 and len(good)
+    if content == "strings":
+        np.save(seeds, np.array(["1", "22"]))
+    elif content == "objects":
+        np.save(seeds, np.array([1, "x"], dtype=object), allow_pickle=True)
+    elif content == "floats":
+        np.save(seeds, good.astype(np.float64))
+    elif content == "two_d":
+        np.save(seeds, good.reshape(1, -1))
+    elif content == "npz":
+        with open(seeds, "wb") as fh:
+            np.savez(fh, seeds=good)
+    elif content == "random":
+        seeds.write_bytes(np.random.default_rng(0).bytes(256))
+    else:
+        seeds.write_bytes(seeds.read_bytes()[:-4])
+    with pytest.raises(ValueError, match=TRAIN_SEEDS_FILE):
+        read_train_seeds(out)
+    assert eval_main([str(out / "policy.safetensors"), "--episodes", "1", "--no-record"]) == 2
+    err = capsys.readouterr().err
+    assert err.startswith("lc-eval: error:") and TRAIN_SEEDS_FILE in err and err.count("\n") == 1, err
+    if content == "strings":  # a run resumed beside it refuses too
+        with pytest.raises(ValueError, match=TRAIN_SEEDS_FILE):
+            train_policy(_tiny(timesteps=128), out)

@@ -182,6 +182,16 @@ def test_a_checkpoint_from_before_the_choices_loads_as_the_plain_one_step_model(
         assert torch.equal(model(pos, mask), old_style.eval()(pos, mask))
 
 
+def test_a_checkpoint_tensor_of_another_dtype_is_refused_not_cast(tmp_path: Path) -> None:
+    path = save_model(TrajectoryTransformer(PredictorConfig(d_model=16, ff_dim=32, num_layers=1)), tmp_path / "p.pt")
+    payload = torch.load(path, weights_only=True)
+    name = next(iter(payload["state_dict"]))
+    payload["state_dict"][name] = payload["state_dict"][name].to(torch.int32)
+    torch.save(payload, path)
+    with pytest.raises(ValueError, match=rf"tensor {name} is stored as torch.int32, the network holds torch.float32"):
+        load_model(path)
+
+
 def test_bounded_correction_stays_within_its_bound() -> None:
     torch.manual_seed(0)
     cfg = PredictorConfig(d_model=32, ff_dim=64, correction="bounded")

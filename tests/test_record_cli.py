@@ -10,6 +10,7 @@ import pytest
 
 from lccli.record import record_main, scenario_config
 from lcdata import read_episode, replay
+from lcdata.record import MAX_USER_SEED
 from lcsim import corpus_scenario, paper_scenario
 
 TINY = ["--vehicles", "6", "--steps", "30"]
@@ -140,6 +141,8 @@ def test_resume_sees_an_edited_scenario_file_and_overwrite_leaves_no_mixed_flags
 @pytest.mark.parametrize(("argv", "message"), [
     (["--start-time", "9999-12-31T23:59:59Z"], "after 2262-01-01"),
     (["--start-time", "2300-01-01T00:00:00Z"], "after 2262-01-01"),
+    (["--seed", "10000000000"], f"--seed: must be <= {MAX_USER_SEED}"),  # no record.json, no lock left behind
+    (["--seed", str(MAX_USER_SEED), "--episodes", "2"], f"reaches seed {MAX_USER_SEED + 1}"),
     (["--scenario", "SCENARIO:history_steps = 100000000000000000000"], "history_steps must be at most"),
     (["--scenario", "SCENARIO:[traffic]\nspeed_kmh = 1e308"], "speed_kmh must be at most"),
     (["--scenario", "SCENARIO:time_limit_s = 1e9"], "time_limit_s must be at most"),

@@ -41,6 +41,7 @@ ENTRY = {
     "lc-experiment": "lccli.experiment:experiment_main",
     "lc-view": "lccli.view:main",
     "lc-import": "lccli.importer:main",
+    "lc-calibrate": "lccli.calibrate:main",
 }
 
 
@@ -338,7 +339,7 @@ def main(argv: list[str] | None = None) -> int:
     with tempfile.TemporaryDirectory(prefix="lc-audit-") as tmp:
         root = Path(tmp)
         cases = [c for c in build_cases(root) if args.k in c.what]
-        for extra in ("audit_cases_files", "audit_cases_mcap"):  # the second round's cases, by class of input
+        for extra in ("audit_cases_files", "audit_cases_mcap", "audit_cases_imports"):  # the second round's cases, by class of input
             module = importlib.import_module(extra)
             (root / extra).mkdir()
             cases += [c for c in module.build(root / extra, Case) if args.k in c.what]

@@ -20,6 +20,10 @@ fitted to the median lateral position of every lane and ``y`` shifted so that la
 ``(k + 0.5) * width`` (docs/INTERFACES.md), the road ``lc-view`` draws from the episode's config. Speed is
 the norm of the velocity, yaw its direction, acceleration its component along the velocity.
 
+Every value is checked against :mod:`lcdata.importers.limits` (:data:`BOUNDS`) as the table is read, frames
+for their span before anything is sized by them, and the lane ids of each carriageway for the lanes they span;
+one that fails is refused naming the file, the data row and the column.
+
 Dropped: the surrounding-vehicle ids, ``dhw``, ``thw``, ``ttc``, sight distances (all derivable from the
 tracks), ``XX_recordingMeta.csv`` (not read) and the per-vehicle statistics of the meta file.
 """
@@ -46,6 +50,20 @@ from lcdata.importers.episodes import (
     check_written,
     write_episodes,
 )
+from lcdata.importers.limits import (
+    ACCELERATION,
+    FRAME,
+    LANE_ID,
+    LENGTH,
+    MAX_LANE_INDEX,
+    POSITION,
+    TIME,
+    VEHICLE_ID,
+    VELOCITY,
+    WIDTH,
+    Bound,
+    shown,
+)
 from lcdata.importers.resample import Frame, resample
 from lcsim.config import RoadConfig
 
@@ -57,6 +75,12 @@ TRACK_COLUMNS = ("frame", "id", "x", "y", "width", "height", "xVelocity", "yVelo
 """The columns of ``XX_tracks.csv`` read (the others are dropped)."""
 META_COLUMNS = ("id", "class", "drivingDirection")
 """The columns of ``XX_tracksMeta.csv`` read."""
+BOUNDS: dict[str, Bound] = {
+    "frame": FRAME, "id": VEHICLE_ID, "x": POSITION, "y": POSITION, "width": LENGTH, "height": WIDTH,
+    "xVelocity": VELOCITY, "yVelocity": VELOCITY, "xAcceleration": ACCELERATION, "yAcceleration": ACCELERATION,
+    "laneId": LANE_ID,
+}  # fmt: skip
+"""What each numeric column may hold (:mod:`lcdata.importers.limits`; highD's ``width`` is the length)."""
 TRACKS_SUFFIX, META_SUFFIX = "_tracks.csv", "_tracksMeta.csv"
 DEFAULT_LANE_WIDTH_M = RoadConfig().lane_width_m
 LANE_WIDTH_RANGE_M = (2.5, 5.0)
@@ -110,10 +134,41 @@ def _read_csv(path: pathlib.Path, columns: tuple[str, ...], what: str) -> pd.Dat
         bad = values.isna() | ~np.isfinite(values.to_numpy(np.float64, na_value=np.nan))
         if bad.any():
             row = int(np.flatnonzero(bad.to_numpy())[0])
-            raise ValueError(f"{path}: column {column} holds {frame[column].iloc[row]!r} on data row {row + 1}, "
-                             "not a number")  # fmt: skip
-        frame[column] = values
+            cell = frame[column].iloc[row]
+            shown_cell = "nothing" if pd.isna(cell) else repr(str(cell)[:40])
+            raise ValueError(f"{path}: column {column} holds {shown_cell} on data row {row + 1}, not a number")
+        bound = BOUNDS.get(column)
+        if bound is not None and (row := bound.first_bad(values.to_numpy(np.float64))) is not None:
+            value = float(values.iloc[row])
+            raise ValueError(f"{path}: data row {row + 1}: {column} {shown(value)} {bound.problem(value)}")
+        frame[column] = values.astype(np.int64) if bound is not None and bound.integer else values
     return frame
+
+
+def _check_span(rows: pd.DataFrame, path: pathlib.Path, frame_rate_hz: float, options: ImportOptions) -> None:
+    """``ValueError`` naming the data row for a frame whose time is implausible or too far from the first frame's
+    (``options.max_duration_s``): checked on the table as read, before anything is sized by the frames."""
+    frame = rows["frame"].to_numpy(np.float64)
+    time = frame / frame_rate_hz
+    if (row := TIME.first_bad(time)) is not None:
+        raise ValueError(f"{path}: data row {row + 1}: frame {frame[row]:.0f} at {frame_rate_hz:g} Hz is time "
+                         f"{time[row]:g} s, which {TIME.problem(time[row])}")  # fmt: skip
+    first, last = int(np.argmin(frame)), int(np.argmax(frame))
+    if time[last] - time[first] > options.max_duration_s:
+        raise ValueError(f"{path}: data row {last + 1}: frame {frame[last]:.0f} is {time[last] - time[first]:g} s "
+                         f"after frame {frame[first]:.0f} at {frame_rate_hz:g} Hz, more than an import may span "
+                         f"({options.max_duration_s:g} s; --max-duration raises it)")  # fmt: skip
+
+
+def _check_lanes(lane_id: np.ndarray, path: pathlib.Path, direction: int, rows: np.ndarray) -> None:
+    """``ValueError`` naming the data row (``rows``: each lane id's) of the lane id furthest from the others when
+    the lane ids of a driving direction span more lanes than a road has."""
+    lo, hi = int(lane_id.min()), int(lane_id.max())
+    if hi - lo > MAX_LANE_INDEX:
+        i = int(np.argmax(np.abs(lane_id - np.median(lane_id))))
+        raise ValueError(f"{path}: data row {rows[i] + 1}: laneId {lane_id[i]} makes the lanes of driving "
+                         f"direction {direction} span ids {lo} to {hi}, more than a road has "
+                         f"({MAX_LANE_INDEX + 1} lanes)")  # fmt: skip
 
 
 @dataclass(frozen=True, slots=True)
@@ -135,6 +190,8 @@ class Carriageway:
     """world ``x = x_sign * centre_x``, ``y = y_sign * centre_y + y_offset_m`` (image centre coordinates)."""
     road: dict[str, float | int]
     """``num_lanes`` and the fitted ``lane_width_m``."""
+    row: np.ndarray  # int64, the data row (from 0) of each entry in the tracks file
+    source: pathlib.Path
 
     @classmethod
     def from_rows(cls, rows: pd.DataFrame, direction: int, source: pathlib.Path) -> Carriageway:
@@ -154,6 +211,7 @@ class Carriageway:
         moving = speed > 1e-6
         accel = np.where(moving, (ax * vx + ay * vy) / np.where(moving, speed, 1.0), ax)
         lane_id = rows["laneId"].to_numpy(np.int64)
+        _check_lanes(lane_id, source, direction, rows.index.to_numpy())
         # Lanes are numbered from the top of the image: the rightmost lane of direction 2 (driving +x,
         # y down) has the largest id, that of direction 1 the smallest.
         lane = lane_id.max() - lane_id if direction == 2 else lane_id - lane_id.min()
@@ -162,7 +220,7 @@ class Carriageway:
         return cls(
             direction, frame, ids, sx * cx, y + offset, np.arctan2(vy, vx), speed, accel, lane,
             col["width"], col["height"], {"x_sign": sx, "y_sign": sy, "y_offset_m": round(offset, 6)},
-            {"num_lanes": int(lane.max()) + 1, "lane_width_m": round(width_m, 4)},
+            {"num_lanes": int(lane.max()) + 1, "lane_width_m": round(width_m, 4)}, rows.index.to_numpy(), source,
         )  # fmt: skip
 
     def frames(self, frame_rate_hz: float, progress: Progress | None = None, done: int = 0,
@@ -174,7 +232,8 @@ class Carriageway:
             if progress is not None and i % PROGRESS_EVERY == 0:
                 progress(done + i, total)
             yield Frame(self.frame[a] / frame_rate_hz, self.ids[a:b], self.x[a:b], self.y[a:b], self.yaw[a:b],
-                        self.speed[a:b], self.accel[a:b], self.lane[a:b], self.length[a:b], self.width[a:b])  # fmt: skip
+                        self.speed[a:b], self.accel[a:b], self.lane[a:b], self.length[a:b], self.width[a:b],
+                        f"{self.source}: frame {self.frame[a]} (data row {self.row[a] + 1})")  # fmt: skip
 
     @property
     def frame_count(self) -> int:
@@ -227,6 +286,7 @@ def import_highd(tracks: str | os.PathLike[str], out: str | os.PathLike[str], op
     stem = f"highd_{tracks.name.removesuffix(TRACKS_SUFFIX).removesuffix('.csv')}"
     files = EpisodeFiles(out, stem, overwrite=overwrite, parts="_dir[12]")  # refuses before anything is read
     rows = _read_csv(tracks, TRACK_COLUMNS, "tracks file")
+    _check_span(rows, tracks, highd.frame_rate_hz, options)
     info = _read_csv(meta_path, META_COLUMNS, "tracks meta file").set_index("id")
     if info.index.duplicated().any():
         raise ValueError(f"{meta_path}: vehicle {info.index[info.index.duplicated()][0]} has two rows")
@@ -236,7 +296,7 @@ def import_highd(tracks: str | os.PathLike[str], out: str | os.PathLike[str], op
     direction = info.loc[rows["id"], "drivingDirection"].to_numpy()
     odd = ~np.isin(direction, (1, 2))
     if odd.any():
-        raise ValueError(f"{meta_path}: drivingDirection {direction[odd][0]!r} is neither 1 nor 2")
+        raise ValueError(f"{meta_path}: drivingDirection {shown(float(direction[odd][0]))} is neither 1 nor 2")
     classes = info["class"].astype(str)
     ways = [Carriageway.from_rows(rows[direction == d], d, tracks) for d in (1, 2) if (direction == d).any()]
     base: dict[str, Any] = {
@@ -255,7 +315,8 @@ def import_highd(tracks: str | os.PathLike[str], out: str | os.PathLike[str], op
         for way in ways:
             meta_record = {**base, "config": {"dt_s": options.dt_s, "road": way.road},
                            "driving_direction": way.direction, "source_transform": way.transform}  # fmt: skip
-            grid = resample(way.frames(highd.frame_rate_hz, progress, done, total), options.dt_s)
+            grid = resample(way.frames(highd.frame_rate_hz, progress, done, total), options.dt_s,
+                            max_duration_s=options.max_duration_s, max_steps=options.max_steps)
             written += write_episodes(grid, files, f"{stem}_dir{way.direction}", meta_record, options, vehicle_info)
             done += way.frame_count
         check_written(tracks, written, options)

@@ -33,7 +33,7 @@ from safetensors.torch import load_file, save_file
 from stable_baselines3.common.base_class import BaseAlgorithm
 
 from lcdata.fileio import loads_json, write_atomically
-from lcmodels.fileio import file_sha256, write_json
+from lcmodels.fileio import check_dtypes, file_sha256, write_json
 from lcmodels.policy.network import ALGOS
 from lcmodels.predictor.inference import Predictor
 from lcsim.config import ScenarioConfig
@@ -275,6 +275,7 @@ def load_weights(model: BaseAlgorithm, path: str | os.PathLike[str], device: str
                 aliases = {k: v for k, v in (f.metadata() or {}).items() if k != CARD_KEY and v in state}
         for alias, name in aliases.items():
             state[alias] = state[name]
+        check_dtypes(state, model.policy.state_dict(), str(path))
         model.policy.load_state_dict(state, strict=True)
     except (RuntimeError, SafetensorError, OSError, KeyError) as exc:
         detail = " ".join(str(exc).split())[:200]

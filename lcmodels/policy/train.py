@@ -49,7 +49,7 @@ from stable_baselines3.common.logger import configure
 from stable_baselines3.common.vec_env import VecEnv
 
 from lcdata.fileio import check_output_folder, loads_json, write_atomically
-from lcmodels.fileio import POLICY_FILE, file_sha256, write_json
+from lcmodels.fileio import POLICY_FILE, check_dtypes, file_sha256, read_train_seeds, write_json
 from lcmodels.policy.checkpoint import (
     MAX_CARD_TIMESTEPS,
     LoadedPolicy,
@@ -220,8 +220,7 @@ class _Run:
             self.start_timesteps = int(state["timesteps"])
             self.wall_before = float(state["wall_s"])
             self.episodes_total = int(state["episodes_total"])
-            if self.seeds_path.exists():
-                self.prior_seeds = np.load(self.seeds_path)
+            self.prior_seeds = read_train_seeds(self.out) if self.seeds_path.exists() else self.prior_seeds
             self.truncate_progress(self.start_timesteps)
             log.info("resuming %s from step %d", self.out, self.start_timesteps)
         elif (self.out / "progress.csv").exists():
@@ -499,14 +498,14 @@ def evaluate_run(result: TrainResult, *, device: str = "cpu",
     episodes, seed and policy are the same), and add the summary to ``metrics.json`` and ``result.metrics``."""
     cfg, out = result.config, result.out
     assert cfg is not None and result.scenario is not None, "a result of train_run"
-    final, eval_json, seeds_path = out / POLICY_FILE, out / "eval" / "metrics.json", out / "train_episode_seeds.npy"
+    final, eval_json = out / POLICY_FILE, out / "eval" / "metrics.json"
     summary = json.loads(eval_json.read_text()) if eval_json.exists() else {}
     policy_sha = file_sha256(final)  # a run continued to more timesteps has a new policy to evaluate
     recorded = (out / "eval" / "episodes").is_dir() or not cfg.record_eval
     if not recorded or (summary.get("episodes"), summary.get("eval_seed"), summary.get("policy_sha256")) != (
             cfg.eval_episodes, cfg.eval_seed, policy_sha):
         loaded: LoadedPolicy = load_policy(final, predictor=result.predictor, device=device)
-        train_seeds = np.load(seeds_path) if seeds_path.exists() else None
+        train_seeds = read_train_seeds(out)
         t0 = time.perf_counter()
         summary, _ = evaluate(PolicyDriver(loaded), result.scenario, episodes=cfg.eval_episodes,
                               seed=cfg.eval_seed, out_dir=out / "eval" / "episodes" if cfg.record_eval else None,
@@ -675,6 +674,7 @@ def _frozen_image_encoder(plan: _Plan, path: Path) -> ImageEncoder:
         tmp = path.with_suffix(".partial")
         write_atomically(tmp, path, lambda: torch.save(state, tmp))
     net = make_image_net(cfg.image_net, 3, plan.scenario.render.image_size_px, cfg.image_features)
+    check_dtypes(state, net.state_dict(), str(path))
     try:
         net.load_state_dict(state)
     except RuntimeError as exc:

@@ -16,6 +16,7 @@ from typing import Any
 import torch
 
 from lcdata.fileio import loads_json, write_atomically
+from lcmodels.fileio import check_dtypes
 from lcmodels.predictor.model import MAX_PARAMETERS, PredictorConfig, TrajectoryTransformer
 
 __all__ = ["ANALYTIC_BASES", "CHECKPOINT_FORMAT", "analytic_model", "load_model", "save_model"]
@@ -100,6 +101,7 @@ def load_model(
                 "train a predictor for these horizons or request the checkpoint's"
             )
     model = TrajectoryTransformer(config)
+    check_dtypes(state, model.state_dict(), str(path))
     try:
         model.load_state_dict(state)
     except (KeyError, RuntimeError) as exc:
