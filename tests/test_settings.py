@@ -9,6 +9,7 @@ from hypothesis import strategies as st
 
 from lccli.policy import policy_config_of, train_policy_main, train_policy_parser
 from lcmodels.policy import PolicyConfig
+from lcmodels.policy.plan import policy_scenario
 from lcsim.config import ScenarioConfig, paper_scenario
 
 
@@ -87,7 +88,11 @@ def test_any_setting_gives_a_config_or_a_value_error(key, value):
         cfg = PolicyConfig().with_settings([f"{key}={value}"])
     except ValueError:
         return
-    assert isinstance(cfg, PolicyConfig) and isinstance(cfg.scenario_config(), ScenarioConfig)
+    assert isinstance(cfg, PolicyConfig) and isinstance(cfg.scenario_config(ScenarioConfig()), ScenarioConfig)
+    try:  # what it names is read when a run resolves it: a scenario, or one line
+        assert isinstance(policy_scenario(cfg), ScenarioConfig)
+    except ValueError as exc:
+        assert "\n" not in str(exc)
 
 
 def test_a_setting_is_read_as_the_fields_type_not_the_files(tmp_path):

@@ -148,8 +148,9 @@ def _corpus_job(ctx: StageContext, key: StageKey) -> StageJob:
 def _demos_job(ctx: StageContext, key: StageKey, spec: Any) -> StageJob:
     """The demonstrations ``spec`` (with images), recorded once however many recipes clone them."""
     from lcmodels.policy.config import PolicyConfig
+    from lcmodels.policy.plan import policy_scenario
 
-    config = PolicyConfig(scenario=ctx.preset.scenario, obs="hybrid").scenario_config()
+    config = policy_scenario(PolicyConfig(scenario=ctx.preset.scenario, obs="hybrid"))
     seeds = list(range(spec.seed, spec.seed + spec.episodes))
     return _record_job(ctx, key, config, seeds, spec.driver, ctx.preset.scenario, True)
 
@@ -268,8 +269,9 @@ def _evaluation_job(ctx: StageContext, key: StageKey, spec: str, inputs: dict[st
 def _reference_job(ctx: StageContext, key: StageKey) -> StageJob:
     """The rule-based driver or the oracle on the validation and test episodes."""
     from lcmodels.policy.config import PolicyConfig
+    from lcmodels.policy.plan import policy_scenario
 
-    config = PolicyConfig(scenario=ctx.preset.scenario, obs="pure").scenario_config()
+    config = policy_scenario(PolicyConfig(scenario=ctx.preset.scenario, obs="pure"))
     return _evaluation_job(ctx, key, key.stage, {}, scenario=config)
 
 
@@ -469,25 +471,22 @@ def _policy_job(ctx: StageContext, key: StageKey, recipe: Recipe, got: Mapping[s
                  f"collision {row['collision_rate']:.2f} return {row['mean_return']:.1f}")
 
     def work(keep: bool, save_wall: Callable[[], None]) -> float:
+        from lcmodels.policy.plan import resolve
         from lcmodels.policy.train import train_run
 
-        shield = None
-        if shield_cfg:
-            from lcmodels.policy.shield import shield_for
-
-            assert follow is not None
-            assert recipe.safety is not None
-            shield = shield_for(dataclasses.replace(recipe.safety, follow=str(previous_policy(follow))),
-                                shield_cfg["penalty"], cfg.scenario_config(),
-                                str(pred_path) if pred_path else None)  # fmt: skip
+        layer = None
+        if shield_cfg:  # the layer's imagined futures follow the followed recipe's final policy
+            assert follow is not None and recipe.safety is not None
+            layer = dataclasses.replace(recipe.safety, follow=str(previous_policy(follow)))
+        plan = resolve(cfg, predictor=pred_path, layer=layer, penalty=float(recipe.shielded.penalty))
         try:
-            res = train_run(cfg, path, predictor=pred_path, progress=show, shield=shield)
+            res = train_run(plan, path, progress=show)
         except ValueError as exc:  # the directory holds another run (e.g. moved --out): start over
             if "another configuration" not in str(exc):
                 raise
             shutil.rmtree(path)
             path.mkdir(parents=True)
-            res = train_run(cfg, path, predictor=pred_path, progress=show, shield=shield)
+            res = train_run(plan, path, progress=show)
         return res.wall_s
 
     stage_cfg = cfg.to_dict() | {"warm_start": "demos" if cfg.warm_start else "",

@@ -1,12 +1,12 @@
 """The configuration of a policy training run (:class:`PolicyConfig`) and the scenarios a policy trains in.
 
 Kept apart from the training loop so that the policy file loader can rebuild a network from a stored
-config without importing training.
+config without importing training. A config is data: constructing one reads no file (the scenario file it may
+name is read once, when a run resolves it: :func:`lcmodels.policy.plan.resolve`).
 """
 
 from __future__ import annotations
 
-import contextvars
 import dataclasses
 from collections.abc import Sequence
 from dataclasses import dataclass
@@ -51,10 +51,6 @@ def default_learning_rate(algo: str, fine_tune: bool = False) -> float:
         raise ValueError(f"unknown algorithm {algo!r}; choose one of {', '.join(_LEARNING_RATES)}")
     return FINE_TUNE_LEARNING_RATES.get(algo, _LEARNING_RATES[algo]) if fine_tune else _LEARNING_RATES[algo]
 
-
-_CARD_SCENARIO: contextvars.ContextVar[ScenarioConfig | None] = contextvars.ContextVar("card_scenario", default=None)
-"""The scenario a policy card stores, while :meth:`PolicyConfig.from_card` validates the card's training config
-against it (instead of reading the scenario file the config names, which need not exist where the policy is)."""
 
 MAX_TIMESTEPS = 1_000_000_000
 """The most online decisions a run may ask for (a billion decisions: 15 years of driving at 2 per second)."""
@@ -192,13 +188,8 @@ class PolicyConfig(JsonConfig):
                self.exploration_fraction)  # fmt: skip
         check_field(self.seed < 1_000_000, self, "seed", "must be < 1000000 (keeps training seeds off evaluation's)",
                self.seed)  # fmt: skip
-        base = _CARD_SCENARIO.get()
-        try:
-            base = base if base is not None else scenario(self.scenario)
-        except ValueError as exc:
-            raise ValueError(f"PolicyConfig.scenario: {exc}") from None
-        try:  # slots (and neighbours) as the scenario itself validates them
-            self.scenario_config(base)
+        try:  # slots (and neighbours) as a scenario validates them: the view fits any scenario or none
+            self.scenario_config(ScenarioConfig())
         except ValueError as exc:
             raise ValueError(f"PolicyConfig.slots {self.slots} does not fit the scenario: {exc}") from None
 
@@ -220,15 +211,13 @@ class PolicyConfig(JsonConfig):
 
     @classmethod
     def from_card(cls, data: dict[str, Any], scenario: ScenarioConfig) -> PolicyConfig:
-        """The training config a policy card stores (``train_config``), validated against the scenario the card
-        stores too (``scenario``) rather than the scenario file its ``scenario`` field names: a policy trained
+        """The training config a policy card stores (``train_config``), its view checked against the scenario the
+        card stores too (``scenario``), never the scenario file its ``scenario`` field names: a policy trained
         with ``--scenario my.toml`` loads from any folder, the file there or not. ``ValueError`` as
         :meth:`from_dict`."""
-        token = _CARD_SCENARIO.set(scenario)
-        try:
-            return cls.from_dict(data)
-        finally:
-            _CARD_SCENARIO.reset(token)
+        cfg = cls.from_dict(data)
+        cfg.scenario_config(scenario)
+        return cfg
 
     def _drawn_count(self) -> int | None:
         """N of ``drawn:N`` (0 for a bad N); None for other roads."""
@@ -247,17 +236,16 @@ class PolicyConfig(JsonConfig):
         return tuple(r.strip() for r in self.train_roads.split(",") if r.strip())
 
     def road_configs(self) -> tuple[ScenarioConfig, ...]:
-        """The scenarios training drives, with this config's view: :attr:`train_roads`, else ``scenario``."""
+        """The roads :attr:`train_roads` names, with this config's view (empty: ``scenario`` alone, which
+        :func:`lcmodels.policy.plan.resolve` reads). Registered names and drawn roads: no file is read."""
         drawn = self._drawn_count()
         if drawn:
             return tuple(self.scenario_config(r) for r in drawn_roads(drawn, self.seed))
-        names = self.road_names()
-        return tuple(self.scenario_config(scenario(n)) for n in names) if names else (self.scenario_config(),)
+        return tuple(self.scenario_config(scenario(n)) for n in self.road_names())
 
-    def scenario_config(self, base: ScenarioConfig | None = None) -> ScenarioConfig:
-        """The scenario the policy sees: its ``scenario`` with this config's view of the traffic."""
-        base = dataclasses.replace(base or scenario(self.scenario), neighbour_selection=self.neighbours,
-                                   num_neighbours=self.slots, observe_acceleration=self.accel_features)
+    def scenario_config(self, base: ScenarioConfig) -> ScenarioConfig:
+        """``base`` (the scenario :attr:`scenario` names, as a run resolved it) with this config's view of the
+        traffic: what the policy sees."""
+        base = dataclasses.replace(base, neighbour_selection=self.neighbours, num_neighbours=self.slots,
+                                   observe_acceleration=self.accel_features)
         return scenario_for_mode(base, self.obs)
-
-

@@ -31,8 +31,7 @@ def build_model(cfg: PolicyConfig, env: VecEnv | None, tensorboard: str | None =
         if observation_space is None:
             raise ValueError("build_model needs an environment or an observation space")
         # Nothing is collected for inference: a one-step rollout buffer, a one-transition replay buffer (the
-        # card's sizes, untrusted, allocate nothing; not dataclasses.replace, which would validate the config
-        # again, its scenario file included).
+        # card's sizes, untrusted, allocate nothing).
         n_steps, buffer_size = 1, 1
     policy_kwargs: dict[str, Any] = {
         "features_extractor_class": HybridExtractor,
