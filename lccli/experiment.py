@@ -98,7 +98,7 @@ def experiment_main(argv: list[str] | None = None) -> int:
     if args.recipe:
         import dataclasses
 
-        from lcmodels.recipe import load_recipe
+        from lcmodels.experiment.recipe import load_recipe
 
         try:
             for r in args.recipe:
