@@ -11,7 +11,7 @@ import dataclasses
 from collections.abc import Sequence
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any, ClassVar
+from typing import Any, ClassVar, TypeVar
 
 from lckit.config import JsonConfig, check_field, check_limits, require_non_negative, require_positive
 from lcmodels.policy.names import (
@@ -52,13 +52,74 @@ def default_learning_rate(algo: str, fine_tune: bool = False) -> float:
     return FINE_TUNE_LEARNING_RATES.get(algo, _LEARNING_RATES[algo]) if fine_tune else _LEARNING_RATES[algo]
 
 
+_V = TypeVar("_V", "AlgorithmView", "ObservationView", "RunView")
+
 MAX_TIMESTEPS = 1_000_000_000
 """The most online decisions a run may ask for (a billion decisions: 15 years of driving at 2 per second)."""
 
 
 @dataclass(frozen=True, slots=True, kw_only=True)
+class AlgorithmView:
+    """What the learning algorithm reads of a :class:`PolicyConfig` (:attr:`PolicyConfig.algorithm`):
+    stable-baselines3's hyper-parameters."""
+
+    algo: str
+    learning_rate: float
+    gamma: float
+    n_steps: int
+    batch_size: int
+    n_epochs: int
+    ent_coef: float
+    buffer_size: int
+    learning_starts: int
+    exploration_fraction: float
+    target_update_interval: int
+
+
+@dataclass(frozen=True, slots=True, kw_only=True)
+class ObservationView:
+    """What the policy sees and how its network reads it (:attr:`PolicyConfig.observation`): the mode, the
+    scenario's view of the traffic, the features extractor's branches."""
+
+    obs: str
+    neighbours: str
+    slots: int
+    accel_features: bool
+    image_net: str
+    image_features: int
+    contact_features: bool
+    window_features: bool
+    sensor_encoder: str
+
+
+@dataclass(frozen=True, slots=True, kw_only=True)
+class RunView:
+    """The run around them (:attr:`PolicyConfig.run`): where and how long it trains, its seed, the learner's
+    reward shaping, checkpoints, evaluation, and what it starts from."""
+
+    scenario: str
+    train_roads: str
+    timesteps: int
+    n_envs: int
+    seed: int
+    reward_scale: float
+    collision_weight: float
+    checkpoint_every: int
+    eval_episodes: int
+    eval_seed: int
+    eval_batch: int
+    record_eval: bool
+    warm_start: str
+    warm_start_epochs: int
+    init_policy: str
+    freeze_image: bool
+
+
+@dataclass(frozen=True, slots=True, kw_only=True)
 class PolicyConfig(JsonConfig):
-    """Everything that defines a policy training run (stored in ``run.json``)."""
+    """Everything that defines a policy training run (stored in ``run.json``, flat: the stage records, policy cards
+    and ledger keys written so far hold it so). Its parts serve different readers: :attr:`algorithm`,
+    :attr:`observation` and :attr:`run` are typed views of them."""
 
     LEGACY_DEFAULTS: ClassVar[dict[str, Any]] = {"contact_features": False, "freeze_image": False}
     LIMITS: ClassVar[dict[str, float]] = {
@@ -193,6 +254,21 @@ class PolicyConfig(JsonConfig):
         except ValueError as exc:
             raise ValueError(f"PolicyConfig.slots {self.slots} does not fit the scenario: {exc}") from None
 
+    @property
+    def algorithm(self) -> AlgorithmView:
+        """What the learning algorithm reads."""
+        return _view(AlgorithmView, self)
+
+    @property
+    def observation(self) -> ObservationView:
+        """What the policy sees and how its network reads it."""
+        return _view(ObservationView, self)
+
+    @property
+    def run(self) -> RunView:
+        """The run around them."""
+        return _view(RunView, self)
+
     @classmethod
     def of(cls, given: dict[str, Any], settings: Sequence[str] = (), *, fine_tune: bool | None = None) -> PolicyConfig:
         """The config of the fields ``given`` (a file's, a recipe's, the flags'), then the ``KEY=VALUE``
@@ -249,3 +325,7 @@ class PolicyConfig(JsonConfig):
         base = dataclasses.replace(base, neighbour_selection=self.neighbours, num_neighbours=self.slots,
                                    observe_acceleration=self.accel_features)
         return scenario_for_mode(base, self.obs)
+
+
+def _view(cls: type[_V], cfg: PolicyConfig) -> _V:
+    return cls(**{f.name: getattr(cfg, f.name) for f in dataclasses.fields(cls)})

@@ -84,7 +84,8 @@ class PolicyStage(StageKind):
         return None, {}
 
     def job(self, ctx: StageContext, stage: Stage, got: Mapping[str, StageResult]) -> StageJob:
-        key, recipe = stage.key, stage.recipe
+        key = stage.key
+        recipe = stage.recipe
         seed = key.seed
         assert seed is not None
         predictor, previous = got.get("predictor"), got.get("previous")
