@@ -13,6 +13,7 @@ from lcmodels.experiment.keys import StageKey
 from lcmodels.experiment.stages import StageContext, StageJob
 from lcmodels.policy.names import needs_predictor
 from lcmodels.presets import Preset, StageResult, canonical
+from lcmodels.zoo import ZooEntry
 
 GROUPS = ("data", "recipes", "references", "zoo")
 """The groups of stages, in the order a runner prefers them when several are ready: the corpus, predictor and
@@ -122,8 +123,8 @@ class GraphBuilder:
     """The order in which the runner prefers the recipes' stages (:func:`lcmodels.experiment.graph.recipe_ranks`)."""
     kinds: Sequence[type[StageKind]]
     """The table of kinds, in order (a recipe's stages are in this order)."""
-    zoo: Sequence[Any] = ()
-    """The :class:`lcmodels.zoo.ZooEntry` of the zoo's policies to evaluate."""
+    zoo: Sequence[ZooEntry] = ()
+    """The zoo's policies to evaluate."""
     load: Callable[[str], Any] | None = None
     """Reads a packaged recipe by name (what a zoo card names)."""
     stages: dict[StageKey, Stage] = field(default_factory=dict)

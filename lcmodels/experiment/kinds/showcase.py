@@ -5,7 +5,6 @@ from __future__ import annotations
 
 import dataclasses
 from collections.abc import Callable, Mapping
-from typing import Any
 
 from lcmodels.experiment.keys import StageKey
 from lcmodels.experiment.kinds.base import GraphBuilder, Stage, StageKind
@@ -13,6 +12,7 @@ from lcmodels.experiment.kinds.zoo import Zoo
 from lcmodels.experiment.stages import StageContext, StageJob
 from lcmodels.fileio import read_json
 from lcmodels.presets import StageResult
+from lcmodels.zoo import ZooEntry
 
 
 @dataclasses.dataclass(frozen=True)
@@ -20,8 +20,8 @@ class Showcase(StageKind):
     name = "showcase"
     group = "zoo"
 
-    entries: tuple[Any, ...] = ()
-    """The candidates: the :class:`lcmodels.zoo.ZooEntry` of every zoo stage."""
+    entries: tuple[ZooEntry, ...] = ()
+    """The candidates: the entry of every zoo stage."""
 
     @classmethod
     def add(cls, graph: GraphBuilder) -> None:

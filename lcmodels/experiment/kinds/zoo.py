@@ -5,12 +5,12 @@ from __future__ import annotations
 
 import dataclasses
 from collections.abc import Mapping
-from typing import Any
 
 from lcmodels.experiment.keys import StageKey
 from lcmodels.experiment.kinds.base import GraphBuilder, Stage, StageKind
 from lcmodels.experiment.stages import StageContext, StageJob, evaluation_job
 from lcmodels.presets import StageResult
+from lcmodels.zoo import ZooEntry
 
 
 @dataclasses.dataclass(frozen=True)
@@ -18,8 +18,8 @@ class Zoo(StageKind):
     name = "zoo"
     group = "zoo"
 
-    entry: Any = None
-    """The :class:`lcmodels.zoo.ZooEntry` evaluated."""
+    entry: ZooEntry | None = None
+    """The zoo's entry evaluated."""
 
     @classmethod
     def add(cls, graph: GraphBuilder) -> None:
@@ -30,5 +30,6 @@ class Zoo(StageKind):
 
     def job(self, ctx: StageContext, stage: Stage, got: Mapping[str, StageResult]) -> StageJob:
         e = self.entry
+        assert e is not None
         return evaluation_job(ctx, stage.key, str(e.policy), {"policy": e.sha256}, predictor=e.predictor,
                               label=f"zoo:{e.name}")  # fmt: skip

@@ -6,13 +6,13 @@ from __future__ import annotations
 
 import dataclasses
 from collections.abc import Mapping
-from typing import Any
 
 from lcmodels.experiment.keys import StageKey
 from lcmodels.experiment.kinds.base import GraphBuilder, Stage, StageKind
 from lcmodels.experiment.layer import card_lookahead
 from lcmodels.experiment.stages import StageContext, StageJob, evaluation_job
 from lcmodels.presets import StageResult
+from lcmodels.zoo import ZooEntry
 
 
 @dataclasses.dataclass(frozen=True)
@@ -20,9 +20,9 @@ class ZooSafety(StageKind):
     name = "zoo-safety"
     group = "zoo"
 
-    entry: Any = None
-    """The :class:`lcmodels.zoo.ZooEntry` evaluated behind its layer."""
-    follow: Any = None
+    entry: ZooEntry | None = None
+    """The zoo's entry evaluated behind its layer."""
+    follow: ZooEntry | None = None
     """The zoo's entry the layer follows (None: the policy itself)."""
 
     @classmethod
@@ -46,6 +46,7 @@ class ZooSafety(StageKind):
 
     def job(self, ctx: StageContext, stage: Stage, got: Mapping[str, StageResult]) -> StageJob:
         entry, follow = self.entry, self.follow
+        assert entry is not None
         inputs = {"policy": entry.sha256} | ({"follow": follow.sha256} if follow is not None else {})
         return evaluation_job(ctx, stage.key, f"lookahead-blind:{entry.policy}", inputs, predictor=entry.predictor,
                               follow=str(follow.policy) if follow is not None else None,
