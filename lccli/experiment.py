@@ -26,11 +26,14 @@ A stage runs once the stages it reads are complete; --dry-run lists every stage:
 would run after a stage it reads.
 
 recipes: lcmodels/recipes/*.toml (paper-*: the paper's methods as it trains them; hybrid-ppo, pure-ppo, ...:
-the project's best per method; quick-pure: make demo's), or a .toml file of your own (--recipe FILE).
+the project's best per method; quick-pure: make demo's), or a .toml file of your own (--recipe FILE). A preset
+runs the recipes whose files say its kinds (kind = "paper", "best", ...), in the order the files say (order).
 
 presets: tiny (seconds, for tests: every recipe with tiny budgets), quick (make demo: the zoo, one quick
-recipe, minutes on 2 cores), paper (every recipe at its own budget but hybrid-ppo-dagger and attention-ppo,
-which run when named, hybrid-ppo with 2 training seeds, 1000 held-out episodes: hours).
+recipe, minutes on 2 cores), paper (every paper and best recipe at its own budget but those whose files say
+optional = true, which run when named, hybrid-ppo with 2 training seeds, 1000 held-out episodes: hours),
+ablation (the controlled input ablation: five inputs, 3 training seeds each, on the paper's road and every road
+of the suite, every run measured on every road: a night and more on 2 cores).
 
 episodes: validation (evaluation seeds 0 and 1, what recipes are chosen on) and held-out (evaluation seed 9,
 which no recipe here is chosen on); both are validation episodes in the benchmark's sense. The sealed test
@@ -102,7 +105,7 @@ def experiment_main(argv: list[str] | None = None) -> int:
     if args.recipe:
         import dataclasses
 
-        from lcmodels.recipe import load_recipe
+        from lcmodels.experiment.recipe import load_recipe
 
         try:
             for r in args.recipe:

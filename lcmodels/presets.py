@@ -5,6 +5,7 @@ figures, the layout of an experiment directory, and the record of one stage. Rea
 from __future__ import annotations
 
 import dataclasses
+import functools
 import hashlib
 import json
 from dataclasses import dataclass, field
@@ -47,14 +48,36 @@ TABLE3_ROWS = ("a2c-hybrid", "dqn-hybrid", "ppo-hybrid", "ppo-hybrid-warm")
 TABLE4_ROWS = ("ppo-pure", "ppo-image", "ppo-prediction", "ppo-hybrid")
 PAPER_TABLE2 = {"ade": 0.382, "fde": 0.597}
 
-PAPER_RECIPES = ("paper-hybrid-ppo", "paper-hybrid-ppo-warm", "paper-a2c", "paper-dqn", "paper-ppo-pure",
-                 "paper-ppo-image", "paper-ppo-prediction")  # fmt: skip
+RECIPES_DIR = Path(__file__).parent / "recipes"
+"""The recipes that come with the package (:mod:`lcmodels.experiment.recipe`)."""
+
+
+@functools.cache
+def _listing() -> tuple[tuple[str, bool, int, str], ...]:
+    """``(kind, optional, order, name)`` of every packaged recipe, as its file says (read once)."""
+    from lckit.config import read_data_file
+
+    rows = []
+    for path in sorted(RECIPES_DIR.glob("*.toml")):
+        data = read_data_file(path, "recipe")
+        rows.append((str(data.get("kind", "best")), bool(data.get("optional", False)), int(data.get("order", 0)),
+                     path.stem))  # fmt: skip
+    return tuple(rows)
+
+
+def listed_recipes(kind: str, *, optional: bool = False) -> tuple[str, ...]:
+    """The packaged recipes whose files say ``kind = "<kind>"`` and, with ``optional``, ``optional = true`` (else
+    not), in their ``order`` (then by name): the presets' lists of recipes are data in the recipe files."""
+    return tuple(name for k, opt, _, name in sorted(_listing(), key=lambda r: (r[2], r[3]))
+                 if k == kind and opt == optional)  # fmt: skip
+
+
+PAPER_RECIPES = listed_recipes("paper")
 """The paper-faithful recipes: each method trained from scratch (the warm-start row from rule demonstrations)
 with the paper's budgets and observation."""
-BEST_RECIPES = ("hybrid-ppo", "pure-ppo", "pure-ppo-dagger", "prediction-ppo", "image-ppo", "a2c-hybrid",
-                "dqn-hybrid")  # fmt: skip
+BEST_RECIPES = listed_recipes("best")
 """The project's best recipe for each method."""
-OPTIONAL_RECIPES = ("hybrid-ppo-dagger", "attention-ppo", "roads-ppo", "drawn-roads-ppo", "distil-safety-ppo")
+OPTIONAL_RECIPES = listed_recipes("best", optional=True)
 """Recipes the ``paper`` preset runs only when named (``--recipe``): ``hybrid-ppo-dagger`` trains the image network
 on every state of its six DAgger rounds, several CPU hours (each round adds tens of thousands of states), for a
 route that did not move the pure policy beyond the noise (docs/results/human-traffic); ``attention-ppo``,
@@ -65,7 +88,7 @@ training on every road of the suite at once, and on roads drawn across its dimen
 ABLATION_INPUTS = ("pure", "image", "prediction", "hybrid", "lane-aware")
 """The inputs of the controlled ablation: the paper's Table IV in its order, then the prediction input fed by the
 analytic lane-aware base in place of the learned predictor."""
-ABLATION_RECIPES = tuple(f"ablation-{block}{mode}" for block in ("", "roads-") for mode in ABLATION_INPUTS)
+ABLATION_RECIPES = listed_recipes("ablation")
 """The controlled input ablation: one recipe per input and training block (the paper's road; every road of the
 suite), identical but for the input (``[policy].obs`` and the predictor behind it; docs/results/ablation)."""
 ABLATION_SEEDS = 3
@@ -96,7 +119,7 @@ class Preset:
     predictor_stride: int = 1
     predictor_tensorboard: bool = True
     recipes: tuple[str, ...] = (*PAPER_RECIPES, *BEST_RECIPES)
-    """Recipe names or files (:mod:`lcmodels.recipe`), each trained with every training seed."""
+    """Recipe names or files (:mod:`lcmodels.experiment.recipe`), each trained with every training seed."""
     recipe_seeds: tuple[tuple[str, int], ...] = ()
     """Recipes trained with more seeds than ``--seeds`` asks, ``(name, seeds)``; a recipe whose policy a
     safety layer follows gets as many seeds as the recipe it serves."""
@@ -198,7 +221,7 @@ def policy_dir(out: Path, recipe: str, seed: int) -> Path:
 
 
 def demos_key(spec: Any) -> str:
-    """The directory name of the demonstrations ``spec`` (a :class:`lcmodels.recipe.DemoSpec`, recorded in
+    """The directory name of the demonstrations ``spec`` (a :class:`lcmodels.experiment.kinds.DemoSpec`, recorded in
     ``demos/<key>``): recipes with the same demonstrations share them."""
     return f"{spec.driver}-s{spec.seed}-n{spec.episodes}"
 

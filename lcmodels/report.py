@@ -415,7 +415,7 @@ class ReportInput:
     invocations: list[dict[str, Any]]
     command: str
     recipes: list[Any] = field(default_factory=list)
-    """The :class:`lcmodels.recipe.Recipe` objects the experiment ran."""
+    """The :class:`lcmodels.experiment.recipe.Recipe` objects the experiment ran."""
     recipe_seeds: dict[str, int] = field(default_factory=dict)
     """Training seeds of each recipe (default ``seeds``)."""
     finals: list[StageKey] = field(default_factory=list)

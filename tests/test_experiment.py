@@ -29,8 +29,8 @@ from lcmodels.experiment import (
     outputs_digest,
     policy_dir,
 )
+from lcmodels.experiment.recipe import load_recipe
 from lcmodels.policy.checkpoint import find_predictor, read_meta
-from lcmodels.recipe import load_recipe
 
 SEEDS = 2
 RECIPES = PRESETS["tiny"].recipes
@@ -122,7 +122,7 @@ def check_every_recipe_kind_ran(run_dir: Path) -> None:
         assert rec["shielded"]["inputs"]["follow"] == outputs_digest(follow["outputs"])
         assert rec["eval"]["inputs"]["policy"] == rec["safety"]["inputs"]["policy"] == outputs_digest(
             rec["shielded"]["outputs"])
-        assert rec["shielded"]["config"]["shield"]["penalty"] == load_recipe("hybrid-ppo").shielded.penalty
+        assert rec["shielded"]["config"]["shield"]["penalty"] == load_recipe("hybrid-ppo").table("shielded").penalty
         counts = json.loads((shielded / "shield.json").read_text())
         assert counts["choices"] > 0 and 0 <= counts["overrides"] <= counts["choices"]
         assert counts["to_step"] == PRESETS["tiny"].cap_dict["timesteps"]
@@ -568,7 +568,7 @@ def test_an_interrupted_evaluation_keeps_the_splits_it_finished(tmp_path: Path) 
 
 def test_a_followed_policy_is_trained_before_the_recipes_whose_layer_follows_it() -> None:
     from lcmodels.experiment import recipe_ranks
-    from lcmodels.recipe import load_recipe
+    from lcmodels.experiment.recipe import load_recipe
 
     recipes = [load_recipe(n) for n in ("a2c-hybrid", "hybrid-ppo", "pure-ppo")]
     rank = recipe_ranks(recipes)

@@ -4,6 +4,8 @@ order stages run in, cycles, and the plan as a query of the graph."""
 from __future__ import annotations
 
 import dataclasses
+import hashlib
+import json
 from pathlib import Path
 
 import pytest
@@ -11,10 +13,12 @@ import pytest
 from lccli.experiment import experiment_main
 from lcmodels.experiment import PRESETS, Experiment, GraphCycle, Stage, StageGraph, StageKey, build_graph
 from lcmodels.experiment.graph import recipe_seeds
+from lcmodels.experiment.recipe import load_recipe
+from lcmodels.experiment.stages import StageContext
 from lcmodels.experiment.store import record_paths
-from lcmodels.recipe import load_recipe
 
 TINY = PRESETS["tiny"]
+IDENTITIES = Path(__file__).parent / "tiny_stage_identities.json"
 
 
 def test_stage_keys_name_the_directories_and_records_of_every_experiment_directory(tmp_path: Path) -> None:
@@ -54,7 +58,7 @@ def test_the_tiny_graph_has_every_stage_of_every_recipe_each_after_what_it_reads
     recipes = {r.name: r for r in exp.recipes()}
     want = {StageKey.of("corpus"), StageKey.of("predictor"), StageKey.of("rule"), StageKey.of("oracle")}
     want |= {StageKey.of("predictor", r.predictor) for r in recipes.values() if r.predictor != "learned"}
-    want |= {StageKey.of("demos", f"{r.demos.driver}-s{r.demos.seed}-n{r.demos.episodes}") for r in recipes.values()
+    want |= {StageKey.of("demos", "{0.driver}-s{0.seed}-n{0.episodes}".format(r.table("demos"))) for r in recipes.values()
              if "clone" in r.stages}  # fmt: skip
     for r in recipes.values():
         for s in range(2):
@@ -156,7 +160,7 @@ def test_a_stage_runs_alone_only_when_what_it_reads_is_complete(tmp_path: Path) 
 def test_a_predictor_stage_recorded_before_a_model_field_existed_stays_complete() -> None:
     import dataclasses as dc
 
-    from lcmodels.experiment.stages import predictor_config, stored_predictor_config
+    from lcmodels.experiment.kinds.predictor import predictor_config, stored_predictor_config
     from lcmodels.predictor import PredictorConfig
     from lcmodels.presets import PRESETS
 
@@ -176,12 +180,12 @@ def test_the_ablation_recipes_differ_only_in_their_input_and_an_analytic_base_is
     recipes = [load_recipe(name) for name in ABLATION_RECIPES]
     assert len(recipes) == 2 * len(ABLATION_INPUTS)
     for r in recipes:  # the same stages, budgets and trunk; only what the policy reads (and the road block) differs
-        base = recipes[0] if r.train.get("train_roads") is None else recipes[len(ABLATION_INPUTS)]
+        base = recipes[0] if r.table("train").get("train_roads") is None else recipes[len(ABLATION_INPUTS)]
         for stage in r.stages:
             mine, theirs = r.stage_settings(stage), base.stage_settings(stage)
             differ = {k for k in mine.keys() | theirs.keys() if mine.get(k) != theirs.get(k)}
             assert differ <= {"obs", "image_net", "freeze_image"}, (r.name, differ)
-        assert (r.stages, r.demos) == (base.stages, base.demos)
+        assert (r.stages, r.table("demos")) == (base.stages, base.table("demos"))
     graph = build_graph(PRESETS["ablation"], recipes, {r.name: ABLATION_SEEDS for r in recipes})
     lane = dict(graph[StageKey("ablation-lane-aware", 2, "clone")].needs)
     assert lane["predictor"] == StageKey.of("predictor", "lane-aware")
@@ -195,3 +199,28 @@ def test_the_ablation_recipes_differ_only_in_their_input_and_an_analytic_base_is
         dataclasses.replace(recipes[2], predictor="oracle")
     assert "predictor" not in load_recipe("ablation-prediction").to_dict()  # older records keep their identity
     assert load_recipe("ablation-lane-aware").to_dict()["predictor"] == "lane-aware"
+
+
+def test_every_stage_of_the_tiny_preset_keeps_the_identity_its_record_holds(tmp_path: Path) -> None:
+    """A directory made before resumes as complete when each stage's identity is what its record holds: its config,
+    the roles and hashes of what it reads, whether an older record is upgraded and a run resumed. Each stage of the
+    tiny preset with two training seeds, its job built on stand-in results of the stages it reads, keeps the identity
+    tests/tiny_stage_identities.json holds (written before the stage kinds became a table; a change there reruns
+    those stages in every experiment directory)."""
+    from lcmodels.presets import StageResult
+
+    exp = Experiment(TINY, tmp_path / "run", seeds=2)
+    graph = exp.graph()
+    ctx = StageContext(TINY, exp.out)
+    results: dict[StageKey, StageResult] = {}
+    found = {}
+    for key in graph.keys():
+        stage = graph[key]
+        job = stage.job(ctx, {role: results[k] for role, k in stage.needs})
+        results[key] = StageResult(key.name, "skipped", key.path(exp.out), 0.0, 0.0, {"f": key.name})
+        identity = {"needs": [[role, k.name] for role, k in stage.needs], "config": job.config, "inputs": job.inputs,
+                    "upgrade": job.upgrade is not None, "resumable": job.resumable is not None}  # fmt: skip
+        found[key.name] = hashlib.sha256(json.dumps(identity, sort_keys=True).encode()).hexdigest()[:16]
+        assert stage.kind is not None and stage.kind.name == key.stage  # every stage is of a kind of the table
+    assert found == json.loads(IDENTITIES.read_text())
+    assert not (tmp_path / "run").exists()

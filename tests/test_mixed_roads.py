@@ -8,6 +8,7 @@ import numpy as np
 import pytest
 
 from lcmodels.policy import PolicyConfig, load_policy, train_policy
+from lcmodels.policy.plan import policy_scenario
 from lcsim.registry import scenario
 from lcsim.sb3 import LaneChangeSB3VecEnv, MixedRoadsSB3VecEnv
 
@@ -43,7 +44,7 @@ def test_each_block_is_the_road_it_names_seeded_as_the_whole_batch() -> None:
 def test_roads_with_other_observations_or_too_few_environments_are_refused() -> None:
     with pytest.raises(ValueError, match="one environment a road"):
         MixedRoadsSB3VecEnv(1, [scenario("tiny"), scenario("light")])
-    small = PolicyConfig(scenario="tiny", obs="pure", slots=6).scenario_config()
+    small = policy_scenario(PolicyConfig(scenario="tiny", obs="pure", slots=6))
     with pytest.raises(ValueError, match="same observations"):
         MixedRoadsSB3VecEnv(2, [scenario("tiny"), small])
 

@@ -27,6 +27,7 @@ from lcmodels.policy import (
 )
 from lcmodels.policy.extractor import pooled_images, prepools
 from lcmodels.policy.obs import OBS_MODES, policy_observation_space, scenario_for_mode
+from lcmodels.policy.plan import policy_scenario
 from lcmodels.policy.train import build_model
 from lcsim.config import tiny_scenario
 from lcsim.sb3 import LaneChangeSB3VecEnv
@@ -151,8 +152,8 @@ def test_accel_features_observe_accelerations_clone_from_plain_demos_and_train(t
     record_episodes(config, [1, 2], "oracle", tmp_path / "demos", scenario="tiny", images=False)
     cfg = tiny_policy(obs="pure", window_features=True, accel_features=True, timesteps=64, n_steps=16, batch_size=32,
                 warm_start=str(tmp_path / "demos"), warm_start_epochs=1, eval_episodes=2)
-    assert cfg.scenario_config().observe_acceleration
-    demos = load_demonstrations(tmp_path / "demos", "pure", None, scenario=cfg.scenario_config())
+    assert policy_scenario(cfg).observe_acceleration
+    demos = load_demonstrations(tmp_path / "demos", "pure", None, scenario=policy_scenario(cfg))
     assert demos.obs["current"].shape[1:] == (9, 10) and np.abs(demos.obs["current"][..., 9]).max() > 0.0
     res = train_policy(cfg, tmp_path / "run")
     assert res.timesteps == 64

@@ -19,6 +19,7 @@ from lcmodels.policy import (
     train_policy,
 )
 from lcmodels.policy.obs import scenario_for_mode
+from lcmodels.policy.plan import policy_scenario
 from lcmodels.policy.train import default_learning_rate
 from lcmodels.predictor import Predictor, PredictorConfig, TrajectoryTransformer
 from lcsim.config import tiny_scenario
@@ -56,7 +57,7 @@ def test_wider_slots_train_load_and_refuse_the_paper_count(tmp_path: Path, predi
     space = loaded.model.observation_space
     assert space["current"].shape == (17, 9) and space["prediction"].shape[0] == 16
     with pytest.raises(ValueError, match="num_neighbours"):
-        load_policy(tmp_path / "policy.safetensors", scenario=tiny_policy(obs="hybrid").scenario_config())
+        load_policy(tmp_path / "policy.safetensors", scenario=policy_scenario(tiny_policy(obs="hybrid")))
     with pytest.raises(ValueError, match="slots"):
         tiny_policy(obs="pure", slots=17)
 

@@ -22,7 +22,7 @@ from lcmodels.bench.published import (
     suite_record,
     zoo_card_problems,
 )
-from lcmodels.recipe import load_recipe
+from lcmodels.experiment.recipe import load_recipe
 from lcmodels.zoo import zoo_entries
 
 ROOT = Path(__file__).resolve().parent.parent

@@ -7,8 +7,16 @@ from pathlib import Path
 
 import pytest
 
-from lcmodels.presets import OPTIONAL_RECIPES, PRESETS, ROWS
-from lcmodels.recipe import Recipe, load_recipe, recipe_names
+from lcmodels.experiment.recipe import RECIPE_KINDS, Recipe, load_recipe, recipe_names
+from lcmodels.presets import (
+    ABLATION_RECIPES,
+    BEST_RECIPES,
+    OPTIONAL_RECIPES,
+    PAPER_RECIPES,
+    PRESETS,
+    ROWS,
+    listed_recipes,
+)
 
 
 def test_every_packaged_recipe_round_trips_file_config_file(tmp_path: Path) -> None:
@@ -30,6 +38,31 @@ def test_every_packaged_recipe_round_trips_file_config_file(tmp_path: Path) -> N
     assert set(PRESETS["paper"].recipes) == {r.name for r in recipes if r.kind in ("paper", "best")} - set(OPTIONAL_RECIPES)
     assert set(PRESETS["ablation"].recipes) == {r.name for r in recipes if r.kind == "ablation"}
     assert set(OPTIONAL_RECIPES) <= set(PRESETS["tiny"].recipes)  # the tests still run them
+    assert set(OPTIONAL_RECIPES) == {r.name for r in recipes if r.optional}
+
+
+def test_the_presets_lists_of_recipes_are_the_recipe_files_kinds_in_their_order() -> None:
+    """Which recipes a preset runs, and in which order (the report's rows, the first recipe the paired tests'
+    reference), is what each recipe file says: its kind, whether it is optional, its order. The lists are the ones
+    the presets always ran."""
+    paper = ("paper-hybrid-ppo", "paper-hybrid-ppo-warm", "paper-a2c", "paper-dqn", "paper-ppo-pure",
+             "paper-ppo-image", "paper-ppo-prediction")  # fmt: skip
+    best = ("hybrid-ppo", "pure-ppo", "pure-ppo-dagger", "prediction-ppo", "image-ppo", "a2c-hybrid", "dqn-hybrid")
+    optional = ("hybrid-ppo-dagger", "attention-ppo", "roads-ppo", "drawn-roads-ppo", "distil-safety-ppo")
+    ablation = tuple(f"ablation-{block}{mode}" for block in ("", "roads-")
+                     for mode in ("pure", "image", "prediction", "hybrid", "lane-aware"))  # fmt: skip
+    assert (listed_recipes("paper"), listed_recipes("best"), listed_recipes("best", optional=True)) == (
+        paper, best, optional)
+    assert (PAPER_RECIPES, BEST_RECIPES, OPTIONAL_RECIPES, ABLATION_RECIPES) == (paper, best, optional, ablation)
+    assert PRESETS["paper"].recipes == (*paper, *best)
+    assert PRESETS["tiny"].recipes == (*paper, *best, *optional, "quick-pure", "ablation-lane-aware")
+    assert PRESETS["ablation"].recipes == ablation and PRESETS["quick"].recipes == ("quick-pure",)
+    assert dict(PRESETS["ablation"].recipe_seeds) == dict.fromkeys(ablation, 3)
+    for kind in RECIPE_KINDS:  # the listing reads the files as load_recipe does
+        for opt in (False, True):
+            loaded = sorted((r.order, r.name) for r in map(load_recipe, recipe_names())
+                            if r.kind == kind and r.optional == opt)  # fmt: skip
+            assert listed_recipes(kind, optional=opt) == tuple(name for _, name in loaded)
 
 
 def write(tmp_path: Path, text: str, name: str = "mine") -> Path:
@@ -91,7 +124,7 @@ def test_the_file_name_is_the_recipe_name_and_an_unknown_name_lists_the_recipes(
 def test_settings_override_a_recipe_as_the_fields_type_and_refuse_what_it_does_not_have() -> None:
     r = load_recipe("pure-ppo").with_settings(["train.learning_rate=1e-4", "demos.episodes=50",
                                                "policy.window_features=false", "clone.warm_start_epochs=3"])
-    assert r.train["learning_rate"] == 1e-4 and r.demos.episodes == 50 and r.policy["window_features"] is False
+    assert r.table("train")["learning_rate"] == 1e-4 and r.table("demos").episodes == 50 and r.policy["window_features"] is False
     cfg = r.policy_config("clone", scenario="paper", seed=0, warm_start="/d")
     assert cfg.warm_start_epochs == 3 and not cfg.window_features
     for bad, message in (("train.learning_rat=1", "PolicyConfig has no field 'learning_rat'"),
@@ -118,15 +151,16 @@ def test_settings_override_a_recipe_as_the_fields_type_and_refuse_what_it_does_n
 def test_caps_lower_every_budget_but_seeds() -> None:
     caps = PRESETS["tiny"].cap_dict
     r = load_recipe("pure-ppo-dagger").capped(caps)
-    assert (r.demos.episodes, r.demos.seed, r.dagger.rounds, r.dagger.episodes) == (2, 5000, 1, 2)
+    demos, dagger = r.table("demos"), r.table("dagger")
+    assert (demos.episodes, demos.seed, dagger.rounds, dagger.episodes) == (2, 5000, 1, 2)
     cfg = r.policy_config("train", scenario="tiny", seed=0, init_policy="/p", caps=caps)
     assert (cfg.timesteps, cfg.n_envs, cfg.learning_rate) == (128, 4, 3e-5)
 
 
 def test_a_recipe_file_configures_lc_train_policy(tmp_path: Path) -> None:
     """lc-train-policy --config reads a recipe's [policy] table (the stage tables are the experiment's)."""
+    from lcmodels.experiment.recipe import recipe_path
     from lcmodels.policy.config import PolicyConfig
-    from lcmodels.recipe import recipe_path
 
     cfg = PolicyConfig.from_file(recipe_path("hybrid-ppo"), table="policy")
     assert (cfg.algo, cfg.obs, cfg.window_features) == ("ppo", "hybrid", True)
@@ -136,7 +170,7 @@ def test_a_recipe_file_configures_lc_train_policy(tmp_path: Path) -> None:
 def test_what_a_recipe_reached_is_recorded_next_to_it_for_its_version() -> None:
     import json
 
-    from lcmodels.recipe import RECIPES_DIR
+    from lcmodels.experiment.recipe import RECIPES_DIR
 
     for path in RECIPES_DIR.glob("*.reached.json"):
         reached = json.loads(path.read_text())
@@ -210,7 +244,7 @@ def test_the_a2c_recipes_get_their_rollout_length_from_the_one_place_that_fills_
 
     for name in ("a2c-hybrid", "paper-a2c"):
         recipe = load_recipe(name)
-        assert all("n_steps" not in getattr(recipe, t) for t in ("policy", "clone", "train"))
+        assert all("n_steps" not in t for t in (recipe.policy, recipe.table("clone"), recipe.table("train")))
         cfg = recipe.policy_config("train", scenario="paper", seed=0, init_policy="p.safetensors" if
                                    recipe.stages[0] != "train" else "")  # fmt: skip
         assert cfg.n_steps == 8 and cfg.algo == "a2c"

@@ -9,6 +9,7 @@ import lcsim
 from lccli.record import record_main
 from lcdata import read_episode
 from lcmodels.policy import PolicyConfig
+from lcmodels.policy.plan import policy_scenario
 from lcsim.config import corpus_scenario, light_scenario, paper_scenario, tiny_scenario
 from lcsim.registry import DRIVER_NAMES, SCENARIOS, TASK_SCENARIOS, make_driver, scenario, split_policy_spec
 from lcsim.suite import SUITE_SCENARIOS
@@ -21,7 +22,7 @@ def test_every_name_means_one_scenario_everywhere():
     assert SUITE_SCENARIOS["paper"].make is paper_scenario
     assert set(TASK_SCENARIOS) == set(SCENARIOS) - {"corpus"}
     assert set(lcsim.ENV_IDS.values()) <= set(SCENARIOS)
-    assert PolicyConfig(scenario="light").scenario_config().traffic == light_scenario().traffic
+    assert policy_scenario(PolicyConfig(scenario="light")).traffic == light_scenario().traffic
     with pytest.raises(ValueError, match="unknown scenario 'lane-change'"):
         scenario("lane-change")
 
@@ -51,7 +52,7 @@ def test_a_scenario_file_is_a_scenario(tmp_path):
     (path,) = (tmp_path / "rec").glob("*.mcap")
     assert path.name == "busy_rule_s0000000.mcap"
     assert read_episode(path).metadata["config"]["traffic"]["num_vehicles"] == 12
-    assert PolicyConfig(scenario=str(toml), obs="pure").scenario_config().route_length_m == 200.0
+    assert policy_scenario(PolicyConfig(scenario=str(toml), obs="pure")).route_length_m == 200.0
 
 
 def test_driver_names_and_policy_specs():

@@ -9,6 +9,7 @@ from hypothesis import strategies as st
 
 from lccli.policy import policy_config_of, train_policy_main, train_policy_parser
 from lcmodels.policy import PolicyConfig
+from lcmodels.policy.plan import policy_scenario
 from lcsim.config import ScenarioConfig, paper_scenario
 
 
@@ -87,7 +88,11 @@ def test_any_setting_gives_a_config_or_a_value_error(key, value):
         cfg = PolicyConfig().with_settings([f"{key}={value}"])
     except ValueError:
         return
-    assert isinstance(cfg, PolicyConfig) and isinstance(cfg.scenario_config(), ScenarioConfig)
+    assert isinstance(cfg, PolicyConfig) and isinstance(cfg.scenario_config(ScenarioConfig()), ScenarioConfig)
+    try:  # what it names is read when a run resolves it: a scenario, or one line
+        assert isinstance(policy_scenario(cfg), ScenarioConfig)
+    except ValueError as exc:
+        assert "\n" not in str(exc)
 
 
 def test_a_setting_is_read_as_the_fields_type_not_the_files(tmp_path):
@@ -108,3 +113,32 @@ def test_a_file_a_person_writes_gets_todays_defaults_a_stored_config_its_own(tmp
     assert PolicyConfig.from_file(path, table="policy").contact_features is True  # today's default
     assert PolicyConfig.from_dict({"obs": "pure"}).contact_features is False  # a run stored before it existed
     assert policy_config_of(train_policy_parser().parse_args(["--out", "x"])).contact_features is True
+
+
+def test_a_config_reads_no_file_until_a_run_resolves_it_once(tmp_path):
+    """Constructing a PolicyConfig reads nothing; resolve reads the scenario it names once, and the plan keeps what
+    it read (a file edited afterwards changes no run that resolved it)."""
+    from lcmodels.policy.plan import resolve
+
+    missing = PolicyConfig(scenario=str(tmp_path / "nowhere.toml"), obs="pure")
+    with pytest.raises(ValueError, match=r"^PolicyConfig\.scenario: .*nowhere\.toml"):
+        resolve(missing)
+    path = tmp_path / "short.toml"
+    path.write_text("route_length_m = 200.0\n")
+    plan = resolve(PolicyConfig(scenario=str(path), obs="pure", slots=6))
+    path.write_text("route_length_m = 300.0\n")
+    assert plan.scenario.route_length_m == 200.0 and plan.scenario.num_neighbours == 6 and plan.roads == (plan.scenario,)
+    with pytest.raises(ValueError, match="slots"):  # the view is checked without a scenario read
+        PolicyConfig(slots=17)
+
+
+def test_a_config_is_stored_flat_and_read_through_three_typed_views():
+    """The algorithm's, the observation's and the run's fields: each field in one view, the stored form flat."""
+    import dataclasses
+
+    cfg = PolicyConfig(algo="dqn", obs="pure", slots=6, timesteps=99)
+    views = (cfg.algorithm, cfg.observation, cfg.run)
+    names = [f.name for view in views for f in dataclasses.fields(view)]
+    assert sorted(names) == sorted(cfg.to_dict()) and len(names) == len(set(names))
+    assert {k: v for view in views for k, v in dataclasses.asdict(view).items()} == cfg.to_dict()
+    assert (cfg.algorithm.algo, cfg.observation.slots, cfg.run.timesteps) == ("dqn", 6, 99)

@@ -58,7 +58,8 @@ def test_a_shield_must_be_blind_and_its_penalty_a_number_at_least_zero() -> None
 def test_shielded_training_is_reproducible_feels_the_penalty_and_resumes_its_step_count(tmp_path: Path) -> None:
     """train_policy with a shield that follows a pure policy: the same seed gives the same weights, another penalty
     other weights, and a run stopped at its first checkpoint resumes from there and says so in shield.json."""
-    from lcmodels.policy.train import train_policy
+    from lcmodels.policy.plan import resolve
+    from lcmodels.policy.train import train_policy, train_run
 
     follow = tmp_path / "follow"
     train_policy(tiny_policy(obs="pure", timesteps=64, n_steps=32, eval_episodes=0), follow)
@@ -67,8 +68,7 @@ def test_shielded_training_is_reproducible_feels_the_penalty_and_resumes_its_ste
     def run(out: Path, timesteps: int, penalty: float = 50.0) -> bytes:
         cfg = tiny_policy(obs="pure", timesteps=timesteps, n_steps=32, eval_episodes=0, checkpoint_every=64,
                           init_policy=str(follow / "policy.safetensors"))  # fmt: skip
-        shield = shield_for(look, penalty, cfg.scenario_config())
-        train_policy(cfg, out, shield=shield)
+        train_run(resolve(cfg, layer=look, penalty=penalty), out)
         return (out / "policy.safetensors").read_bytes()
 
     whole = run(tmp_path / "whole", 128)

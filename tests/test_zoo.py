@@ -15,12 +15,11 @@ from lccli.experiment import experiment_main
 from lccli.record import record_main
 from lccli.view import main as view_main
 from lcmodels.experiment import PRESETS, Experiment
-from lcmodels.recipe import RECIPES_DIR
+from lcmodels.experiment.entries import experiment_card, publish_from_experiment
+from lcmodels.experiment.recipe import RECIPES_DIR
 from lcmodels.zoo import (
     check_episodes,
-    experiment_card,
     follower_mismatches,
-    publish_from_experiment,
     weights_sha256,
     zoo_dir,
     zoo_entries,
@@ -214,8 +213,8 @@ def test_a_card_names_the_invocation_that_trained_its_policy(tmp_path) -> None:
     recipe's last stage, not the last run's."""
     import json
 
+    from lcmodels.experiment.entries import _invocation_of
     from lcmodels.experiment.keys import StageKey
-    from lcmodels.zoo import _invocation_of
 
     key = StageKey("pure-ppo", 0, "train")
     (tmp_path / "stages").mkdir()

@@ -42,9 +42,10 @@ def main(argv: list[str] | None = None) -> int:
     if args.reached_only and (args.zoo is not None or args.overwrite):
         ap.error("--zoo and --overwrite apply to zoo entries; --reached-only writes none")
     from lcmodels.bench.ledger import git_commit
+    from lcmodels.experiment.entries import experiment_card, publish_from_experiment
+    from lcmodels.experiment.recipe import RECIPES_DIR, recipe_path
     from lcmodels.fileio import write_json
-    from lcmodels.recipe import RECIPES_DIR, recipe_path
-    from lcmodels.zoo import CHECKOUT_ZOO, experiment_card, publish_from_experiment, weights_sha256, zoo_dir
+    from lcmodels.zoo import CHECKOUT_ZOO, weights_sha256, zoo_dir
 
     commit = args.commit or git_commit()[0] or ""
     # the records describe what this checkout's own zoo/ ships, whatever LC_ZOO says

@@ -16,12 +16,15 @@ The package, bottom up:
 
 - :mod:`.keys`: :class:`StageKey`, ``(recipe, seed, stage)``, with the stage's name, directory and record name;
 - :mod:`.store`: the records of complete and pending stages, the directory's lock and its invocations;
-- :mod:`.graph`: every stage of the preset and its recipes built before anything runs, each naming the stages it
-  reads (a recipe's ``shielded`` and ``safety`` stages read the final stage of the recipe its safety layer
-  follows); the plan and the report's list of final policies are queries of it;
-- :mod:`.stages`: what each stage computes (config, inputs, work);
+- :mod:`.stages`: what stages share: where they run, what a stage's job is (config, inputs, work), and the jobs
+  several kinds are made of (recording, evaluating, measuring on the suite);
+- :mod:`.kinds`: every kind of stage, one class and one file each (its recipe table and rules, the stages it adds
+  to the graph and what each reads, its job), in one table :data:`KINDS`;
+- :mod:`.recipe`: :class:`Recipe`, a recipe file, validated against that table;
+- :mod:`.graph`: every stage of the preset and its recipes built before anything runs, each kind adding its own;
+  the plan and the report's list of final policies are queries of it;
 - :mod:`.runner`: runs the ready stages in dependency order, here, in ``--jobs`` processes or on Ray;
-- :mod:`.core`: :class:`Experiment` and :func:`run_experiment`.
+- :mod:`.core`: :class:`Experiment` and :func:`run_experiment`; :mod:`.entries`: a final policy as a zoo entry.
 
 Resumability. A rerun skips a stage whose record matches its current config and inputs and whose outputs still
 hash to the recorded values; anything else is redone. A stage interrupted with the same config and inputs
@@ -35,8 +38,10 @@ evaluates nothing there: the report looks up the policies of the graph's final s
 """
 
 from lcmodels.experiment.core import Experiment, ExperimentResult, Progress, run_experiment
-from lcmodels.experiment.graph import GraphCycle, Stage, StageGraph, build_graph, recipe_ranks
+from lcmodels.experiment.graph import GraphCycle, StageGraph, build_graph, recipe_ranks
 from lcmodels.experiment.keys import StageKey
+from lcmodels.experiment.kinds import KINDS, Stage, StageKind
+from lcmodels.experiment.recipe import Recipe, load_recipe
 from lcmodels.experiment.stages import RAY_SHARDS
 from lcmodels.presets import (  # re-exported: the experiment's vocabulary
     FIG5_NAME,
@@ -68,6 +73,7 @@ __all__ = [
     "FIG5_NAME",
     "FIG6_NAME",
     "INVOCATIONS",
+    "KINDS",
     "LOCK_NAME",
     "MARKER",
     "ORACLE_KEY",
@@ -88,12 +94,15 @@ __all__ = [
     "GraphCycle",
     "Preset",
     "Progress",
+    "Recipe",
     "Stage",
     "StageGraph",
     "StageKey",
+    "StageKind",
     "StageResult",
     "build_graph",
     "demos_key",
+    "load_recipe",
     "outputs_digest",
     "policy_dir",
     "previous_policy",

@@ -12,11 +12,11 @@ from typing import Any
 
 from lcmodels.experiment.graph import StageGraph, build_graph, follow_closure, recipe_seeds
 from lcmodels.experiment.keys import StageKey
+from lcmodels.experiment.recipe import Recipe, load_recipe
 from lcmodels.experiment.runner import Runner
 from lcmodels.experiment.stages import StageContext
 from lcmodels.experiment.store import Invocations, StageStore
 from lcmodels.presets import PRESETS, Preset, StageResult
-from lcmodels.recipe import Recipe, load_recipe
 
 log = logging.getLogger("lcmodels.experiment")
 

@@ -14,57 +14,27 @@ each naming the stages it reads.
 
 A recipe's ``shielded`` and ``safety`` stages read the final stage of the recipe its safety layer follows (same
 training seed), and so does a ``dagger`` stage whose expert is that policy behind the layer (when it comes first,
-it starts from that policy). Recipes whose layers follow each other in a loop are refused in one line (:class:`GraphCycle`), as
-are stages that would wait on each other. Plans, dry runs and the stages the report reads are queries of the
+it starts from that policy). Each kind of stage (:mod:`lcmodels.experiment.kinds`) adds its own stages and says
+what each reads. Recipes whose layers follow each other in a loop are refused in one line (:class:`GraphCycle`),
+as are stages that would wait on each other. Plans, dry runs and the stages the report reads are queries of the
 graph.
 """
 
 from __future__ import annotations
 
 import heapq
-from collections.abc import Container, Iterator, Mapping, Sequence
+from collections.abc import Callable, Container, Iterator, Mapping, Sequence
 from dataclasses import dataclass, field
 from typing import Any
 
 from lcmodels.experiment.keys import StageKey
-from lcmodels.experiment.layer import follows, has_layer
-from lcmodels.presets import ORACLE_KEY, RULE_KEY, Preset, demos_key
-from lcmodels.recipe import DemoSpec, Recipe
-
-GROUPS = ("data", "recipes", "references", "zoo")
-"""The groups of stages, in the order a runner prefers them when several are ready: the corpus, predictor and
-demonstrations; the recipes' stages; the rule-based driver and the oracle (after the recipes: the oracle's search
-is slower than some training runs); the zoo."""
-TRAINING_STAGES = ("clone", "dagger", "train", "shielded")
+from lcmodels.experiment.kinds import KINDS, GraphBuilder, Stage
+from lcmodels.experiment.recipe import Recipe, load_recipe
+from lcmodels.presets import Preset
 
 
 class GraphCycle(ValueError):
     """Recipes whose safety layers follow each other in a loop, or stages that wait on each other."""
-
-
-@dataclass(frozen=True)
-class Stage:
-    """One stage: its key, the stages it reads by role, and what it is made from."""
-
-    key: StageKey
-    needs: tuple[tuple[str, StageKey], ...] = ()
-    """``(role, key)`` of each stage it reads: ``corpus``, ``predictor``, ``demos``, ``previous`` (the recipe's
-    stage before), ``follow`` (the final stage of the recipe the safety layer follows), ``policy`` (the stage whose
-    policy is evaluated), ``zoo:<entry>`` (the showcase's candidates)."""
-    group: str = "recipes"
-    priority: tuple[int, ...] = ()
-    """Among ready stages the runner starts the smallest first."""
-    recipe: Recipe | None = None
-    demos: DemoSpec | None = None
-    zoo: Any = None
-    """The :class:`lcmodels.zoo.ZooEntry` of a ``zoo`` or ``zoo-safety`` stage; the showcase's candidates."""
-    follow_zoo: Any = None
-    """The zoo entry a ``zoo-safety`` stage's layer follows (None: the policy itself)."""
-
-    @property
-    def trains(self) -> bool:
-        """A training stage (clone, dagger, train, shielded): one process of its own when stages run at once."""
-        return self.key.recipe is not None and self.key.stage in TRAINING_STAGES
 
 
 @dataclass
@@ -178,7 +148,7 @@ def follow_closure(recipes: Sequence[Recipe], load: Any) -> list[Recipe]:
     follower's own follower too."""
     out = list(recipes)
     for r in out:  # grows as it goes
-        f = follows(r)
+        f = r.follows
         if f and f not in {x.name for x in out}:
             out.append(load(f))
     return out
@@ -187,7 +157,7 @@ def follow_closure(recipes: Sequence[Recipe], load: Any) -> list[Recipe]:
 def check_follows(recipes: Sequence[Recipe]) -> None:
     """:class:`GraphCycle` when the recipes' safety layers follow each other in a loop (a layer may follow its
     own recipe): the followed policies of a loop would have no first one to train."""
-    graph = {r.name: f for r in recipes if (f := follows(r)) and f != r.name}
+    graph = {r.name: f for r in recipes if (f := r.follows) and f != r.name}
     for name in graph:
         chain = [name]
         while (nxt := graph.get(chain[-1])) and nxt not in chain:
@@ -204,7 +174,7 @@ def recipe_seeds(recipes: Sequence[Recipe], seeds: int, asked: Mapping[str, int]
     while changed:  # a fixed point: a chain of followers passes its count down (loops included)
         changed = False
         for r in recipes:
-            f = follows(r)
+            f = r.follows
             if f in n and n[f] < n[r.name]:
                 n[f], changed = n[r.name], True
     return n
@@ -214,7 +184,7 @@ def recipe_ranks(recipes: Sequence[Recipe]) -> dict[str, int]:
     """The order in which the runner prefers the recipes' stages: the policies a safety layer follows first,
     then the recipes whose layer follows them (a chain by its depth), then the rest. A followed policy is then
     trained by the time the recipe that follows it reaches its shielded and safety stages."""
-    graph = {r.name: f for r in recipes if (f := follows(r))}
+    graph = {r.name: f for r in recipes if (f := r.follows)}
 
     def depth(name: str) -> int:
         chain = [name]
@@ -224,117 +194,21 @@ def recipe_ranks(recipes: Sequence[Recipe]) -> dict[str, int]:
 
     involved = set(graph) | set(graph.values())
     last = 1 + max((depth(n) for n in involved if n in {r.name for r in recipes}), default=0)
-    return {r.name: depth(r.name) if r.name in involved or has_layer(r) else last for r in recipes}
+    return {r.name: depth(r.name) if r.name in involved or r.safety is not None else last for r in recipes}
 
 
-def build_graph(preset: Preset, recipes: Sequence[Recipe], seeds: Mapping[str, int],
-                zoo: Sequence[Any] = ()) -> StageGraph:  # fmt: skip
+def build_graph(preset: Preset, recipes: Sequence[Recipe], seeds: Mapping[str, int], zoo: Sequence[Any] = (),
+                load: Callable[[str], Recipe] = load_recipe) -> StageGraph:  # fmt: skip
     """The stages of ``preset`` with ``recipes`` (capped, every followed recipe among them), ``seeds`` training
-    seeds each, and the ``zoo`` entries to evaluate (with ``preset.zoo``). :class:`GraphCycle` for a cycle."""
-    from lcmodels.policy.obs import needs_predictor
-
+    seeds each, and the ``zoo`` entries to evaluate (with ``preset.zoo``; ``load`` reads the recipe a zoo card
+    names): each kind of stage (:data:`lcmodels.experiment.kinds.KINDS`) adds its own. :class:`GraphCycle` for a
+    cycle."""
     check_follows(recipes)
-    stages: dict[StageKey, Stage] = {}
-
-    def add(st: Stage) -> StageKey:
-        stages[st.key] = st
-        return st.key
-
-    def prio(group: str, *rest: int) -> tuple[int, ...]:
-        return (GROUPS.index(group), *rest)
-
-    corpus = add(Stage(StageKey.of("corpus"), group="data", priority=prio("data", 0)))
-    predictor = add(Stage(StageKey.of("predictor"), (("corpus", corpus),), "data", prio("data", 1)))
-    bases: dict[str, StageKey] = {}
-
-    def predictor_of(r: Recipe) -> StageKey:
-        """The predictor stage a recipe's prediction input reads: the trained one, or an analytic base's."""
-        if r.predictor == "learned":
-            return predictor
-        if r.predictor not in bases:
-            bases[r.predictor] = add(Stage(StageKey.of("predictor", r.predictor), group="data",
-                                           priority=prio("data", 1, len(bases) + 1)))  # fmt: skip
-        return bases[r.predictor]
-
-    demos: dict[str, StageKey] = {}
-    for r in recipes:
-        if "clone" in r.stages and (k := demos_key(r.demos)) not in demos:
-            demos[k] = add(Stage(StageKey.of("demos", k), group="data", priority=prio("data", 2, len(demos)),
-                                 demos=r.demos))  # fmt: skip
-    rank = recipe_ranks(recipes)
-    suite_runs: list[StageKey] = []
     names = {r.name for r in recipes}
     for r in recipes:
-        if (f := follows(r)) and f not in names:
+        if (f := r.follows) and f not in names:
             raise ValueError(f"recipe {r.name!r}: its safety layer follows {f!r}, which the experiment does not run")
-    for seed in range(max(seeds.values(), default=0)):
-        for i, r in enumerate(recipes):
-            if seed >= seeds[r.name]:
-                continue
-            pred = (("predictor", predictor_of(r)),) if needs_predictor(r.obs) else ()
-            f = follows(r)
-            follow = (("follow", StageKey(f, seed, _final(recipes, f))),) if f else ()
-            previous: tuple[tuple[str, StageKey], ...] = ()
-            for j, st in enumerate(r.stages):
-                needs = list(pred)
-                if st == "clone" or (st == "dagger" and "clone" in r.stages):
-                    needs.append(("demos", demos[demos_key(r.demos)]))
-                needs += previous
-                if st == "shielded" or (st == "dagger" and r.dagger.expert == "safety-layer"):
-                    needs += follow  # the layer's follower: the policy behind it (and a first dagger's student)
-                key = add(Stage(StageKey(r.name, seed, st), tuple(needs), "recipes", prio("recipes", rank[r.name], seed, i, j),
-                                recipe=r))  # fmt: skip
-                previous = (("previous", key),)
-            final = (("policy", previous[0][1]),)
-            n = len(r.stages)
-            add(Stage(StageKey(r.name, seed, "eval"), (*pred, *final), "recipes",
-                      prio("recipes", rank[r.name], seed, i, n), recipe=r))  # fmt: skip
-            if has_layer(r):
-                add(Stage(StageKey(r.name, seed, "safety"), (*pred, *final, *follow), "recipes",
-                          prio("recipes", rank[r.name], seed, i, n + 1), recipe=r))  # fmt: skip
-            if preset.suite:
-                suite_runs.append(add(Stage(StageKey(r.name, seed, "suite"), (*pred, *final), "recipes",
-                                            prio("recipes", rank[r.name], seed, i, n + 2), recipe=r)))  # fmt: skip
-    if preset.suite:  # every final policy on the suite's roads, next to each road's ceiling and floor
-        ends = [add(Stage(StageKey.of("suite", who), group="references", priority=prio("references", 2, j)))
-                for j, who in enumerate((ORACLE_KEY, RULE_KEY))]
-        add(Stage(StageKey.of("bench"), (("ceiling", ends[0]), ("floor", ends[1]),
-                                         *((f"run:{k}", k) for k in suite_runs)),
-                  group="references", priority=prio("references", 3)))  # fmt: skip
-    add(Stage(StageKey.of(RULE_KEY), group="references", priority=prio("references", 0)))
-    if preset.oracle:
-        add(Stage(StageKey.of(ORACLE_KEY), group="references", priority=prio("references", 1)))
-    if preset.zoo:
-        _zoo_stages(add, prio, zoo, preset.showcase_episodes)
-    return StageGraph(stages, list(recipes), dict(seeds))
-
-
-def _final(recipes: Sequence[Recipe], name: str) -> str:
-    return next(r.final_stage for r in recipes if r.name == name)
-
-
-def _zoo_stages(add: Any, prio: Any, entries: Sequence[Any], showcase_episodes: int) -> None:
-    """Every zoo entry on the test episodes, and behind its safety layer where its card has one and the zoo holds
-    the policy it follows; then the showcase of the best one."""
-    from lcmodels.experiment.layer import card_lookahead
-    from lcmodels.recipe import load_recipe
-
-    by_name = {e.name: e for e in entries}
-    evals = []
-    for i, entry in enumerate(entries):
-        evals.append((f"zoo:{entry.name}", add(Stage(StageKey.of("zoo", entry.name), group="zoo",
-                                                     priority=prio("zoo", 0, i), zoo=entry))))  # fmt: skip
-    for i, entry in enumerate(entries):
-        if card_lookahead(entry.card) is None:
-            continue
-        try:
-            recipe = load_recipe(str(entry.card.get("recipe", "")))
-        except ValueError:
-            continue
-        f = follows(recipe)
-        if not has_layer(recipe) or (f and f not in by_name):
-            continue
-        add(Stage(StageKey.of("zoo-safety", entry.name), group="zoo", priority=prio("zoo", 1, i), zoo=entry,
-                  follow_zoo=by_name[f] if f else None))  # fmt: skip
-    if evals and showcase_episodes >= 1:
-        add(Stage(StageKey.of("showcase"), tuple(evals), "zoo", prio("zoo", 2), zoo=tuple(entries)))
+    builder = GraphBuilder(preset, list(recipes), dict(seeds), recipe_ranks(recipes), KINDS, zoo, load)
+    for kind in KINDS:
+        kind.add(builder)
+    return StageGraph(builder.stages, list(recipes), dict(seeds))

@@ -24,9 +24,10 @@ from pathlib import Path
 from typing import Any
 
 from lckit.pool import WorkerPool
-from lcmodels.experiment.graph import Stage, StageGraph
+from lcmodels.experiment.graph import StageGraph
 from lcmodels.experiment.keys import StageKey
-from lcmodels.experiment.stages import StageContext, StageJob, stage_job
+from lcmodels.experiment.kinds import Stage
+from lcmodels.experiment.stages import StageContext, StageJob
 from lcmodels.experiment.store import Attempt, StageStore, Verdict
 from lcmodels.presets import Preset, StageResult
 
@@ -65,7 +66,7 @@ def _no_wall() -> None:
 
 def _work(req: WorkRequest, emit: Callable[[str], None]) -> float | None:
     ctx = StageContext(req.preset, req.out, req.threads, emit=emit)
-    return stage_job(ctx, req.stage, req.got).work(req.keep, _no_wall)
+    return req.stage.job(ctx, req.got).work(req.keep, _no_wall)
 
 
 def _work_in_process(req: WorkRequest, lines: Any) -> float | None:
@@ -287,7 +288,7 @@ class Runner:
         if key in self._waiting:  # checked before, and waiting for room since
             job, verdict = self._waiting.pop(key)
         else:
-            job = stage_job(self.ctx, stage, got)
+            job = stage.job(self.ctx, got)
             verdict = self.store.check(key, job.config, job.inputs, upgrade=job.upgrade, resumable=job.resumable)
         if verdict.complete:
             return self._say(self.store.skipped(key, verdict, t0), "complete, skipped")

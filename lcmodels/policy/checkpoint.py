@@ -58,15 +58,17 @@ def card_path(path: str | os.PathLike[str]) -> Path:
     return path.with_name(path.stem + ".card.json")
 
 
-def save_policy(model: BaseAlgorithm, path: str | os.PathLike[str], meta: dict[str, Any]) -> Path:
-    """Save ``model``'s policy network with the card ``meta`` to ``path`` (a ``.safetensors``), atomically
-    (``.partial`` then rename), and the card's copy beside it. Returns ``path``. ``OSError`` when the file
-    cannot be written (a full disk): no ``.partial`` stays, the file there is as it was."""
+def save_policy(model: BaseAlgorithm, path: str | os.PathLike[str], meta: dict[str, Any], *,
+                state: dict[str, torch.Tensor] | None = None) -> Path:  # fmt: skip
+    """Save ``model``'s policy network (``state``: these tensors in place of its own) with the card ``meta`` to
+    ``path`` (a ``.safetensors``), atomically (``.partial`` then rename), and the card's copy beside it. Returns
+    ``path``. ``OSError`` when the file cannot be written (a full disk): no ``.partial`` stays, the file there is
+    as it was."""
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
     card = {**{k: v for k, v in meta.items() if k not in ("format", "version", "tensor_aliases")},
             "format": META_FORMAT, "version": META_VERSION}
-    tensors, aliases = _unique_tensors(model.policy.state_dict())
+    tensors, aliases = _unique_tensors(model.policy.state_dict() if state is None else state)
     if aliases:
         card["tensor_aliases"] = aliases
     tmp = path.with_name(path.name + ".partial")

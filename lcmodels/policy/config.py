@@ -1,17 +1,17 @@
 """The configuration of a policy training run (:class:`PolicyConfig`) and the scenarios a policy trains in.
 
 Kept apart from the training loop so that the policy file loader can rebuild a network from a stored
-config without importing training.
+config without importing training. A config is data: constructing one reads no file (the scenario file it may
+name is read once, when a run resolves it: :func:`lcmodels.policy.plan.resolve`).
 """
 
 from __future__ import annotations
 
-import contextvars
 import dataclasses
 from collections.abc import Sequence
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any, ClassVar
+from typing import Any, ClassVar, TypeVar
 
 from lckit.config import JsonConfig, check_field, check_limits, require_non_negative, require_positive
 from lcmodels.policy.names import (
@@ -52,17 +52,74 @@ def default_learning_rate(algo: str, fine_tune: bool = False) -> float:
     return FINE_TUNE_LEARNING_RATES.get(algo, _LEARNING_RATES[algo]) if fine_tune else _LEARNING_RATES[algo]
 
 
-_CARD_SCENARIO: contextvars.ContextVar[ScenarioConfig | None] = contextvars.ContextVar("card_scenario", default=None)
-"""The scenario a policy card stores, while :meth:`PolicyConfig.from_card` validates the card's training config
-against it (instead of reading the scenario file the config names, which need not exist where the policy is)."""
+_V = TypeVar("_V", "AlgorithmView", "ObservationView", "RunView")
 
 MAX_TIMESTEPS = 1_000_000_000
 """The most online decisions a run may ask for (a billion decisions: 15 years of driving at 2 per second)."""
 
 
 @dataclass(frozen=True, slots=True, kw_only=True)
+class AlgorithmView:
+    """What the learning algorithm reads of a :class:`PolicyConfig` (:attr:`PolicyConfig.algorithm`):
+    stable-baselines3's hyper-parameters."""
+
+    algo: str
+    learning_rate: float
+    gamma: float
+    n_steps: int
+    batch_size: int
+    n_epochs: int
+    ent_coef: float
+    buffer_size: int
+    learning_starts: int
+    exploration_fraction: float
+    target_update_interval: int
+
+
+@dataclass(frozen=True, slots=True, kw_only=True)
+class ObservationView:
+    """What the policy sees and how its network reads it (:attr:`PolicyConfig.observation`): the mode, the
+    scenario's view of the traffic, the features extractor's branches."""
+
+    obs: str
+    neighbours: str
+    slots: int
+    accel_features: bool
+    image_net: str
+    image_features: int
+    contact_features: bool
+    window_features: bool
+    sensor_encoder: str
+
+
+@dataclass(frozen=True, slots=True, kw_only=True)
+class RunView:
+    """The run around them (:attr:`PolicyConfig.run`): where and how long it trains, its seed, the learner's
+    reward shaping, checkpoints, evaluation, and what it starts from."""
+
+    scenario: str
+    train_roads: str
+    timesteps: int
+    n_envs: int
+    seed: int
+    reward_scale: float
+    collision_weight: float
+    checkpoint_every: int
+    eval_episodes: int
+    eval_seed: int
+    eval_batch: int
+    record_eval: bool
+    warm_start: str
+    warm_start_epochs: int
+    init_policy: str
+    freeze_image: bool
+
+
+@dataclass(frozen=True, slots=True, kw_only=True)
 class PolicyConfig(JsonConfig):
-    """Everything that defines a policy training run (stored in ``run.json``)."""
+    """Everything that defines a policy training run (stored in ``run.json``, flat: the stage records, policy cards
+    and ledger keys written so far hold it so). Its parts serve different readers: :attr:`algorithm`,
+    :attr:`observation` and :attr:`run` are typed views of them."""
 
     LEGACY_DEFAULTS: ClassVar[dict[str, Any]] = {"contact_features": False, "freeze_image": False}
     LIMITS: ClassVar[dict[str, float]] = {
@@ -192,15 +249,25 @@ class PolicyConfig(JsonConfig):
                self.exploration_fraction)  # fmt: skip
         check_field(self.seed < 1_000_000, self, "seed", "must be < 1000000 (keeps training seeds off evaluation's)",
                self.seed)  # fmt: skip
-        base = _CARD_SCENARIO.get()
-        try:
-            base = base if base is not None else scenario(self.scenario)
-        except ValueError as exc:
-            raise ValueError(f"PolicyConfig.scenario: {exc}") from None
-        try:  # slots (and neighbours) as the scenario itself validates them
-            self.scenario_config(base)
+        try:  # slots (and neighbours) as a scenario validates them: the view fits any scenario or none
+            self.scenario_config(ScenarioConfig())
         except ValueError as exc:
             raise ValueError(f"PolicyConfig.slots {self.slots} does not fit the scenario: {exc}") from None
+
+    @property
+    def algorithm(self) -> AlgorithmView:
+        """What the learning algorithm reads."""
+        return _view(AlgorithmView, self)
+
+    @property
+    def observation(self) -> ObservationView:
+        """What the policy sees and how its network reads it."""
+        return _view(ObservationView, self)
+
+    @property
+    def run(self) -> RunView:
+        """The run around them."""
+        return _view(RunView, self)
 
     @classmethod
     def of(cls, given: dict[str, Any], settings: Sequence[str] = (), *, fine_tune: bool | None = None) -> PolicyConfig:
@@ -220,15 +287,13 @@ class PolicyConfig(JsonConfig):
 
     @classmethod
     def from_card(cls, data: dict[str, Any], scenario: ScenarioConfig) -> PolicyConfig:
-        """The training config a policy card stores (``train_config``), validated against the scenario the card
-        stores too (``scenario``) rather than the scenario file its ``scenario`` field names: a policy trained
+        """The training config a policy card stores (``train_config``), its view checked against the scenario the
+        card stores too (``scenario``), never the scenario file its ``scenario`` field names: a policy trained
         with ``--scenario my.toml`` loads from any folder, the file there or not. ``ValueError`` as
         :meth:`from_dict`."""
-        token = _CARD_SCENARIO.set(scenario)
-        try:
-            return cls.from_dict(data)
-        finally:
-            _CARD_SCENARIO.reset(token)
+        cfg = cls.from_dict(data)
+        cfg.scenario_config(scenario)
+        return cfg
 
     def _drawn_count(self) -> int | None:
         """N of ``drawn:N`` (0 for a bad N); None for other roads."""
@@ -247,17 +312,20 @@ class PolicyConfig(JsonConfig):
         return tuple(r.strip() for r in self.train_roads.split(",") if r.strip())
 
     def road_configs(self) -> tuple[ScenarioConfig, ...]:
-        """The scenarios training drives, with this config's view: :attr:`train_roads`, else ``scenario``."""
+        """The roads :attr:`train_roads` names, with this config's view (empty: ``scenario`` alone, which
+        :func:`lcmodels.policy.plan.resolve` reads). Registered names and drawn roads: no file is read."""
         drawn = self._drawn_count()
         if drawn:
             return tuple(self.scenario_config(r) for r in drawn_roads(drawn, self.seed))
-        names = self.road_names()
-        return tuple(self.scenario_config(scenario(n)) for n in names) if names else (self.scenario_config(),)
+        return tuple(self.scenario_config(scenario(n)) for n in self.road_names())
 
-    def scenario_config(self, base: ScenarioConfig | None = None) -> ScenarioConfig:
-        """The scenario the policy sees: its ``scenario`` with this config's view of the traffic."""
-        base = dataclasses.replace(base or scenario(self.scenario), neighbour_selection=self.neighbours,
-                                   num_neighbours=self.slots, observe_acceleration=self.accel_features)
+    def scenario_config(self, base: ScenarioConfig) -> ScenarioConfig:
+        """``base`` (the scenario :attr:`scenario` names, as a run resolved it) with this config's view of the
+        traffic: what the policy sees."""
+        base = dataclasses.replace(base, neighbour_selection=self.neighbours, num_neighbours=self.slots,
+                                   observe_acceleration=self.accel_features)
         return scenario_for_mode(base, self.obs)
 
 
+def _view(cls: type[_V], cfg: PolicyConfig) -> _V:
+    return cls(**{f.name: getattr(cfg, f.name) for f in dataclasses.fields(cls)})

@@ -489,3 +489,18 @@ class HybridExtractor(BaseFeaturesExtractor):
 
     def forward(self, observations: dict[str, torch.Tensor]) -> torch.Tensor:
         return torch.cat([self.branches[k](observations[k]) for k in self.keys], dim=1)
+
+
+def plain_policy_state(policy: nn.Module, encoder: ImageEncoder) -> dict[str, torch.Tensor]:
+    """The tensors of ``policy``, which reads the features of a frozen image branch run outside it (``encoder``),
+    as the policy of its observation mode holds them: its own, and the image branch's under every features
+    extractor that reads those features. Each extractor module gets its own copy, which the names sharing that
+    module share (as loading them into a network of the mode would have them)."""
+    state = dict(policy.state_dict())
+    image = encoder.state_dict()
+    copies: dict[int, dict[str, torch.Tensor]] = {}
+    for name, module in policy.named_modules(remove_duplicate=False):
+        if isinstance(module, HybridExtractor) and IMAGE_FEATURES in module.branches:
+            mine = copies.setdefault(id(module), {k: v.detach().clone() for k, v in image.items()})
+            state.update({f"{name}.branches.image.{k}": v for k, v in mine.items()})
+    return state

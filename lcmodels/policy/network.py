@@ -26,38 +26,39 @@ def build_model(cfg: PolicyConfig, env: VecEnv | None, tensorboard: str | None =
             alone (how a policy file is loaded: the network rebuilt from its card, then filled with its
             tensors; a DQN gets a one-transition replay buffer).
     """
-    n_steps, buffer_size = cfg.n_steps, cfg.buffer_size
+    learner, view = cfg.algorithm, cfg.observation
+    n_steps, buffer_size = learner.n_steps, learner.buffer_size
     if env is None:
         if observation_space is None:
             raise ValueError("build_model needs an environment or an observation space")
         # Nothing is collected for inference: a one-step rollout buffer, a one-transition replay buffer (the
-        # card's sizes, untrusted, allocate nothing; not dataclasses.replace, which would validate the config
-        # again, its scenario file included).
+        # card's sizes, untrusted, allocate nothing).
         n_steps, buffer_size = 1, 1
     policy_kwargs: dict[str, Any] = {
         "features_extractor_class": HybridExtractor,
-        "features_extractor_kwargs": {"image_net": cfg.image_net, "image_features": cfg.image_features,
-                                      "contact_features": cfg.contact_features,
-                                      "window_features": cfg.window_features,
-                                      "sensor_encoder": cfg.sensor_encoder},
-        "net_arch": [128, 64] if cfg.algo == "dqn" else {"pi": [64, 64], "vf": [64, 64]},
+        "features_extractor_kwargs": {"image_net": view.image_net, "image_features": view.image_features,
+                                      "contact_features": view.contact_features,
+                                      "window_features": view.window_features,
+                                      "sensor_encoder": view.sensor_encoder},
+        "net_arch": [128, 64] if learner.algo == "dqn" else {"pi": [64, 64], "vf": [64, 64]},
     }
     common: dict[str, Any] = {"policy_kwargs": policy_kwargs, "seed": cfg.seed, "device": device,
-                              "gamma": cfg.gamma, "tensorboard_log": tensorboard, "verbose": 0}  # fmt: skip
+                              "gamma": learner.gamma, "tensorboard_log": tensorboard, "verbose": 0}  # fmt: skip
     if env is None:
         common["_init_setup_model"] = False
-    if cfg.algo == "ppo":
-        model = ALGOS["ppo"]("MultiInputPolicy", env, learning_rate=cfg.learning_rate, n_steps=n_steps,
-                             batch_size=cfg.batch_size, n_epochs=cfg.n_epochs, ent_coef=cfg.ent_coef, **common)
-    elif cfg.algo == "a2c":
-        model = ALGOS["a2c"]("MultiInputPolicy", env, learning_rate=cfg.learning_rate, n_steps=n_steps,
-                             ent_coef=cfg.ent_coef, **common)
+    if learner.algo == "ppo":
+        model = ALGOS["ppo"]("MultiInputPolicy", env, learning_rate=learner.learning_rate, n_steps=n_steps,
+                             batch_size=learner.batch_size, n_epochs=learner.n_epochs, ent_coef=learner.ent_coef,
+                             **common)
+    elif learner.algo == "a2c":
+        model = ALGOS["a2c"]("MultiInputPolicy", env, learning_rate=learner.learning_rate, n_steps=n_steps,
+                             ent_coef=learner.ent_coef, **common)
     else:
-        model = ALGOS["dqn"]("MultiInputPolicy", env, learning_rate=cfg.learning_rate, buffer_size=buffer_size,
-                             learning_starts=cfg.learning_starts, batch_size=cfg.batch_size,
+        model = ALGOS["dqn"]("MultiInputPolicy", env, learning_rate=learner.learning_rate,
+                             buffer_size=buffer_size, learning_starts=learner.learning_starts, batch_size=learner.batch_size,
                              train_freq=1, gradient_steps=1,  # one minibatch per vector step (n_envs transitions)
-                             target_update_interval=cfg.target_update_interval,
-                             exploration_fraction=cfg.exploration_fraction, exploration_final_eps=0.02, **common)
+                             target_update_interval=learner.target_update_interval,
+                             exploration_fraction=learner.exploration_fraction, exploration_final_eps=0.02, **common)
     if env is None:  # what stable-baselines3's own load does, from the spaces instead of a pickle
         model.observation_space, model.action_space, model.n_envs = observation_space, ACTION_SPACE, 1
         model._setup_model()

@@ -9,7 +9,7 @@ simulator ignores the decision). The policy trains unmasked, so it learns to pro
 The training returns in ``progress.csv`` include the penalties. The policy learns what the layer lets through instead of relying on it; behind the same
 layer at evaluation it proposes fewer decisions that lead into states with none left that survives.
 
-``lc-experiment`` runs it as a recipe's ``shielded`` stage (:mod:`lcmodels.recipe`); :func:`shield_for` builds
+``lc-experiment`` runs it as a recipe's ``shielded`` stage (:mod:`lcmodels.experiment.recipe`); :func:`shield_for` builds
 the layer of a recipe's ``[safety]`` table (a :class:`~lcsim.planning.SafetyLayerConfig`).
 """
 

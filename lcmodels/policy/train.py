@@ -65,21 +65,12 @@ from lcmodels.policy.config import (  # re-exported: the names training's caller
     default_learning_rate,
 )
 from lcmodels.policy.evaluate import EVAL_SEED_BASE, PolicyDriver, evaluate
-from lcmodels.policy.extractor import IMAGE_FEATURES, HybridExtractor, ImageEncoder, make_image_net
+from lcmodels.policy.extractor import HybridExtractor, ImageEncoder, make_image_net, plain_policy_state
 from lcmodels.policy.network import build_model
-from lcmodels.policy.obs import (
-    EpisodeStats,
-    ObservationModeVecEnv,
-    episode_seeds_of,
-    episode_stats,
-    needs_predictor,
-    policy_vec_env,
-    summarize,
-)
-from lcmodels.policy.shield import Shield, ShieldedSB3VecEnv
-from lcmodels.predictor.inference import Predictor
+from lcmodels.policy.obs import EpisodeStats, episode_seeds_of, episode_stats, policy_vec_env, summarize
+from lcmodels.policy.plan import RunPlan, resolve
+from lcmodels.policy.shield import ShieldedSB3VecEnv
 from lcsim.config import ScenarioConfig
-from lcsim.envs import observation_space
 from lcsim.sb3 import LaneChangeSB3VecEnv, MixedRoadsSB3VecEnv
 
 log = logging.getLogger(__name__)
@@ -151,54 +142,14 @@ class _Logger(BaseCallback):
             self.run.progress(row)
 
 
-@dataclass(frozen=True)
-class _Plan:
-    """What a run needs, resolved once from its config before anything is written (:func:`_resolve`)."""
-
-    cfg: PolicyConfig
-    scenario: ScenarioConfig
-    """The scenario every card of the run stores (read once: a file edited meanwhile changes none)."""
-    pred: Predictor | None
-    pred_path: Path | None
-    pred_sha: str | None
-    replace: bool
-    """The run in ``out`` is another one, to be replaced (``overwrite``)."""
-    initial: LoadedPolicy | None
-    """``cfg.init_policy``, loaded and checked, when the run starts from it (not on a resume)."""
-    roads: tuple[ScenarioConfig, ...] = ()
-    """The scenarios training drives (``cfg.train_roads``; one: ``scenario`` itself)."""
-
-    @property
-    def predictor_file(self) -> str | None:
-        """Where the predictor was read from, for ``run.json`` (this run's own record)."""
-        return None if self.pred_path is None else str(self.pred_path.resolve())
-
-    def card(self, timesteps: int, folder: Path, training_form: bool = False) -> dict[str, Any]:
-        """The card of a policy file saved in ``folder``; ``training_form``: a frozen-image run's checkpoint,
-        which sees the image branch's features in place of the image (resumable, not loadable as a policy).
-
-        It names the predictor by its file name and SHA-256, which find it beside the policy or in a folder
-        above it wherever the policy is copied (``find_predictor``), and by where it lay relative to the
-        policy file (a hint, checked by the digest), never by an absolute path of this machine."""
-        cfg, predictor = self.cfg, None
-        if self.pred_path is not None:
-            predictor = {"file": self.pred_path.name, "sha256": str(self.pred_sha)}
-            with contextlib.suppress(ValueError):  # no relative path between two drives: name and digest only
-                predictor["path"] = os.path.relpath(str(self.predictor_file), Path(folder).resolve())
-        meta = {"algo": cfg.algo, "obs_mode": cfg.obs, "image_net": cfg.image_net,
-                "scenario_name": cfg.scenario, "scenario": self.scenario.to_dict(),
-                "predictor": predictor, "train_config": cfg.to_dict(), "timesteps": timesteps}  # fmt: skip
-        if training_form:
-            meta["training_form"] = IMAGE_FEATURES
-        return meta
-
-
 class _Run:
     """The run directory while it trains: checkpoints, progress rows, wall time across resumes."""
 
-    def __init__(self, plan: _Plan, out: Path, progress: Callable[[dict[str, Any]], None] | None,
-                 t_start: float) -> None:
-        self.plan, self.cfg, self.out, self.progress = plan, plan.cfg, out, progress
+    def __init__(self, plan: RunPlan, out: Path, progress: Callable[[dict[str, Any]], None] | None, t_start: float,
+                 initial: LoadedPolicy | None) -> None:  # fmt: skip
+        self.plan, self.cfg, self.out, self.progress = plan, plan.config, out, progress
+        self.initial = initial
+        """``cfg.init_policy``, loaded and checked, when the run starts from it (not on a resume)."""
         self.ckpt_state = out / "checkpoints" / "latest.json"
         self.start_timesteps = 0
         self.episodes_total = 0
@@ -391,7 +342,7 @@ def check_run_dir(cfg: PolicyConfig, out: Path, predictor_sha256: str | None, *,
     if (prev.get("predictor") or {}).get("sha256") != predictor_sha256:
         diffs.append("predictor file content differs")
     if "scenario" in prev and not diffs:  # a scenario file whose content changed since the run began
-        changed = scenario_differences(prev["scenario"] or {}, scenario or cfg.scenario_config())
+        changed = scenario_differences(prev["scenario"] or {}, scenario)
         if changed:
             diffs.append(f"the scenario's content differs ({'; '.join(changed[:3])})")
     if diffs and not overwrite:
@@ -418,10 +369,10 @@ def train_policy(
     eval_progress: Callable[[int, int], None] | None = None,
     log_every: int | None = None,
     overwrite: bool = False,
-    shield: Shield | None = None,
 ) -> TrainResult:
-    """Train (or resume) the run in ``out`` (:func:`train_run`), then evaluate it on ``cfg.eval_episodes``
-    held-out episodes (:func:`evaluate_run`); see the module docstring.
+    """Resolve ``cfg`` (:func:`lcmodels.policy.plan.resolve`), train (or resume) the run in ``out``
+    (:func:`train_run`), then evaluate it on ``cfg.eval_episodes`` held-out episodes (:func:`evaluate_run`); see
+    the module docstring.
 
     Args:
         cfg: the run's configuration.
@@ -431,47 +382,42 @@ def train_policy(
         log_every: timesteps between progress rows (default: one PPO/A2C rollout, 2048 for DQN).
         overwrite: replace a run of another configuration in ``out`` (only its own files go, and only
             after every other check has passed).
-        shield: a safety layer that executes the policy's decisions during training, each overridden proposal
-            penalised (:mod:`lcmodels.policy.shield`); what it did goes to ``shield.json``.
 
     Raises:
-        ValueError: bad input (missing predictor, a different run in ``out``, an ``out`` that cannot be written
-            or is the filesystem root or the home directory, an unusable initial policy or warm-start
-            directory); nothing has been written then.
+        ValueError: bad input (missing predictor, an unreadable scenario, a different run in ``out``, an ``out``
+            that cannot be written or is the filesystem root or the home directory, an unusable initial policy
+            or warm-start directory); nothing has been written then.
     """
-    result = train_run(cfg, out, predictor=predictor, device=device, progress=progress, log_every=log_every,
-                       overwrite=overwrite, shield=shield)  # fmt: skip
+    result = train_run(resolve(cfg, predictor=predictor), out, device=device, progress=progress,
+                       log_every=log_every, overwrite=overwrite)  # fmt: skip
     if cfg.eval_episodes > 0:
         evaluate_run(result, device=device, progress=eval_progress)
     return result
 
 
 def train_run(
-    cfg: PolicyConfig,
+    plan: RunPlan,
     out: str | os.PathLike[str],
     *,
-    predictor: str | os.PathLike[str] | None = None,
     device: str = "cpu",
     progress: Callable[[dict[str, Any]], None] | None = None,
     log_every: int | None = None,
     overwrite: bool = False,
-    shield: Shield | None = None,
 ) -> TrainResult:
-    """Train the run in ``out``, resume it, or find it complete: :func:`train_policy` without the evaluation
-    (the arguments are its own). Writes ``metrics.json`` with the config and the training summary."""
-    out = Path(out)
-    if shield is not None and cfg.train_roads:
-        raise ValueError("training behind the safety layer drives the scenario alone: train_roads must be ''")
-    plan, t_start = _resolve(cfg, out, predictor, device, overwrite)
-    run = _Run(plan, out, progress, t_start)
+    """Train the run of ``plan`` in ``out``, resume it, or find it complete: :func:`train_policy` without the
+    evaluation (the other arguments are its own). Writes ``metrics.json`` with the config and the training
+    summary; behind ``plan.layer``, what the layer did in ``shield.json``."""
+    out, cfg, shield = Path(out), plan.config, plan.layer
+    replace, initial = _check(plan, out, device, overwrite)
+    run = _Run(plan, out, progress, time.perf_counter(), initial)
     # Every check has passed: from here on the directory is written.
-    if plan.replace:
+    if replace:
         removed, kept = remove_run_outputs(out)
         log.info("--overwrite: removed the %d files of the previous run in %s%s", removed, out,
                  f"; kept {len(kept)} files it did not write" if kept else "")
     out.mkdir(parents=True, exist_ok=True)
-    run_predictor = None if plan.pred_path is None else {"file": plan.pred_path.name, "sha256": str(plan.pred_sha),
-                                                         "path": plan.predictor_file}  # fmt: skip
+    run_predictor = None if plan.predictor_path is None else {
+        "file": plan.predictor_path.name, "sha256": str(plan.predictor_sha256), "path": plan.predictor_file}
     write_json(out / "run.json", {"config": cfg.to_dict(), "predictor": run_predictor,
                                    "scenario": plan.scenario.to_dict(), "versions": versions()})  # fmt: skip
     final = out / POLICY_FILE
@@ -481,7 +427,7 @@ def train_run(
     done_steps = int(train_info.get("timesteps", 0)) if final.exists() else 0
     torch.manual_seed(cfg.seed)
     if not final.exists() or done_steps < cfg.timesteps:
-        train_info = _train(plan, run, device, log_every, final, shield)
+        train_info = _train(run, device, log_every, final)
         if shield is not None:  # the decisions of the steps this call trained (a resumed run: since its checkpoint)
             write_json(out / "shield.json", shield.counts() | {"penalty": shield.penalty,
                                                                "from_step": run.start_timesteps,
@@ -489,7 +435,7 @@ def train_run(
     metrics: dict[str, Any] = {"config": cfg.to_dict(), "train": train_info}
     write_json(out / "metrics.json", metrics)
     return TrainResult(out, int(train_info.get("timesteps", 0)), float(train_info.get("wall_s", 0.0)), metrics,
-                       cfg, plan.scenario, plan.pred_path)  # fmt: skip
+                       cfg, plan.scenario, plan.predictor_path)  # fmt: skip
 
 
 def evaluate_run(result: TrainResult, *, device: str = "cpu",
@@ -519,19 +465,12 @@ def evaluate_run(result: TrainResult, *, device: str = "cpu",
     return summary
 
 
-def _resolve(cfg: PolicyConfig, out: Path, predictor: str | os.PathLike[str] | None, device: str,
-             overwrite: bool) -> tuple[_Plan, float]:
-    """Every check of :func:`train_policy` and what the run needs, read once (``ValueError``, nothing written);
-    and when the run's wall time starts (after the predictor was read)."""
+def _check(plan: RunPlan, out: Path, device: str, overwrite: bool) -> tuple[bool, LoadedPolicy | None]:
+    """Every check of the run directory ``out`` and of what the run starts from (``ValueError``, nothing
+    written): whether the run there is to be replaced, and the initial policy, loaded, when it starts from one."""
+    cfg = plan.config
     check_output_folder(out)
-    pred_path = Path(predictor) if predictor is not None and needs_predictor(cfg.obs) else None
-    if needs_predictor(cfg.obs) and pred_path is None:
-        raise ValueError(f"observation mode {cfg.obs!r} needs a trained predictor (--predictor)")
-    pred = Predictor.load(pred_path) if pred_path is not None else None
-    pred_sha = file_sha256(pred_path) if pred_path is not None else None
-    t_start = time.perf_counter()
-    scenario = cfg.scenario_config()
-    replace = check_run_dir(cfg, out, pred_sha, overwrite=overwrite, scenario=scenario)
+    replace = check_run_dir(cfg, out, plan.predictor_sha256, overwrite=overwrite, scenario=plan.scenario)
     if cfg.warm_start:
         path = Path(cfg.warm_start)
         if not path.is_dir():
@@ -548,26 +487,17 @@ def _resolve(cfg: PolicyConfig, out: Path, predictor: str | os.PathLike[str] | N
         path = Path(cfg.init_policy)  # checked to fit this run: mode, predictor, scenario, algorithm
         if not path.is_file():
             raise ValueError(f"init_policy {path} does not exist")
-        initial = load_policy(path, obs_mode=cfg.obs, scenario=scenario, device=device,
-                              predictor=None if pred_path is None else str(pred_path.resolve()))
+        initial = load_policy(path, obs_mode=cfg.obs, scenario=plan.scenario, device=device,
+                              predictor=plan.predictor_file)
         if initial.meta.get("algo") != cfg.algo:
             raise ValueError(f"init_policy {path} is a {initial.meta.get('algo')} policy, this run trains {cfg.algo}")
-    roads = cfg.road_configs() if cfg.train_roads else (scenario,)
-    for name, road in zip(cfg.road_names(), roads, strict=False):
-        if observation_space(road) != observation_space(scenario):
-            raise ValueError(f"train_roads: {name!r} gives other observations than the scenario {cfg.scenario!r} "
-                             "(neighbours, history or image size): a policy reads one shape")  # fmt: skip
-        if road.reward != scenario.reward:
-            raise ValueError(f"train_roads: {name!r} pays another reward than the scenario {cfg.scenario!r}: the "
-                             "training statistics read one")  # fmt: skip
-    return _Plan(cfg, scenario, pred, pred_path, pred_sha, replace, initial, roads), t_start
+    return replace, initial
 
 
-def _train(plan: _Plan, run: _Run, device: str, log_every: int | None, final: Path,
-           shield: Shield | None) -> dict[str, Any]:
-    cfg = plan.cfg
+def _train(run: _Run, device: str, log_every: int | None, final: Path) -> dict[str, Any]:
+    plan, cfg = run.plan, run.cfg
     state = run.restore()
-    base, env, encoder, model, warm = _build(plan, run.out, state, device, shield)
+    env, encoder, model, warm = _build(run, state, device)
     run.env = env
     env.seed(train_seed_base(cfg.seed, run.start_timesteps))
     model.set_logger(configure(str(run.out / "tb"), ["tensorboard"]))
@@ -581,15 +511,9 @@ def _train(plan: _Plan, run: _Run, device: str, log_every: int | None, final: Pa
     if callback.last_log != t:
         callback._log(t)
     run.checkpoint(model, t, callback.episodes_total)
-    card = plan.card(t, final.parent)
-    if encoder is not None:  # the policy file holds the frozen image branch again: any loader reads it
-        plain = build_model(cfg, ObservationModeVecEnv(base, cfg.obs, plan.pred), None, device)
-        trained, image = model.policy.state_dict(), encoder.state_dict()
-        plain.policy.load_state_dict({k: image[k.split(_IMAGE_BRANCH, 1)[1]] if _IMAGE_BRANCH in k else trained[k]
-                                      for k in plain.policy.state_dict()})  # fmt: skip
-        plain.num_timesteps = model.num_timesteps
-        model = plain
-    save_policy(model, final, card)
+    # the policy file of a frozen-image run holds the image branch again: any loader reads it as a plain policy
+    save_policy(model, final, plan.card(t, final.parent),
+                state=None if encoder is None else plain_policy_state(model.policy, encoder))  # fmt: skip
     info = {"timesteps": t, "wall_s": run.wall_s(), "episodes": callback.episodes_total,
             "resumed_from": run.start_timesteps, "warm_start": warm}  # fmt: skip
     env.close()
@@ -599,22 +523,23 @@ def _train(plan: _Plan, run: _Run, device: str, log_every: int | None, final: Pa
 _IMAGE_BRANCH = ".branches.image."  # in the policy's state-dict keys
 
 
-def _build(plan: _Plan, out: Path, state: dict[str, Any], device: str, shield: Shield | None
-           ) -> tuple[VecEnv, VecEnv, ImageEncoder | None, BaseAlgorithm, dict[str, Any] | None]:
-    """The environments (the simulator's, then the observation wrapper's), the frozen image branch of a
-    ``freeze_image`` run, and the model: a checkpoint's when ``state`` names one, else a fresh network,
-    warm-started or started from the initial policy (its weights; its image branch when frozen)."""
-    cfg, initial = plan.cfg, plan.initial
-    if shield is not None:
-        base: VecEnv = ShieldedSB3VecEnv(cfg.n_envs, plan.scenario, shield)
+def _build(run: _Run, state: dict[str, Any], device: str
+           ) -> tuple[VecEnv, ImageEncoder | None, BaseAlgorithm, dict[str, Any] | None]:
+    """The environments (the simulator's, behind the plan's safety layer when it has one, in the observation
+    wrapper), the frozen image branch of a ``freeze_image`` run, and the model: a checkpoint's when ``state`` names
+    one, else a fresh network, warm-started or started from the initial policy (its weights; its image branch when
+    frozen)."""
+    plan, cfg, initial, out = run.plan, run.cfg, run.initial, run.out
+    if plan.layer is not None:
+        base: VecEnv = ShieldedSB3VecEnv(cfg.n_envs, plan.scenario, plan.layer)
     elif len(plan.roads) > 1:
         base = MixedRoadsSB3VecEnv(cfg.n_envs, plan.roads)
     else:
         base = LaneChangeSB3VecEnv(cfg.n_envs, plan.scenario)
     encoder = None
     if cfg.freeze_image:  # kept in the run directory on the first start: a resume does not need init_policy
-        encoder = _frozen_image_encoder(plan, out / "image_encoder.pt")
-    env = policy_vec_env(base, cfg.obs, plan.pred, reward_scale=cfg.reward_scale, image_encoder=encoder,
+        encoder = _frozen_image_encoder(run, out / "image_encoder.pt")
+    env = policy_vec_env(base, cfg.obs, plan.predictor, reward_scale=cfg.reward_scale, image_encoder=encoder,
                          collision_weight=cfg.collision_weight)
     model = build_model(cfg, env, str(out / "tb"), device)
     warm: dict[str, Any] | None = None
@@ -637,7 +562,7 @@ def _build(plan: _Plan, out: Path, state: dict[str, Any], device: str, shield: S
     elif cfg.warm_start:
         from lcmodels.policy.warmstart import warm_start
 
-        warm = warm_start(cfg, model, plan.pred, plan.scenario, say=log.info)
+        warm = warm_start(cfg, model, plan.predictor, plan.scenario, say=log.info)
         write_json(out / "warm_start.json", warm)
     elif cfg.init_policy:
         assert initial is not None
@@ -651,13 +576,13 @@ def _build(plan: _Plan, out: Path, state: dict[str, Any], device: str, shield: S
         log.info("starting from the weights of %s", path)
         warm = {"init_policy": str(path.resolve()), "sha256": file_sha256(path)}
         write_json(out / "warm_start.json", warm)
-    return base, env, encoder, model, warm
+    return env, encoder, model, warm
 
 
-def _frozen_image_encoder(plan: _Plan, path: Path) -> ImageEncoder:
+def _frozen_image_encoder(run: _Run, path: Path) -> ImageEncoder:
     """The image branch of a ``freeze_image`` run with the initial policy's weights, which the first start
     keeps in the run directory (``path``) so that a resume (no ``initial``) does not need them."""
-    cfg = plan.cfg
+    cfg, plan = run.cfg, run.plan
     if path.exists():
         try:
             state = torch.load(path, map_location="cpu", weights_only=True)
@@ -665,8 +590,8 @@ def _frozen_image_encoder(plan: _Plan, path: Path) -> ImageEncoder:
             raise ValueError(f"{path} is not readable (truncated, corrupt or not a state dict: "
                              f"{type(exc).__name__})") from None
     else:
-        assert plan.initial is not None, "a first start has the initial policy"
-        policy = plan.initial.model.policy
+        assert run.initial is not None, "a first start has the initial policy"
+        policy = run.initial.model.policy
         extractor = policy.q_net.features_extractor if hasattr(policy, "q_net") else policy.features_extractor
         if not isinstance(extractor, HybridExtractor) or "image" not in extractor.branches:
             raise ValueError(f"init_policy {cfg.init_policy} has no image branch to freeze")
