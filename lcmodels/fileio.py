@@ -1,7 +1,7 @@
 """File names and small file helpers of the model layer (no heavy imports); the helpers live in
-:mod:`lcdata.fileio`, shared with recording."""
+:mod:`lckit.fileio`, shared with recording."""
 
-from lcdata.fileio import file_sha256, json_default, read_json, write_json
+from lckit.fileio import file_sha256, json_default, read_json, write_json
 
 POLICY_FILE = "policy.safetensors"
 """The file name a training run, a DAgger round or a conversion gives its policy (safetensors + card)."""
