@@ -144,6 +144,18 @@ def _check_out_dir(out: pathlib.Path) -> None:
         raise UsageError(str(exc)) from None
 
 
+def _check_targets(paths: list[pathlib.Path]) -> None:
+    """``UsageError`` when a file lc-record writes (or its ``.partial``) is a symbolic link: nothing is written
+    through one (:func:`lckit.fileio.check_target`)."""
+    from lckit.fileio import UnsafePathError, check_target
+
+    try:
+        for path in paths:
+            check_target(path)
+    except UnsafePathError as exc:
+        raise UsageError(str(exc)) from None
+
+
 def _make_out_dir(out: pathlib.Path) -> None:
     try:
         out.mkdir(parents=True, exist_ok=True)
@@ -309,6 +321,7 @@ def record_main(argv: Sequence[str] | None = None) -> int:
         paths = [args.out / episode_filename(label, name, s) for s in seeds]
         flags = record_flags(args, args.driver or default_driver(scenario_name), scenario_name, content)
         _check_out_dir(args.out)
+        _check_targets([args.out / RECORD_JSON, args.out / LOCK_NAME, *paths])
         key = paths[0].name.rsplit("_s", 1)[0]  # the scenario_driver prefix of the file names
         if args.out.is_dir():
             _check_resume(args.out, key, flags, paths, args.overwrite)
