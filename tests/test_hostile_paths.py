@@ -5,14 +5,20 @@ safely)."""
 
 from __future__ import annotations
 
+import json
 from pathlib import Path
 
 import pytest
 
 from lccli.calibrate import main as calibrate_main
+from lccli.experiment import experiment_main
 from lccli.record import record_main
 from lcdata.record import episode_filename
 from lckit.fileio import UnsafePathError
+from lcmodels.experiment import PRESETS, Experiment, StageKey
+from lcmodels.experiment.stages import stage_job
+from lcmodels.experiment.store import StageStore, Verdict
+from lcmodels.fileio import file_sha256
 
 from .test_bench import tiny_suite  # noqa: F401  (a fixture)
 
@@ -75,5 +81,74 @@ def test_an_episode_writer_never_writes_through_a_link(tmp_path: Path, victim: P
     with pytest.raises(UnsafePathError):
         record_episode(tiny_scenario(), 0, "rule", tmp_path / "ep.mcap", writer="inline")
     assert untouched(victim)
+
+
+# ------------------------------------------------------------------------------------------ lc-experiment
+def test_lc_experiment_refuses_a_stage_folder_or_a_record_that_leads_elsewhere(tmp_path: Path, victim: Path,
+                                                                               capsys) -> None:  # fmt: skip
+    run = tmp_path / "run"
+    run.mkdir()
+    (run / "experiment.json").write_text("{}")
+    (run / "corpus").symlink_to(victim.parent)  # a stale stage's folder: its rmtree would empty the target
+    assert experiment_main(["--preset", "tiny", "--out", str(run), "-q"]) == 2
+    one_line(capsys, "lc-experiment: error:", "corpus", "leads out of")
+    (run / "corpus").unlink()
+    (run / "stages").mkdir()
+    (run / "stages" / "corpus.pending.json.partial").symlink_to(victim)
+    assert experiment_main(["--preset", "tiny", "--out", str(run), "-q"]) == 2
+    one_line(capsys, "symbolic link")
+    assert untouched(victim)
+
+
+def test_a_stage_record_with_outputs_null_is_stale_and_one_outside_the_stage_is_refused(
+        tmp_path: Path, victim: Path, capsys) -> None:  # fmt: skip
+    run = tmp_path / "run"
+    exp = Experiment(PRESETS["tiny"], run)
+    key = StageKey.of("corpus")
+    job = stage_job(exp.context(), exp.graph()[key], {})
+    (run / "stages").mkdir(parents=True)
+    (run / "experiment.json").write_text("{}")
+    record = {"stage": "corpus", "config": job.config, "inputs": job.inputs, "wall_s": 1.0}
+    for outputs in (None, [], {"a.mcap": 7}, "x"):
+        (run / "stages" / "corpus.json").write_text(json.dumps(record | {"outputs": outputs}))
+        plan = {s.name: s.status for s in exp.plan()}
+        assert plan["corpus"] == "would run (stale: corpus.json does not read as a stage record)"
+    (run / "stages" / "corpus.json").write_text(json.dumps(record | {"wall_s": "soon", "outputs": {}}))
+    assert {s.name: s.status for s in exp.plan()}["corpus"].startswith("would run (stale")
+    # a policy elsewhere named by its absolute path, with its true hash: never read as the stage's output
+    (run / "stages" / "corpus.json").write_text(json.dumps(record | {"outputs": {str(victim): file_sha256(victim)}}))
+    with pytest.raises(UnsafePathError, match="leads out of"):
+        exp.plan()
+    assert experiment_main(["--preset", "tiny", "--out", str(run), "--dry-run"]) == 2
+    one_line(capsys, "corpus.json", "leads out of", "remove the record")
+    (run / "corpus").mkdir()
+    (run / "corpus" / "a.mcap").symlink_to(victim)  # in the folder, but a link to elsewhere
+    (run / "stages" / "corpus.json").write_text(json.dumps(record | {"outputs": {"a.mcap": file_sha256(victim)}}))
+    with pytest.raises(UnsafePathError, match="leads out of"):
+        exp.plan()
+    assert untouched(victim)
+
+
+def test_a_stale_stage_removes_a_link_in_the_run_as_a_link(tmp_path: Path) -> None:
+    run = tmp_path / "run"
+    (run / "kept").mkdir(parents=True)
+    (run / "kept" / "file").write_text("mine")
+    (run / "corpus").symlink_to(run / "kept")  # inside the run: no escape, but not the stage's own folder
+    store = StageStore(run)
+    attempt = store.begin(StageKey.of("corpus"), Verdict(False, "new"), {}, {})
+    assert attempt.path.is_dir() and not attempt.path.is_symlink()
+    assert (run / "kept" / "file").read_text() == "mine"
+    (run / "corpus" / "inner").symlink_to(run / "kept")
+    store.begin(StageKey.of("corpus"), Verdict(False, "stale"), {}, {})  # rmtree: the link inside goes as a link
+    assert (run / "kept" / "file").read_text() == "mine" and not (run / "corpus" / "inner").exists()
+
+
+def test_ctrl_c_in_lc_experiment_is_one_line_and_exit_130(tmp_path: Path, monkeypatch, capsys) -> None:
+    def interrupted(self, **kwargs):
+        raise KeyboardInterrupt
+
+    monkeypatch.setattr(Experiment, "run", interrupted)
+    assert experiment_main(["--preset", "tiny", "--out", str(tmp_path / "run"), "-q"]) == 130
+    one_line(capsys, "lc-experiment: interrupted", "rerun the same command")
 
 

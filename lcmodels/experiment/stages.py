@@ -9,13 +9,13 @@ from __future__ import annotations
 
 import dataclasses
 import logging
-import shutil
 import time
 from collections.abc import Callable, Mapping
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
+from lckit.fileio import make_folder, remove_file, remove_tree
 from lcmodels.experiment.graph import Stage
 from lcmodels.experiment.keys import StageKey
 from lcmodels.experiment.layer import card_lookahead, recipe_lookahead
@@ -112,7 +112,7 @@ def _record_job(ctx: StageContext, key: StageKey, config: Any, seeds: list[int],
         from lcdata.record import iter_record_episodes
 
         for p in path.glob("*.partial"):
-            p.unlink()
+            remove_file(p, ctx.out)
         todo = [s for s, n in zip(seeds, names, strict=True) if not (path / n).exists()]
         workers = max(1, min(ctx.preset.record_workers, len(todo)))
         for i, r in enumerate(iter_record_episodes(config, todo, driver, path, scenario=scenario, workers=workers,
@@ -210,7 +210,8 @@ def _evaluation_job(ctx: StageContext, key: StageKey, spec: str, inputs: dict[st
         for split, seed, episodes in splits:
             done = path / f"{split}-seed{seed}.json"  # a split finished before an interruption is kept
             summary = read_json(done) if keep else None
-            if summary is None or summary.get("episodes") != episodes:
+            if not isinstance(summary, dict) or summary.get("episodes") != episodes or not isinstance(
+                    summary.get("wall_s"), int | float):  # a split cut short or edited is run again
                 summary = run_split(split, seed, episodes, done, save_wall)
             total += float(summary["wall_s"])
             if split == "val":
@@ -226,6 +227,8 @@ def _evaluation_job(ctx: StageContext, key: StageKey, spec: str, inputs: dict[st
 
         t0 = time.perf_counter()
         rec = p.record_eval and split == "test"
+        if rec:
+            make_folder(path / "episodes", ctx.out)  # never recorded through a link out of the experiment
         pool = ctx.pool()
         summary, _ = evaluate_sharded(
             spec, scenario, episodes=episodes, seed=seed, pool=pool, shards=ctx.shards(pool), executor=ctx.executor,
@@ -302,7 +305,7 @@ def _showcase_job(ctx: StageContext, key: StageKey, entries: Any, got: Mapping[s
         from lcmodels.policy.evaluate import driver_for, evaluate
 
         for old in path.glob("*"):
-            old.unlink()
+            remove_file(old, ctx.out)
         driver, config = driver_for(str(entry.policy), predictor=str(entry.predictor) if entry.predictor else None)
         evaluate(driver, config, episodes=p.showcase_episodes, seed=p.test_seed, out_dir=path,
                  scenario=f"zoo-{entry.name}", overwrite=True)  # fmt: skip
@@ -324,7 +327,8 @@ def resumable_policy_change(prior: dict[str, Any], now: dict[str, Any]) -> bool:
     free = ("timesteps", "checkpoint_every", "eval_episodes", "eval_seed", "eval_batch", "record_eval")
     if any(prior.get(k) != now.get(k) for k in now if k not in free):
         return False
-    return int(prior.get("timesteps", 0)) <= int(now["timesteps"])
+    timesteps = prior.get("timesteps", 0)
+    return isinstance(timesteps, int) and timesteps <= int(now["timesteps"])
 
 
 def stored_stage_config(data: dict[str, Any]) -> dict[str, Any]:
@@ -396,8 +400,8 @@ def _policy_job(ctx: StageContext, key: StageKey, recipe: Recipe, got: Mapping[s
         except ValueError as exc:  # the directory holds another run (e.g. moved --out): start over
             if "another configuration" not in str(exc):
                 raise
-            shutil.rmtree(path)
-            path.mkdir(parents=True)
+            remove_tree(path, ctx.out)
+            make_folder(path, ctx.out)
             res = train_run(cfg, path, predictor=pred_path, progress=show, shield=shield)
         return res.wall_s
 
