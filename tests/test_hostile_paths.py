@@ -10,6 +10,7 @@ from pathlib import Path
 
 import pytest
 
+from lccli.bench import main as bench_main
 from lccli.calibrate import main as calibrate_main
 from lccli.experiment import experiment_main
 from lccli.record import record_main
@@ -150,5 +151,53 @@ def test_ctrl_c_in_lc_experiment_is_one_line_and_exit_130(tmp_path: Path, monkey
     monkeypatch.setattr(Experiment, "run", interrupted)
     assert experiment_main(["--preset", "tiny", "--out", str(tmp_path / "run"), "-q"]) == 130
     one_line(capsys, "lc-experiment: interrupted", "rerun the same command")
+
+
+# ------------------------------------------------------------------------------------------------ lc-bench
+def test_lc_bench_never_writes_its_table_through_a_link_nor_over_a_users_file(tiny_suite: Path, tmp_path: Path,  # noqa: F811
+                                                                              victim: Path, capsys) -> None:  # fmt: skip
+    out = tmp_path / "bench"
+    out.mkdir()
+    argv = ["rule", "--suite", "tiny", "--scenario", "tiny-a", "--episodes", "2", "--out", str(out), "-q"]
+    for name in ("BENCH.md", "bench.json", "BENCH.md.partial"):
+        (out / name).symlink_to(victim)
+        assert bench_main(argv) == 2
+        one_line(capsys, "lc-bench: error:", "symbolic link")
+        (out / name).unlink()
+    (out / "cells").symlink_to(victim.parent)
+    assert bench_main(argv) == 2
+    one_line(capsys, "cells", "leads out of")
+    (out / "cells").unlink()
+    assert untouched(victim)
+    (out / "BENCH.md").write_text("# my notes on the benchmark\n")
+    assert bench_main(argv) == 2
+    one_line(capsys, "lc-bench did not write it", "--overwrite")
+    assert (out / "BENCH.md").read_text() == "# my notes on the benchmark\n"
+    assert bench_main([*argv, "--overwrite"]) == 0
+    assert (out / "BENCH.md").read_text().rstrip().splitlines()[-1].startswith("`lc-bench ")
+    assert bench_main(argv) == 0  # its own table it replaces
+
+
+def test_lc_bench_names_a_callable_that_fails_and_what_it_returned(tiny_suite: Path, tmp_path: Path,  # noqa: F811
+                                                                   monkeypatch, capsys) -> None:  # fmt: skip
+    (tmp_path / "mine").mkdir()
+    (tmp_path / "mine" / "odd_policies.py").write_text(
+        "import numpy as np\n\n"
+        "def three(obs, mask, extra):\n    return np.ones(len(mask), dtype=np.int64)\n\n"
+        "def none():\n    return 1\n\n"
+        "def boom(obs):\n    raise RuntimeError('the network is on holiday')\n\n"
+        "def words(obs):\n    return ['left'] * len(obs['current'])\n\n"
+        "def nothing(obs):\n    return None\n\n"
+        "def ragged(obs):\n    return [[1], [1, 2]]\n\n"
+        "def far(obs):\n    return np.full(len(obs['current']), 7)\n")
+    monkeypatch.syspath_prepend(str(tmp_path / "mine"))
+    for name, words in (("three", ["takes (obs, mask, extra)", "fn(obs)"]), ("none", ["takes ()"]),
+                        ("boom", ["raised RuntimeError: the network is on holiday"]),
+                        ("words", ["returned a list of", "str"]), ("nothing", ["returned NoneType None"]),
+                        ("ragged", ["returned a list of 2 item(s)"]), ("far", ["from 7 to 7", "0..2"])):
+        argv = [f"odd_policies:{name}", "--suite", "tiny", "--scenario", "tiny-a", "--episodes", "2", "--out",
+                str(tmp_path / "b"), "-q"]  # fmt: skip
+        assert bench_main(argv) == 2, name
+        one_line(capsys, "lc-bench: error:", f"odd_policies:{name}", *words)
 
 
