@@ -13,6 +13,7 @@ import pytest
 from lccli.bench import main as bench_main
 from lccli.calibrate import main as calibrate_main
 from lccli.experiment import experiment_main
+from lccli.policy import train_policy_main
 from lccli.record import record_main
 from lcdata.record import episode_filename
 from lckit.fileio import UnsafePathError
@@ -199,5 +200,39 @@ def test_lc_bench_names_a_callable_that_fails_and_what_it_returned(tiny_suite: P
                 str(tmp_path / "b"), "-q"]  # fmt: skip
         assert bench_main(argv) == 2, name
         one_line(capsys, "lc-bench: error:", f"odd_policies:{name}", *words)
+
+
+# ----------------------------------------------------------------------------------------- lc-train-policy
+def test_lc_train_policy_overwrite_never_deletes_through_a_linked_folder(tmp_path: Path, victim: Path,
+                                                                         capsys) -> None:  # fmt: skip
+    out = tmp_path / "run"
+    out.mkdir()
+    (out / "run.json").write_text(json.dumps({"config": {"obs": "image"}}))
+    (victim.parent / "step-64.safetensors").write_text("someone's weights")
+    (out / "checkpoints").symlink_to(victim.parent)
+    assert train_policy_main([*TINY_TRAIN, "--out", str(out), "--overwrite"]) == 2
+    one_line(capsys, "lc-train-policy: error:", "checkpoints", "leads out of")
+    assert (victim.parent / "step-64.safetensors").read_text() == "someone's weights"
+    assert victim.read_text() == "years of work"
+    from lcmodels.policy.train import remove_run_outputs
+
+    (out / "checkpoints").unlink()
+    (out / "tb").mkdir()
+    (out / "tb" / "PPO_1").symlink_to(victim.parent)  # deeper: tb/*/events... would reach through it
+    (victim.parent / "events.out.tfevents.1").write_text("someone's log")
+    with pytest.raises(UnsafePathError):
+        remove_run_outputs(out)
+    assert (victim.parent / "events.out.tfevents.1").exists() and (out / "run.json").exists()  # nothing went
+
+
+def test_ctrl_c_in_lc_train_policy_is_one_line_and_exit_130(tmp_path: Path, monkeypatch, capsys) -> None:
+    import lcmodels.policy.train as train
+
+    def interrupted(*args, **kwargs):
+        raise KeyboardInterrupt
+
+    monkeypatch.setattr(train, "train_policy", interrupted)
+    assert train_policy_main([*TINY_TRAIN, "--out", str(tmp_path / "run")]) == 130
+    one_line(capsys, "lc-train-policy: interrupted", "rerun the same command")
 
 
