@@ -15,12 +15,14 @@ from lccli.calibrate import main as calibrate_main
 from lccli.experiment import experiment_main
 from lccli.policy import train_policy_main
 from lccli.record import record_main
+from lccli.tune import main as tune_main
 from lcdata.record import episode_filename
 from lckit.fileio import UnsafePathError
 from lcmodels.experiment import PRESETS, Experiment, StageKey
 from lcmodels.experiment.stages import stage_job
 from lcmodels.experiment.store import StageStore, Verdict
 from lcmodels.fileio import file_sha256
+from lcmodels.sweep import MAX_TRIALS, Sweep, trial_name
 
 from .test_bench import tiny_suite  # noqa: F401  (a fixture)
 
@@ -234,5 +236,36 @@ def test_ctrl_c_in_lc_train_policy_is_one_line_and_exit_130(tmp_path: Path, monk
     monkeypatch.setattr(train, "train_policy", interrupted)
     assert train_policy_main([*TINY_TRAIN, "--out", str(tmp_path / "run")]) == 130
     one_line(capsys, "lc-train-policy: interrupted", "rerun the same command")
+
+
+# ------------------------------------------------------------------------------------------------ lc-tune
+BASE = '[base]\nobs = "pure"\nscenario = "tiny"\ntimesteps = 64\nn_envs = 2\nn_steps = 32\nbatch_size = 64\n' \
+       'n_epochs = 1\neval_episodes = 0\n'
+
+
+def test_lc_tune_names_its_trials_safely_and_caps_their_number(tmp_path: Path, capsys) -> None:
+    road = tmp_path / "roads" / "sub" / ".." / "my road.toml"
+    (tmp_path / "roads" / "sub").mkdir(parents=True)
+    (tmp_path / "roads" / "my road.toml").write_text('[traffic]\nnum_vehicles = 8\n')
+    (tmp_path / "s.toml").write_text(f"seeds = [0]\n{BASE}[grid]\nscenario = [{json.dumps(str(road))}]\n")
+    ((name, _),) = Sweep.from_file(tmp_path / "s.toml").trials()
+    assert "/" not in name and ".." not in name and name.endswith("_seed0") and len(name) <= 110
+    assert name == trial_name({"scenario": str(road)}) + "_seed0"
+    assert trial_name({"gamma": 0.9, "window_features": False}) == "gamma=0.9_window_features=false"  # as before
+    assert trial_name({"gamma": "x" * 500}) != trial_name({"gamma": "x" * 501})  # cut, and still apart
+    assert tune_main([str(tmp_path / "s.toml"), "--out", str(tmp_path / "out"), "-q"]) == 0
+    assert [p.name for p in (tmp_path / "out" / "trials").iterdir()] == [name]
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["out", "roads", "s.toml"]
+    # 10^9 trials: refused at once, from the axes' lengths, before one is made
+    (tmp_path / "big.toml").write_text(BASE + "[grid]\n" + "".join(
+        f"{k} = [{', '.join(str(0.5 + i / 100) for i in range(10))}]\n" for k in
+        ("gamma", "gae_lambda", "clip_range", "ent_coef", "vf_coef", "max_grad_norm", "learning_rate",
+         "collision_weight", "target_kl")))  # fmt: skip
+    assert tune_main([str(tmp_path / "big.toml"), "--out", str(tmp_path / "big"), "-q"]) == 2
+    one_line(capsys, "1000000000 trials", f"at most {MAX_TRIALS}")
+    (tmp_path / "twice.toml").write_text(BASE + "[grid]\ngamma = [0.9, 0.90]\n")
+    assert tune_main([str(tmp_path / "twice.toml"), "--out", str(tmp_path / "twice"), "-q"]) == 2
+    one_line(capsys, "share the folder")
+    assert not (tmp_path / "big").exists() and not (tmp_path / "twice").exists()
 
 
