@@ -12,6 +12,7 @@ import pytest
 
 from lccli.bench import main as bench_main
 from lccli.calibrate import main as calibrate_main
+from lccli.dagger import main as dagger_main
 from lccli.experiment import experiment_main
 from lccli.policy import train_policy_main
 from lccli.record import record_main
@@ -267,5 +268,35 @@ def test_lc_tune_names_its_trials_safely_and_caps_their_number(tmp_path: Path, c
     assert tune_main([str(tmp_path / "twice.toml"), "--out", str(tmp_path / "twice"), "-q"]) == 2
     one_line(capsys, "share the folder")
     assert not (tmp_path / "big").exists() and not (tmp_path / "twice").exists()
+
+
+# ----------------------------------------------------------------------------------------------- lc-dagger
+@pytest.mark.parametrize(("book", "words"), [
+    ({"run_dir": "x", "rounds": [{"round": "1/../../x", "states_labelled": 0, "episodes": 1, "user_seeds": [0, 0]}]},
+     ["round 1 is not a record"]),
+    ({"run_dir": "x", "rounds": "abc"}, ["rounds is not a list"]),
+    ({"run_dir": "x", "rounds": [{"round": 1, "states_labelled": 3, "episodes": 1}]}, ["round 1 is not a record"]),
+    ({"run_dir": "x", "rounds": [None]}, ["round 1 is not a record"]),
+    ({"run_dir": 7, "rounds": []}, ["not a record of DAgger rounds"]),
+    ([1, 2], ["not a record of DAgger rounds"]),
+    ({"run_dir": "x", "rounds": None}, ["lists no finished round"]),
+])
+def test_lc_dagger_resume_refuses_malformed_rounds_in_one_line(tmp_path: Path, capsys, book, words) -> None:
+    out = tmp_path / "dg"
+    out.mkdir()
+    (out / "dagger.json").write_text(json.dumps(book))
+    assert dagger_main([str(tmp_path / "run"), "--out", str(out), "--resume"]) == 2
+    one_line(capsys, "lc-dagger: error:", *words)
+
+
+def test_lc_dagger_resume_refuses_a_round_folder_that_leads_elsewhere(tmp_path: Path, victim: Path, capsys) -> None:
+    out = tmp_path / "dg"
+    out.mkdir()
+    round1 = {"round": 1, "states_labelled": 0, "episodes": 1, "user_seeds": [0, 0]}
+    (out / "dagger.json").write_text(json.dumps({"run_dir": "x", "rounds": [round1]}))
+    (out / "round1").symlink_to(victim.parent)
+    assert dagger_main([str(tmp_path / "run"), "--out", str(out), "--resume"]) == 2
+    one_line(capsys, "round1", "leads out of")
+    assert untouched(victim)
 
 
