@@ -13,6 +13,7 @@ import pytest
 from lccli.bench import main as bench_main
 from lccli.calibrate import main as calibrate_main
 from lccli.dagger import main as dagger_main
+from lccli.evaluate import eval_main
 from lccli.experiment import experiment_main
 from lccli.policy import train_policy_main
 from lccli.record import record_main
@@ -300,3 +301,23 @@ def test_lc_dagger_resume_refuses_a_round_folder_that_leads_elsewhere(tmp_path: 
     assert untouched(victim)
 
 
+# --------------------------------------------------------------------------------------------------- zoo:
+def test_a_zoo_name_is_an_entry_of_the_zoo_and_nothing_above_it(tmp_path: Path, monkeypatch, capsys) -> None:
+    from lcmodels.zoo import CHECKOUT_ZOO, resolve_policy_spec
+
+    zoo = tmp_path / "zoo"
+    (zoo / "inner").mkdir(parents=True)
+    policy = CHECKOUT_ZOO / "pure-ppo" / "policy.safetensors"
+    (zoo / "policy.safetensors").write_bytes(policy.read_bytes())  # the zoo folder's parent holds a policy
+    (tmp_path / "away").mkdir()
+    (tmp_path / "away" / "policy.safetensors").write_bytes(policy.read_bytes())
+    (zoo / "inner" / "linked").symlink_to(tmp_path / "away")
+    monkeypatch.setenv("LC_ZOO", str(zoo / "inner"))
+    for spec in ("zoo:..", "zoo:../inner/..", "zoo:.", "zoo:linked", "safety-layer:zoo:.."):
+        with pytest.raises(ValueError, match=r"no zoo policy|leads out of"):
+            resolve_policy_spec(spec)
+    capsys.readouterr()
+    with pytest.raises(SystemExit) as exit_:  # the zoo name is checked where argparse reads it
+        eval_main(["zoo:..", "--episodes", "1", "--no-record"])
+    errors = [line for line in capsys.readouterr().err.splitlines() if ": error:" in line]
+    assert exit_.value.code == 2 and len(errors) == 1 and "no zoo policy '..'" in errors[0]
