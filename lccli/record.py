@@ -332,13 +332,13 @@ def record_main(argv: Sequence[str] | None = None) -> int:
         return int(exc.code or 0)
     # Every check has passed: from here on --out is written, by this process alone (a second lc-record there is
     # refused rather than recording the same files at once).
-    from lcdata.fileio import folder_lock
+    from lcdata.fileio import UnsafePathError, folder_lock
 
     try:
         _make_out_dir(args.out)
         with folder_lock(args.out, "lc-record", LOCK_NAME):
             return _record(args, config, driver, label, seeds, paths, key, flags, start_ns)
-    except (UsageError, ValueError) as exc:
+    except (UsageError, ValueError, UnsafePathError) as exc:  # a link or a foreign lock: refused, not failed
         print(f"lc-record: error: {' '.join(str(exc).split())}", file=sys.stderr)
         return 2
     except (OSError, RuntimeError) as exc:  # a full disk, a folder removed while recording, the writer failing
