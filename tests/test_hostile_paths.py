@@ -6,6 +6,10 @@ safely)."""
 from __future__ import annotations
 
 import json
+import signal
+import subprocess
+import sys
+import time
 from pathlib import Path
 
 import pytest
@@ -149,13 +153,33 @@ def test_a_stale_stage_removes_a_link_in_the_run_as_a_link(tmp_path: Path) -> No
     assert (run / "kept" / "file").read_text() == "mine" and not (run / "corpus" / "inner").exists()
 
 
-def test_ctrl_c_in_lc_experiment_is_one_line_and_exit_130(tmp_path: Path, monkeypatch, capsys) -> None:
-    def interrupted(self, **kwargs):
-        raise KeyboardInterrupt
+def interrupt(command: str, argv: list[str], once: Path, cwd: Path) -> tuple[int, str]:
+    """Run ``command``'s entry point (``module:function``) with ``argv`` as a user would, press Ctrl-C (SIGINT) once
+    ``once`` exists, and return its exit status and stderr."""
+    module, main = command.split(":")
+    code = f"import sys; from {module} import {main}; raise SystemExit({main}(sys.argv[1:]))"
+    proc = subprocess.Popen([sys.executable, "-c", code, *argv], cwd=cwd, stdout=subprocess.DEVNULL,
+                            stderr=subprocess.PIPE, text=True)  # fmt: skip
+    try:
+        deadline = time.monotonic() + 600
+        while not once.exists():
+            assert proc.poll() is None, proc.communicate()[1]
+            assert time.monotonic() < deadline, f"{once} never appeared"
+            time.sleep(0.05)
+        proc.send_signal(signal.SIGINT)
+        return proc.wait(timeout=600), proc.communicate()[1]
+    finally:
+        if proc.poll() is None:
+            proc.kill()
 
-    monkeypatch.setattr(Experiment, "run", interrupted)
-    assert experiment_main(["--preset", "tiny", "--out", str(tmp_path / "run"), "-q"]) == 130
-    one_line(capsys, "lc-experiment: interrupted", "rerun the same command")
+
+def test_ctrl_c_in_lc_experiment_is_one_line_and_exit_130(tmp_path: Path) -> None:
+    run = tmp_path / "run"
+    rc, err = interrupt("lccli.experiment:experiment_main", ["--preset", "tiny", "--out", str(run), "-q"],
+                        run / "stages" / "corpus.pending.json", tmp_path)  # fmt: skip
+    lines = err.strip().splitlines()
+    assert rc == 130 and len(lines) == 1 and "lc-experiment: interrupted" in lines[0], err
+    assert "rerun the same command" in lines[0]
 
 
 # ------------------------------------------------------------------------------------------------ lc-bench
@@ -229,15 +253,13 @@ def test_lc_train_policy_overwrite_never_deletes_through_a_linked_folder(tmp_pat
     assert (victim.parent / "events.out.tfevents.1").exists() and (out / "run.json").exists()  # nothing went
 
 
-def test_ctrl_c_in_lc_train_policy_is_one_line_and_exit_130(tmp_path: Path, monkeypatch, capsys) -> None:
-    import lcmodels.policy.train as train
-
-    def interrupted(*args, **kwargs):
-        raise KeyboardInterrupt
-
-    monkeypatch.setattr(train, "train_policy", interrupted)
-    assert train_policy_main([*TINY_TRAIN, "--out", str(tmp_path / "run")]) == 130
-    one_line(capsys, "lc-train-policy: interrupted", "rerun the same command")
+def test_ctrl_c_in_lc_train_policy_is_one_line_and_exit_130(tmp_path: Path) -> None:
+    run = tmp_path / "run"
+    argv = [*TINY_TRAIN, "--timesteps", "1000000", "--out", str(run)]
+    rc, err = interrupt("lccli.policy:train_policy_main", argv, run / "run.json", tmp_path)
+    lines = err.strip().splitlines()
+    assert rc == 130 and len(lines) == 1 and "lc-train-policy: interrupted" in lines[0], err
+    assert "rerun the same command" in lines[0]
 
 
 # ------------------------------------------------------------------------------------------------ lc-tune
