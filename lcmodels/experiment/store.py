@@ -7,6 +7,11 @@ current config and inputs and whose outputs still hash to the recorded values is
 redone. ``stages/<stage>.pending.json`` is written when a stage starts: a stage interrupted with the same config
 and inputs continues from what it left (``keep``); one whose config or inputs changed starts from an empty
 directory.
+
+Records are files anyone can edit: a stage's folder and every output its record names must resolve inside the
+experiment directory (else one line refuses the run, naming the record), and a record that does not read as
+one (outputs null, times that are not numbers) makes its stage stale. Folders are emptied and records written
+with :mod:`lckit.fileio`'s helpers: never through a link, never out of the directory.
 """
 
 from __future__ import annotations
