@@ -281,10 +281,10 @@ def test_lc_tune_names_its_trials_safely_and_caps_their_number(tmp_path: Path, c
     assert [p.name for p in (tmp_path / "out" / "trials").iterdir()] == [name]
     assert sorted(p.name for p in tmp_path.iterdir()) == ["out", "roads", "s.toml"]
     # 10^9 trials: refused at once, from the axes' lengths, before one is made
-    (tmp_path / "big.toml").write_text(BASE + "[grid]\n" + "".join(
-        f"{k} = [{', '.join(str(0.5 + i / 100) for i in range(10))}]\n" for k in
-        ("gamma", "gae_lambda", "clip_range", "ent_coef", "vf_coef", "max_grad_norm", "learning_rate",
-         "collision_weight", "target_kl")))  # fmt: skip
+    axes = {k: [0.5 + i / 100 for i in range(10)] for k in ("learning_rate", "gamma", "ent_coef", "reward_scale",
+                                                            "collision_weight", "exploration_fraction")}
+    axes |= {"n_epochs": list(range(1, 11)), "warm_start_epochs": list(range(1, 11)), "eval_seed": list(range(10))}
+    (tmp_path / "big.toml").write_text(BASE + "[grid]\n" + "".join(f"{k} = {v}\n" for k, v in axes.items()))
     assert tune_main([str(tmp_path / "big.toml"), "--out", str(tmp_path / "big"), "-q"]) == 2
     one_line(capsys, "1000000000 trials", f"at most {MAX_TRIALS}")
     (tmp_path / "twice.toml").write_text(BASE + "[grid]\ngamma = [0.9, 0.90]\n")
