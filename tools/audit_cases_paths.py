@@ -87,10 +87,12 @@ def build(root: Path, Case: Any) -> list[Any]:
     victim = root / "victim"
 
     def restore() -> None:
-        """``victim/`` as it was made (a case before may have changed it: the audit of a command that did)."""
-        if victim.is_dir():
-            shutil.rmtree(victim)
-        victim.mkdir()
+        """``victim/`` as it was made (a case before may have changed it: the audit of a command that did), its
+        files rewritten in place: a hard link to one stays one."""
+        victim.mkdir(exist_ok=True)
+        for p in victim.iterdir():
+            if p.name not in VICTIM:
+                shutil.rmtree(p) if p.is_dir() and not p.is_symlink() else p.unlink()
         for name, text in VICTIM.items():
             (victim / name).write_text(text)
 
@@ -309,7 +311,8 @@ def build(root: Path, Case: Any) -> list[Any]:
           for what, out in dagger.items()),
         Case("lc-eval: zoo:.. with LC_ZOO", ["lc-eval", "zoo:..", "--episodes", "1", "--no-record"], env=in_zoo,
              **kept()),
-        Case("lc-record: --driver zoo:.. with LC_ZOO", [*rec, "--driver", "zoo:..", "--out", f"{r}/rec-zoo"],
+        Case("lc-record: --driver zoo:.. with LC_ZOO", ["lc-record", "--driver", "zoo:..", "--no-images", "--out",
+                                                         f"{r}/rec-zoo"],
              env=in_zoo, **kept(lambda: "rec-zoo was written" if (root / "rec-zoo").exists() else "")),
         Case("lc-bench: safety-layer:zoo:.. with LC_ZOO", [*bench, "safety-layer:zoo:..", "--out", f"{r}/bench-zoo"],
              env=in_zoo, **kept()),
