@@ -32,8 +32,8 @@ from lcmodels.sweep import MAX_TRIALS, Sweep, trial_name
 
 from .test_bench import tiny_suite  # noqa: F401  (a fixture)
 
-TINY_TRAIN = ["--obs", "pure", "--scenario", "tiny", "--timesteps", "64", "--set", "n_envs=2", "--set",
-              "n_steps=32", "--set", "eval_episodes=0", "-q"]  # fmt: skip
+TINY_TRAIN = ["--obs", "pure", "--scenario", "tiny", "--timesteps", "64", "--set", "n_envs=2", "--set", "n_steps=32",
+              "--set", "batch_size=64", "--set", "eval_episodes=0", "-q"]  # fmt: skip
 
 
 @pytest.fixture
