@@ -44,7 +44,8 @@ prints `checked K/N episodes, ok`, `MISMATCH` (the first episode that differs; t
 with one line per mismatching line), or `not checkable` with the reason (weights not present, a road whose
 config changed since). A file whose weights differ from the line's digest is refused.
 
-Writes --out/BENCH.md and --out/bench.json: per scenario the ceiling, the floor and each driver's success
+Writes --out/BENCH.md and --out/bench.json (replacing those an earlier lc-bench wrote; any other file of
+those names only with --overwrite): per scenario the ceiling, the floor and each driver's success
 and collision with Wilson 95% intervals over episodes and the normalised score (success / ceiling's
 success); per driver the suite's mean normalised score and McNemar's exact test against the first driver on
 the same episodes; per method (a recipe's training seeds) the IQM with rliable's bootstrap interval and
@@ -84,6 +85,8 @@ def bench_parser() -> argparse.ArgumentParser:
                        help="the seed the sample of episodes is drawn with (default 0)")
     p.add_argument("--out", type=Path, default=None,
                    help="where the table and the cached cells go (default runs/bench, or runs/bench-final)")
+    p.add_argument("--overwrite", action="store_true",
+                   help="replace a BENCH.md or bench.json in --out that lc-bench did not write")
     add_safety_layer_arguments(p)
     p.add_argument("--batch", type=positive_int, default=20, help="episodes simulated together (default 20)")
     p.add_argument("--threads", type=positive_int, default=1, help="torch threads per process (default 1)")
@@ -163,6 +166,43 @@ def _list() -> str:
     return "\n".join(lines)
 
 
+OUTPUTS = ("BENCH.md", "bench.json")
+"""What lc-bench writes in --out besides its cells/ (each names the command that made it)."""
+
+
+def written_by_bench(path: Path) -> bool:
+    """Whether lc-bench wrote ``path``: a ``BENCH.md`` whose last line is the lc-bench command that made it, a
+    ``bench.json`` whose ``command`` is one (what :func:`main` puts in both)."""
+    from lckit.fileio import read_json
+
+    if path.suffix == ".json":
+        data = read_json(path)
+        return isinstance(data, dict) and str(data.get("command", "")).startswith("lc-bench ")
+    try:
+        with path.open("rb") as f:
+            f.seek(max(0, path.stat().st_size - 4096))
+            tail = f.read().decode(errors="replace").rstrip().splitlines()
+    except OSError:
+        return False
+    return bool(tail) and tail[-1].startswith("`lc-bench ") and tail[-1].endswith("`")
+
+
+def check_out(out: Path, overwrite: bool) -> None:
+    """``ValueError`` (or :class:`~lckit.fileio.UnsafePathError`) in one line, before anything runs, when lc-bench
+    may not write in ``out``: a file, a ``cells/`` that leads out of it, a ``BENCH.md`` or ``bench.json`` that is
+    a symbolic link, or one lc-bench did not write (unless ``overwrite``)."""
+    from lckit.fileio import check_inside, check_target
+
+    if out.exists() and not out.is_dir():
+        raise ValueError(f"--out {out} exists and is not a directory")
+    check_inside(out / "cells", out)
+    for name in OUTPUTS:
+        path = check_target(out / name, out)
+        if path.exists() and not overwrite and not written_by_bench(path):
+            raise ValueError(f"{path} exists and lc-bench did not write it; pass --overwrite to replace it, or "
+                             "choose another --out")
+
+
 def main(argv: list[str] | None = None) -> int:
     args = bench_parser().parse_args(argv)
     error = lambda msg: fail("lc-bench", msg)  # noqa: E731
@@ -177,6 +217,7 @@ def main(argv: list[str] | None = None) -> int:
         return error("name at least one POLICY (or --list)")
     command = "lc-bench " + shlex.join(sys.argv[1:] if argv is None else argv)
 
+    from lckit.fileio import write_file
     from lcmodels.bench.ledger import NOT_COMMITTED, is_committed, ledger_path, read_ledger
     from lcmodels.bench.run import Runner, bench_cell, resolve_driver
     from lcmodels.bench.table import CEILING, FLOOR, suite_markdown, suite_summary
@@ -208,8 +249,10 @@ def main(argv: list[str] | None = None) -> int:
     except (ValueError, OSError) as exc:
         return error(str(exc).splitlines()[0])
     out = args.out or Path("runs") / ("bench-final" if args.final else "bench")
-    if out.exists() and not out.is_dir():
-        return error(f"--out {out} exists and is not a directory")
+    try:
+        check_out(out, args.overwrite)
+    except (ValueError, OSError) as exc:
+        return error(str(exc))
     from lcsim.planning import split_safety_layer
 
     try:
@@ -266,15 +309,19 @@ def main(argv: list[str] | None = None) -> int:
     summary["command"] = command
     if args.final:
         summary["ledger"] = {"path": str(ledger), "committed": is_committed(ledger)}
-    markdown = suite_markdown(summary, command)
-    out.mkdir(parents=True, exist_ok=True)
-    if not args.no_figures:
-        from lcmodels.bench.figures import figures_markdown, write_figures
+    try:
+        check_out(out, args.overwrite)  # again: the cells took a while
+        figures = ""
+        if not args.no_figures:
+            from lcmodels.bench.figures import figures_markdown, write_figures
 
-        write_figures(summary, out)
-        markdown += "\n" + figures_markdown()
-    (out / "BENCH.md").write_text(markdown)
-    (out / "bench.json").write_text(json.dumps(summary, indent=1, sort_keys=True) + "\n")
+            write_figures(summary, out, root=out)
+            figures = figures_markdown()
+        markdown = suite_markdown(summary, command, figures=figures)
+        write_file(out / "BENCH.md", markdown, root=out)
+        write_file(out / "bench.json", json.dumps(summary, indent=1, sort_keys=True) + "\n", root=out)
+    except (ValueError, OSError) as exc:
+        return error(str(exc))
     print()
     print(markdown)
     names = {"run": "run", "cache": "cached", "ledger": "from the ledger", "ledger+": "appended to the ledger"}

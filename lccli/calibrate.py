@@ -173,7 +173,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     except SystemExit as exc:  # --help
         return int(exc.code or 0)
     setup_logging(PROG, verbose=args.verbose)
-    from lcdata.fileio import check_output_file, write_atomically, write_json
+    from lcdata.fileio import check_output_file, check_target, write_file, write_json
     from lcdata.recorded import recorded_traffic
     from lcsim.calibrate import (
         CalibrationOptions,
@@ -197,6 +197,7 @@ def main(argv: Sequence[str] | None = None) -> int:
             if path is None:
                 continue
             check_output_file(path, flag)
+            check_target(path)  # never written through a link
             if path.exists() and not args.overwrite:
                 raise ValueError(f"{flag} {path} already exists; pass --overwrite to replace it")
         if args.json is not None and args.json.resolve() == args.out.resolve():
@@ -253,9 +254,7 @@ def main(argv: Sequence[str] | None = None) -> int:
         "history": result.history, "scenario": result.scenario.to_dict(),
     }  # fmt: skip
     try:
-        args.out.parent.mkdir(parents=True, exist_ok=True)
-        tmp = args.out.with_name(args.out.name + ".partial")
-        write_atomically(tmp, args.out, lambda: tmp.write_text(text))
+        write_file(args.out, text)
         if args.json is not None:
             write_json(args.json, _finite(report))
     except OSError as exc:

@@ -276,14 +276,15 @@ def eval_main(argv: list[str] | None = None) -> int:
                      "episodes, which only lc-bench --final runs")
     if args.json_out is not None and args.json_out.exists() and not args.overwrite:
         return error(f"{args.json_out} already exists; pass --overwrite or choose another --json-out")
-    from lcdata.fileio import check_output_file, check_output_folder
+    from lcdata.fileio import check_output_file, check_output_folder, check_target
 
     try:  # the summary is written after the whole evaluation: a place it cannot go is refused first
         if args.json_out is not None:
             check_output_file(args.json_out, "--json-out")
+            check_target(args.json_out)  # never written through a link
         if args.out is not None and not args.no_record:
             check_output_folder(args.out)
-    except ValueError as exc:
+    except (ValueError, OSError) as exc:
         return error(str(exc))
     if predictor is not None:
         problem = predictor_unused(args.policy, layer.follow if layer is not None else None, predictor)

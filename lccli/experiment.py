@@ -123,7 +123,10 @@ def experiment_main(argv: list[str] | None = None) -> int:
         return error(str(exc).splitlines()[0])
     setup_logging("lc-experiment", verbose=False)
     if args.dry_run:  # a query of the stage graph against DIR's records: nothing is written
-        stages = exp.plan()
+        try:
+            stages = exp.plan()
+        except (ValueError, OSError) as exc:
+            return error(str(exc).splitlines()[0])
         print(f"{sum(s.status == 'skipped' for s in stages)} stages complete, "
               f"{sum(s.status != 'skipped' for s in stages)} would run")
         return 0
@@ -131,6 +134,10 @@ def experiment_main(argv: list[str] | None = None) -> int:
         res = exp.run(skip_train=args.skip_train, jobs=args.jobs)
     except (ValueError, OSError) as exc:
         return error(str(exc).splitlines()[0])
+    except KeyboardInterrupt:
+        print(f"\nlc-experiment: interrupted; the stages that finished are kept: rerun the same command to resume "
+              f"{args.out}", file=sys.stderr)
+        return 130
     done = sum(s.status == "done" for s in res.stages)
     skipped = sum(s.status == "skipped" for s in res.stages)
     print(f"{done} stages computed, {skipped} complete and skipped, {res.wall_s / 60:.1f} min")

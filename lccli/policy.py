@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import argparse
 import functools
+import sys
 from pathlib import Path
 from typing import Any
 
@@ -140,6 +141,10 @@ def train_policy_main(argv: list[str] | None = None) -> int:
                            eval_progress=show_eval, overwrite=args.overwrite)
     except (ValueError, OSError) as exc:
         return error(str(exc).splitlines()[0])
+    except KeyboardInterrupt:
+        print(f"\nlc-train-policy: interrupted; rerun the same command to resume {args.out} from its last "
+              "checkpoint", file=sys.stderr)
+        return 130
     ev = res.metrics.get("eval")
     print(f"trained {res.timesteps} steps in {res.wall_s / 60:.1f} min -> {args.out / POLICY_FILE}")
     if ev:

@@ -167,6 +167,18 @@ def _check_out_dir(out: pathlib.Path) -> None:
         raise UsageError(str(exc)) from None
 
 
+def _check_targets(paths: list[pathlib.Path]) -> None:
+    """``UsageError`` when a file lc-record writes (or its ``.partial``) is a symbolic link: nothing is written
+    through one (:func:`lckit.fileio.check_target`)."""
+    from lckit.fileio import UnsafePathError, check_target
+
+    try:
+        for path in paths:
+            check_target(path)
+    except UnsafePathError as exc:
+        raise UsageError(str(exc)) from None
+
+
 def _make_out_dir(out: pathlib.Path) -> None:
     try:
         out.mkdir(parents=True, exist_ok=True)
@@ -356,6 +368,7 @@ def record_main(argv: Sequence[str] | None = None) -> int:
         paths = [args.out / episode_filename(label, name, s) for s in seeds]
         flags = record_flags(args, args.driver or default_driver(scenario_name), scenario_name, content)
         _check_out_dir(args.out)
+        _check_targets([args.out / RECORD_JSON, args.out / LOCK_NAME, *paths])
         key = paths[0].name.rsplit("_s", 1)[0]  # the scenario_driver prefix of the file names
         if args.out.is_dir():
             _check_resume(args.out, key, flags, paths, args.overwrite)
@@ -366,13 +379,13 @@ def record_main(argv: Sequence[str] | None = None) -> int:
         return int(exc.code or 0)
     # Every check has passed: from here on --out is written, by this process alone (a second lc-record there is
     # refused rather than recording the same files at once).
-    from lcdata.fileio import folder_lock
+    from lcdata.fileio import UnsafePathError, folder_lock
 
     try:
         _make_out_dir(args.out)
         with folder_lock(args.out, "lc-record", LOCK_NAME):
             return _record(args, config, driver, label, seeds, paths, key, flags, start_ns)
-    except (UsageError, ValueError) as exc:
+    except (UsageError, ValueError, UnsafePathError) as exc:  # a link or a foreign lock: refused, not failed
         print(f"lc-record: error: {' '.join(str(exc).split())}", file=sys.stderr)
         return 2
     except (OSError, RuntimeError) as exc:  # a full disk, a folder removed while recording, the writer failing

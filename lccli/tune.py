@@ -16,6 +16,9 @@ EPILOG = """a sweep file (TOML or JSON):
   [grid]                      # each field: the values to try; every combination is a grid point
   gamma = [0.9, 0.95]
   window_features = [false, true]
+A sweep holds at most {max_trials} trials (grid points x seeds). A trial's folder is named by its values
+(trials/gamma=0.9_window_features=false_seed0); a value no folder name should hold (a path separator, ..)
+is replaced and a hash of the values added.
 
 examples:
   lc-tune sweep.toml --out runs/sweep                          # trials one after the other here
@@ -28,7 +31,10 @@ SWEEP.md and sweep.json (every trial's held-out success and collision rate with 
 
 
 def tune_parser() -> argparse.ArgumentParser:
-    p = argparse.ArgumentParser(prog="lc-tune", description=__doc__.split("\n\n")[0], epilog=EPILOG,
+    from lcmodels.sweep import MAX_TRIALS
+
+    p = argparse.ArgumentParser(prog="lc-tune", description=__doc__.split("\n\n")[0],
+                                epilog=EPILOG.format(max_trials=MAX_TRIALS),
                                 formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("sweep", type=Path, help="the sweep file (.toml or .json)")
     p.add_argument("--out", type=Path, required=True, help="the sweep's directory (resumed when rerun)")

@@ -59,13 +59,13 @@ from lcdata.mcap_write import COMPRESSION_LEVEL, McapStreamWriter
 from lcdata.proto import lc_pb2
 from lcdata.sim_records import SimStepEncoder
 from lcdata.wire import f_string
+from lckit.fileio import PARTIAL_SUFFIX, open_partial
 from lcsim import kernel
 from lcsim.core import OUTCOMES as EPISODE_OUTCOMES
 from lcsim.core import RUNNING
 
 log = logging.getLogger(__name__)
 
-PARTIAL_SUFFIX = ".partial"
 MAX_START_TIME_NS = 9_214_646_400 * 1_000_000_000
 """The latest ``t = 0`` of a file: 2262-01-01T00:00:00Z. A message's time, ``t = 0`` plus the episode's, is a
 64-bit count of nanoseconds since 1970 (signed, as most MCAP readers take it), which ends in April 2262; the
@@ -103,8 +103,8 @@ def replace_file(source: pathlib.Path, target: pathlib.Path) -> None:
     old file is held open across the rename, so the rename itself is quick (freeing a file of a few megabytes takes
     milliseconds), and closed afterwards. The rename is as atomic as ``os.replace``."""
     try:
-        old = os.open(target, os.O_RDONLY)
-    except OSError:  # no file there (or one we cannot read: the rename frees it, as os.replace would)
+        old = os.open(target, os.O_RDONLY | getattr(os, "O_NOFOLLOW", 0))
+    except OSError:  # no file there, or a link (or one we cannot read: the rename frees it, as os.replace would)
         old = None
     try:
         os.replace(source, target)
@@ -385,7 +385,7 @@ class EpisodeWriter(EpisodeSink, DeciderStreams):
         self._claim(path, overwrite, start_time_ns)
         self.metadata = self._metadata_record(metadata)
         self._mcap = McapStreamWriter(
-            open(self.partial_path, "wb"),  # closed by McapStreamWriter.finish/abort
+            open_partial(self.path),  # new, never through a link; closed by McapStreamWriter.finish/abort
             chunk_size=chunk_size,
             compression_level=compression_level,
             chunk_crc=chunk_crc,

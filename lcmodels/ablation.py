@@ -15,6 +15,7 @@ from __future__ import annotations
 from pathlib import Path
 from typing import Any
 
+from lckit.fileio import write_file
 from lcmodels.bench.figures import figures_markdown, write_figures
 from lcmodels.bench.table import CEILING, FLOOR, suite_markdown, suite_summary
 from lcmodels.fileio import read_json, write_json
@@ -134,9 +135,8 @@ def write_ablation(out: str | Path, dest: str | Path) -> list[Path]:
         if summary is None:
             continue
         folder = dest / block
-        folder.mkdir(parents=True, exist_ok=True)
         written += write_figures(summary, folder)
-        (folder / "BENCH.md").write_text(suite_markdown(summary) + "\n" + figures_markdown())
+        write_file(folder / "BENCH.md", suite_markdown(summary, figures=figures_markdown()))
         written.append(folder / "BENCH.md")
         record[block] = {"verdict": verdict_rows(summary), "missing": summary["missing"], "summary": summary}
     if record:

@@ -1,5 +1,5 @@
 """File names and small file helpers of the model layer (no heavy imports); the generic helpers live in
-:mod:`lcdata.fileio`, shared with recording. The readers here take what a run folder holds as untrusted: an
+:mod:`lckit.fileio`, shared with recording. The readers here take what a run folder holds as untrusted: an
 array of the wrong kind or a tensor of the wrong dtype is refused with one line, never converted."""
 
 from __future__ import annotations
@@ -9,7 +9,7 @@ from collections.abc import Mapping
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
-from lcdata.fileio import file_sha256, json_default, read_json, write_json
+from lckit.fileio import file_sha256, json_default, read_json, write_json
 
 if TYPE_CHECKING:
     import numpy as np

@@ -19,6 +19,7 @@ from __future__ import annotations
 import shutil
 from pathlib import Path
 
+from lckit.fileio import check_inside, check_target, remove_file, write_file
 from lcmodels.presets import INVOCATIONS, MARKER, ORACLE_KEY, REPORT_NAME, RULE_KEY, STAGES_DIR
 
 TOP = (REPORT_NAME, MARKER)
@@ -74,11 +75,14 @@ def publish(run: Path, dest: Path, *, overwrite: bool = False, allow_pending: bo
     if dest.exists() and not overwrite:
         raise ValueError(f"{dest} exists; pass --overwrite to replace the published files in it")
     files = published_files(run, weights=weights)
+    for rel in files:  # never read out of the run, never written through a link out of ``dest``
+        check_inside(run / rel, run)
+        check_target(dest / rel, dest)
     if dest.exists():  # the layout's files the run no longer has go; nothing else is touched
         stale = set(published_files(dest, weights=weights)) - set(files)
         for rel in stale:
-            (dest / rel).unlink()
+            remove_file(dest / rel, dest)
     for rel in files:
-        (dest / rel).parent.mkdir(parents=True, exist_ok=True)
-        shutil.copy2(run / rel, dest / rel)
+        write_file(dest / rel, (run / rel).read_bytes(), root=dest)
+        shutil.copystat(run / rel, dest / rel)
     return files

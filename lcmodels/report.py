@@ -17,6 +17,7 @@ from typing import Any
 
 import numpy as np
 
+from lckit.fileio import write_file
 from lcmodels.experiment.keys import StageKey
 from lcmodels.experiment.store import read_record
 from lcmodels.fileio import read_json
@@ -399,7 +400,7 @@ def plot_curves(runs: dict[str, MethodRuns], key: str, ylabel: str, title: str, 
     ax.grid(alpha=0.3)
     ax.legend(fontsize=8, loc="best")
     fig.tight_layout()
-    fig.savefig(path)
+    write_file(path, lambda f: fig.savefig(f, format=path.suffix.lstrip(".") or None))  # never through a link
     plt.close(fig)
 
 
@@ -527,9 +528,7 @@ def write_report(exp: ReportInput, *, wall_s: float) -> Path:
     add(f"Preset `{p.name}`:\n")
     add("```json\n" + json.dumps({**p.to_dict(), "seeds": exp.seeds}, indent=2) + "\n```")
     path = out / REPORT_NAME
-    tmp = path.with_name(path.name + ".partial")
-    tmp.write_text("\n".join(L) + "\n")
-    tmp.replace(path)
+    write_file(path, "\n".join(L) + "\n", root=out)
     return path
 
 

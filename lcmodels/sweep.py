@@ -15,13 +15,21 @@ A sweep file (TOML or JSON)::
 Trials run one after the other here (``executor="local"``) or as Ray Tune trials (``"ray"``), each in
 ``DIR/trials/<name>`` (an ``lc-train-policy`` run directory: a rerun skips the finished ones and resumes
 the others). ``DIR/SWEEP.md`` and ``DIR/sweep.json`` hold the table.
+
+A sweep holds at most :data:`MAX_TRIALS` trials (grid points times seeds, counted before any is made). A
+trial's name is its grid values (``gamma=0.9_window_features=false_seed0``); one with a character a folder
+name should not have (a path separator, ``..``, a quote), or longer than :data:`MAX_NAME_CHARS`, has them
+replaced and a short hash of its values added, so that every trial stays in ``DIR/trials/``, apart.
 """
 
 from __future__ import annotations
 
+import hashlib
 import itertools
 import json
+import math
 import os
+import re
 import time
 from collections.abc import Callable
 from dataclasses import dataclass
@@ -29,11 +37,18 @@ from pathlib import Path
 from typing import Any
 
 from lckit.config import read_data_file
+from lckit.fileio import check_inside, make_folder, write_file
 from lcmodels.fileio import write_json
 from lcmodels.policy.config import PolicyConfig
 
 SWEEP_JSON = "sweep.json"
 SWEEP_MD = "SWEEP.md"
+MAX_TRIALS = 1000
+"""The most trials a sweep may hold (grid points times seeds), each a training run: checked before any is made."""
+MAX_NAME_CHARS = 100
+"""The longest trial folder name kept as it is (a longer one is cut and given a hash of its values)."""
+_NAME_CHARS = re.compile(r"[A-Za-z0-9._=+,\[\] -]")
+"""What a trial's name may hold as it is: its values' letters, digits and the marks JSON lists and numbers use."""
 
 
 @dataclass(frozen=True)
@@ -62,25 +77,45 @@ class Sweep:
         for key, values in grid.items():
             if not isinstance(values, list) or not values:
                 raise ValueError(f"{path}: grid.{key} must be a non-empty list of values, got {values!r}")
+        count = math.prod(len(v) for v in grid.values()) * len(seeds)
+        if count > MAX_TRIALS:
+            raise ValueError(f"{path}: {count} trials ({' x '.join(str(len(v)) for v in grid.values()) or '1'} grid "
+                             f"points x {len(seeds)} seeds); a sweep holds at most {MAX_TRIALS}")
         sweep = cls(base, {k: list(v) for k, v in grid.items()}, list(seeds))
-        for _, cfg in sweep.trials():  # every trial is a valid config, or the file is refused now
-            del cfg
+        seen: set[str] = set()
+        for name, _ in sweep.trials():  # every trial is a valid config with a folder of its own, or refused now
+            if name in seen:
+                raise ValueError(f"{path}: two trials would share the folder trials/{name} (grid values that read "
+                                 "alike); give each value once")
+            seen.add(name)
         return sweep
 
     def trials(self) -> list[tuple[str, PolicyConfig]]:
-        """``(name, config)`` of every trial: grid points in file order, each with every seed."""
+        """``(name, config)`` of every trial: grid points in file order, each with every seed (the name is
+        :func:`trial_name`'s)."""
         out = []
         keys = list(self.grid)
         for values in itertools.product(*(self.grid[k] for k in keys)):
             point = dict(zip(keys, values, strict=True))
             for seed in self.seeds:
-                name = "_".join(f"{k}={_label(v)}" for k, v in point.items()) or "base"
+                name = trial_name(point)
                 try:
                     cfg = PolicyConfig.from_dict({**self.base, **point, "seed": seed}, stored=False)
                 except ValueError as exc:
                     raise ValueError(f"trial {name}, seed {seed}: {exc}") from None
                 out.append((f"{name}_seed{seed}", cfg))
         return out
+
+
+def trial_name(point: dict[str, Any]) -> str:
+    """The folder name of grid point ``point`` (without its seed): ``key=value`` joined by ``_`` (``base`` for no
+    grid), as it is when it holds only :data:`_NAME_CHARS`, no ``..``, and at most :data:`MAX_NAME_CHARS`;
+    else the other characters replaced by ``-``, cut, and the first 8 hex digits of its SHA-256 added."""
+    name = "_".join(f"{k}={_label(v)}" for k, v in point.items()) or "base"
+    if len(name) <= MAX_NAME_CHARS and ".." not in name and all(_NAME_CHARS.match(c) for c in name):
+        return name
+    safe = re.sub(r"-{2,}", "-", "".join(c if _NAME_CHARS.match(c) else "-" for c in name).replace("..", "-"))
+    return f"{safe[: MAX_NAME_CHARS - 9].strip(' .-') or 'trial'}-{hashlib.sha256(name.encode()).hexdigest()[:8]}"
 
 
 def _absolute_paths(cfg: PolicyConfig) -> PolicyConfig:
@@ -139,6 +174,9 @@ def run_sweep(sweep: Sweep, out: str | os.PathLike[str], *, predictor: str | Non
     if any(_needs(cfg) for _, cfg in trials) and predictor is None:
         raise ValueError("the sweep has prediction or hybrid trials: give the predictor (--predictor)")
     out.mkdir(parents=True, exist_ok=True)
+    make_folder(out / "trials", out)
+    for name, _ in trials:  # a trial's folder is in trials/, never reached through a link out of --out
+        check_inside(out / "trials" / name, out / "trials")
     t0 = time.perf_counter()
     rows: list[dict[str, Any]] = []
     if executor == "ray":
@@ -168,8 +206,8 @@ def run_sweep(sweep: Sweep, out: str | os.PathLike[str], *, predictor: str | Non
         raise ValueError(f"executor must be local or ray, got {executor!r}")
     rows.sort(key=lambda r: (r["success_rate"] is None, -(r["success_rate"] or 0.0), r["trial"]))
     write_json(out / SWEEP_JSON, {"trials": rows, "wall_s": time.perf_counter() - t0,
-                                  "seeds": sweep.seeds, "grid": sweep.grid, "base": sweep.base})  # fmt: skip
-    (out / SWEEP_MD).write_text(_table(rows, sweep))
+                                  "seeds": sweep.seeds, "grid": sweep.grid, "base": sweep.base}, root=out)  # fmt: skip
+    write_file(out / SWEEP_MD, _table(rows, sweep), root=out)
     return rows
 
 

@@ -10,10 +10,12 @@ prediction and hybrid policies were trained with. ``zoo:NAME`` names an entry wh
 from __future__ import annotations
 
 import os
+import re
 from dataclasses import dataclass
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
+from lckit.fileio import UnsafePathError, check_inside
 from lcmodels.fileio import POLICY_FILE, file_sha256, read_json
 
 if TYPE_CHECKING:
@@ -22,6 +24,8 @@ if TYPE_CHECKING:
 ZOO_PREFIX = "zoo:"
 ENTRY_CARD = "zoo.json"
 PREDICTOR_DIR = "predictor"
+ENTRY_NAME = re.compile(r"^[A-Za-z0-9][A-Za-z0-9._+-]{0,99}$")
+"""An entry's name: one word of letters, digits and ``._+-`` (no path, no ``..``), the name of its folder."""
 
 
 CHECKOUT_ZOO = Path(__file__).resolve().parents[1] / "zoo"
@@ -83,17 +87,26 @@ def zoo_entries() -> list[ZooEntry]:
     root = zoo_dir()
     if not root.is_dir():
         return []
-    return [zoo_entry(p.name) for p in sorted(root.iterdir()) if (p / POLICY_FILE).is_file()]
+    return [zoo_entry(p.name) for p in sorted(root.iterdir()) if _is_entry(p)]
+
+
+def _is_entry(folder: Path) -> bool:
+    return bool(ENTRY_NAME.match(folder.name)) and (folder / POLICY_FILE).is_file()
 
 
 def zoo_entry(name: str) -> ZooEntry:
-    """The entry ``name`` (``zoo:`` prefix optional). ``ValueError`` naming the entries there are."""
+    """The entry ``name`` (``zoo:`` prefix optional). ``ValueError`` naming the entries there are; a name that is
+    no entry's (:data:`ENTRY_NAME`: a path, ``..``) or an entry folder that leads out of the zoo is refused."""
     name = name.removeprefix(ZOO_PREFIX)
     root = zoo_dir()
     path = root / name / POLICY_FILE
-    if not name or "/" in name or not path.is_file():
-        have = sorted(p.name for p in root.iterdir() if (p / POLICY_FILE).is_file()) if root.is_dir() else []
+    if not ENTRY_NAME.match(name) or not path.is_file():
+        have = sorted(p.name for p in root.iterdir() if _is_entry(p)) if root.is_dir() else []
         raise ValueError(f"no zoo policy {name!r} in {root}; the zoo has: {', '.join(have) or 'nothing'}")
+    try:
+        check_inside(path, root, f"zoo:{name}")
+    except UnsafePathError as exc:
+        raise ValueError(str(exc)) from None
     card = read_json(root / name / ENTRY_CARD) or {}
     meta = read_json(root / name / "policy.card.json") or {}
     predictor = root / PREDICTOR_DIR / "predictor.pt"
@@ -109,17 +122,17 @@ def publish_entry(policy: str | os.PathLike[str], name: str, *, predictor: str |
     predictor. The policy's own card then names the predictor relative to itself. ``ValueError`` for an entry
     that exists (unless ``overwrite``) or a predictor other than the one the zoo holds already."""
     import json
-    import shutil
 
     from safetensors import safe_open
-    from safetensors.torch import save_file
+    from safetensors.torch import save as tensors_bytes
 
+    from lckit.fileio import write_file
     from lcmodels.fileio import write_json
     from lcmodels.policy.checkpoint import CARD_KEY, card_path
 
     root = Path(root) if root is not None else zoo_dir()
-    if not name or "/" in name or name == PREDICTOR_DIR:
-        raise ValueError(f"zoo entry name {name!r} is not allowed")
+    if not ENTRY_NAME.match(name) or name == PREDICTOR_DIR:
+        raise ValueError(f"zoo entry name {name!r} is not allowed (one word of letters, digits and ._+-)")
     dest = root / name
     if (dest / POLICY_FILE).exists() and not overwrite:
         raise ValueError(f"{dest / POLICY_FILE} exists; pass --overwrite to replace it")
@@ -133,16 +146,13 @@ def publish_entry(policy: str | os.PathLike[str], name: str, *, predictor: str |
             raise ValueError(f"the zoo's predictor {pred_dest} differs from {predictor}; the zoo holds one predictor")
         if (meta.get("predictor") or {}).get("sha256") != sha:
             raise ValueError(f"{policy} was not trained with {predictor}")
-        pred_dest.parent.mkdir(parents=True, exist_ok=True)
         if not pred_dest.is_file() or file_sha256(pred_dest) != sha:
-            shutil.copyfile(predictor, pred_dest)
+            write_file(pred_dest, Path(predictor).read_bytes(), root=root)
         meta["predictor"] = {**meta["predictor"], "path": f"../{PREDICTOR_DIR}/predictor.pt"}
-    dest.mkdir(parents=True, exist_ok=True)
-    tmp = dest / (POLICY_FILE + ".partial")
-    save_file(tensors, str(tmp), metadata={CARD_KEY: json.dumps(meta, sort_keys=True)})
-    tmp.replace(dest / POLICY_FILE)
-    write_json(card_path(dest / POLICY_FILE), meta)
-    write_json(dest / ENTRY_CARD, {"name": name, **card})
+    text = json.dumps(meta, sort_keys=True)
+    write_file(dest / POLICY_FILE, lambda f: f.write(tensors_bytes(tensors, metadata={CARD_KEY: text})), root=root)
+    write_json(card_path(dest / POLICY_FILE), meta, root=root)
+    write_json(dest / ENTRY_CARD, {"name": name, **card}, root=root)
     return ZooEntry(name, dest / POLICY_FILE, root / PREDICTOR_DIR / "predictor.pt" if predictor else None, card)
 
 

@@ -3,6 +3,7 @@ wrong result. A maintenance check, not a test: it runs every command as a user w
 
     python tools/audit_inputs.py                    # the table and the counts on stdout
     python tools/audit_inputs.py --markdown FILE    # the same table as Markdown
+    python tools/audit_inputs.py --cases audit_cases_paths   # one module's cases alone
 
 A case is *clean* when the command exits non-zero with one ``prog: error: ...`` line (argparse's usage
 line before it allowed) and no traceback, and its extra check holds (nothing written, nothing replaced, a
@@ -42,6 +43,9 @@ ENTRY = {
     "lc-view": "lccli.view:main",
     "lc-import": "lccli.importer:main",
     "lc-calibrate": "lccli.calibrate:main",
+    "lc-bench": "lccli.bench:main",
+    "lc-tune": "lccli.tune:main",
+    "lc-dagger": "lccli.dagger:main",
 }
 
 
@@ -331,15 +335,23 @@ def build_cases(root: Path) -> list[Case]:
     ]
 
 
+CASE_MODULES = ("audit_cases_files", "audit_cases_mcap", "audit_cases_imports", "audit_cases_paths")
+"""The modules beside this script that add cases (``build(root, Case)``)."""
+
+
 def main(argv: list[str] | None = None) -> int:
     p = argparse.ArgumentParser(prog="audit_inputs.py", description=__doc__.split("\n\n")[0])
     p.add_argument("--markdown", type=Path, default=None, help="also write the table as Markdown here")
     p.add_argument("-k", default="", help="only the cases whose description contains this")
+    p.add_argument("--cases", choices=("inputs", *CASE_MODULES), default=None,
+                   help="only the cases of this module (inputs: this file's own); the others are not even built")
     args = p.parse_args(argv)
     with tempfile.TemporaryDirectory(prefix="lc-audit-") as tmp:
         root = Path(tmp)
-        cases = [c for c in build_cases(root) if args.k in c.what]
-        for extra in ("audit_cases_files", "audit_cases_mcap", "audit_cases_imports"):  # the second round's cases, by class of input
+        cases = [c for c in build_cases(root) if args.k in c.what] if args.cases in (None, "inputs") else []
+        for extra in CASE_MODULES:  # the later rounds' cases, by class of input
+            if args.cases not in (None, extra):
+                continue
             module = importlib.import_module(extra)
             (root / extra).mkdir()
             cases += [c for c in module.build(root / extra, Case) if args.k in c.what]

@@ -51,24 +51,29 @@ def normalised_bars(summary: dict[str, Any]) -> dict[str, Any]:
     return {"roads": roads, "methods": [m for m, _ in methods], "value": value, "low": low, "high": high}
 
 
-def _save(fig: Any, out: Path, stem: str) -> list[Path]:
+def _save(fig: Any, out: Path, stem: str, root: Path | None) -> list[Path]:
+    import io
+
+    from lckit.fileio import write_file
+
     paths = []
     for fmt in FORMATS:
-        path = out / f"{stem}.{fmt}"
-        fig.savefig(path, dpi=110, bbox_inches="tight", metadata={"Date": None} if fmt == "svg" else None)
-        paths.append(path)
+        buf = io.BytesIO()
+        fig.savefig(buf, format=fmt, dpi=110, bbox_inches="tight", metadata={"Date": None} if fmt == "svg" else None)
+        paths.append(write_file(out / f"{stem}.{fmt}", buf.getvalue(), root=root))  # never through a link
     return paths
 
 
-def write_figures(summary: dict[str, Any], out: str | Path) -> list[Path]:
-    """Write :data:`FIGURES` of ``summary`` into ``out`` (PNG and SVG each); returns the paths written."""
+def write_figures(summary: dict[str, Any], out: str | Path, *, root: str | Path | None = None) -> list[Path]:
+    """Write :data:`FIGURES` of ``summary`` into ``out`` (PNG and SVG each; never through a link, nor out of
+    ``root`` when given); returns the paths written."""
     import matplotlib
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
     out = Path(out)
-    out.mkdir(parents=True, exist_ok=True)
+    root = Path(root) if root is not None else None
     written: list[Path] = []
     bars = normalised_bars(summary)
     m, r = bars["value"].shape
@@ -87,7 +92,7 @@ def write_figures(summary: dict[str, Any], out: str | Path) -> list[Path]:
     ax.set_ylim(0, 1.15)
     ax.set_title(f"Suite {summary['suite']}: {summary['split']} episodes")
     ax.legend(fontsize=7, ncols=min(m, 3), loc="lower left")
-    written += _save(fig, out, FIGURES[0])
+    written += _save(fig, out, FIGURES[0], root)
     plt.close(fig)
 
     agg = [g for g in summary["groups"] if "aggregate" in g]
@@ -103,7 +108,7 @@ def write_figures(summary: dict[str, Any], out: str | Path) -> list[Path]:
         ax.grid(axis="x", alpha=0.3)
     axes[0].set_yticks(range(len(agg)), [g["group"] for g in agg])
     fig.suptitle("Over runs and roads: stratified-bootstrap 95% intervals", fontsize=9)
-    written += _save(fig, out, FIGURES[1])
+    written += _save(fig, out, FIGURES[1], root)
     plt.close(fig)
     return written
 

@@ -175,29 +175,69 @@ def _import_callable(spec: str) -> tuple[Any, Callable[..., Any]]:
     fn = getattr(module, attr, None)
     if not callable(fn):
         raise ValueError(f"{spec}: {name} has no callable {attr}")
+    if _with_mask(fn) is None:
+        raise ValueError(f"{spec} takes {_signature(fn)}; a policy is called as fn(obs) or fn(obs, action_mask)")
     return module, fn
 
 
+def _signature(fn: Callable[..., Any]) -> inspect.Signature | None:
+    try:
+        return inspect.signature(fn)
+    except (TypeError, ValueError):  # a builtin without one: called as it is
+        return None
+
+
+def _with_mask(fn: Callable[..., Any]) -> bool | None:
+    """Whether ``fn`` is called with the action mask too (it takes two positional arguments), False: with the
+    observation alone; None: it takes neither."""
+    sig = _signature(fn)
+    if sig is None:
+        return False
+    positional = [p for p in sig.parameters.values() if p.kind in (p.POSITIONAL_ONLY, p.POSITIONAL_OR_KEYWORD)]
+    for n in (2, 1) if len(positional) >= 2 else (1,):
+        with contextlib.suppress(TypeError):
+            sig.bind(*range(n))
+            return n == 2
+    return None
+
+
+def _what(value: Any) -> str:
+    """What a user's callable returned, in a few words (its type, and its shape and dtype when it has them)."""
+    if isinstance(value, np.ndarray):
+        values = f" from {value.min()} to {value.max()}" if value.size and value.dtype.kind in "iuf" else ""
+        return f"an array of shape {value.shape} and dtype {value.dtype}{values}"
+    if isinstance(value, list | tuple):
+        kinds = sorted({type(v).__name__ for v in value[:1000]})
+        return f"a {type(value).__name__} of {len(value)} item(s) ({', '.join(kinds[:3]) or 'empty'})"
+    text = " ".join(repr(value).split())
+    return f"{type(value).__name__} {text[:60]}{'...' if len(text) > 60 else ''}"
+
+
 class CallableDriver:
-    """A user's ``package.module:callable`` as a driver: ``fn(obs)`` or ``fn(obs, action_mask)`` -> ``(E,)``."""
+    """A user's ``package.module:callable`` as a driver: ``fn(obs)`` or ``fn(obs, action_mask)`` -> ``(E,)``. What
+    it raises or returns amiss is a ``ValueError`` in one line naming it (and what it returned)."""
 
     def __init__(self, spec: str) -> None:
+        self.spec = spec
         self.fn = _import_callable(spec)[1]
         self.name = spec.replace(":", ".").replace("_", "-")
-        try:
-            params = [p for p in inspect.signature(self.fn).parameters.values()
-                      if p.kind in (p.POSITIONAL_ONLY, p.POSITIONAL_OR_KEYWORD)]  # fmt: skip
-        except (TypeError, ValueError):
-            params = []
-        self.with_mask = len(params) >= 2
+        self.with_mask = bool(_with_mask(self.fn))
 
     def __call__(self, obs: dict[str, np.ndarray], action_mask: np.ndarray, core: Any) -> np.ndarray:
-        actions = self.fn(obs, action_mask) if self.with_mask else self.fn(obs)
-        out = np.asarray(actions).reshape(-1)
         n = len(action_mask)
-        if out.shape != (n,) or not np.issubdtype(out.dtype, np.integer) or ((out < 0) | (out > 2)).any():
-            raise ValueError(f"{self.name} returned {np.asarray(actions).shape} {np.asarray(actions).dtype} "
-                             f"actions; expected ({n},) integers in 0..2 (0 right, 1 keep, 2 left)")
+        try:
+            actions = self.fn(obs, action_mask) if self.with_mask else self.fn(obs)
+        except Exception as exc:  # the user's code: one line naming it, not a traceback through ours
+            detail = " ".join(str(exc).split())[:160]
+            raise ValueError(f"{self.spec} raised {type(exc).__name__}" + (f": {detail}" if detail else "")) from None
+        try:
+            out = np.asarray(actions).reshape(-1)
+            ok = out.shape == (n,) and np.issubdtype(out.dtype, np.integer) and not ((out < 0) | (out > 2)).any()
+        except Exception:  # a ragged list, an object numpy cannot take
+            ok = False
+        if not ok:
+            raise ValueError(f"{self.spec} returned {_what(actions)}; expected ({n},) integers in 0..2 (0 right, "
+                             "1 keep, 2 left)")
         return out.astype(np.int64)
 
 

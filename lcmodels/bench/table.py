@@ -126,8 +126,9 @@ def _pct(rate: float, ci: Sequence[float]) -> str:
     return f"{100 * rate:.1f} [{100 * ci[0]:.1f}, {100 * ci[1]:.1f}]"
 
 
-def suite_markdown(summary: dict[str, Any], command: str = "") -> str:
-    """The table as Markdown."""
+def suite_markdown(summary: dict[str, Any], command: str = "", figures: str = "") -> str:
+    """The table as Markdown (``figures``: Markdown embedding its figures, before the command that made it, which
+    stays the last line)."""
     split = summary["split"]
     lines = [f"## Suite `{summary['suite']}`: {split} episodes", ""]
     ledger = summary.get("ledger") or {"committed": True}
@@ -187,6 +188,8 @@ def suite_markdown(summary: dict[str, Any], command: str = "") -> str:
         for g in seeds:
             for sc, s in g["success_over_seeds"].items():
                 lines.append(f"| {g['group']} | {sc} | {s['runs']} | {_pct(s['mean'], s['t95'])} |")
+    if figures:
+        lines += ["", figures.rstrip("\n")]
     if command:
         lines += ["", f"`{command}`"]
     return "\n".join(lines) + "\n"

@@ -17,6 +17,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
+from lckit.fileio import make_folder, remove_file
 from lcmodels.experiment.keys import StageKey
 from lcmodels.experiment.store import Resumable, Upgrade
 from lcmodels.fileio import read_json, write_json
@@ -76,7 +77,7 @@ def record_job(ctx: StageContext, key: StageKey, config: Any, seeds: list[int], 
         from lcdata.record import iter_record_episodes
 
         for p in path.glob("*.partial"):
-            p.unlink()
+            remove_file(p, ctx.out)
         todo = [s for s, n in zip(seeds, names, strict=True) if not (path / n).exists()]
         workers = max(1, min(ctx.preset.record_workers, len(todo)))
         for i, r in enumerate(iter_record_episodes(config, todo, driver, path, scenario=scenario, workers=workers,
@@ -109,7 +110,8 @@ def evaluation_job(ctx: StageContext, key: StageKey, spec: str, inputs: dict[str
         for split, seed, episodes in splits:
             done = path / f"{split}-seed{seed}.json"  # a split finished before an interruption is kept
             summary = read_json(done) if keep else None
-            if summary is None or summary.get("episodes") != episodes:
+            if not isinstance(summary, dict) or summary.get("episodes") != episodes or not isinstance(
+                    summary.get("wall_s"), int | float):  # a split cut short or edited is run again
                 summary = run_split(split, seed, episodes, done, save_wall)
             total += float(summary["wall_s"])
             if split == "val":
@@ -125,6 +127,8 @@ def evaluation_job(ctx: StageContext, key: StageKey, spec: str, inputs: dict[str
 
         t0 = time.perf_counter()
         rec = p.record_eval and split == "test"
+        if rec:
+            make_folder(path / "episodes", ctx.out)  # never recorded through a link out of the experiment
         pool = ctx.pool()
         summary, _ = evaluate_sharded(
             spec, scenario, episodes=episodes, seed=seed, pool=pool, shards=ctx.shards(pool), executor=ctx.executor,

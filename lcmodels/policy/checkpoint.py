@@ -29,10 +29,11 @@ from typing import Any
 
 import torch
 from safetensors import SafetensorError, safe_open
-from safetensors.torch import load_file, save_file
+from safetensors.torch import load_file
+from safetensors.torch import save as tensors_bytes
 from stable_baselines3.common.base_class import BaseAlgorithm
 
-from lcdata.fileio import loads_json, write_atomically
+from lckit.fileio import loads_json, write_file
 from lcmodels.fileio import check_dtypes, file_sha256, write_json
 from lcmodels.policy.network import ALGOS
 from lcmodels.predictor.inference import Predictor
@@ -65,18 +66,15 @@ def save_policy(model: BaseAlgorithm, path: str | os.PathLike[str], meta: dict[s
     ``path``. ``OSError`` when the file cannot be written (a full disk): no ``.partial`` stays, the file there is
     as it was."""
     path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
     card = {**{k: v for k, v in meta.items() if k not in ("format", "version", "tensor_aliases")},
             "format": META_FORMAT, "version": META_VERSION}
     tensors, aliases = _unique_tensors(model.policy.state_dict() if state is None else state)
     if aliases:
         card["tensor_aliases"] = aliases
-    tmp = path.with_name(path.name + ".partial")
     # One metadata entry: safetensors writes the metadata map in no fixed order, so one key keeps the bytes
     # of the same policy the same.
     text = json.dumps(card, sort_keys=True)
-    write_atomically(tmp, path, lambda: save_file(tensors, str(tmp), metadata={CARD_KEY: text}),
-                     errors=(SafetensorError,))
+    write_file(path, lambda f: f.write(tensors_bytes(tensors, metadata={CARD_KEY: text})), errors=(SafetensorError,))
     write_json(card_path(path), card)
     return path
 

@@ -26,6 +26,7 @@ from __future__ import annotations
 import json
 import os
 import time
+import zipfile
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, replace
 from pathlib import Path
@@ -35,6 +36,7 @@ import numpy as np
 import torch
 
 from lcdata.fileio import file_sha256
+from lckit.fileio import check_inside
 from lckit.pool import WorkerPool
 from lcmodels.fileio import POLICY_FILE, write_json
 from lcmodels.policy.checkpoint import load_policy, save_policy
@@ -206,9 +208,12 @@ def _finished_rounds(out: Path, run_dir: Path, *, episodes: int, seed: int, labe
         book = json.loads((out / "dagger.json").read_text())
     except (OSError, ValueError) as exc:
         raise FileExistsError(f"{out} is not empty and holds no readable dagger.json ({exc})") from exc
+    if not isinstance(book, dict) or not isinstance(book.get("run_dir", ""), str):
+        raise ValueError(f"{out}/dagger.json is not a record of DAgger rounds; choose a new --out")
     records = book.get("rounds") or []
     if not records:
         raise FileNotFoundError(f"{out}/dagger.json lists no finished round")
+    _check_rounds(out, records)
     same_place = Path(book.get("run_dir", "")).resolve() == run_dir.resolve()
     moved = (not same_place and bool(book.get("run_policy_sha256"))
              and book["run_policy_sha256"] == file_sha256(run_dir / POLICY_FILE))  # fmt: skip
@@ -228,6 +233,23 @@ def _finished_rounds(out: Path, run_dir: Path, *, episodes: int, seed: int, labe
             raise FileNotFoundError(f"{out}/round{record['round']}/{_STATES} is missing (rounds made before DAgger "
                                     "kept its states cannot be resumed)")
     return records
+
+
+def _check_rounds(out: Path, records: Any) -> None:
+    """``ValueError`` in one line unless ``records`` (``dagger.json``'s ``rounds``) are the rounds 1, 2, ... in
+    order, each a table with its counts and seeds as numbers, whose folders ``round<r>/`` are in ``out``."""
+    if not isinstance(records, list):
+        raise ValueError(f"{out}/dagger.json: rounds is not a list; choose a new --out")
+    for r, record in enumerate(records, 1):
+        seeds = record.get("user_seeds") if isinstance(record, dict) else None
+        fields = [record.get(k) for k in ("round", "states_labelled", "episodes")] if isinstance(record, dict) else []
+        if (not fields or fields[0] != r or not all(isinstance(v, int) and not isinstance(v, bool) and v >= 0
+                                                   for v in fields)
+                or not (isinstance(seeds, list) and len(seeds) == 2 and all(isinstance(s, int) for s in seeds))):
+            shown = " ".join(json.dumps(record, default=str).split())[:80]
+            raise ValueError(f"{out}/dagger.json: round {r} is not a record of round {r} ({shown}); choose a new "
+                             "--out")
+        check_inside(out / f"round{r}", out)
 
 
 def _recorded_layer(record: dict[str, Any]) -> dict[str, Any] | None:
@@ -362,11 +384,16 @@ def dagger(
     current = policy_path
     for record in done:
         if record["states_labelled"]:
-            with np.load(out / f"round{record['round']}" / _STATES) as states:
-                for k in data:
-                    data[k].append(states[k])
-                targets.append(states["labels"])
-                weights.append(weigh(states["labels"], states["actions"] if "actions" in states else None))
+            path = out / f"round{record['round']}" / _STATES
+            try:
+                with np.load(path) as states:
+                    for k in data:
+                        data[k].append(states[k])
+                    targets.append(states["labels"])
+                    weights.append(weigh(states["labels"], states["actions"] if "actions" in states else None))
+            except (KeyError, ValueError, EOFError, zipfile.BadZipFile) as exc:  # cut short, or not these states
+                raise ValueError(f"{path} is not the labelled states of its round ({type(exc).__name__}: "
+                                 f"{' '.join(str(exc).split())[:100]}); choose a new --out") from None
         current = out / f"round{record['round']}" / POLICY_FILE
     if len(done) >= rounds:
         say(f"{out} already holds {len(done)} rounds; nothing to do for --rounds {rounds}")

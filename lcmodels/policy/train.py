@@ -29,6 +29,7 @@ from __future__ import annotations
 
 import contextlib
 import csv
+import io
 import json
 import logging
 import os
@@ -48,7 +49,7 @@ from stable_baselines3.common.callbacks import BaseCallback
 from stable_baselines3.common.logger import configure
 from stable_baselines3.common.vec_env import VecEnv
 
-from lcdata.fileio import check_output_folder, loads_json, write_atomically
+from lckit.fileio import check_inside, check_output_folder, loads_json, remove_file, write_file
 from lcmodels.fileio import POLICY_FILE, check_dtypes, file_sha256, read_train_seeds, write_json
 from lcmodels.policy.checkpoint import (
     MAX_CARD_TIMESTEPS,
@@ -174,12 +175,12 @@ class _Run:
             self.prior_seeds = read_train_seeds(self.out) if self.seeds_path.exists() else self.prior_seeds
             self.truncate_progress(self.start_timesteps)
             log.info("resuming %s from step %d", self.out, self.start_timesteps)
-        elif (self.out / "progress.csv").exists():
-            (self.out / "progress.csv").unlink()  # a previous attempt died before its first checkpoint
+        else:  # a previous attempt died before its first checkpoint
+            remove_file(self.out / "progress.csv", self.out)
         keep = {state["weights"], state["optimizer"], card_path(state["weights"]).name} if state else set()
         for f in self.ckpt_state.parent.glob("step-*"):
             if f.name not in keep:
-                f.unlink()
+                remove_file(f, self.out)
         return state
 
     def all_seeds(self) -> np.ndarray:
@@ -193,11 +194,8 @@ class _Run:
         previous = read_checkpoint_state(self.ckpt_state) if self.ckpt_state.exists() else None
         weights, optim = f"step-{t}.safetensors", f"step-{t}.optim.pt"
         save_policy(model, folder / weights, self.plan.card(t, folder, training_form=self.cfg.freeze_image))
-        tmp = folder / (optim + ".partial")
-        write_atomically(tmp, folder / optim, lambda: torch.save(model.policy.optimizer.state_dict(), tmp))
-        seeds_tmp = self.seeds_path.with_name(self.seeds_path.name + ".partial.npy")
-        np.save(seeds_tmp, self.all_seeds())
-        seeds_tmp.replace(self.seeds_path)
+        write_file(folder / optim, lambda tmp: torch.save(model.policy.optimizer.state_dict(), tmp), by_name=True)
+        write_file(self.seeds_path, lambda f: np.save(f, self.all_seeds()))
         write_json(self.ckpt_state, {"timesteps": t, "wall_s": self.wall_s(), "episodes_total": episodes_total,
                                      "weights": weights, "optimizer": optim,
                                      "n_updates": int(getattr(model, "_n_updates", 0)),
@@ -205,28 +203,30 @@ class _Run:
         if previous is not None and previous["weights"] != weights:
             for name in (previous["weights"], previous["optimizer"]):
                 for f in (folder / name, card_path(folder / name)):
-                    f.unlink(missing_ok=True)
+                    remove_file(f, self.out)
 
     def append_progress(self, row: dict[str, Any]) -> None:
-        path = self.out / "progress.csv"
-        new = not path.exists()
-        with path.open("a", newline="") as f:
-            w = csv.DictWriter(f, fieldnames=PROGRESS_COLUMNS)
-            if new:
-                w.writeheader()
-            w.writerow(row)
+        self.write_progress([*self.progress_rows(), row])
 
     def truncate_progress(self, t: int) -> None:
         """Drop progress rows logged after the checkpoint we resume from (they will be redone)."""
+        if (self.out / "progress.csv").exists():
+            self.write_progress([r for r in self.progress_rows() if int(float(r["timesteps"])) <= t])
+
+    def progress_rows(self) -> list[dict[str, Any]]:
         path = self.out / "progress.csv"
-        if not path.exists():
-            return
+        if not path.exists() or path.is_symlink():  # a link is refused when written
+            return []
         with path.open(newline="") as f:
-            rows = [r for r in csv.DictReader(f) if int(float(r["timesteps"])) <= t]
-        with path.open("w", newline="") as f:
-            w = csv.DictWriter(f, fieldnames=PROGRESS_COLUMNS)
-            w.writeheader()
-            w.writerows(rows)
+            return list(csv.DictReader(f))
+
+    def write_progress(self, rows: list[dict[str, Any]]) -> None:
+        """``progress.csv`` rewritten whole (with :func:`~lckit.fileio.write_file`: never through a link)."""
+        text = io.StringIO(newline="")
+        w = csv.DictWriter(text, fieldnames=PROGRESS_COLUMNS)
+        w.writeheader()
+        w.writerows(rows)
+        write_file(self.out / "progress.csv", text.getvalue())
 
 
 def versions() -> dict[str, str]:
@@ -263,19 +263,18 @@ removes."""
 
 
 def remove_run_outputs(out: Path) -> tuple[int, list[Path]]:
-    """Remove the files of :data:`RUN_OUTPUTS` in ``out`` and the folders they leave empty; returns how many
-    files went and the files that stayed (not the tool's)."""
-    removed = 0
-    for pattern in RUN_OUTPUTS:
-        for f in out.glob(pattern):
-            if f.is_file() or f.is_symlink():
-                f.unlink()
-                removed += 1
+    """Remove the files of :data:`RUN_OUTPUTS` in ``out`` (none when one is reached through a link out of ``out``)
+    and the folders they leave empty; returns how many files went and the files that stayed (not the tool's)."""
+    files = list(dict.fromkeys(f for p in RUN_OUTPUTS for f in out.glob(p) if f.is_file() or f.is_symlink()))
+    for f in files:
+        check_inside(f.parent, out)
+    for f in files:
+        remove_file(f, out)
     for d in sorted((d for d in out.rglob("*") if d.is_dir()), key=lambda d: len(d.parts), reverse=True):
         with contextlib.suppress(OSError):
             d.rmdir()  # only when empty
     kept = sorted(f for f in out.rglob("*") if f.is_file()) if out.exists() else []
-    return removed, kept
+    return len(files), kept
 
 
 _CKPT_WEIGHTS = re.compile(r"step-\d{1,15}\.safetensors")
@@ -470,6 +469,8 @@ def _check(plan: RunPlan, out: Path, device: str, overwrite: bool) -> tuple[bool
     written): whether the run there is to be replaced, and the initial policy, loaded, when it starts from one."""
     cfg = plan.config
     check_output_folder(out)
+    for folder in ("checkpoints", "eval", "eval/episodes", "tb"):  # what the run writes in: never through a link
+        check_inside(out / folder, out)
     replace = check_run_dir(cfg, out, plan.predictor_sha256, overwrite=overwrite, scenario=plan.scenario)
     if cfg.warm_start:
         path = Path(cfg.warm_start)
@@ -596,8 +597,7 @@ def _frozen_image_encoder(run: _Run, path: Path) -> ImageEncoder:
         if not isinstance(extractor, HybridExtractor) or "image" not in extractor.branches:
             raise ValueError(f"init_policy {cfg.init_policy} has no image branch to freeze")
         state = {k: v.detach().cpu() for k, v in extractor.branches["image"].state_dict().items()}
-        tmp = path.with_suffix(".partial")
-        write_atomically(tmp, path, lambda: torch.save(state, tmp))
+        write_file(path, lambda tmp: torch.save(state, tmp), by_name=True)
     net = make_image_net(cfg.image_net, 3, plan.scenario.render.image_size_px, cfg.image_features)
     check_dtypes(state, net.state_dict(), str(path))
     try:

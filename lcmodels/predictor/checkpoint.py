@@ -15,7 +15,7 @@ from typing import Any
 
 import torch
 
-from lcdata.fileio import loads_json, write_atomically
+from lckit.fileio import loads_json, write_file
 from lcmodels.fileio import check_dtypes
 from lcmodels.predictor.model import MAX_PARAMETERS, PredictorConfig, TrajectoryTransformer
 
@@ -33,7 +33,6 @@ def save_model(
 ) -> Path:
     """Write ``model`` (weights + normalisation buffers + config) to ``path`` atomically."""
     path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
     payload = {
         "format": CHECKPOINT_FORMAT,
         "version": CHECKPOINT_VERSION,
@@ -41,8 +40,7 @@ def save_model(
         "state_dict": {k: v.detach().cpu().clone() for k, v in model.state_dict().items()},
         "extra": json.dumps(extra or {}, sort_keys=True),
     }
-    tmp = path.with_name(path.name + ".partial")
-    write_atomically(tmp, path, lambda: torch.save(payload, tmp))
+    write_file(path, lambda tmp: torch.save(payload, tmp), by_name=True)  # by name: the bytes name the file
     return path
 
 

@@ -23,6 +23,7 @@ import torch
 from tqdm.auto import tqdm
 
 from lcdata.corpus import Corpus, WindowBatch, WindowOptions, split_episodes
+from lckit.fileio import write_file
 from lcmodels.predictor import metrics as M
 from lcmodels.predictor.baselines import (
     constant_acceleration,
@@ -383,7 +384,5 @@ def _train(
             writer.add_scalar(f"test/{name}_fde_m", result[name]["fde"], 0)
         writer.close()
     save_model(model, out / CHECKPOINT_NAME, extra={"train_config": config.to_dict(), "val_ade": best_val})
-    tmp = out / (METRICS_NAME + ".partial")
-    tmp.write_text(json.dumps(result, indent=2, sort_keys=True))
-    tmp.replace(out / METRICS_NAME)
+    write_file(out / METRICS_NAME, json.dumps(result, indent=2, sort_keys=True), root=out)
     return result

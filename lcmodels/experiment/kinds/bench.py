@@ -40,6 +40,7 @@ class Bench(StageKind):
         runs = [f"run:{k}" for k in sorted(keys, key=lambda k: (order.index(k.recipe), k.seed))]
 
         def work(keep: bool, save_wall: Callable[[], None]) -> None:
+            from lckit.fileio import write_file
             from lcmodels.bench.figures import figures_markdown, write_figures
             from lcmodels.bench.table import CEILING, FLOOR, suite_markdown, suite_summary
             from lcsim.suite import suite
@@ -57,10 +58,10 @@ class Bench(StageKind):
             summary = suite_summary(cells, drivers, suite(p.suite), suite=p.suite,
                                     split=f"validation seed {p.suite_seed}", pair_keys=seeds)  # fmt: skip
             summary["command"] = "lc-experiment --preset " + p.name
-            markdown = suite_markdown(summary, summary["command"])
-            write_figures(summary, path)
+            write_figures(summary, path, root=ctx.out)
             write_json(path / "bench.json", summary)
-            (path / "BENCH.md").write_text(markdown + "\n" + figures_markdown())
+            write_file(path / "BENCH.md", suite_markdown(summary, summary["command"], figures=figures_markdown()),
+                       root=ctx.out)  # fmt: skip
 
         cfg = {"suite": p.suite, "episodes": p.suite_episodes, "seed": p.suite_seed, "runs": [r[4:] for r in runs]}
         inputs = {role: got[role].digest for role in got}

@@ -4,10 +4,10 @@
 from __future__ import annotations
 
 import dataclasses
-import shutil
 from collections.abc import Callable, Mapping
 from typing import Any, ClassVar
 
+from lckit.fileio import make_folder, remove_tree
 from lcmodels.experiment.kinds.base import Stage, StageKind
 from lcmodels.experiment.stages import StageContext, StageJob
 from lcmodels.fileio import POLICY_FILE
@@ -21,7 +21,8 @@ def resumable_policy_change(prior: dict[str, Any], now: dict[str, Any]) -> bool:
     free = ("timesteps", "checkpoint_every", "eval_episodes", "eval_seed", "eval_batch", "record_eval")
     if any(prior.get(k) != now.get(k) for k in now if k not in free):
         return False
-    return int(prior.get("timesteps", 0)) <= int(now["timesteps"])
+    timesteps = prior.get("timesteps", 0)
+    return isinstance(timesteps, int) and timesteps <= int(now["timesteps"])
 
 
 def stored_stage_config(data: dict[str, Any]) -> dict[str, Any]:
@@ -130,8 +131,8 @@ class PolicyStage(StageKind):
             except ValueError as exc:  # the directory holds another run (e.g. moved --out): start over
                 if "another configuration" not in str(exc):
                     raise
-                shutil.rmtree(path)
-                path.mkdir(parents=True)
+                remove_tree(path, ctx.out)
+                make_folder(path, ctx.out)
                 res = train_run(plan, path, progress=show)
             return res.wall_s
 

@@ -6,6 +6,7 @@ from __future__ import annotations
 import dataclasses
 from collections.abc import Callable, Mapping
 
+from lckit.fileio import remove_file
 from lcmodels.experiment.keys import StageKey
 from lcmodels.experiment.kinds.base import GraphBuilder, Stage, StageKind
 from lcmodels.experiment.kinds.zoo import Zoo
@@ -47,7 +48,7 @@ class Showcase(StageKind):
             from lcmodels.policy.evaluate import driver_for, evaluate
 
             for old in path.glob("*"):
-                old.unlink()
+                remove_file(old, ctx.out)
             driver, config = driver_for(str(entry.policy), predictor=str(entry.predictor) if entry.predictor else None)
             evaluate(driver, config, episodes=p.showcase_episodes, seed=p.test_seed, out_dir=path,
                      scenario=f"zoo-{entry.name}", overwrite=True)  # fmt: skip
