@@ -25,12 +25,10 @@ from lccli.tune import main as tune_main
 from lcdata.record import episode_filename
 from lckit.fileio import UnsafePathError
 from lcmodels.experiment import PRESETS, Experiment, StageKey
-from lcmodels.experiment.stages import stage_job
 from lcmodels.experiment.store import StageStore, Verdict
 from lcmodels.fileio import file_sha256
 from lcmodels.sweep import MAX_TRIALS, Sweep, trial_name
 
-from .test_bench import tiny_suite  # noqa: F401  (a fixture)
 
 TINY_TRAIN = ["--obs", "pure", "--scenario", "tiny", "--timesteps", "64", "--set", "n_envs=2", "--set", "n_steps=32",
               "--set", "batch_size=64", "--set", "eval_episodes=0", "-q"]  # fmt: skip
@@ -115,7 +113,7 @@ def test_a_stage_record_with_outputs_null_is_stale_and_one_outside_the_stage_is_
     run = tmp_path / "run"
     exp = Experiment(PRESETS["tiny"], run)
     key = StageKey.of("corpus")
-    job = stage_job(exp.context(), exp.graph()[key], {})
+    job = exp.graph()[key].job(exp.context(), {})
     (run / "stages").mkdir(parents=True)
     (run / "experiment.json").write_text("{}")
     record = {"stage": "corpus", "config": job.config, "inputs": job.inputs, "wall_s": 1.0}
