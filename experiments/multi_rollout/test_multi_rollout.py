@@ -10,6 +10,7 @@ from lcsim.core import RUNNING, LaneChangeCore
 from lcsim.drivers import KeepLaneDriver, RuleBasedDriver
 from lcsim.planning import LookaheadDriver, SafetyLayerConfig
 
+from .cost import main as cost_main
 from .multi_rollout import FORCED, MultiRolloutLayer, TimedLayer, main
 
 LAYER = SafetyLayerConfig(horizon_decisions=4, samples=2)
@@ -102,3 +103,13 @@ def test_the_script_runs_the_layer_and_the_variant_and_pairs_them(tmp_path, caps
     assert main([*common, "--bases", "nosuchpolicy.safetensors"]) == 2
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 3 and all(line.startswith("multi_rollout: error: ") for line in err)
+
+
+def test_the_cost_script_times_both_on_the_same_states(tmp_path, capsys):
+    out = tmp_path / "cost.json"
+    assert cost_main(["safety-layer:rule", "--scenario", "three-lane", "--set", "safety.horizon_decisions=2",
+                      "--envs", "2", "--decisions", "2", "--json-out", str(out)]) == 0
+    record = json.loads(out.read_text())
+    assert record["layer"]["decisions"] == record["multi-rollout"]["decisions"] > 0
+    assert cost_main(["safety-layer:rule", "--envs", "0"]) == 2
+    assert capsys.readouterr().err.startswith("multi_rollout.cost: error: ")
