@@ -49,7 +49,8 @@ those names only with --overwrite): per scenario the ceiling, the floor and each
 and collision with Wilson 95% intervals over episodes and the normalised score (success / ceiling's
 success); per driver the suite's mean normalised score and McNemar's exact test against the first driver on
 the same episodes; per method (a recipe's training seeds) the IQM with rliable's bootstrap interval and
-McNemar's test against the first method, its runs paired in the order given. Beside them, two figures (PNG
+McNemar's test against the first method, its runs paired training seed with training seed (in the
+order given where a run's seed is unknown). Beside them, two figures (PNG
 and SVG, embedded in BENCH.md): each method's normalised score per scenario with its interval
 (bench_normalised), and rliable's interval estimates of the IQM and mean (bench_intervals).
 """

@@ -40,7 +40,7 @@ def published_files(run: Path, *, weights: bool = False) -> list[Path]:
     files += [Path(n) for n in OPTIONAL_TOP if (run / n).is_file()]
     files += sorted(p.relative_to(run) for p in run.glob("*.png"))
     files += sorted(p.relative_to(run) for p in (run / STAGES_DIR).glob("*.json") if not p.name.endswith(".pending.json"))
-    stage_dirs = [run / "predictor", *sorted(p for p in (run / "predictor").glob("*") if p.is_dir()), run / RULE_KEY,
+    stage_dirs = [run / "predictor", *sorted(p for p in (run / "analytic-predictor").glob("*") if p.is_dir()), run / RULE_KEY,
                   run / ORACLE_KEY, *sorted(run.glob("policies/*/seed*/*")),
                   *sorted(run.glob("policies/*/seed*/dagger/round*")), *sorted(run.glob("zoo/*")),
                   *sorted(p for p in run.glob("suite/*") if p.is_dir()), run / "bench"]

@@ -47,6 +47,8 @@ def test_each_input_against_the_hybrid_input_paired_seed_with_seed(tmp_path: Pat
     assert 0.5 < rows["pure"]["paper_success"] < 0.7 and rows["pure"]["runs"] == 3
     md = verdict_markdown(s)
     assert "| pure | 3 |" in md and "Not measured yet (4 runs)" in md
+    (tmp_path / "docs").mkdir()
     written = write_ablation(tmp_path, tmp_path / "docs")
     assert (tmp_path / "docs" / "paper" / "BENCH.md").is_file() and (tmp_path / "docs" / "ablation.json") in written
+    assert "| pure | 3 |" in (tmp_path / "docs" / "VERDICT.md").read_text()
     assert not (tmp_path / "docs" / "roads").exists()

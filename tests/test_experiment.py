@@ -108,7 +108,7 @@ def check_every_recipe_kind_ran(run_dir: Path) -> None:
             assert m["test"]["episodes"] == PRESETS["tiny"].test_episodes
             assert set(m["val"]) == {str(v) for v in PRESETS["tiny"].val_seeds}
     assert kinds == {"paper", "best", "demo", "ablation"} and stages == {"clone", "dagger", "train", "shielded"}
-    assert (run_dir / "predictor" / "lane-aware" / "predictor.pt").is_file()  # the analytic base, a stage
+    assert (run_dir / "analytic-predictor" / "lane-aware" / "predictor.pt").is_file()  # the analytic base: a stage
     safety = stage_metrics(run_dir, "hybrid-ppo", 0, "safety")
     assert safety["test"]["planner_choices"] > 0 and safety["config"]["follow"]
     # the shielded stage trained behind the layer that follows pure-ppo of the same seed, from the train stage's

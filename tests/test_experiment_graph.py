@@ -57,7 +57,7 @@ def test_the_tiny_graph_has_every_stage_of_every_recipe_each_after_what_it_reads
         assert all(k in graph.dependents(n) for n in graph.needed(k))
     recipes = {r.name: r for r in exp.recipes()}
     want = {StageKey.of("corpus"), StageKey.of("predictor"), StageKey.of("rule"), StageKey.of("oracle")}
-    want |= {StageKey.of("predictor", r.predictor) for r in recipes.values() if r.predictor != "learned"}
+    want |= {StageKey.of("analytic-predictor", r.predictor) for r in recipes.values() if r.predictor != "learned"}
     want |= {StageKey.of("demos", "{0.driver}-s{0.seed}-n{0.episodes}".format(r.table("demos"))) for r in recipes.values()
              if "clone" in r.stages}  # fmt: skip
     for r in recipes.values():
@@ -188,10 +188,10 @@ def test_the_ablation_recipes_differ_only_in_their_input_and_an_analytic_base_is
         assert (r.stages, r.table("demos")) == (base.stages, base.table("demos"))
     graph = build_graph(PRESETS["ablation"], recipes, {r.name: ABLATION_SEEDS for r in recipes})
     lane = dict(graph[StageKey("ablation-lane-aware", 2, "clone")].needs)
-    assert lane["predictor"] == StageKey.of("predictor", "lane-aware")
+    assert lane["predictor"] == StageKey.of("analytic-predictor", "lane-aware")
     assert dict(graph[StageKey("ablation-hybrid", 0, "train")].needs)["predictor"] == StageKey.of("predictor")
     assert "predictor" not in dict(graph[StageKey("ablation-pure", 0, "train")].needs)
-    assert not graph.needed(StageKey.of("predictor", "lane-aware"))  # nothing to train: no corpus
+    assert not graph.needed(StageKey.of("analytic-predictor", "lane-aware"))  # nothing to train: no corpus
     pure = dataclasses.replace(load_recipe("ablation-pure"), name="x")
     with pytest.raises(ValueError, match="needs an observation mode with predictions"):
         dataclasses.replace(pure, predictor="lane-aware")

@@ -29,7 +29,6 @@ from lcmodels.experiment.store import StageStore, Verdict
 from lcmodels.fileio import file_sha256
 from lcmodels.sweep import MAX_TRIALS, Sweep, trial_name
 
-
 TINY_TRAIN = ["--obs", "pure", "--scenario", "tiny", "--timesteps", "64", "--set", "n_envs=2", "--set", "n_steps=32",
               "--set", "batch_size=64", "--set", "eval_episodes=0", "-q"]  # fmt: skip
 
@@ -181,7 +180,7 @@ def test_ctrl_c_in_lc_experiment_is_one_line_and_exit_130(tmp_path: Path) -> Non
 
 
 # ------------------------------------------------------------------------------------------------ lc-bench
-def test_lc_bench_never_writes_its_table_through_a_link_nor_over_a_users_file(tiny_suite: Path, tmp_path: Path,  # noqa: F811
+def test_lc_bench_never_writes_its_table_through_a_link_nor_over_a_users_file(tiny_suite: Path, tmp_path: Path,
                                                                               victim: Path, capsys) -> None:  # fmt: skip
     out = tmp_path / "bench"
     out.mkdir()
@@ -205,7 +204,7 @@ def test_lc_bench_never_writes_its_table_through_a_link_nor_over_a_users_file(ti
     assert bench_main(argv) == 0  # its own table it replaces
 
 
-def test_lc_bench_names_a_callable_that_fails_and_what_it_returned(tiny_suite: Path, tmp_path: Path,  # noqa: F811
+def test_lc_bench_names_a_callable_that_fails_and_what_it_returned(tiny_suite: Path, tmp_path: Path,
                                                                    monkeypatch, capsys) -> None:  # fmt: skip
     (tmp_path / "mine").mkdir()
     (tmp_path / "mine" / "odd_policies.py").write_text(

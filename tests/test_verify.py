@@ -1,7 +1,7 @@
 """``lc-bench --verify``: ledger lines replayed with the weights they name, their outcome letters compared.
 
 ``test_every_line_whose_weights_are_here_replays`` runs in CI (no ``slow`` marker): one episode of each of the
-committed ledger's 84 lines, all of whose weights the checkout keeps (zoo/ and docs/results/): about 40 s of one
+committed ledger's lines (84 when it was written), all of whose weights the checkout keeps (zoo/ and docs/results/): about 40 s of one
 core's time (the same run by the command: 41 s, docs/results/benchmark/verify/sample.txt; 1.5 to 2 min of wall
 clock on a two-core machine shared with other work), a third of it the two lines behind the safety layer. A whole
 line: docs/results/benchmark/NOTE.md, section *Verify by replay*."""

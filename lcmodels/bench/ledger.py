@@ -243,10 +243,10 @@ def lock_name(path: Path) -> str:
 
 def append_entry(entry: dict[str, Any], path: str | os.PathLike[str] | None = None) -> tuple[dict[str, Any], bool]:
     """Append one entry (a line of JSON) to the ledger, stamping its version, date and commit, unless its key is
-    there already: the ledger is read again under an exclusive lock beside it (:func:`lcdata.fileio.folder_lock`,
+    there already: the ledger is read again under an exclusive lock beside it (:func:`lckit.fileio.folder_lock`,
     the one ``lc-record`` holds), so two runs at once never append one key twice. Returns ``(the ledger's entry
     of that key, whether this call appended it)``."""
-    from lcdata.fileio import folder_lock
+    from lckit.fileio import check_target, folder_lock
 
     path = Path(path) if path is not None else ledger_path()
     commit, dirty = git_commit()  # the code that evaluated: this package's checkout
@@ -262,7 +262,9 @@ def append_entry(entry: dict[str, Any], path: str | os.PathLike[str] | None = No
         found = find_entry(read_ledger(path), full["key"])
         if found is not None:  # another run measured it meanwhile: its line stands
             return found, False
-        with path.open("a", encoding="utf-8") as f:
+        check_target(path)  # appended to where it is, never through a link
+        flags = os.O_WRONLY | os.O_APPEND | os.O_CREAT | getattr(os, "O_NOFOLLOW", 0) | getattr(os, "O_CLOEXEC", 0)
+        with os.fdopen(os.open(path, flags, 0o644), "a", encoding="utf-8") as f:
             f.write(canonical(full) + "\n")
             f.flush()
             os.fsync(f.fileno())

@@ -85,7 +85,7 @@ def units(text: str) -> list[Unit]:
             for row in rows[2:] if len(rows) > 1 and set(rows[1]) <= set("|-: ") else rows:
                 cells, links = _cells(row), tuple(LINK.findall(row))
                 for i, cell in enumerate(cells):
-                    names = " | ".join({cells[0], header[i] if i < len(header) else "", cell})
+                    names = " | ".join(dict.fromkeys((cells[0], header[i] if i < len(header) else "", cell)))
                     out.append(Unit(cell, names, links, table_sealed or bool(ABOUT_SEALED.search(row)), cell=True))
         current: list[str] = []
         for line in [x for x in lines if not x.startswith(("|", "#"))] + ["- "]:

@@ -4,7 +4,7 @@ each naming the stages it reads.
 ::
 
     corpus ──► predictor ──────────────────────────────► every stage whose policy reads predictions
-               predictor/<base> (analytic: no training) ──► the stages of a recipe with predictor = <base>
+    analytic-predictor/<base> (no training) ──► the stages of a recipe with predictor = <base>
     demos/<key> ──► <recipe>/seed<k>/clone ──► dagger ──► train ──► shielded ──► eval
                                                                         └──────► safety
     <followed recipe>/seed<k>/<its final stage> ───────► shielded, safety, a dagger stage the layer labels

@@ -23,6 +23,7 @@ the future rewards in states like the ones the policy reaches.
 
 from __future__ import annotations
 
+import functools
 import json
 import os
 import time
@@ -35,8 +36,7 @@ from typing import Any
 import numpy as np
 import torch
 
-from lcdata.fileio import file_sha256
-from lckit.fileio import check_inside
+from lckit.fileio import check_inside, file_sha256, write_file
 from lckit.pool import WorkerPool
 from lcmodels.fileio import POLICY_FILE, write_json
 from lcmodels.policy.checkpoint import load_policy, save_policy
@@ -420,8 +420,8 @@ def dagger(
                 data[k].append(round_obs[k])
             targets.append(round_labels)
             weights.append(weigh(round_labels, round_own))
-            (out / f"round{r}").mkdir(parents=True, exist_ok=True)
-            np.savez_compressed(out / f"round{r}" / _STATES, labels=round_labels, actions=round_own, **round_obs)
+            write_file(out / f"round{r}" / _STATES, functools.partial(  # whole or not at all, never via a link
+                np.savez_compressed, labels=round_labels, actions=round_own, **round_obs), root=out)  # fmt: skip
         outcomes = [o for g in got for o in g.outcomes]
         collect_s = time.perf_counter() - t0
         say(f"round {r}: the policy drove {episodes} episodes ({outcomes.count('success')} successes), "

@@ -18,7 +18,7 @@ from lcmodels.experiment.kinds.dagger import DAGGER_EXPERTS, Dagger, DaggerSpec
 from lcmodels.experiment.kinds.demos import Demos, DemoSpec
 from lcmodels.experiment.kinds.evaluation import Eval
 from lcmodels.experiment.kinds.policy import PolicyStage
-from lcmodels.experiment.kinds.predictor import Predictor
+from lcmodels.experiment.kinds.predictor import AnalyticPredictor, Predictor
 from lcmodels.experiment.kinds.reference import Oracle, Rule
 from lcmodels.experiment.kinds.safety import Safety
 from lcmodels.experiment.kinds.shielded import Shielded, ShieldedSpec
@@ -28,7 +28,7 @@ from lcmodels.experiment.kinds.train import Train
 from lcmodels.experiment.kinds.zoo import Zoo
 from lcmodels.experiment.kinds.zoo_safety import ZooSafety
 
-KINDS: tuple[type[StageKind], ...] = (Corpus, Predictor, Demos, Clone, Dagger, Train, Shielded, Eval, Safety, Suite,
+KINDS: tuple[type[StageKind], ...] = (Corpus, Predictor, AnalyticPredictor, Demos, Clone, Dagger, Train, Shielded, Eval, Safety, Suite,
                                       Bench, Rule, Oracle, Zoo, ZooSafety, Showcase)  # fmt: skip
 """Every kind of stage, in the experiment's order."""
 KIND: dict[str, type[StageKind]] = {k.name: k for k in KINDS}
@@ -37,33 +37,34 @@ TRAINING_STAGES: tuple[str, ...] = tuple(k.name for k in KINDS if k.in_recipe)
 """The stages a recipe may name in ``stages``, in the order it names them."""
 
 __all__ = [
-    "DAGGER_EXPERTS",
-    "GROUPS",
-    "KIND",
-    "KINDS",
-    "TRAINING_STAGES",
-    "Bench",
-    "Clone",
-    "Corpus",
-    "Dagger",
-    "DaggerSpec",
-    "DemoSpec",
-    "Demos",
-    "Eval",
-    "GraphBuilder",
-    "Needs",
-    "Oracle",
-    "PolicyStage",
-    "Predictor",
-    "Rule",
-    "Safety",
-    "Shielded",
-    "ShieldedSpec",
-    "Showcase",
-    "Stage",
-    "StageKind",
-    "Suite",
-    "Train",
-    "Zoo",
-    "ZooSafety",
+                                      "DAGGER_EXPERTS",
+                                      "GROUPS",
+                                      "KIND",
+                                      "KINDS",
+                                      "TRAINING_STAGES",
+                                      "AnalyticPredictor",
+                                      "Bench",
+                                      "Clone",
+                                      "Corpus",
+                                      "Dagger",
+                                      "DaggerSpec",
+                                      "DemoSpec",
+                                      "Demos",
+                                      "Eval",
+                                      "GraphBuilder",
+                                      "Needs",
+                                      "Oracle",
+                                      "PolicyStage",
+                                      "Predictor",
+                                      "Rule",
+                                      "Safety",
+                                      "Shielded",
+                                      "ShieldedSpec",
+                                      "Showcase",
+                                      "Stage",
+                                      "StageKind",
+                                      "Suite",
+                                      "Train",
+                                      "Zoo",
+                                      "ZooSafety",
 ]

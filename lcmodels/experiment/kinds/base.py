@@ -24,6 +24,15 @@ Needs = tuple[tuple[str, StageKey], ...]
 """``(role, key)`` of each stage a stage reads."""
 
 
+ANALYTIC_STAGE = "analytic-predictor"
+"""The stage (and folder) of an analytic base: ``analytic-predictor/<base>``."""
+
+
+def predictor_key(source: str) -> StageKey:
+    """The stage whose ``predictor.pt`` a recipe with ``predictor = source`` reads."""
+    return StageKey.of("predictor") if source == "learned" else StageKey.of(ANALYTIC_STAGE, source)
+
+
 @dataclass(frozen=True)
 class StageKind:
     """One kind of stage. Subclassed once per kind; an instance is what a stage of the kind is made from beyond
@@ -158,7 +167,7 @@ class GraphBuilder:
         its policy reads predictions."""
         if not needs_predictor(recipe.obs):
             return ()
-        return (("predictor", StageKey.of("predictor", None if recipe.predictor == "learned" else recipe.predictor)),)
+        return (("predictor", predictor_key(recipe.predictor)),)
 
     @staticmethod
     def previous(recipe: Any, seed: int, stage: str) -> Needs:

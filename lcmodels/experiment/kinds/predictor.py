@@ -1,6 +1,7 @@
-"""``predictor``: the trajectory predictor trained on the corpus; ``predictor/<base>``: an analytic base
+"""``predictor``: the trajectory predictor trained on the corpus; ``analytic-predictor/<base>``: an analytic base
 (:data:`lcmodels.experiment.recipe.PREDICTOR_SOURCES`) a recipe names with ``predictor = "<base>"``, with the
-horizons and network of the trained one and nothing to train."""
+horizons and network of the trained one and nothing to train (a folder of its own: never inside the trained one's,
+which a fresh start of that stage empties)."""
 
 from __future__ import annotations
 
@@ -9,7 +10,7 @@ from collections.abc import Callable, Mapping
 from typing import Any
 
 from lcmodels.experiment.keys import StageKey
-from lcmodels.experiment.kinds.base import GraphBuilder, Stage, StageKind
+from lcmodels.experiment.kinds.base import ANALYTIC_STAGE, GraphBuilder, Stage, StageKind, predictor_key
 from lcmodels.experiment.stages import StageContext, StageJob
 from lcmodels.presets import Preset, StageResult
 
@@ -21,17 +22,29 @@ class Predictor(StageKind):
 
     @classmethod
     def add(cls, graph: GraphBuilder) -> None:
-        """The trained predictor (after the corpus), and each analytic base a recipe names, in recipe order."""
+        """The trained predictor, after the corpus."""
         corpus = StageKey.of("corpus")
         graph.add(Stage(StageKey.of(cls.name), (("corpus", corpus),), graph.priority("data", 1), cls(), group="data"))
+
+    def job(self, ctx: StageContext, stage: Stage, got: Mapping[str, StageResult]) -> StageJob:
+        return _trained_job(ctx, stage.key, got["corpus"])
+
+
+@dataclasses.dataclass(frozen=True)
+class AnalyticPredictor(StageKind):
+    name = ANALYTIC_STAGE
+    group = "data"
+
+    @classmethod
+    def add(cls, graph: GraphBuilder) -> None:
+        """Each analytic base a recipe names, in recipe order: nothing to read, nothing to train."""
         bases = list(dict.fromkeys(r.predictor for r in graph.recipes if r.predictor != "learned"))
         for i, base in enumerate(bases, 1):
-            graph.add(Stage(StageKey.of(cls.name, base), priority=graph.priority("data", 1, i), kind=cls(),
+            graph.add(Stage(predictor_key(base), priority=graph.priority("data", 1, i), kind=cls(),
                             group="data"))  # fmt: skip
 
     def job(self, ctx: StageContext, stage: Stage, got: Mapping[str, StageResult]) -> StageJob:
-        key = stage.key
-        return _analytic_job(ctx, key) if key.part is not None else _trained_job(ctx, key, got["corpus"])
+        return _analytic_job(ctx, stage.key)
 
 
 def predictor_config(preset: Preset, threads: int) -> Any:
