@@ -155,7 +155,10 @@ class LookaheadDriver:
         env, action = np.repeat(env, samples), np.repeat(action, samples)
         salt = np.tile(np.arange(1, samples + 1), len(env) // samples)
         track = salt <= self.imagined_paths if self.imagined_paths else None
-        survived, points, counts = self._imagine_futures(core.replicate(env), action, salt, env, track)
+        if track is None:  # through _survives, the hook a research variant overrides (experiments/)
+            survived, points, counts = self._survives(core.replicate(env), action, salt, env), None, None
+        else:
+            survived, points, counts = self._imagine_futures(core.replicate(env), action, salt, env, track)
         alive = np.zeros(mask.shape)  # share of the imagined futures each decision survives
         np.add.at(alive, (env, action), survived)
         alive /= samples
@@ -167,7 +170,7 @@ class LookaheadDriver:
         self.overrides += int(override.sum())
         executed = np.where(override, fallback, planned).astype(np.int64)
         paths = None
-        if track is not None:
+        if track is not None and points is not None and counts is not None:
             xy = np.concatenate([np.zeros((0, 2)), *(points[:c, i] for i, c in enumerate(counts))])
             paths = ImaginedPaths(env=env[track], action=action[track], future=salt[track] - 1,
                                   survived=survived[track].astype(bool), xy=xy,
