@@ -216,12 +216,24 @@ class _CliFormatter(logging.Formatter):
         return f"{self.prog}: {record.levelname.lower()}: {text}" if record.levelno >= logging.WARNING else text
 
 
+class _StderrHandler(logging.StreamHandler):
+    """A handler on whatever ``sys.stderr`` is when a record comes: a command run in-process after another (tests,
+    a notebook) never writes to the stream an earlier one was given, which may be closed by then."""
+
+    @property  # type: ignore[override]
+    def stream(self):
+        return sys.stderr
+
+    @stream.setter
+    def stream(self, value) -> None:
+        pass
+
+
 def setup_logging(prog: str, verbose: bool) -> None:
     """Show the libraries' log on stderr: their progress (INFO) when ``verbose``, always their warnings."""
-    handler = logging.StreamHandler(sys.stderr)
+    handler = _StderrHandler()
     handler.setFormatter(_CliFormatter(prog))
     logging.basicConfig(level=logging.INFO if verbose else logging.WARNING, handlers=[handler], force=True)
-
 
 
 def zoo_spec(text: str) -> str:
