@@ -173,8 +173,8 @@ def main(argv: Sequence[str] | None = None) -> int:
     except SystemExit as exc:  # --help
         return int(exc.code or 0)
     setup_logging(PROG, verbose=args.verbose)
-    from lcdata.fileio import check_output_file, check_target, write_file, write_json
     from lcdata.recorded import recorded_traffic
+    from lckit.fileio import check_output_file, check_target, write_file, write_json
     from lcsim.calibrate import (
         CalibrationOptions,
         RecordedRoad,

@@ -276,7 +276,7 @@ def eval_main(argv: list[str] | None = None) -> int:
                      "episodes, which only lc-bench --final runs")
     if args.json_out is not None and args.json_out.exists() and not args.overwrite:
         return error(f"{args.json_out} already exists; pass --overwrite or choose another --json-out")
-    from lcdata.fileio import check_output_file, check_output_folder, check_target
+    from lckit.fileio import check_output_file, check_output_folder, check_target
 
     try:  # the summary is written after the whole evaluation: a place it cannot go is refused first
         if args.json_out is not None:
@@ -397,7 +397,7 @@ def eval_main(argv: list[str] | None = None) -> int:
 def _write_summary(path: Path, data: object, error: Callable[[str], int]) -> int:
     """Write ``--json-out`` (atomically); a write that fails still (a disk filled during the evaluation) is one
     line, after the figures were printed."""
-    from lcdata.fileio import write_json
+    from lckit.fileio import write_json
 
     try:
         write_json(path, data)

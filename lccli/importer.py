@@ -151,7 +151,7 @@ def main(argv: Sequence[str] | None = None) -> int:
             bar = tqdm(total=total, unit=unit[0], unit_scale=unit[1], desc=args.file.name, disable=None)
         bar.update(done - bar.n)
 
-    from lcdata.fileio import check_output_folder
+    from lckit.fileio import check_output_folder
 
     try:
         check_output_folder(args.out)

@@ -109,7 +109,7 @@ def train_predictor_main(argv: list[str] | None = None) -> int:
 
     if not args.data.is_dir():
         return error(f"--data {args.data} is not a directory")
-    from lcdata.fileio import check_output_folder
+    from lckit.fileio import check_output_folder
     from lcmodels.predictor.train import METRICS_NAME
 
     try:  # the predictor is written after the whole training: a folder it cannot go to is refused first

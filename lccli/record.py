@@ -159,7 +159,7 @@ def scenario_config(name: str, *, vehicles: int | None = None, steps: int | None
 def _check_out_dir(out: pathlib.Path) -> None:
     """``UsageError`` when ``--out`` cannot take the recording (the filesystem root, the home directory, a file,
     a folder nothing can be written in); nothing is created."""
-    from lcdata.fileio import check_output_folder
+    from lckit.fileio import check_output_folder
 
     try:
         check_output_folder(out)
@@ -227,7 +227,7 @@ def record_flags(args: argparse.Namespace, driver: str, scenario_name: str,
     if args.imagined_paths:  # only when asked: the flags of earlier recordings stay what they were
         flags["imagined_paths"] = args.imagined_paths
     if split_policy_spec(driver) and not _is_layered_rule(driver):
-        from lcdata.fileio import file_sha256
+        from lckit.fileio import file_sha256
 
         for key, spec in (("driver_sha256", driver), ("lookahead_follow_sha256", args.follow)):
             if spec:
@@ -239,7 +239,7 @@ def record_flags(args: argparse.Namespace, driver: str, scenario_name: str,
 
 def _read_record_json(out: pathlib.Path) -> dict[str, dict[str, object]]:
     """``OUT/record.json``: the flags of each set of episodes there, by file-name prefix (scenario_driver)."""
-    from lcdata.fileio import loads_json
+    from lckit.fileio import loads_json
 
     record = out / RECORD_JSON
     if not record.exists():
@@ -379,7 +379,7 @@ def record_main(argv: Sequence[str] | None = None) -> int:
         return int(exc.code or 0)
     # Every check has passed: from here on --out is written, by this process alone (a second lc-record there is
     # refused rather than recording the same files at once).
-    from lcdata.fileio import UnsafePathError, folder_lock
+    from lckit.fileio import UnsafePathError, folder_lock
 
     try:
         _make_out_dir(args.out)
@@ -398,7 +398,7 @@ def record_main(argv: Sequence[str] | None = None) -> int:
 def _record(args: argparse.Namespace, config: ScenarioConfig, driver: object, label: str, seeds: list[int],
             paths: list[pathlib.Path], key: str, flags: dict[str, object], start_ns: int | None) -> int:
     """Record the episodes (``--out`` made and locked): ``record.json``, then the missing episode files."""
-    from lcdata.fileio import write_json
+    from lckit.fileio import write_json
 
     name = driver if isinstance(driver, str) else driver.name  # type: ignore[attr-defined]
     resume = _check_resume(args.out, key, flags, paths, args.overwrite)  # again: another run may have finished

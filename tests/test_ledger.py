@@ -158,7 +158,7 @@ def test_two_appends_of_one_key_leave_one_line(tmp_path: Path):
 
 
 def test_an_append_waits_for_the_lock_and_says_who_holds_it(tmp_path: Path, monkeypatch):
-    from lcdata.fileio import folder_lock
+    from lckit.fileio import folder_lock
     from lcmodels.bench import ledger as ledger_mod
 
     ledger = tmp_path / "ledger.jsonl"

@@ -182,7 +182,7 @@ def test_a_second_recording_into_the_same_out_is_refused(tmp_path: pathlib.Path,
     """While one lc-record writes in --out (it holds the folder's lock), another one there is refused in one
     line instead of recording the same files at once."""
     from lccli.record import LOCK_NAME
-    from lcdata.fileio import folder_lock
+    from lckit.fileio import folder_lock
 
     with folder_lock(tmp_path, "lc-record", LOCK_NAME):  # what the first process holds while it records
         assert record_main(["--out", str(tmp_path), *TINY]) == 2

@@ -20,7 +20,7 @@ import zipfile
 from pathlib import Path
 from typing import Any
 
-from lcdata.fileio import loads_json
+from lckit.fileio import loads_json
 from lcmodels.policy.checkpoint import (
     META_FORMAT,
     LoadedPolicy,

@@ -32,7 +32,6 @@ from typing import Any
 
 import numpy as np
 
-from lcdata.fileio import folder_lock
 from lcdata.importers.limits import (
     DEFAULT_MAX_DURATION_S,
     MAX_ABS_TIME_S,
@@ -43,6 +42,7 @@ from lcdata.importers.limits import (
 from lcdata.importers.resample import Frame
 from lcdata.record import SEED_EPOCH_NS
 from lcdata.writer import EpisodeWriter
+from lckit.fileio import folder_lock
 from lcsim.config import ScenarioConfig, corpus_scenario
 
 log = logging.getLogger(__name__)

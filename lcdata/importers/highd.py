@@ -41,7 +41,6 @@ from typing import Any
 import numpy as np
 import pandas as pd
 
-from lcdata.fileio import file_sha256
 from lcdata.importers.episodes import (
     EpisodeFiles,
     ImportedEpisode,
@@ -65,6 +64,7 @@ from lcdata.importers.limits import (
     shown,
 )
 from lcdata.importers.resample import Frame, resample
+from lckit.fileio import file_sha256
 from lcsim.config import RoadConfig
 
 log = logging.getLogger(__name__)

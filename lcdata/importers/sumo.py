@@ -34,7 +34,6 @@ from xml.parsers import expat
 
 import numpy as np
 
-from lcdata.fileio import file_sha256
 from lcdata.importers.episodes import (
     EpisodeFiles,
     ImportedEpisode,
@@ -56,6 +55,7 @@ from lcdata.importers.limits import (
     Bound,
 )
 from lcdata.importers.resample import TIME_TOLERANCE_S, Frame, resample
+from lckit.fileio import file_sha256
 
 log = logging.getLogger(__name__)
 

@@ -6,9 +6,13 @@ An experiment directory ``DIR`` holds one directory per stage::
     stages/                      one record per stage (:mod:`.store`)
     corpus/                      autopilot trajectory corpus (MCAP)                   -> predictor
     predictor/                   predictor.pt, metrics.json (Table II)                -> prediction/hybrid policies
+    analytic-predictor/<base>/   predictor.pt of an analytic base (no training)       -> recipes naming predictor = base
     demos/<key>/                 demonstrations (the oracle's by default) with images -> cloning
     rule/, oracle/               the references on the validation and test episodes
-    policies/<recipe>/seed<k>/   clone, dagger, train, shielded (lcmodels.policy.train run directories), eval, safety
+    policies/<recipe>/seed<k>/   clone, dagger, train, shielded (lcmodels.policy.train run directories), eval, safety,
+                                 suite (a preset with a suite: the final policy on its roads, suite.json + cells/)
+    suite/oracle/, suite/rule/   (a preset with a suite) each road's ceiling and floor on the same episodes
+    bench/                       (a preset with a suite) BENCH.md, bench.json and figures of every run, by recipe
     zoo/, zoo-safety/, showcase/ (quick) the zoo's policies on the test episodes
     REPORT.md, fig5_safe_forward.png, fig6_total_reward.png
 

@@ -118,7 +118,7 @@ class StageStore:
     def check_out(self) -> None:
         """``ValueError`` when ``out`` is a file, a non-empty directory that is not an experiment, the filesystem
         root or the home directory, or a folder nothing can be written in."""
-        from lcdata.fileio import check_output_folder
+        from lckit.fileio import check_output_folder
 
         check_output_folder(self.out)
         if self.out.is_dir() and any(q.name != LOCK_NAME for q in self.out.iterdir()) and not (
@@ -132,7 +132,7 @@ class StageStore:
 
         ``ValueError`` when another process holds it: two runs in one directory would overwrite each other.
         """
-        from lcdata.fileio import folder_lock
+        from lckit.fileio import folder_lock
 
         with folder_lock(self.out, "lc-experiment", LOCK_NAME, doing="is running in"):
             yield
