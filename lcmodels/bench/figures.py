@@ -91,7 +91,7 @@ def write_figures(summary: dict[str, Any], out: str | Path, *, root: str | Path 
     ax.set_ylabel("normalised score (success / oracle's)")
     ax.set_ylim(0, 1.15)
     ax.set_title(f"Suite {summary['suite']}: {summary['split']} episodes")
-    ax.legend(fontsize=7, ncols=min(m, 3), loc="lower left")
+    ax.legend(fontsize=7, loc="upper left", bbox_to_anchor=(1.0, 1.0))  # beside the bars, never over them
     written += _save(fig, out, FIGURES[0], root)
     plt.close(fig)
 
