@@ -53,6 +53,23 @@ def published_files(run: Path, *, weights: bool = False) -> list[Path]:
     return files
 
 
+RECORDS_WITH_PATHS = ("run.json", "warm_start.json")
+"""A run's own records that name files by where they were on the machine that made them (read back for what they
+say, never hashed by a stage record): published with those paths relative to the run."""
+
+
+def _relative(run: Path, rel: Path) -> bytes:
+    """The bytes of ``run/rel`` to publish: a record of :data:`RECORDS_WITH_PATHS` with the run's own absolute path
+    (as JSON writes it) made relative to the run, so that no committed file names the machine's folders."""
+    data = (run / rel).read_bytes()
+    if rel.name not in RECORDS_WITH_PATHS:
+        return data
+    import json
+
+    prefix = json.dumps(str(Path(run).resolve()) + "/")[1:-1].encode()
+    return data.replace(prefix, b"")
+
+
 def publish(run: Path, dest: Path, *, overwrite: bool = False, allow_pending: bool = False,
             weights: bool = False) -> list[Path]:
     """Copy the published files of ``run`` to ``dest``; returns their paths relative to both.
@@ -83,6 +100,6 @@ def publish(run: Path, dest: Path, *, overwrite: bool = False, allow_pending: bo
         for rel in stale:
             remove_file(dest / rel, dest)
     for rel in files:
-        write_file(dest / rel, (run / rel).read_bytes(), root=dest)
+        write_file(dest / rel, _relative(run, rel), root=dest)
         shutil.copystat(run / rel, dest / rel)
     return files
