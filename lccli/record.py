@@ -26,9 +26,10 @@ from lccli.common import (
 from lcdata.record import DRIVERS, MAX_USER_SEED, episode_filename, iter_record_episodes
 from lcdata.writer import MAX_START_TIME_NS
 from lcdata.writer_process import WRITER_MODES
+from lcmodels.policy.driverspec import split_policy_spec, split_safety_layer
 from lcsim.config import ScenarioConfig
-from lcsim.planning import MAX_IMAGINED_FUTURES, rule_behind_layer, split_safety_layer
-from lcsim.registry import SCENARIOS, scenario, scenario_label, split_policy_spec
+from lcsim.planning import MAX_IMAGINED_FUTURES, rule_behind_layer
+from lcsim.registry import SCENARIOS, scenario, scenario_label
 from lcsim.suite import SEALED_SEED_BASE, SEALED_SEED_END, is_sealed
 
 

@@ -56,7 +56,9 @@ class ZooEntry:
     def safety_layer(self, follow: str = "") -> SafetyLayerConfig | None:
         """The safety layer the card's figure behind the layer was measured with (its recorded driver's spelling
         and settings), its imagined futures following ``follow``; None when the card has none."""
-        from lcsim.planning import safety_layer_of
+        from lcmodels.policy.driverspec import (
+            safety_layer_of,  # (it resolves zoo names: it imports this module)
+        )
 
         config = (self.card.get("safety_layer") or {}).get("config") or {}
         if not config.get("lookahead"):

@@ -143,7 +143,7 @@ def _layer(settings: Any, follow: str = "") -> Any:
 
 def replay_driver(entry: dict[str, Any], index: WeightsIndex) -> tuple[BenchDriver | None, str]:
     """``(driver, "")``: the driver ``entry`` names, rebuilt, with the line's identity; or ``(None, why)``."""
-    from lcsim.planning import split_safety_layer
+    from lcmodels.policy.driverspec import split_safety_layer
     from lcsim.registry import DRIVER_NAMES
 
     ident = entry["identity"]
@@ -206,7 +206,7 @@ def verify_entry(entry: dict[str, Any], runner: Runner, *, episodes: int | None 
     if driver is None:
         return Verdict(key, what, "not checkable", episodes=n, detail=why)
     picked = sample_episodes(entry, episodes, seed)
-    if driver.spec == "random" and len(picked) < n:
+    if driver.spec.name == "random" and len(picked) < n:
         return Verdict(key, what, "not checkable", episodes=n,
                        detail="the random driver's draws follow its calls: only all its episodes replay it")
     first = int(entry["user_seeds"][0])
