@@ -241,7 +241,7 @@ def zoo_spec(text: str) -> str:
     entry's policy file; anything else is returned as given."""
     if "zoo:" not in text:
         return text
-    from lcmodels.zoo import resolve_policy_spec
+    from lcmodels.policy.driverspec import resolve_policy_spec
 
     try:
         return resolve_policy_spec(text)[0]

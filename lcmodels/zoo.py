@@ -189,19 +189,6 @@ def follower_mismatches(entries: list[ZooEntry] | None = None) -> list[str]:
     return bad
 
 
-def resolve_policy_spec(spec: str) -> tuple[str, str | None]:
-    """``(spec, predictor)`` with a ``zoo:NAME`` part (also after a prefix such as ``safety-layer:``) replaced by the
-    entry's policy file, and the zoo's predictor when that policy reads predictions (else None)."""
-    prefix, sep, rest = spec.partition(":")
-    if spec.startswith(ZOO_PREFIX):
-        entry = zoo_entry(spec)
-        return f"policy:{entry.policy}", str(entry.predictor) if entry.predictor else None
-    if sep and rest.startswith(ZOO_PREFIX):
-        entry = zoo_entry(rest)
-        return f"{prefix}:{entry.policy}", str(entry.predictor) if entry.predictor else None
-    return spec, None
-
-
 __all__ = ["CHECKOUT_ZOO", "CHECK_EPISODES", "ENTRY_CARD", "ZOO_PREFIX", "ZooEntry", "check_episodes",
-           "follower_mismatches", "publish_entry", "resolve_policy_spec", "weights_sha256", "zoo_dir", "zoo_entries",
+           "follower_mismatches", "publish_entry", "weights_sha256", "zoo_dir", "zoo_entries",
            "zoo_entry"]

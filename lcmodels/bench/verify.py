@@ -105,8 +105,9 @@ def _as_path(spec: str) -> str:
 
 def _digest_of(spec: str) -> str | None:
     """The weights digest of the policy file ``spec`` names (``zoo:NAME`` or a path), None when there is none."""
+    from lcmodels.policy.driverspec import resolve_policy_spec
     from lcmodels.policy.evaluate import policy_path_of
-    from lcmodels.zoo import resolve_policy_spec, weights_sha256
+    from lcmodels.zoo import weights_sha256
 
     try:
         path = policy_path_of(resolve_policy_spec(_as_path(spec))[0])

@@ -148,13 +148,13 @@ def evaluation_job(ctx: StageContext, key: StageKey, driver: DriverSpec, inputs:
     return StageJob(cfg, inputs, lambda: ["metrics.json"], work)
 
 
-def suite_job(ctx: StageContext, key: StageKey, spec: str, inputs: dict[str, str], *, group: str,
+def suite_job(ctx: StageContext, key: StageKey, spec: DriverSpec, inputs: dict[str, str], *, group: str,
                predictor: Path | None = None) -> StageJob:
-    """``suite.json``: driver ``spec`` on every road of the preset's suite, ``suite_episodes`` validation episodes
+    """``suite.json``: the driver ``spec`` on every road of the preset's suite, ``suite_episodes`` validation episodes
     of ``suite_seed`` each, as lc-bench measures a cell (each road's cell kept as it ends: a rerun resumes)."""
     p = ctx.preset
     path = key.path(ctx.out)
-    label = f"{key.recipe}/seed{key.seed}" if key.recipe is not None else spec
+    label = f"{key.recipe}/seed{key.seed}" if key.recipe is not None else spec.text
     cfg = {"driver": label, "suite": p.suite, "episodes": p.suite_episodes, "seed": p.suite_seed}
 
     def work(keep: bool, save_wall: Callable[[], None]) -> float:

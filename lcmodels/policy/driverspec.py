@@ -100,32 +100,19 @@ class DriverSpec:
             raise ValueError(f"{self.text} is no policy file")
         return Path(self.name)
 
-    @property
-    def is_builtin(self) -> bool:
-        """Whether a built-in driver drives (also the rule-based driver behind the layer)."""
-        return self.kind == "driver"
 
-    @property
-    def resolved(self) -> str:
-        """The spec with a zoo entry replaced by its file (``policy:PATH``), the layer's prefix kept as spelt: what
-        a stored record names (:attr:`lcmodels.bench.run.BenchDriver.spec`)."""
-        if self.kind != "policy":
-            return self.text
-        prefix = layer_prefix(self.text)
-        return f"{prefix or POLICY_PREFIX}{self.name}" if self._names_zoo() else self.text
-
-    def _names_zoo(self) -> bool:
-        rest = self.text.removeprefix(layer_prefix(self.text) or "")
-        return rest.removeprefix(POLICY_PREFIX).startswith(ZOO_PREFIX)
-
-
-def layer_prefix(text: str) -> str | None:
-    """The prefix of ``text`` that puts a driver behind the safety layer (``safety-layer:`` or an older one), or
-    None."""
-    for prefix in (SAFETY_LAYER_PREFIX, *LEGACY_BASES, POLICY_PREFIX):
-        if text.startswith(prefix) and len(text) > len(prefix):
-            return prefix if prefix != POLICY_PREFIX else None
-    return None
+def resolve_policy_spec(text: str) -> tuple[str, str | None]:
+    """``(words, predictor)``: ``text`` with a ``zoo:NAME`` part (also after a prefix such as ``safety-layer:``)
+    replaced by the entry's policy file, and the zoo's predictor when that policy reads predictions (else None): the
+    words a command's flag or a stored record keeps (:func:`parse_driver_spec` resolves the entry itself)."""
+    prefix, sep, rest = text.partition(":")
+    if text.startswith(ZOO_PREFIX):
+        entry = zoo_entry(text)
+        return f"{POLICY_PREFIX}{entry.policy}", str(entry.predictor) if entry.predictor else None
+    if sep and rest.startswith(ZOO_PREFIX):
+        entry = zoo_entry(rest)
+        return f"{prefix}:{entry.policy}", str(entry.predictor) if entry.predictor else None
+    return text, None
 
 
 def split_policy_spec(text: str) -> tuple[str, str] | None:
@@ -242,9 +229,9 @@ __all__ = [
     "SAFETY_LAYER_PREFIX",
     "DriverSpec",
     "as_driver_spec",
-    "layer_prefix",
     "parse_driver_spec",
     "policy_spec",
+    "resolve_policy_spec",
     "safety_layer_of",
     "split_policy_spec",
     "split_safety_layer",
