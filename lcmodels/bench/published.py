@@ -20,7 +20,7 @@ import numpy as np
 from lckit.config import read_data_file
 from lcmodels.bench.ledger import cell_key, find_entry, read_ledger
 from lcmodels.bench.run import resolve_driver, scenario_sha256
-from lcmodels.policy.driverspec import parse_driver_spec, split_safety_layer
+from lcmodels.policy.driverspec import parse_driver_spec, split_safety_layer, zoo_safety_layer
 from lcmodels.stats import McNemar, mcnemar, t_interval
 from lcsim.suite import SUITE_SCENARIOS, suite
 
@@ -315,7 +315,7 @@ def zoo_sealed(name: str, entries: list[dict[str, Any]] | None = None) -> dict[s
         weights = (layer.get("follow") or {}).get("weights_sha256")
         follower = next((e for e in zoo_entries() if e.card.get("recipe") == follow
                          and (weights is None or e.weights_sha256 == weights)), None)  # fmt: skip
-        safety = entry.safety_layer(f"zoo:{follower.name}") if follower is not None else None
+        safety = zoo_safety_layer(entry, f"zoo:{follower.name}") if follower is not None else None
         if safety is not None:
             drv = resolve_driver(f"safety-layer:zoo:{name}", safety=safety)
             found = find_entry(entries, cell_key(drv.identity, digest, seeds))

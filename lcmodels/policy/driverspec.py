@@ -28,7 +28,7 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, Literal
 
-from lcmodels.zoo import ZOO_PREFIX, zoo_entry
+from lcmodels.zoo import ZOO_PREFIX, ZooEntry, zoo_entry
 from lcsim.planning.safety import SafetyLayerConfig
 from lcsim.registry import DRIVER_NAMES
 
@@ -207,6 +207,16 @@ def policy_spec(
     return DriverSpec(text=f"{prefix}{path}", kind="policy", name=str(path), layer=layer, follow=followed)
 
 
+def zoo_safety_layer(entry: ZooEntry, follow: str = "") -> SafetyLayerConfig | None:
+    """The safety layer a zoo card's figure behind the layer was measured with (its recorded driver's spelling and
+    settings), its imagined futures following ``follow``; None when the card has none."""
+    config = (entry.card.get("safety_layer") or {}).get("config") or {}
+    if not config.get("lookahead"):
+        return None
+    spelling = str(config.get("driver") or "safety-layer:policy")
+    return safety_layer_of(spelling, config["lookahead"], follow or None, where=f"zoo:{entry.name}'s card")
+
+
 def as_driver_spec(spec: DriverSpec | str, safety: SafetyLayerConfig | None = None) -> DriverSpec:
     """``spec`` as a :class:`DriverSpec`: the words parsed (``safety``: the layer in place of what the spelling
     means), or the typed value as it is (``safety`` then refused: its layer is in it). What the library's public
@@ -235,4 +245,5 @@ __all__ = [
     "safety_layer_of",
     "split_policy_spec",
     "split_safety_layer",
+    "zoo_safety_layer",
 ]

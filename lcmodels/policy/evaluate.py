@@ -24,7 +24,7 @@ import numpy as np
 from lcdata.record import RecordingHook, episode_filename, episode_metadata
 from lckit.pool import WorkerPool
 from lcmodels.policy.checkpoint import LoadedPolicy
-from lcmodels.policy.driverspec import DriverSpec, as_driver_spec, split_policy_spec
+from lcmodels.policy.driverspec import DriverSpec, as_driver_spec, policy_spec, split_policy_spec
 from lcmodels.policy.obs import EpisodeStats, ObsMode, build_observation, scenario_for_mode, summarize
 from lcmodels.stats import normal_interval as mean_interval
 from lcmodels.stats import wilson_interval
@@ -167,6 +167,18 @@ def policy_path_of(spec: str) -> Path:
     return Path((split_policy_spec(spec) or ("", spec))[1])
 
 
+CHECK_EPISODES = 8
+"""Held-out episodes whose outcomes a zoo card lists, so that anyone can check the entry reproduces them."""
+
+
+def check_episodes(policy: str | os.PathLike[str], *, seed: int, episodes: int = CHECK_EPISODES) -> list[dict[str, Any]]:
+    """The first ``episodes`` held-out episodes of evaluation seed ``seed`` driven by ``policy``: user seed,
+    outcome and return of each (what a zoo card lists and a test re-derives)."""
+    driver, config = driver_for(policy_spec(policy))
+    _, stats = evaluate(driver, config, episodes=episodes, seed=seed, images=True)
+    return [{"seed": int(e.seed), "outcome": e.outcome, "return": round(float(e.ret), 6)} for e in stats]
+
+
 def transfer_problems(policy: LoadedPolicy, target: ScenarioConfig) -> list[str]:
     """Why ``policy`` cannot drive in ``target`` (empty: it can): the observation it would see there differs in
     a key or a shape from the one it was trained on."""
@@ -251,8 +263,10 @@ def _follower(spec: DriverSpec, scenario: ScenarioConfig, predictor: str | None,
 
 
 __all__ = [
+    "CHECK_EPISODES",
     "EVAL_SEED_BASE",
     "PolicyDriver",
+    "check_episodes",
     "driver_for",
     "eval_user_seeds",
     "evaluate",
