@@ -254,16 +254,17 @@ def main(argv: list[str] | None = None) -> int:
         check_out(out, args.overwrite)
     except (ValueError, OSError) as exc:
         return error(str(exc))
-    from lcsim.planning import split_safety_layer
+    from lcmodels.policy.driverspec import parse_driver_spec, split_safety_layer
 
     try:
         behind = [p for p in args.policies if split_safety_layer(p)[1] is not None]
         if not behind and (args.follow or args.settings):
             return error("--follow and --set safety.KEY=VALUE apply to a driver behind the safety layer "
                          "(safety-layer:POLICY)")  # fmt: skip
-        drivers = [resolve_driver(p, safety=safety_layer_from_args(p, args)) if p in behind else resolve_driver(p)
-                   for p in args.policies]  # fmt: skip
-        references = {CEILING: resolve_driver(CEILING), FLOOR: resolve_driver(FLOOR)}
+        specs = [parse_driver_spec(p, safety_table=safety_layer_from_args(p, args) if p in behind else None)
+                 for p in args.policies]  # fmt: skip
+        drivers = [resolve_driver(s) for s in specs]
+        references = {name: resolve_driver(parse_driver_spec(name)) for name in (CEILING, FLOOR)}
     except (ValueError, OSError) as exc:
         return error(str(exc).splitlines()[0])
     labels = [d.label for d in drivers]

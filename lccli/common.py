@@ -153,10 +153,10 @@ def safety_settings(settings: list[str]) -> tuple[list[str], list[str]]:
 def safety_layer_from_args(spec: str, args: argparse.Namespace,
                            table: dict[str, object] | None = None) -> SafetyLayerConfig | None:  # fmt: skip
     """The safety layer the driver ``spec`` drives behind (``None``: none): the settings its spelling means
-    (:func:`lcsim.planning.split_safety_layer`), then the ``[safety]`` ``table`` of a config file, then
+    (:func:`lcmodels.policy.driverspec.split_safety_layer`), then the ``[safety]`` ``table`` of a config file, then
     ``--follow``, then each ``--set safety.KEY=VALUE`` in order. ``ValueError`` in one line for settings given
     for a driver behind no layer, or a setting the layer refuses."""
-    from lcsim.planning import safety_layer_of, split_safety_layer
+    from lcmodels.policy.driverspec import safety_layer_of, split_safety_layer
 
     mine, _ = safety_settings(getattr(args, "settings", None) or [])
     follow = getattr(args, "follow", None)
@@ -241,7 +241,7 @@ def zoo_spec(text: str) -> str:
     entry's policy file; anything else is returned as given."""
     if "zoo:" not in text:
         return text
-    from lcmodels.zoo import resolve_policy_spec
+    from lcmodels.policy.driverspec import resolve_policy_spec
 
     try:
         return resolve_policy_spec(text)[0]

@@ -34,8 +34,8 @@ from lckit.config import (
 )
 
 if TYPE_CHECKING:
+    from lcmodels.policy.driverspec import DriverSpec
     from lcsim.config import ScenarioConfig
-    from lcsim.planning import SafetyLayerConfig
 
 
 def format_eval(ev: dict) -> str:
@@ -142,10 +142,13 @@ episode is recorded to MCAP under --out (actions, reward components, predictions
 """
 
 
-def eval_settings(args: argparse.Namespace) -> tuple[EvalSettings, SafetyLayerConfig | None]:
+def eval_settings(args: argparse.Namespace) -> tuple[EvalSettings, DriverSpec]:
     """The settings of :func:`add_heldout_arguments`' command line: :class:`EvalSettings`' defaults, ``--config``,
-    then ``--set`` in order; and the safety layer the driver drives behind (None: none). ``ValueError`` in one
-    line naming the file or the setting."""
+    then ``--set`` in order; and the driver, parsed once with the safety layer it drives behind (its settings from
+    the spelling, ``[safety]``, ``--follow`` and ``--set safety.KEY=VALUE``). ``ValueError`` in one line naming the
+    file or the setting."""
+    from lcmodels.policy.driverspec import parse_driver_spec
+
     data: dict[str, Any] = {}
     config = getattr(args, "config", None)
     if config is not None:
@@ -158,7 +161,8 @@ def eval_settings(args: argparse.Namespace) -> tuple[EvalSettings, SafetyLayerCo
         opts = EvalSettings.from_dict(data, stored=False)
     except ValueError as exc:
         raise ValueError(f"{config}: {exc}") from None
-    return opts.with_settings(rest), safety_layer_from_args(args.policy, args, table)
+    layer = safety_layer_from_args(args.policy, args, table)
+    return opts.with_settings(rest), parse_driver_spec(args.policy, safety_table=layer)
 
 
 def heldout_driver(args: argparse.Namespace) -> tuple[Any, ScenarioConfig]:
@@ -168,35 +172,32 @@ def heldout_driver(args: argparse.Namespace) -> tuple[Any, ScenarioConfig]:
     from lcmodels.policy.evaluate import driver_for
     from lcsim.config import paper_scenario
 
-    opts, layer = eval_settings(args)
+    opts, spec = eval_settings(args)
     try:
-        driver, config = driver_for(args.policy, predictor=opts.predictor or None, safety=layer)
+        driver, config = driver_for(spec, predictor=opts.predictor or None)
     except (ValueError, OSError) as exc:
         raise ValueError(str(exc).splitlines()[0]) from exc
     return driver, config or paper_scenario(render_image=False)
 
 
-def predictor_unused(policy: str, follow: str | None, predictor: Path) -> str:
-    """Why a predictor makes no sense for the policies named (none reads a prediction), or "" when one
-    does or a policy file cannot be read (loading it reports that)."""
+def predictor_unused(spec: DriverSpec, predictor: Path) -> str:
+    """Why a predictor makes no sense for the policies ``spec`` names (none reads a prediction, nor the one its
+    layer follows), or "" when one does or a policy file cannot be read (loading it reports that)."""
     from lcmodels.policy.checkpoint import read_meta
-    from lcmodels.policy.evaluate import policy_path_of
     from lcmodels.policy.obs import OBS_MODES, needs_predictor
-    from lcsim.planning import split_safety_layer
-    from lcsim.registry import DRIVER_NAMES
 
     modes = []
-    for spec in (split_safety_layer(policy)[0], follow):
-        if not spec or spec in DRIVER_NAMES:
+    for each in (spec, spec.follow):
+        if each is None or each.kind != "policy":
             continue
         try:
-            modes.append(str(read_meta(policy_path_of(spec)).get("obs_mode")))
+            modes.append(str(read_meta(each.path).get("obs_mode")))
         except ValueError:
             return ""
     if any(needs_predictor(m) for m in modes if m in OBS_MODES):
         return ""
     what = f"observation mode {', '.join(modes)}" if modes else "a built-in driver"
-    return f"predictor {predictor}: {policy} reads no prediction ({what}); drop it"
+    return f"predictor {predictor}: {spec.text} reads no prediction ({what}); drop it"
 
 
 def add_heldout_arguments(p: argparse.ArgumentParser, episodes: int = 200) -> None:
@@ -254,18 +255,18 @@ def eval_main(argv: list[str] | None = None) -> int:
     import torch
 
     from lcmodels.policy.checkpoint import read_meta
-    from lcmodels.policy.evaluate import driver_for, evaluate, policy_path_of
-    from lcsim.planning import LookaheadDriver, split_safety_layer
+    from lcmodels.policy.evaluate import driver_for, evaluate
+    from lcsim.planning import LookaheadDriver
     from lcsim.registry import DRIVER_NAMES, scenario
     from lcsim.registry import scenario_label as registry_label
 
     try:
-        opts, layer = eval_settings(args)
+        opts, spec = eval_settings(args)
     except ValueError as exc:
         return error(str(exc))
     predictor = Path(opts.predictor) if opts.predictor else None
-    is_driver = args.policy in DRIVER_NAMES or split_safety_layer(args.policy)[0] in DRIVER_NAMES
-    ckpt = policy_path_of(split_safety_layer(args.policy)[0])
+    is_driver = spec.kind == "driver"
+    ckpt = Path(spec.name)
     if not is_driver and not ckpt.is_file():
         what = "is a directory" if ckpt.is_dir() else "does not exist"
         return error(f"{args.policy} {what} (expected a policy.safetensors, or {' / '.join(DRIVER_NAMES)})")
@@ -287,7 +288,7 @@ def eval_main(argv: list[str] | None = None) -> int:
     except (ValueError, OSError) as exc:
         return error(str(exc))
     if predictor is not None:
-        problem = predictor_unused(args.policy, layer.follow if layer is not None else None, predictor)
+        problem = predictor_unused(spec, predictor)
         if problem:
             return error(problem)
     if opts.bound:
@@ -298,8 +299,7 @@ def eval_main(argv: list[str] | None = None) -> int:
     except ValueError as exc:
         return error(str(exc))
     try:
-        driver, config = driver_for(args.policy, predictor=str(predictor) if predictor else None, safety=layer,
-                                    scenario=target)
+        driver, config = driver_for(spec, predictor=str(predictor) if predictor else None, scenario=target)
     except (ValueError, OSError) as exc:
         return error(str(exc).splitlines()[0])
     if config is None:
@@ -347,9 +347,9 @@ def eval_main(argv: list[str] | None = None) -> int:
             pooled = shard_pool(args.workers, opts.threads) if sharded else contextlib.nullcontext()
             with pooled as pool, where:
                 summary, results = evaluate_sharded(
-                    args.policy, config if is_driver or target is not None else None, episodes=args.episodes, seed=args.seed,
+                    spec, config if is_driver or target is not None else None, episodes=args.episodes, seed=args.seed,
                     shards=opts.shards if opts.executor == "ray" else args.workers, executor=opts.executor,
-                    pool=pool, predictor=str(predictor) if predictor else None, safety=layer,
+                    pool=pool, predictor=str(predictor) if predictor else None,
                     out_dir=out, scenario=scenario_label, batch=opts.batch,
                     overwrite=args.overwrite, train_seeds=train_seeds, progress=show,
                     driver_name=str(getattr(driver, "name", type(driver).__name__)))  # fmt: skip

@@ -26,9 +26,10 @@ from lccli.common import (
 from lcdata.record import DRIVERS, MAX_USER_SEED, episode_filename, iter_record_episodes
 from lcdata.writer import MAX_START_TIME_NS
 from lcdata.writer_process import WRITER_MODES
+from lcmodels.policy.driverspec import DriverSpec, parse_driver_spec, split_policy_spec, split_safety_layer
 from lcsim.config import ScenarioConfig
-from lcsim.planning import MAX_IMAGINED_FUTURES, rule_behind_layer, split_safety_layer
-from lcsim.registry import SCENARIOS, scenario, scenario_label, split_policy_spec
+from lcsim.planning import MAX_IMAGINED_FUTURES, rule_behind_layer
+from lcsim.registry import SCENARIOS, scenario, scenario_label
 from lcsim.suite import SEALED_SEED_BASE, SEALED_SEED_END, is_sealed
 
 
@@ -71,12 +72,10 @@ _non_negative_int = int_at_least(0)
 
 
 def _driver_spec(text: str) -> str:
+    """The words of ``--driver`` that lc-record takes (a built-in driver, or a policy file or the rule-based driver
+    named with a prefix); :func:`_parse_driver` reads them, with the safety layer's settings."""
     text = zoo_spec(text)
-    policy = split_policy_spec(text)
-    if policy is not None and policy[0] != "policy:" and policy[1] in DRIVERS and policy[1] != "rule":
-        raise argparse.ArgumentTypeError(f"{text}: behind the safety layer lc-record takes a policy or the rule-based "
-                                         "driver (safety-layer:rule)")  # fmt: skip
-    if text in DRIVERS or policy:
+    if text in DRIVERS or split_policy_spec(text):
         return text
     raise argparse.ArgumentTypeError(f"invalid choice: {text!r} (choose from {', '.join(DRIVERS)}, policy:CKPT, "
                                      "zoo:NAME, safety-layer:CKPT, safety-layer:rule)")
@@ -89,11 +88,24 @@ def _imagined_paths(text: str) -> int:
     return value
 
 
-def _is_layered_rule(spec: str) -> bool:
-    """Whether a driver spec is the rule-based driver behind the safety layer built here (``safety-layer:rule`` and
+def _parse_driver(text: str, args: argparse.Namespace) -> DriverSpec:
+    """The driver ``text`` names, parsed once with the safety layer's settings (``--follow``, ``--set``)."""
+    if text == "autopilot":  # the simulator's mode: the traffic's autopilot drives the ego
+        return DriverSpec(text=text, kind="driver", name=text)
+    if not split_policy_spec(text) and (args.follow is not None or args.settings):
+        raise UsageError("--follow and --set safety.KEY=VALUE need --driver safety-layer:CKPT (a policy behind "
+                         "the safety layer) or safety-layer:rule")
+    try:
+        layer = safety_layer_from_args(text, args) if split_policy_spec(text) else None
+        return parse_driver_spec(text, safety_table=layer)
+    except ValueError as exc:
+        raise UsageError(str(exc).splitlines()[0]) from None
+
+
+def _is_layered_rule(spec: DriverSpec) -> bool:
+    """Whether a driver is the rule-based driver behind the safety layer built here (``safety-layer:rule`` and
     its older spellings with a prefix; the built-in ``lookahead`` drivers are made by name where they record)."""
-    name, layer = split_safety_layer(spec)
-    return spec not in DRIVERS and name == "rule" and layer is not None
+    return spec.text not in DRIVERS and spec.kind == "driver" and spec.layer is not None
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -211,13 +223,13 @@ def start_time_ns(text: str) -> int | None:
     return ns
 
 
-def record_flags(args: argparse.Namespace, driver: str, scenario_name: str,
+def record_flags(args: argparse.Namespace, driver: DriverSpec, scenario_name: str,
                  content: dict[str, object] | None = None) -> dict[str, object]:
     """The flags that decide what the episode files hold (``OUT/record.json``); --seed, --episodes,
     --workers and --writer only decide which files are written, and how fast. ``content``: the scenario's
     fields when they come from elsewhere than its name (a policy's card), else read from the name."""
     flags: dict[str, object] = {
-        "scenario": scenario_name, "driver": driver,
+        "scenario": scenario_name, "driver": driver.text,
         "scenario_config": content if content is not None else _scenario_content(scenario_name),
         "vehicles": args.vehicles, "steps": args.steps,
         "images": not args.no_images, "start_time": args.start_time if args.start_time != "now" else None,
@@ -226,14 +238,12 @@ def record_flags(args: argparse.Namespace, driver: str, scenario_name: str,
     }  # fmt: skip
     if args.imagined_paths:  # only when asked: the flags of earlier recordings stay what they were
         flags["imagined_paths"] = args.imagined_paths
-    if split_policy_spec(driver) and not _is_layered_rule(driver):
+    if driver.kind == "policy":
         from lckit.fileio import file_sha256
 
-        for key, spec in (("driver_sha256", driver), ("lookahead_follow_sha256", args.follow)):
-            if spec:
-                path = pathlib.Path((split_policy_spec(spec) or ("", spec))[1])
-                if path.is_file():
-                    flags[key] = file_sha256(path)
+        for key, spec in (("driver_sha256", driver), ("lookahead_follow_sha256", driver.follow)):
+            if spec is not None and spec.kind == "policy" and spec.path.is_file():
+                flags[key] = file_sha256(spec.path)
     return json.loads(json.dumps(flags))  # as record.json holds them (lists, not tuples)
 
 
@@ -288,39 +298,26 @@ def _check_resume(out: pathlib.Path, key: str, flags: dict[str, object], paths: 
     return False
 
 
-def _policy_driver(spec: str, args: argparse.Namespace, config: ScenarioConfig):
+def _policy_driver(spec: DriverSpec, args: argparse.Namespace, config: ScenarioConfig):
     """A trained policy as the driver, and the scenario it was trained on (images as asked)."""
     if args.scenario is not None or args.vehicles is not None or args.steps is not None:
         raise UsageError("a policy drives in the scenario it was trained on; drop --scenario / --vehicles / --steps")
-    prefix, name = split_policy_spec(spec) or ("policy:", spec)
-    path = pathlib.Path(name)
-    if not path.is_file():
-        raise UsageError(f"policy checkpoint {path} does not exist")
+    if not spec.path.is_file():
+        raise UsageError(f"policy checkpoint {spec.path} does not exist")
     from lcmodels.policy.evaluate import driver_for  # lcmodels builds on lcdata: import only when asked
 
     try:
-        spec = f"{prefix}{path}"
-        policy, policy_config = driver_for(spec, safety=safety_layer_from_args(spec, args))
+        policy, policy_config = driver_for(spec)
     except ValueError as exc:
         raise UsageError(str(exc).splitlines()[0]) from None
     return policy, dataclasses.replace(policy_config, render_image=policy_config.render_image or not args.no_images)
 
 
-def _layered_rule(spec: str, args: argparse.Namespace) -> object:
-    """The rule-based driver behind the safety layer of ``spec``, ``--follow`` and ``--set safety.KEY=VALUE``."""
-    try:
-        layer = safety_layer_from_args(spec, args)
-        assert layer is not None
-        return rule_behind_layer(layer, spec)
-    except ValueError as exc:
-        raise UsageError(str(exc).splitlines()[0]) from None
-
-
-def _policy_scenario_label(spec: str) -> str:
+def _policy_scenario_label(spec: DriverSpec) -> str:
     """The scenario name a policy was trained in, from its card (the label of its recordings)."""
     from lcmodels.policy.checkpoint import read_meta
 
-    return str(read_meta((split_policy_spec(spec) or ("", spec))[1]).get("scenario_name") or "paper")
+    return str(read_meta(spec.path).get("scenario_name") or "paper")
 
 
 def record_main(argv: Sequence[str] | None = None) -> int:
@@ -329,31 +326,31 @@ def record_main(argv: Sequence[str] | None = None) -> int:
     try:
         args = parser.parse_args(argv)
         scenario_name = args.scenario or "paper"
-        driver = args.driver or default_driver(scenario_name)
         try:
             config = scenario_config(scenario_name, vehicles=args.vehicles, steps=args.steps)
         except ValueError as exc:
             raise UsageError(str(exc)) from None
-        content = None
-        if args.imagined_paths and split_safety_layer(driver)[1] is None:
-            raise UsageError(f"--imagined-paths: {driver} imagines no futures; a driver behind the safety layer does "
+        text = args.driver or default_driver(scenario_name)
+        if args.imagined_paths and split_safety_layer(text)[1] is None:
+            raise UsageError(f"--imagined-paths: {text} imagines no futures; a driver behind the safety layer does "
                              "(safety-layer:rule, safety-layer:CKPT, lookahead-blind)")  # fmt: skip
-        if _is_layered_rule(driver):
+        spec = _parse_driver(text, args)
+        driver: object = spec.text  # a built-in driver records by name
+        content = None
+        if _is_layered_rule(spec):
             if args.executor == "ray":
-                raise UsageError(f"--executor ray records built-in drivers by name; {driver} is built here "
+                raise UsageError(f"--executor ray records built-in drivers by name; {text} is built here "
                                  "(record it with the local executor)")  # fmt: skip
-            driver = _layered_rule(driver, args)
-        elif split_policy_spec(driver):
+            assert spec.layer is not None
+            driver = rule_behind_layer(spec.layer, spec.text)
+        elif spec.kind == "policy":
             if args.executor == "ray":
                 raise UsageError("--executor ray records built-in drivers; a policy drives in this process "
                                  "(lc-eval --executor ray shards a policy's episodes)")
-            driver, config = _policy_driver(driver, args, config)
-            scenario_name = _policy_scenario_label(args.driver)
+            driver, config = _policy_driver(spec, args, config)
+            scenario_name = _policy_scenario_label(spec)
             if scenario_name not in SCENARIOS:  # a scenario file's name: its fields are the card's, not the file's
                 content = config.to_dict()
-        elif args.follow is not None or args.settings:
-            raise UsageError("--follow and --set safety.KEY=VALUE need --driver safety-layer:CKPT (a policy behind "
-                             "the safety layer) or safety-layer:rule")
         label = scenario_label(scenario_name)
         start_ns = start_time_ns(args.start_time)
         if args.seed + args.episodes - 1 > MAX_USER_SEED:
@@ -366,7 +363,7 @@ def record_main(argv: Sequence[str] | None = None) -> int:
                              "episodes, which only lc-bench --final runs; choose others")
         name = driver if isinstance(driver, str) else driver.name
         paths = [args.out / episode_filename(label, name, s) for s in seeds]
-        flags = record_flags(args, args.driver or default_driver(scenario_name), scenario_name, content)
+        flags = record_flags(args, spec, scenario_name, content)
         _check_out_dir(args.out)
         _check_targets([args.out / RECORD_JSON, args.out / LOCK_NAME, *paths])
         key = paths[0].name.rsplit("_s", 1)[0]  # the scenario_driver prefix of the file names

@@ -80,12 +80,11 @@ def _zoo_episode(name: str) -> pathlib.Path:
     directory; ``ViewError`` for a name the zoo does not have."""
     import tempfile
 
+    from lcmodels.policy.driverspec import parse_driver_spec
     from lcmodels.policy.evaluate import driver_for, evaluate
-    from lcmodels.zoo import resolve_policy_spec
 
     try:
-        spec, _ = resolve_policy_spec(name)
-        driver, config = driver_for(spec)
+        driver, config = driver_for(parse_driver_spec(name))
     except ValueError as exc:
         raise ViewError(str(exc).splitlines()[0]) from None
     out = pathlib.Path(tempfile.mkdtemp(prefix="lc-view-zoo-"))

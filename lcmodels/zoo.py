@@ -13,13 +13,10 @@ import os
 import re
 from dataclasses import dataclass
 from pathlib import Path
-from typing import TYPE_CHECKING, Any
+from typing import Any
 
 from lckit.fileio import UnsafePathError, check_inside
 from lcmodels.fileio import POLICY_FILE, file_sha256, read_json
-
-if TYPE_CHECKING:
-    from lcsim.planning import SafetyLayerConfig
 
 ZOO_PREFIX = "zoo:"
 ENTRY_CARD = "zoo.json"
@@ -52,17 +49,6 @@ class ZooEntry:
     @property
     def weights_sha256(self) -> str:
         return weights_sha256(self.policy)
-
-    def safety_layer(self, follow: str = "") -> SafetyLayerConfig | None:
-        """The safety layer the card's figure behind the layer was measured with (its recorded driver's spelling
-        and settings), its imagined futures following ``follow``; None when the card has none."""
-        from lcsim.planning import safety_layer_of
-
-        config = (self.card.get("safety_layer") or {}).get("config") or {}
-        if not config.get("lookahead"):
-            return None
-        spelling = str(config.get("driver") or "safety-layer:policy")
-        return safety_layer_of(spelling, config["lookahead"], follow or None, where=f"zoo:{self.name}'s card")
 
 
 def weights_sha256(policy: str | os.PathLike[str]) -> str:
@@ -156,20 +142,6 @@ def publish_entry(policy: str | os.PathLike[str], name: str, *, predictor: str |
     return ZooEntry(name, dest / POLICY_FILE, root / PREDICTOR_DIR / "predictor.pt" if predictor else None, card)
 
 
-CHECK_EPISODES = 8
-"""Held-out episodes whose outcomes a zoo card lists, so that anyone can check the entry reproduces them."""
-
-
-def check_episodes(policy: str | os.PathLike[str], *, seed: int, episodes: int = CHECK_EPISODES) -> list[dict[str, Any]]:
-    """The first ``episodes`` held-out episodes of evaluation seed ``seed`` driven by ``policy``: user seed,
-    outcome and return of each (what a zoo card lists and a test re-derives)."""
-    from lcmodels.policy.evaluate import driver_for, evaluate
-
-    driver, config = driver_for(str(policy))
-    _, stats = evaluate(driver, config, episodes=episodes, seed=seed, images=True)
-    return [{"seed": int(e.seed), "outcome": e.outcome, "return": round(float(e.ret), 6)} for e in stats]
-
-
 def follower_mismatches(entries: list[ZooEntry] | None = None) -> list[str]:
     """One line per zoo entry whose safety-layer figure was measured following a policy the zoo does not ship
     as that recipe's entry (the figure would not hold for the shipped pair); empty when the zoo is consistent."""
@@ -187,19 +159,5 @@ def follower_mismatches(entries: list[ZooEntry] | None = None) -> list[str]:
     return bad
 
 
-def resolve_policy_spec(spec: str) -> tuple[str, str | None]:
-    """``(spec, predictor)`` with a ``zoo:NAME`` part (also after a prefix such as ``safety-layer:``) replaced by the
-    entry's policy file, and the zoo's predictor when that policy reads predictions (else None)."""
-    prefix, sep, rest = spec.partition(":")
-    if spec.startswith(ZOO_PREFIX):
-        entry = zoo_entry(spec)
-        return f"policy:{entry.policy}", str(entry.predictor) if entry.predictor else None
-    if sep and rest.startswith(ZOO_PREFIX):
-        entry = zoo_entry(rest)
-        return f"{prefix}:{entry.policy}", str(entry.predictor) if entry.predictor else None
-    return spec, None
-
-
-__all__ = ["CHECKOUT_ZOO", "CHECK_EPISODES", "ENTRY_CARD", "ZOO_PREFIX", "ZooEntry", "check_episodes",
-           "follower_mismatches", "publish_entry", "resolve_policy_spec", "weights_sha256", "zoo_dir", "zoo_entries",
-           "zoo_entry"]
+__all__ = ["CHECKOUT_ZOO", "ENTRY_CARD", "ZOO_PREFIX", "ZooEntry", "follower_mismatches", "publish_entry",
+           "weights_sha256", "zoo_dir", "zoo_entries", "zoo_entry"]

@@ -9,9 +9,9 @@ fields keep their defaults; a misspelt one is an error naming it)::
     [traffic]
     num_vehicles = 60
 
-Drivers: :data:`DRIVER_NAMES` for :func:`make_driver`, and the policy specs (``policy:PATH``,
-``safety-layer:PATH`` and its older spellings ``lookahead:PATH``, ``lookahead-blind:PATH``) that :mod:`lcmodels`
-builds.
+Drivers: :data:`DRIVER_NAMES` for :func:`make_driver`. The words that name a policy or a driver behind the safety
+layer are the commands' (:mod:`lcmodels.policy.driverspec`); ``lookahead`` and ``lookahead-blind`` stay names here
+because recordings made by name (a worker process, a Ray task) build them from this registry.
 """
 
 from __future__ import annotations
@@ -81,18 +81,6 @@ _FACTORIES: dict[str, Callable[[int], Driver]] = {
 }
 DRIVER_NAMES = tuple(_FACTORIES)
 """Names :func:`make_driver` accepts."""
-POLICY_PREFIXES = ("policy:", "safety-layer:", "lookahead:", "lookahead-blind:")
-"""Prefixes of a driver spec that name a policy checkpoint: the policy itself, or the policy behind the safety
-layer (:mod:`lcsim.planning.safety`; ``lookahead:`` and ``lookahead-blind:`` are older spellings of it), built in
-lcmodels, which loads policies."""
-
-
-def split_policy_spec(spec: str) -> tuple[str, str] | None:
-    """``(prefix, checkpoint path)`` of a spec with one of :data:`POLICY_PREFIXES` and a non-empty path, else None."""
-    prefix = next((p for p in POLICY_PREFIXES if spec.startswith(p) and len(spec) > len(p)), None)
-    return None if prefix is None else (prefix, spec.removeprefix(prefix))
-
-
 def make_driver(name: str, seed: int = 0) -> Driver:
     """A driver by name (``autopilot`` is a simulator mode, not a policy); ``seed`` seeds ``random``."""
     factory = _FACTORIES.get(name)

@@ -13,9 +13,10 @@ from lccli.bench import main as bench_main
 from lccli.evaluate import eval_main
 from lccli.record import record_main
 from lcmodels.bench.ledger import read_ledger
+from lcmodels.policy.driverspec import safety_layer_of
 from lcmodels.policy.evaluate import eval_user_seeds
 from lcsim.envs import observation_space
-from lcsim.planning import SafetyLayerConfig, safety_layer_of
+from lcsim.planning import SafetyLayerConfig
 from lcsim.registry import scenario
 from lcsim.suite import (
     MAX_VALIDATION_SEED,

@@ -322,7 +322,8 @@ def test_lc_dagger_resume_refuses_a_round_folder_that_leads_elsewhere(tmp_path: 
 
 # --------------------------------------------------------------------------------------------------- zoo:
 def test_a_zoo_name_is_an_entry_of_the_zoo_and_nothing_above_it(tmp_path: Path, monkeypatch, capsys) -> None:
-    from lcmodels.zoo import CHECKOUT_ZOO, resolve_policy_spec
+    from lcmodels.policy.driverspec import resolve_policy_spec
+    from lcmodels.zoo import CHECKOUT_ZOO
 
     zoo = tmp_path / "zoo"
     (zoo / "inner").mkdir(parents=True)

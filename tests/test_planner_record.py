@@ -166,7 +166,7 @@ def test_lc_record_refuses_paths_of_a_driver_that_imagines_none(tmp_path: pathli
                                                                capsys: pytest.CaptureFixture[str]) -> None:  # fmt: skip
     for argv, why in ((["--driver", "rule", "--imagined-paths", "1"], "rule imagines no futures"),
                       (["--driver", "lookahead-blind", "--imagined-paths", "17"], "must be at most 16"),
-                      (["--driver", "safety-layer:keep"], "takes a policy or the rule-based driver")):  # fmt: skip
+                      (["--driver", "safety-layer:keep"], "guards a policy or the rule-based driver")):  # fmt: skip
         assert record_main(["--scenario", "tiny", "--out", str(tmp_path), *argv]) == 2
         err = capsys.readouterr().err
         assert err.startswith("lc-record: error: ") and err.count("\n") == 1 and why in err, err

@@ -13,10 +13,11 @@ from lcmodels.policy import (
     load_policy,
     train_policy,
 )
+from lcmodels.policy.driverspec import safety_layer_of
 from lcmodels.policy.evaluate import PolicyDriver, driver_for, evaluate, wilson_interval
 from lcmodels.policy.obs import scenario_for_mode
 from lcsim.config import tiny_scenario
-from lcsim.planning import SafetyLayerConfig, safety_layer_of
+from lcsim.planning import SafetyLayerConfig
 from tests.conftest import CountingPool
 
 from .conftest import EVAL_KEYS, tiny_policy

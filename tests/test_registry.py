@@ -11,7 +11,7 @@ from lcdata import read_episode
 from lcmodels.policy import PolicyConfig
 from lcmodels.policy.plan import policy_scenario
 from lcsim.config import corpus_scenario, light_scenario, paper_scenario, tiny_scenario
-from lcsim.registry import DRIVER_NAMES, SCENARIOS, TASK_SCENARIOS, make_driver, scenario, split_policy_spec
+from lcsim.registry import DRIVER_NAMES, SCENARIOS, TASK_SCENARIOS, make_driver, scenario
 from lcsim.suite import SUITE_SCENARIOS
 
 
@@ -55,11 +55,8 @@ def test_a_scenario_file_is_a_scenario(tmp_path):
     assert policy_scenario(PolicyConfig(scenario=str(toml), obs="pure")).route_length_m == 200.0
 
 
-def test_driver_names_and_policy_specs():
+def test_driver_names():
     for name in DRIVER_NAMES:
         assert callable(make_driver(name))
-    assert split_policy_spec("lookahead-blind:runs/p.safetensors") == ("lookahead-blind:", "runs/p.safetensors")
-    assert split_policy_spec("safety-layer:runs/p.safetensors") == ("safety-layer:", "runs/p.safetensors")
-    assert split_policy_spec("rule") is None and split_policy_spec("policy:") is None
     with pytest.raises(ValueError, match="unknown driver"):
         make_driver("autopilot")

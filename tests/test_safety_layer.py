@@ -4,13 +4,8 @@ import dataclasses
 
 import pytest
 
-from lcsim.planning import (
-    PRIVILEGED,
-    LookaheadDriver,
-    SafetyLayerConfig,
-    safety_layer_of,
-    split_safety_layer,
-)
+from lcmodels.policy.driverspec import safety_layer_of, split_safety_layer
+from lcsim.planning import PRIVILEGED, LookaheadDriver, SafetyLayerConfig
 from lcsim.planning.safety import REFERENCE
 from lcsim.registry import make_driver
 

@@ -17,8 +17,8 @@ from lccli.view import main as view_main
 from lcmodels.experiment import PRESETS, Experiment
 from lcmodels.experiment.entries import experiment_card, publish_from_experiment
 from lcmodels.experiment.recipe import RECIPES_DIR
+from lcmodels.policy.evaluate import check_episodes
 from lcmodels.zoo import (
-    check_episodes,
     follower_mismatches,
     weights_sha256,
     zoo_dir,

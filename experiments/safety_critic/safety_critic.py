@@ -210,7 +210,7 @@ class CriticGuard:
 
 def _collect_job(job: tuple[int, str, list[int], str, dict[str, int]]) -> Any:
     from lcmodels.policy.dagger import collect_from_driver
-    from lcsim.planning import safety_layer_of
+    from lcmodels.policy.driverspec import safety_layer_of
 
     worker, policy, seeds, expert, lookahead = job
 
@@ -274,8 +274,9 @@ def train_main(args: argparse.Namespace, prog: str) -> int:
         current, alive, actions = (np.concatenate(column) for column in zip(*parts, strict=True))
         meta["states_from"] = [str(p) for p in args.from_states]
     else:
+        from lcmodels.policy.driverspec import safety_layer_of
         from lcmodels.policy.evaluate import driver_for
-        from lcsim.planning import LookaheadDriver, safety_layer_of
+        from lcsim.planning import LookaheadDriver
 
         lookahead = {"horizon_decisions": args.lookahead_horizon} if args.lookahead_horizon else {}
         try:

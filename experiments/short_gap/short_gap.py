@@ -30,11 +30,11 @@ import numpy as np
 
 from lccli.common import non_negative_int, positive_int, zoo_spec
 from lcmodels.analysis import classify_collision
+from lcmodels.policy.driverspec import safety_layer_of
 from lcmodels.policy.evaluate import driver_for, eval_user_seeds
 from lcsim.config import paper_scenario
 from lcsim.core import COLLISION, KEEP, LaneChangeCore, StepResult
 from lcsim.episodes import EpisodeHook, run_episodes
-from lcsim.planning import safety_layer_of
 from lcsim.traffic import DriverParams
 
 _PARAMS = ("time_headway", "max_accel", "inv_2sqrt_ab", "lag")

@@ -20,8 +20,8 @@ import numpy as np
 from lckit.config import read_data_file
 from lcmodels.bench.ledger import cell_key, find_entry, read_ledger
 from lcmodels.bench.run import resolve_driver, scenario_sha256
+from lcmodels.policy.driverspec import parse_driver_spec, split_safety_layer, zoo_safety_layer
 from lcmodels.stats import McNemar, mcnemar, t_interval
-from lcsim.planning import safety_layer_of, split_safety_layer
 from lcsim.suite import SUITE_SCENARIOS, suite
 
 BLOCK = re.compile(r"(<!-- ledger:(?P<name>[a-z0-9-]+) -->\n)(?P<body>.*?)(<!-- /ledger -->)", re.S)
@@ -43,7 +43,7 @@ def _key(spec: str, sc_name: str, follow: str | None, safety: dict[str, Any] | N
     behind the safety layer (the settings apply to the runs behind it)."""
     sc = SUITE_SCENARIOS[sc_name]
     layer = split_safety_layer(spec)[1] is not None
-    driver = resolve_driver(spec, safety=safety_layer_of(spec, safety if layer else None, follow, where=spec))
+    driver = resolve_driver(parse_driver_spec(spec, safety_table=safety if layer else None, follow=follow, where=spec))
     return cell_key(driver.identity, scenario_sha256(sc.make()), sc.sealed_seeds())
 
 
@@ -315,7 +315,7 @@ def zoo_sealed(name: str, entries: list[dict[str, Any]] | None = None) -> dict[s
         weights = (layer.get("follow") or {}).get("weights_sha256")
         follower = next((e for e in zoo_entries() if e.card.get("recipe") == follow
                          and (weights is None or e.weights_sha256 == weights)), None)  # fmt: skip
-        safety = entry.safety_layer(f"zoo:{follower.name}") if follower is not None else None
+        safety = zoo_safety_layer(entry, f"zoo:{follower.name}") if follower is not None else None
         if safety is not None:
             drv = resolve_driver(f"safety-layer:zoo:{name}", safety=safety)
             found = find_entry(entries, cell_key(drv.identity, digest, seeds))

@@ -19,7 +19,6 @@ import hashlib
 import importlib
 import inspect
 import logging
-import re
 import time
 from collections.abc import Callable, Iterator
 from dataclasses import dataclass, field
@@ -41,11 +40,10 @@ from lcmodels.bench.ledger import (
     with_derived_figures,
 )
 from lcmodels.fileio import file_sha256, read_json, write_json
+from lcmodels.policy.driverspec import DriverSpec, as_driver_spec
 from lcsim.planning import SafetyLayerConfig
 from lcsim.suite import SuiteScenario, is_sealed
 
-CALLABLE_SPEC = re.compile(r"^[A-Za-z_][\w.]*:[A-Za-z_]\w*$")
-"""``package.module:callable``."""
 FINAL_BATCH = 20
 """Episodes simulated together in every sealed test evaluation."""
 SHARD_EPISODES = 100
@@ -59,15 +57,13 @@ class BenchDriver:
 
     label: str
     """As the user named it (``zoo:hybrid-ppo``, ``rule``, ...)."""
-    spec: str
-    """What :func:`lcmodels.policy.evaluate.driver_for` takes (zoo names resolved to files)."""
+    spec: DriverSpec
+    """What drives, behind which layer, following what (:func:`lcmodels.policy.evaluate.driver_for` takes it)."""
     identity: dict[str, Any]
     """What it is, for the ledger: a policy's weights digest, recipe, training seed; a driver's name; ..."""
     about: dict[str, Any] = field(default_factory=dict)
     """What people call it (recipe, training seed, zoo name, ...): in the record, not in the key."""
     predictor: str | None = None
-    safety: SafetyLayerConfig | None = None
-    """The safety layer it drives behind (its follower's spec resolved to a file), or None."""
 
     @property
     def is_callable(self) -> bool:
@@ -113,50 +109,45 @@ def policy_identity(path: Path) -> tuple[dict[str, Any], dict[str, Any]]:
     return ident, about
 
 
-def resolve_driver(label: str, *, safety: SafetyLayerConfig | None = None,
+def resolve_driver(label: DriverSpec | str, *, safety: SafetyLayerConfig | None = None,
                    predictor: str | None = None) -> BenchDriver:
-    """A driver spec as :class:`BenchDriver`; ``safety``: the settings of the safety layer a spec
-    ``safety-layer:DRIVER`` (or an older spelling) drives behind (default: what its spelling means). A layer is
-    identified in the ledger by the policy, its follower and :meth:`SafetyLayerConfig.ledger_settings
+    """A driver (:class:`~lcmodels.policy.driverspec.DriverSpec`, or its words parsed here once with ``safety`` the
+    layer in place of what they mean: the form stored records and scripts give) as :class:`BenchDriver`. A layer
+    is identified in the ledger by the policy, its follower and :meth:`SafetyLayerConfig.ledger_settings
     <lcsim.planning.SafetyLayerConfig.ledger_settings>`. ``ValueError`` with one line for a name that is nothing
     known, a missing file, or settings that do not apply to it."""
-    from lcmodels.policy.evaluate import policy_path_of
-    from lcmodels.zoo import resolve_policy_spec
-    from lcsim.planning import driver_and_layer, split_safety_layer
     from lcsim.registry import DRIVER_NAMES
 
-    name, layer = driver_and_layer(label, safety)
-    if layer is None and label in DRIVER_NAMES:
-        return BenchDriver(label, label, {"kind": "driver", "name": label})
-    if layer is not None and name in DRIVER_NAMES:  # the rule-based driver behind the layer (built-in lookahead)
-        if name != "rule" or layer.follow not in ("", "rule"):
-            raise ValueError(f"{label}: the safety layer guards a policy or the rule-based driver, following it")
+    spec = as_driver_spec(label, safety)
+    text, layer = spec.text, spec.layer
+    if spec.kind == "driver":
+        if layer is None:
+            return BenchDriver(text, spec, {"kind": "driver", "name": spec.name})
         ident: dict[str, Any] = {"kind": "driver", "name": "lookahead-blind" if layer.blind else "lookahead",
                                  "lookahead": layer.ledger_settings()}  # fmt: skip
-        return BenchDriver(label, label, ident, safety=dataclasses.replace(layer, follow=""))
-    spec, zoo_predictor = resolve_policy_spec(label)
-    if layer is None and not spec.startswith("policy:") and CALLABLE_SPEC.match(label):
-        return BenchDriver(label, label, {"kind": "callable", "name": label, "source_sha256": _source_digest(label)})
-    path = policy_path_of(split_safety_layer(spec)[0])
+        return BenchDriver(text, dataclasses.replace(spec, layer=dataclasses.replace(layer, follow=""), follow=None),
+                           ident)  # fmt: skip
+    if spec.kind == "callable":
+        return BenchDriver(text, spec, {"kind": "callable", "name": text, "source_sha256": _source_digest(text)})
+    path = spec.path
     if not path.is_file():
         what = "is a directory" if path.is_dir() else "does not exist"
-        raise ValueError(f"{label}: {path} {what} (expected zoo:NAME, a policy.safetensors, a built-in driver "
+        raise ValueError(f"{text}: {path} {what} (expected zoo:NAME, a policy.safetensors, a built-in driver "
                          f"({', '.join(DRIVER_NAMES)}) or package.module:callable)")
     try:
         policy, about = policy_identity(path)
     except Exception as exc:  # a foreign or corrupt file: whatever safetensors or torch raise, one line
-        raise ValueError(f"{label}: {path} is not a readable policy file ({type(exc).__name__}: "
+        raise ValueError(f"{text}: {path} is not a readable policy file ({type(exc).__name__}: "
                          f"{str(exc).splitlines()[0] if str(exc) else ''})") from None
     if layer is None:
-        return BenchDriver(label, spec, policy, about, predictor=predictor or zoo_predictor)
+        return BenchDriver(text, spec, policy, about, predictor=predictor or spec.predictor)
     follow_ident = None
-    if layer.follow:
-        followed = resolve_driver(layer.follow)
+    if spec.follow is not None:
+        followed = resolve_driver(spec.follow)
         follow_ident = followed.identity
         about = {**about, "follow": followed.label, "follow_about": followed.about}
-        layer = dataclasses.replace(layer, follow=followed.spec)
     ident = {"kind": "safety-layer", "policy": policy, "follow": follow_ident, "lookahead": layer.ledger_settings()}
-    return BenchDriver(label, spec, ident, about, predictor=predictor or zoo_predictor, safety=layer)
+    return BenchDriver(text, spec, ident, about, predictor=predictor or spec.predictor)
 
 
 def _source_digest(spec: str) -> str | None:
@@ -287,12 +278,11 @@ class Runner:
         extra: dict[str, Any] = {}
         if driver.identity["kind"] == "driver":  # a built-in driver reads no image: none is rendered
             config = dataclasses.replace(config, render_image=False)
-        if driver.is_callable or driver.spec == "random" or (self.executor == "local" and self.workers <= 1):
+        if driver.is_callable or driver.spec.name == "random" or (self.executor == "local" and self.workers <= 1):
             if driver.is_callable:
-                built, run_config = CallableDriver(driver.spec), config
+                built, run_config = CallableDriver(driver.spec.name), config
             else:
-                built, own = driver_for(driver.spec, predictor=driver.predictor, safety=driver.safety,
-                                        scenario=config)
+                built, own = driver_for(driver.spec, predictor=driver.predictor, scenario=config)
                 run_config = own or config
             summary, results = evaluate(built, run_config, user_seeds=user_seeds, batch=self.batch,
                                         progress=self.progress, scenario=scenario, sealed=sealed)
@@ -302,7 +292,7 @@ class Runner:
             summary, results = evaluate_sharded(
                 driver.spec, config, episodes=len(user_seeds), user_seeds=user_seeds,
                 shards=max(self.workers, -(-len(user_seeds) // SHARD_EPISODES)), executor=self.executor,
-                pool=self._pool, predictor=driver.predictor, safety=driver.safety, scenario=scenario,
+                pool=self._pool, predictor=driver.predictor, scenario=scenario,
                 batch=self.batch, progress=self.progress, sealed=sealed)  # fmt: skip
             extra = {k: summary[k] for k in ("planner_choices", "planner_overrides") if k in summary}
         outcomes = outcome_string(r.outcome for r in results)

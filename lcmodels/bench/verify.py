@@ -105,8 +105,9 @@ def _as_path(spec: str) -> str:
 
 def _digest_of(spec: str) -> str | None:
     """The weights digest of the policy file ``spec`` names (``zoo:NAME`` or a path), None when there is none."""
+    from lcmodels.policy.driverspec import resolve_policy_spec
     from lcmodels.policy.evaluate import policy_path_of
-    from lcmodels.zoo import resolve_policy_spec, weights_sha256
+    from lcmodels.zoo import weights_sha256
 
     try:
         path = policy_path_of(resolve_policy_spec(_as_path(spec))[0])
@@ -143,7 +144,7 @@ def _layer(settings: Any, follow: str = "") -> Any:
 
 def replay_driver(entry: dict[str, Any], index: WeightsIndex) -> tuple[BenchDriver | None, str]:
     """``(driver, "")``: the driver ``entry`` names, rebuilt, with the line's identity; or ``(None, why)``."""
-    from lcsim.planning import split_safety_layer
+    from lcmodels.policy.driverspec import split_safety_layer
     from lcsim.registry import DRIVER_NAMES
 
     ident = entry["identity"]
@@ -206,7 +207,7 @@ def verify_entry(entry: dict[str, Any], runner: Runner, *, episodes: int | None 
     if driver is None:
         return Verdict(key, what, "not checkable", episodes=n, detail=why)
     picked = sample_episodes(entry, episodes, seed)
-    if driver.spec == "random" and len(picked) < n:
+    if driver.spec.name == "random" and len(picked) < n:
         return Verdict(key, what, "not checkable", episodes=n,
                        detail="the random driver's draws follow its calls: only all its episodes replay it")
     first = int(entry["user_seeds"][0])

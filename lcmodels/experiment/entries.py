@@ -13,7 +13,7 @@ from lcmodels.experiment.recipe import load_recipe
 from lcmodels.experiment.store import read_record
 from lcmodels.fileio import read_json
 from lcmodels.presets import INVOCATIONS, StageResult, previous_policy
-from lcmodels.zoo import ZooEntry, check_episodes, publish_entry, weights_sha256
+from lcmodels.zoo import ZooEntry, publish_entry, weights_sha256
 
 
 def final_policy(run: str | os.PathLike[str], recipe_name: str, seed: int) -> Path:
@@ -95,7 +95,9 @@ def publish_from_experiment(run: str | os.PathLike[str], recipe_name: str, *, se
     """Publish the final policy of ``recipe_name`` (training seed ``seed``) of the ``lc-experiment`` directory
     ``run`` as zoo entry ``name`` (default: the recipe's name), with a card of its recipe, commit, training
     time, validation and test figures (and the safety layer's, when run), the experiment's command
-    (:func:`experiment_card`), and the outcomes of :data:`CHECK_EPISODES` test episodes re-run now."""
+    (:func:`experiment_card`), and the outcomes of :data:`~lcmodels.policy.evaluate.CHECK_EPISODES` test episodes re-run now."""
+    from lcmodels.policy.evaluate import check_episodes  # (torch: loaded only to publish)
+
     card, policy, needs = experiment_card(run, recipe_name, seed=seed, commit=commit)
     test_seed = int(card["heldout"].get("eval_seed", 0))
     card["check"] = {"eval_seed": test_seed, "episodes": check_episodes(policy, seed=test_seed)}

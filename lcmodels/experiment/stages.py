@@ -15,13 +15,16 @@ import time
 from collections.abc import Callable, Mapping
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 from lckit.fileio import make_folder, remove_file
 from lcmodels.experiment.keys import StageKey
 from lcmodels.experiment.store import Resumable, Upgrade
 from lcmodels.fileio import read_json, write_json
 from lcmodels.presets import Preset, StageResult
+
+if TYPE_CHECKING:
+    from lcmodels.policy.driverspec import DriverSpec
 
 log = logging.getLogger("lcmodels.experiment")
 
@@ -91,17 +94,19 @@ def record_job(ctx: StageContext, key: StageKey, config: Any, seeds: list[int], 
 
 
 # ----------------------------------------------------------------------------------------------- evaluations
-def evaluation_job(ctx: StageContext, key: StageKey, spec: str, inputs: dict[str, str], *,
-                    predictor: Path | None = None, follow: str | None = None, lookahead: dict[str, Any] | None = None,
+def evaluation_job(ctx: StageContext, key: StageKey, driver: DriverSpec, inputs: dict[str, str], *,
+                    predictor: Path | None = None, lookahead: dict[str, Any] | None = None,
                     scenario: Any = None, label: str | None = None, test_only: bool = False) -> StageJob:  # fmt: skip
-    """``metrics.json`` of driver ``spec`` on the validation seeds and the test episodes (see
+    """``metrics.json`` of ``driver`` on the validation seeds and the test episodes (see
     :class:`~lcmodels.presets.Preset`; ``test_only``: the test episodes alone). ``label``: the driver as the
-    stage's config names it (not the policy's path, an input by its hash)."""
+    stage's config names it (not the policy's path, an input by its hash); ``lookahead``: its safety layer's
+    settings as the config names them (they are in ``driver``)."""
     p = ctx.preset
     path = key.path(ctx.out)
     splits = [] if test_only else [("val", s, p.val_episodes) for s in p.val_seeds]
     splits.append(("test", p.test_seed, p.test_episodes))
-    cfg = {"driver": label or spec, "splits": splits, "follow": bool(follow), "lookahead": lookahead or {},
+    cfg = {"driver": label or driver.text, "splits": splits, "follow": driver.follow is not None,
+           "lookahead": lookahead or {},
            "record": p.record_eval, "scenario": p.scenario}  # fmt: skip
 
     def work(keep: bool, save_wall: Callable[[], None]) -> float:
@@ -123,7 +128,6 @@ def evaluation_job(ctx: StageContext, key: StageKey, spec: str, inputs: dict[str
 
     def run_split(split: str, seed: int, episodes: int, done: Path, save_wall: Callable[[], None]) -> dict[str, Any]:
         from lcmodels.policy.evaluate import evaluate_sharded
-        from lcsim.planning import safety_layer_of
 
         t0 = time.perf_counter()
         rec = p.record_eval and split == "test"
@@ -131,8 +135,8 @@ def evaluation_job(ctx: StageContext, key: StageKey, spec: str, inputs: dict[str
             make_folder(path / "episodes", ctx.out)  # never recorded through a link out of the experiment
         pool = ctx.pool()
         summary, _ = evaluate_sharded(
-            spec, scenario, episodes=episodes, seed=seed, pool=pool, shards=ctx.shards(pool), executor=ctx.executor,
-            predictor=str(predictor) if predictor else None, safety=safety_layer_of(spec, lookahead, follow),
+            driver, scenario, episodes=episodes, seed=seed, pool=pool, shards=ctx.shards(pool), executor=ctx.executor,
+            predictor=str(predictor) if predictor else None,
             out_dir=path / "episodes" if rec else None, scenario=p.scenario, overwrite=True)  # fmt: skip
         summary["wall_s"] = time.perf_counter() - t0
         write_json(done, summary)  # kept before anything else can interrupt the stage
@@ -144,13 +148,13 @@ def evaluation_job(ctx: StageContext, key: StageKey, spec: str, inputs: dict[str
     return StageJob(cfg, inputs, lambda: ["metrics.json"], work)
 
 
-def suite_job(ctx: StageContext, key: StageKey, spec: str, inputs: dict[str, str], *, group: str,
+def suite_job(ctx: StageContext, key: StageKey, spec: DriverSpec, inputs: dict[str, str], *, group: str,
                predictor: Path | None = None) -> StageJob:
-    """``suite.json``: driver ``spec`` on every road of the preset's suite, ``suite_episodes`` validation episodes
+    """``suite.json``: the driver ``spec`` on every road of the preset's suite, ``suite_episodes`` validation episodes
     of ``suite_seed`` each, as lc-bench measures a cell (each road's cell kept as it ends: a rerun resumes)."""
     p = ctx.preset
     path = key.path(ctx.out)
-    label = f"{key.recipe}/seed{key.seed}" if key.recipe is not None else spec
+    label = f"{key.recipe}/seed{key.seed}" if key.recipe is not None else spec.text
     cfg = {"driver": label, "suite": p.suite, "episodes": p.suite_episodes, "seed": p.suite_seed}
 
     def work(keep: bool, save_wall: Callable[[], None]) -> float:

@@ -40,12 +40,13 @@ from lckit.fileio import check_inside, file_sha256, write_file
 from lckit.pool import WorkerPool
 from lcmodels.fileio import POLICY_FILE, write_json
 from lcmodels.policy.checkpoint import load_policy, save_policy
+from lcmodels.policy.driverspec import safety_layer_of
 from lcmodels.policy.evaluate import PolicyDriver, evaluate
 from lcmodels.policy.obs import mode_keys, scenario_for_mode
 from lcmodels.policy.warmstart import Demonstrations, RowChunks, every_tenth, load_demonstrations, pretrain
 from lcsim.core import KEEP, SUCCESS, LaneChangeCore, StepResult
 from lcsim.episodes import EpisodeHook, run_episodes
-from lcsim.planning import LookaheadDriver, SafetyLayerConfig, SearchResult, safety_layer_of, search_from
+from lcsim.planning import LookaheadDriver, SafetyLayerConfig, SearchResult, search_from
 from lcsim.suite import VALIDATION_SEED_BASE
 
 LABELS = ("plan", "winning")

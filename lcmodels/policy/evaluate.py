@@ -24,6 +24,7 @@ import numpy as np
 from lcdata.record import RecordingHook, episode_filename, episode_metadata
 from lckit.pool import WorkerPool
 from lcmodels.policy.checkpoint import LoadedPolicy
+from lcmodels.policy.driverspec import DriverSpec, as_driver_spec, policy_spec, split_policy_spec
 from lcmodels.policy.obs import EpisodeStats, ObsMode, build_observation, scenario_for_mode, summarize
 from lcmodels.stats import normal_interval as mean_interval
 from lcmodels.stats import wilson_interval
@@ -31,7 +32,6 @@ from lcsim.config import ScenarioConfig
 from lcsim.core import OUTCOMES, LaneChangeCore
 from lcsim.drivers import Driver
 from lcsim.episodes import EpisodeHook, run_episodes
-from lcsim.registry import split_policy_spec
 from lcsim.suite import MAX_VALIDATION_SEED, SEED_STRIDE, VALIDATION_SEED_BASE, check_unsealed, observed_by
 
 if TYPE_CHECKING:
@@ -163,8 +163,20 @@ def evaluate(
 
 
 def policy_path_of(spec: str) -> Path:
-    """The checkpoint a :func:`driver_for` spec that is not a built-in driver names."""
-    return Path((split_policy_spec(spec) or ("policy:", spec))[1])
+    """The checkpoint a driver spec that is not a built-in driver names (its words: a stored record's)."""
+    return Path((split_policy_spec(spec) or ("", spec))[1])
+
+
+CHECK_EPISODES = 8
+"""Held-out episodes whose outcomes a zoo card lists, so that anyone can check the entry reproduces them."""
+
+
+def check_episodes(policy: str | os.PathLike[str], *, seed: int, episodes: int = CHECK_EPISODES) -> list[dict[str, Any]]:
+    """The first ``episodes`` held-out episodes of evaluation seed ``seed`` driven by ``policy``: user seed,
+    outcome and return of each (what a zoo card lists and a test re-derives)."""
+    driver, config = driver_for(policy_spec(policy))
+    _, stats = evaluate(driver, config, episodes=episodes, seed=seed, images=True)
+    return [{"seed": int(e.seed), "outcome": e.outcome, "return": round(float(e.ret), 6)} for e in stats]
 
 
 def transfer_problems(policy: LoadedPolicy, target: ScenarioConfig) -> list[str]:
@@ -181,17 +193,15 @@ def transfer_problems(policy: LoadedPolicy, target: ScenarioConfig) -> list[str]
     return problems
 
 
-def driver_for(spec: str, *, predictor: str | None = None, device: str = "cpu",
+def driver_for(spec: DriverSpec | str, *, predictor: str | None = None, device: str = "cpu",
                safety: SafetyLayerConfig | None = None,
                scenario: ScenarioConfig | None = None) -> tuple[Any, ScenarioConfig | None]:
-    """A driver from a built-in name (:data:`lcsim.drivers.DRIVER_NAMES`), a policy checkpoint path (``policy:``
-    prefix optional), or a driver behind the safety layer: ``safety-layer:PATH`` or ``safety-layer:rule``
-    (:func:`lcsim.planning.split_safety_layer`, which also reads the older ``lookahead:PATH``,
-    ``lookahead-blind:PATH`` and the built-in ``lookahead`` drivers). ``safety``: the layer's settings
-    (:class:`lcsim.planning.SafetyLayerConfig`; default: what the spec's spelling means); ``ValueError`` when
-    given for a driver behind no layer. The layer's imagined futures follow ``safety.follow`` (a built-in driver,
-    or a checkpoint of the same scenario that does not read the image; then the policy proposes and the layer
-    checks), else the driver itself, which must then not read the image (the imagined futures are not rendered).
+    """The driver a :class:`~lcmodels.policy.driverspec.DriverSpec` names: a built-in driver, a policy file, or
+    either behind the safety layer (its settings and what its imagined futures follow in the spec). The layer's
+    imagined futures follow the spec's ``follow`` (a built-in driver, or a checkpoint of the same scenario that
+    does not read the image; then the policy proposes and the layer checks), else the driver itself, which must
+    then not read the image (the imagined futures are not rendered). The words of a spec are taken too (parsed
+    once here, ``safety`` in place of the layer they mean: the scripts' and stored records' form).
     ``scenario``: run a policy on that road instead of the one it was trained on, observed with the policy's
     own sensor settings (:func:`lcsim.suite.observed_by`; ``ValueError`` naming what differs when its
     observation would not have the shapes the policy was trained on).
@@ -199,19 +209,16 @@ def driver_for(spec: str, *, predictor: str | None = None, device: str = "cpu",
     Returns the driver and, for a policy, the scenario it drives in (``None`` for lcsim drivers).
     """
     from lcmodels.policy.checkpoint import load_policy
-    from lcsim.planning import LookaheadDriver, driver_and_layer, rule_behind_layer
-    from lcsim.registry import DRIVER_NAMES, make_driver
+    from lcsim.planning import LookaheadDriver, rule_behind_layer
+    from lcsim.registry import make_driver
 
-    name, layer = driver_and_layer(spec, safety)
-    name = (split_policy_spec(name) or ("policy:", name))[1]
-    if layer is not None and name in DRIVER_NAMES:
-        if name != "rule":
-            raise ValueError(f"the safety layer guards a policy or the rule-based driver (safety-layer:rule), not "
-                             f"{name}")  # fmt: skip
-        return rule_behind_layer(layer, spec), None
-    if name in DRIVER_NAMES:
-        return make_driver(name), None
-    path = Path(name)
+    spec = as_driver_spec(spec, safety)
+    layer = spec.layer
+    if spec.kind == "callable":
+        raise ValueError(f"{spec.text}: a user's callable drives in lc-bench, not here")
+    if spec.kind == "driver":
+        return (make_driver(spec.name) if layer is None else rule_behind_layer(layer, spec.text)), None
+    path = spec.path
     policy = load_policy(path, predictor=predictor, device=device)
     driver: Any = PolicyDriver(policy)
     config = driver.config
@@ -224,8 +231,8 @@ def driver_for(spec: str, *, predictor: str | None = None, device: str = "cpu",
                              f"({len(problems)} difference(s) from the scenario it was trained on)")
         config = scenario_for_mode(there, policy.obs_mode)
     if layer is not None:
-        if layer.follow:
-            driver = LookaheadDriver(layer, rule=_follower(layer.follow, trained, predictor, device),
+        if spec.follow is not None:
+            driver = LookaheadDriver(layer, rule=_follower(spec.follow, trained, predictor, device),
                                      proposer=driver)  # fmt: skip
         elif ObsMode.of(policy.obs_mode).reads_image:
             raise ValueError(f"{path}: the safety layer's imagined futures cannot follow a policy that reads the "
@@ -236,15 +243,15 @@ def driver_for(spec: str, *, predictor: str | None = None, device: str = "cpu",
     return driver, config
 
 
-def _follower(spec: str, scenario: ScenarioConfig, predictor: str | None, device: str) -> Any:
+def _follower(spec: DriverSpec, scenario: ScenarioConfig, predictor: str | None, device: str) -> Any:
     """The driver the safety layer's imagined futures follow: a built-in driver, or a policy trained on
     ``scenario`` (the proposer's) that does not read the image."""
     from lcmodels.policy.checkpoint import load_policy
-    from lcsim.registry import DRIVER_NAMES, make_driver
+    from lcsim.registry import make_driver
 
-    if spec in DRIVER_NAMES:
-        return make_driver(spec)
-    path = policy_path_of(spec)
+    if spec.kind == "driver":
+        return make_driver(spec.name)
+    path = spec.path
     try:
         policy = load_policy(path, predictor=predictor, scenario=scenario, device=device)
     except ValueError as exc:
@@ -256,8 +263,10 @@ def _follower(spec: str, scenario: ScenarioConfig, predictor: str | None, device
 
 
 __all__ = [
+    "CHECK_EPISODES",
     "EVAL_SEED_BASE",
     "PolicyDriver",
+    "check_episodes",
     "driver_for",
     "eval_user_seeds",
     "evaluate",
@@ -270,16 +279,15 @@ __all__ = [
 ]
 
 
-def _evaluate_shard(index: int, spec: str, scenario_json: str | None, user_seeds: list[int],
+def _evaluate_shard(index: int, spec: DriverSpec, scenario_json: str | None, user_seeds: list[int],
                     options: dict[str, Any]) -> tuple[int, str, list[dict[str, Any]], int, int]:
     """One shard of :func:`evaluate_sharded`, in a worker: the driver rebuilt from its spec (nothing loaded
     is shipped), its episodes run and recorded. Returns the shard's index, the driver's name, the episodes'
     statistics and the safety layer's choices and overrides (0 for other drivers)."""
-    from lcsim.planning import LookaheadDriver, SafetyLayerConfig
+    from lcsim.planning import LookaheadDriver
 
     target = None if scenario_json is None else ScenarioConfig.from_json(scenario_json)
-    safety = None if options["safety"] is None else SafetyLayerConfig.from_dict(options["safety"])
-    driver, config = driver_for(spec, predictor=options["predictor"], safety=safety, scenario=target)
+    driver, config = driver_for(spec, predictor=options["predictor"], scenario=target)
     if config is None:
         config = target
     out_dir = options["out_dir"]
@@ -304,7 +312,7 @@ def shard_pool(workers: int, threads: int = 1) -> WorkerPool:
     return WorkerPool(workers, threads=threads)
 
 
-def evaluate_sharded(spec: str, config: ScenarioConfig | None, *, episodes: int = 200, seed: int = 0,
+def evaluate_sharded(spec: DriverSpec | str, config: ScenarioConfig | None, *, episodes: int = 200, seed: int = 0,
                      shards: int = 4, executor: str = "local", predictor: str | None = None,
                      safety: SafetyLayerConfig | None = None,
                      out_dir: str | os.PathLike[str] | None = None, scenario: str = "paper", batch: int = 16,
@@ -313,14 +321,14 @@ def evaluate_sharded(spec: str, config: ScenarioConfig | None, *, episodes: int 
                      driver_name: str | None = None, pool: WorkerPool | None = None,
                      user_seeds: Sequence[int] | None = None,
                      sealed: bool = False) -> tuple[dict[str, Any], list[EpisodeStats]]:
-    """:func:`evaluate` of the driver spec ``spec`` (as :func:`driver_for` takes it) with the episodes cut into
+    """:func:`evaluate` of the driver ``spec`` (as :func:`driver_for` takes it, ``safety`` too) with the episodes cut into
     ``shards`` parts, each run where ``executor`` says (``local``: one after the other here, or at once in the
     processes of ``pool``; ``ray``: as Ray tasks in the open :func:`lcdata.executors.ray_session`), each shard
     whole batches of ``batch`` episodes.
     Every episode depends only on its seed and runs where :func:`evaluate` runs it, so the summary and the
     recorded files are the ones :func:`evaluate` gives, episode for episode (the ``random`` driver aside,
     whose draws follow the batch's calls). ``config``: the scenario of a built-in driver, or the scenario a
-    policy drives in instead of its own (``None``: its own); ``safety``: as :func:`driver_for` takes it. The summary
+    policy drives in instead of its own (``None``: its own). The summary
     also has ``planner_choices`` / ``planner_overrides`` behind the safety layer. ``driver_name``: the driver's name,
     when the caller has built it already (else it is built here once, to check for existing files).
     ``user_seeds``: run these episodes instead of the ``episodes`` of evaluation seed ``seed``; ``sealed``: as
@@ -330,21 +338,21 @@ def evaluate_sharded(spec: str, config: ScenarioConfig | None, *, episodes: int 
 
     if executor not in EXECUTORS:
         raise ValueError(f"executor must be one of {', '.join(EXECUTORS)}, got {executor!r}")
-    if spec == "random" and (shards > 1 or executor == "ray"):
+    spec = as_driver_spec(spec, safety)
+    if spec.kind == "driver" and spec.name == "random" and (shards > 1 or executor == "ray"):
         raise ValueError("the random driver's draws follow its calls: it is evaluated in one process (no shards)")
     user_seeds = eval_user_seeds(episodes, seed) if user_seeds is None else [int(u) for u in user_seeds]
     check_unsealed(user_seeds, sealed=sealed)
     if out_dir is not None and not overwrite:  # refuse before any shard writes, as evaluate() does
         name = driver_name
         if name is None:  # (the name the files carry: build the driver once here to learn it)
-            driver, _ = driver_for(spec, predictor=predictor, safety=safety, scenario=config)
+            driver, _ = driver_for(spec, predictor=predictor, scenario=config)
             name = str(getattr(driver, "name", type(driver).__name__))
         existing = [p for u in user_seeds if (p := Path(out_dir) / episode_filename(scenario, name, u)).exists()]
         if existing:
             raise FileExistsError(f"{existing[0]} exists ({len(existing)} evaluation files); use --overwrite "
                                   "or another output directory")
-    options = {"predictor": predictor, "safety": None if safety is None else safety.to_dict(),
-               "out_dir": None if out_dir is None else str(out_dir), "scenario": scenario, "batch": batch,
+    options = {"predictor": predictor, "out_dir": None if out_dir is None else str(out_dir), "scenario": scenario, "batch": batch,
                "overwrite": overwrite, "sealed": sealed}  # fmt: skip
     scenario_json = None if config is None else config.to_json()
     # whole batches per shard: an episode then runs at the same place of the same batch as in evaluate(),
@@ -366,7 +374,7 @@ def evaluate_sharded(spec: str, config: ScenarioConfig | None, *, episodes: int 
     ordered = [done[i] for i in range(len(parts))]
     results = [EpisodeStats(**r) for _, rows, _, _ in ordered for r in rows]
     summary = summarize_with_intervals(results)
-    summary["driver"] = ordered[0][0] if ordered else spec
+    summary["driver"] = ordered[0][0] if ordered else spec.text
     summary["eval_seed"] = seed
     summary["user_seeds"] = [user_seeds[0], user_seeds[-1]] if user_seeds else []
     if train_seeds is not None:

@@ -21,6 +21,7 @@ from typing import Any
 import numpy as np
 from stable_baselines3.common.vec_env.base_vec_env import VecEnvStepReturn
 
+from lcmodels.policy.driverspec import parse_driver_spec
 from lcsim.config import ScenarioConfig
 from lcsim.planning import LookaheadDriver, SafetyLayerConfig
 from lcsim.sb3 import LaneChangeSB3VecEnv
@@ -97,7 +98,8 @@ def shield_for(safety: SafetyLayerConfig, penalty: float, scenario: ScenarioConf
     if not safety.follow:
         raise ValueError("training behind the safety layer needs the driver its imagined futures follow "
                          "(safety.follow)")  # fmt: skip
-    return Shield(LookaheadDriver(safety, rule=_follower(safety.follow, scenario, predictor, "cpu")), float(penalty))
+    follow = parse_driver_spec(safety.follow)  # a training config stores the follower as its words
+    return Shield(LookaheadDriver(safety, rule=_follower(follow, scenario, predictor, "cpu")), float(penalty))
 
 
 __all__ = ["Shield", "ShieldedSB3VecEnv", "shield_for"]

@@ -17,34 +17,23 @@ from lcsim.planning.lookahead import LookaheadDriver, rule_behind_layer
 from lcsim.planning.oracle import OracleDriver, SearchResult, replay, search_episode, search_from
 from lcsim.planning.perception import estimated_desired_speeds, imagined_copy, perceive, redraw_future
 from lcsim.planning.report import MAX_IMAGINED_FUTURES, DecisionReport, ImaginedPaths
-from lcsim.planning.safety import (
-    PRIVILEGED,
-    SAFETY_LAYER_PREFIX,
-    SafetyLayerConfig,
-    driver_and_layer,
-    safety_layer_of,
-    split_safety_layer,
-)
+from lcsim.planning.safety import PRIVILEGED, SafetyLayerConfig
 
 __all__ = [
     "MAX_IMAGINED_FUTURES",
     "PRIVILEGED",
-    "SAFETY_LAYER_PREFIX",
     "DecisionReport",
     "ImaginedPaths",
     "LookaheadDriver",
     "OracleDriver",
     "SafetyLayerConfig",
     "SearchResult",
-    "driver_and_layer",
     "estimated_desired_speeds",
     "imagined_copy",
     "perceive",
     "redraw_future",
     "replay",
     "rule_behind_layer",
-    "safety_layer_of",
     "search_episode",
     "search_from",
-    "split_safety_layer",
 ]

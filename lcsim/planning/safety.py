@@ -2,17 +2,10 @@
 
 The *safety layer* checks each decision of a driver (a policy, or the rule-based driver) against futures it
 imagines in copies of the simulator (:class:`~lcsim.planning.LookaheadDriver`) and executes another decision
-when the proposed one does not survive them as well. :class:`SafetyLayerConfig` says how it imagines; a
-driver spec says which driver drives behind it::
-
-    safety-layer:zoo:hybrid-ppo       # a policy behind the safety layer (lc-eval, lc-bench, lc-record, lc-dagger)
-    safety-layer:rule                 # the rule-based driver behind it
-
-and the same fields are a recipe's ``[safety]`` table, ``lc-eval --config``'s ``[safety]`` table and the
-commands' ``--set safety.KEY=VALUE``. Older spellings stay accepted and mean what they meant:
-``lookahead-blind:POLICY`` (blind, not perceived), ``lookahead:POLICY`` (a privileged layer, which sees the
-traffic's coming random draws), the built-in drivers ``lookahead`` and ``lookahead-blind`` (the rule-based driver
-behind those), and a ``[safety]`` table's ``horizon``.
+when the proposed one does not survive them as well. :class:`SafetyLayerConfig` says how it imagines; its fields
+are a recipe's ``[safety]`` table, ``lc-eval --config``'s ``[safety]`` table and the commands'
+``--set safety.KEY=VALUE`` (a table's older ``horizon`` is read too). Which driver drives behind the layer is the
+commands' words (``safety-layer:zoo:hybrid-ppo``), read in :mod:`lcmodels.policy.driverspec`, not here.
 """
 
 from __future__ import annotations
@@ -23,17 +16,6 @@ from dataclasses import dataclass
 from typing import Any, ClassVar
 
 from lckit.config import JsonConfig, check_field, check_limits, field_type, parse_value
-
-SAFETY_LAYER_PREFIX = "safety-layer:"
-"""A driver spec ``safety-layer:DRIVER``: DRIVER behind the safety layer."""
-
-LEGACY_BASES: dict[str, dict[str, bool]] = {"lookahead-blind:": {"perceived": False},
-                                            "lookahead:": {"blind": False, "perceived": False}}  # fmt: skip
-"""Older driver-spec prefixes and the settings they mean (on top of :class:`SafetyLayerConfig`'s defaults)."""
-
-LEGACY_DRIVERS: dict[str, dict[str, bool]] = {"lookahead-blind": {"perceived": False},
-                                              "lookahead": {"blind": False, "perceived": False}}  # fmt: skip
-"""Built-in driver names that are the rule-based driver behind the safety layer, and the settings they mean."""
 
 LEGACY_KEYS: dict[str, str] = {"horizon": "horizon_decisions"}
 """Older names of fields (a recipe's ``[safety]`` table said ``horizon``)."""
@@ -145,58 +127,9 @@ PRIVILEGED = SafetyLayerConfig(blind=False, perceived=False)
 """The privileged safety layer: it sees the traffic's coming random draws (an upper reference)."""
 
 
-def split_safety_layer(spec: str) -> tuple[str, SafetyLayerConfig | None]:
-    """``(driver, layer)``: the driver a spec names and the safety layer it drives behind (``None``: none), the
-    layer's settings those the spelling means (:data:`LEGACY_BASES`, :data:`LEGACY_DRIVERS`), else the defaults.
-    ``safety-layer:X`` and ``lookahead-blind:X`` give ``X``; the built-in ``lookahead`` drivers give ``rule``."""
-    if spec.startswith(SAFETY_LAYER_PREFIX) and len(spec) > len(SAFETY_LAYER_PREFIX):
-        return spec.removeprefix(SAFETY_LAYER_PREFIX), SafetyLayerConfig()
-    for prefix, base in LEGACY_BASES.items():
-        if spec.startswith(prefix) and len(spec) > len(prefix):
-            return spec.removeprefix(prefix), SafetyLayerConfig(**base)
-    if spec in LEGACY_DRIVERS:
-        return "rule", SafetyLayerConfig(**LEGACY_DRIVERS[spec])
-    return spec, None
-
-
-def driver_and_layer(spec: str, safety: SafetyLayerConfig | None = None) -> tuple[str, SafetyLayerConfig | None]:
-    """:func:`split_safety_layer` with the layer's settings ``safety`` in place of what the spelling means;
-    ``ValueError`` when settings are given for a spec behind no layer."""
-    name, layer = split_safety_layer(spec)
-    if safety is not None:
-        if layer is None:
-            raise ValueError(f"settings of the safety layer apply to a driver behind it (safety-layer:{spec}), "
-                             f"not to {spec}")  # fmt: skip
-        layer = safety
-    return name, layer
-
-
-def safety_layer_of(spec: str, table: Mapping[str, Any] | None = None, follow: str | None = None, *,
-                    where: str = "safety layer") -> SafetyLayerConfig | None:  # fmt: skip
-    """The safety layer a driver spec drives behind (:func:`split_safety_layer`) with the settings ``table`` (a
-    ``[safety]`` table, or the planner settings a zoo card or an older record holds) and the follower ``follow``
-    on top; ``None`` for a spec behind no layer. ``ValueError`` when settings are given for a spec behind none."""
-    _, layer = split_safety_layer(spec)
-    if layer is None:
-        if table or follow:
-            raise ValueError(f"{where}: settings of the safety layer given for {spec}, which drives behind none "
-                             f"(name it {SAFETY_LAYER_PREFIX}{spec})")  # fmt: skip
-        return None
-    if table:
-        layer = SafetyLayerConfig.from_table(table, where=where, base=layer)
-    if follow:
-        layer = dataclasses.replace(layer, follow=str(follow))
-    return layer
-
-
 __all__ = [
-    "LEGACY_BASES",
-    "LEGACY_DRIVERS",
     "PRIVILEGED",
     "REFERENCE",
     "RESEARCH_KEYS",
-    "SAFETY_LAYER_PREFIX",
     "SafetyLayerConfig",
-    "safety_layer_of",
-    "split_safety_layer",
 ]

@@ -8,6 +8,7 @@ from typing import Any
 
 from lcmodels.experiment.kinds.base import GraphBuilder, Needs, Stage, StageKind
 from lcmodels.experiment.stages import StageContext, StageJob, evaluation_job, predictor_file
+from lcmodels.policy.driverspec import policy_spec
 from lcmodels.presets import Preset, StageResult, previous_policy
 
 
@@ -25,5 +26,5 @@ class Eval(StageKind):
 
     def job(self, ctx: StageContext, stage: Stage, got: Mapping[str, StageResult]) -> StageJob:
         final = got["policy"]
-        return evaluation_job(ctx, stage.key, str(previous_policy(final)), {"policy": final.digest}, label="policy",
+        return evaluation_job(ctx, stage.key, policy_spec(previous_policy(final)), {"policy": final.digest}, label="policy",
                               predictor=predictor_file(stage.recipe, got))  # fmt: skip

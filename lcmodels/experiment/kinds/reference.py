@@ -9,6 +9,7 @@ from collections.abc import Mapping
 from lcmodels.experiment.keys import StageKey
 from lcmodels.experiment.kinds.base import GraphBuilder, Stage, StageKind
 from lcmodels.experiment.stages import StageContext, StageJob, evaluation_job
+from lcmodels.policy.driverspec import parse_driver_spec
 from lcmodels.presets import ORACLE_KEY, RULE_KEY, Preset, StageResult
 
 
@@ -35,7 +36,7 @@ class Rule(StageKind):
         from lcmodels.policy.plan import policy_scenario
 
         config = policy_scenario(PolicyConfig(scenario=ctx.preset.scenario, obs="pure"))
-        return evaluation_job(ctx, stage.key, stage.key.stage, {}, scenario=config)
+        return evaluation_job(ctx, stage.key, parse_driver_spec(stage.key.stage), {}, scenario=config)
 
 
 @dataclasses.dataclass(frozen=True)

@@ -11,6 +11,7 @@ from typing import Any
 from lcmodels.experiment.kinds.base import GraphBuilder, Needs, Stage, StageKind
 from lcmodels.experiment.layer import lookahead_settings
 from lcmodels.experiment.stages import StageContext, StageJob, evaluation_job, predictor_file
+from lcmodels.policy.driverspec import policy_spec
 from lcmodels.presets import Preset, StageResult, previous_policy
 
 
@@ -29,8 +30,9 @@ class Safety(StageKind):
     def job(self, ctx: StageContext, stage: Stage, got: Mapping[str, StageResult]) -> StageJob:
         final, follow = got["policy"], got.get("follow")
         inputs = {"policy": final.digest} | ({"follow": follow.digest} if follow is not None else {})
-        return evaluation_job(ctx, stage.key, f"lookahead-blind:{previous_policy(final)}", inputs,
-                              predictor=predictor_file(stage.recipe, got),
-                              follow=str(previous_policy(follow)) if follow is not None else None,
-                              lookahead=lookahead_settings(stage.recipe.safety),
+        settings = lookahead_settings(stage.recipe.safety)
+        driver = policy_spec(previous_policy(final), behind=settings,
+                             follow=previous_policy(follow) if follow is not None else None)
+        return evaluation_job(ctx, stage.key, driver, inputs, predictor=predictor_file(stage.recipe, got),
+                              lookahead=settings,
                               label="lookahead-blind:policy")  # fmt: skip

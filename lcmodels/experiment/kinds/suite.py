@@ -10,6 +10,7 @@ from typing import Any
 from lcmodels.experiment.keys import StageKey
 from lcmodels.experiment.kinds.base import GraphBuilder, Needs, Stage, StageKind
 from lcmodels.experiment.stages import StageContext, StageJob, predictor_file, suite_job
+from lcmodels.policy.driverspec import parse_driver_spec, policy_spec
 from lcmodels.presets import ORACLE_KEY, RULE_KEY, Preset, StageResult, previous_policy
 
 REFERENCES = (ORACLE_KEY, RULE_KEY)
@@ -42,7 +43,7 @@ class Suite(StageKind):
         key = stage.key
         if key.recipe is None:
             assert key.part is not None
-            return suite_job(ctx, key, key.part, {}, group=key.part)
+            return suite_job(ctx, key, parse_driver_spec(key.part), {}, group=key.part)
         final = got["policy"]
-        return suite_job(ctx, key, str(previous_policy(final)), {"policy": final.digest}, group=key.recipe,
+        return suite_job(ctx, key, policy_spec(previous_policy(final)), {"policy": final.digest}, group=key.recipe,
                          predictor=predictor_file(stage.recipe, got))  # fmt: skip

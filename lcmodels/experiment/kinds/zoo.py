@@ -9,6 +9,7 @@ from collections.abc import Mapping
 from lcmodels.experiment.keys import StageKey
 from lcmodels.experiment.kinds.base import GraphBuilder, Stage, StageKind
 from lcmodels.experiment.stages import StageContext, StageJob, evaluation_job
+from lcmodels.policy.driverspec import policy_spec
 from lcmodels.presets import StageResult
 from lcmodels.zoo import ZooEntry
 
@@ -31,5 +32,5 @@ class Zoo(StageKind):
     def job(self, ctx: StageContext, stage: Stage, got: Mapping[str, StageResult]) -> StageJob:
         e = self.entry
         assert e is not None
-        return evaluation_job(ctx, stage.key, str(e.policy), {"policy": e.sha256}, predictor=e.predictor,
+        return evaluation_job(ctx, stage.key, policy_spec(e.policy), {"policy": e.sha256}, predictor=e.predictor,
                               label=f"zoo:{e.name}")  # fmt: skip

@@ -11,6 +11,7 @@ from lcmodels.experiment.keys import StageKey
 from lcmodels.experiment.kinds.base import GraphBuilder, Stage, StageKind
 from lcmodels.experiment.layer import card_lookahead
 from lcmodels.experiment.stages import StageContext, StageJob, evaluation_job
+from lcmodels.policy.driverspec import policy_spec
 from lcmodels.presets import StageResult
 from lcmodels.zoo import ZooEntry
 
@@ -48,7 +49,8 @@ class ZooSafety(StageKind):
         entry, follow = self.entry, self.follow
         assert entry is not None
         inputs = {"policy": entry.sha256} | ({"follow": follow.sha256} if follow is not None else {})
-        return evaluation_job(ctx, stage.key, f"lookahead-blind:{entry.policy}", inputs, predictor=entry.predictor,
-                              follow=str(follow.policy) if follow is not None else None,
-                              lookahead=card_lookahead(entry.card), label=f"lookahead-blind:zoo:{entry.name}",
+        settings = card_lookahead(entry.card)
+        driver = policy_spec(entry.policy, behind=settings or {}, follow=follow.policy if follow is not None else None)
+        return evaluation_job(ctx, stage.key, driver, inputs, predictor=entry.predictor,
+                              lookahead=settings, label=f"lookahead-blind:zoo:{entry.name}",
                               test_only=True)  # fmt: skip

@@ -36,10 +36,10 @@ def main(argv: list[str] | None = None) -> int:
         return fail("paired_eval", f"{args.json_out} exists; choose another --json-out")
     import torch
 
+    from lcmodels.policy.driverspec import split_safety_layer
     from lcmodels.policy.evaluate import driver_for, evaluate
     from lcmodels.stats import mcnemar, wilson_interval
     from lcsim.config import paper_scenario
-    from lcsim.planning import split_safety_layer
 
     torch.set_num_threads(1)
     rows = []
