@@ -61,10 +61,10 @@ def main(argv: list[str] | None = None) -> int:
         return error(f"--json-out {args.json_out} exists: name another file")
     try:
         bench = resolve_driver(args.policy, safety=safety_layer_from_args(args.policy, args))
-        if bench.safety is None:
+        if bench.spec.layer is None:
             return error(f"{args.policy} drives behind no safety layer: name it safety-layer:{args.policy}")
         config = SUITE_SCENARIOS[args.scenario].make()
-        plain, own = driver_for(bench.spec, predictor=bench.predictor, safety=bench.safety, scenario=config)
+        plain, own = driver_for(bench.spec, predictor=bench.predictor, scenario=config)
         layers = {"layer": TimedLayer(plain.config, plain.rule, plain.proposer),
                   "multi-rollout": MultiRolloutLayer(plain.config, plain.rule, plain.proposer,
                                                      bases=base_drivers(args.bases),
@@ -84,7 +84,7 @@ def main(argv: list[str] | None = None) -> int:
                 layer.cpu_s, layer.decisions, layer.choices = 0.0, 0, 0
         core.step(decided["layer"])
     out = {"driver": args.policy, "scenario": args.scenario, "envs": args.envs, "decisions": args.decisions,
-           "safety_layer": bench.safety.to_dict(), "bases": list(args.bases), "progress_gain_m": args.progress_gain_m,
+           "safety_layer": bench.spec.layer.to_dict(), "bases": list(args.bases), "progress_gain_m": args.progress_gain_m,
            **{name: layer.cost() for name, layer in layers.items()}}  # fmt: skip
     for name in layers:
         print(f"{name}: {out[name]['ms_per_decision']:.1f} ms of CPU per decision, {out[name]['ms_per_choice']:.1f} "

@@ -264,11 +264,11 @@ def main(argv: list[str] | None = None) -> int:
             against = json.loads(args.against.read_text())
         seeds = eval_user_seeds(args.episodes, args.seed)
         bench = resolve_driver(args.policy, safety=safety_layer_from_args(args.policy, args))
-        if bench.safety is None:
+        if bench.spec.layer is None:
             return error(f"{args.policy} drives behind no safety layer: name it safety-layer:{args.policy}")
         sc = SUITE_SCENARIOS[args.scenario]
         config = sc.make()
-        plain, own = driver_for(bench.spec, predictor=bench.predictor, safety=bench.safety, scenario=config)
+        plain, own = driver_for(bench.spec, predictor=bench.predictor, scenario=config)
         if args.baseline:
             driver: TimedLayer = TimedLayer(plain.config, plain.rule, plain.proposer)
         else:
@@ -285,7 +285,7 @@ def main(argv: list[str] | None = None) -> int:
     outcomes = outcome_string(r.outcome for r in results)
     summary: dict[str, Any] = {
         "driver": args.policy, "scenario": sc.name, "split": f"validation seed {args.seed}",
-        "user_seeds": [seeds[0], seeds[-1]], "batch": args.batch, "safety_layer": bench.safety.to_dict(),
+        "user_seeds": [seeds[0], seeds[-1]], "batch": args.batch, "safety_layer": bench.spec.layer.to_dict(),
         "bases": [] if args.baseline else list(args.bases),
         "progress_gain_m": None if args.baseline else args.progress_gain_m, "outcomes": outcomes, **counts(outcomes),
         "mean_return": float(np.mean([r.ret for r in results])),
