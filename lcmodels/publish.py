@@ -16,10 +16,19 @@ recipe): a long run spans machines and checkouts through git.
 
 from __future__ import annotations
 
+import json
 import shutil
 from pathlib import Path
 
-from lckit.fileio import check_inside, check_target, remove_file, write_file
+from lckit.fileio import (
+    check_inside,
+    check_target,
+    file_sha256,
+    read_json,
+    remove_file,
+    write_file,
+    write_json,
+)
 from lcmodels.presets import INVOCATIONS, MARKER, ORACLE_KEY, REPORT_NAME, RULE_KEY, STAGES_DIR
 
 TOP = (REPORT_NAME, MARKER)
@@ -53,21 +62,44 @@ def published_files(run: Path, *, weights: bool = False) -> list[Path]:
     return files
 
 
-RECORDS_WITH_PATHS = ("run.json", "warm_start.json")
-"""A run's own records that name files by where they were on the machine that made them (read back for what they
-say, never hashed by a stage record): published with those paths relative to the run."""
+TEXT_SUFFIXES = (".json", ".csv", ".md")
+"""Published files that may name the run's own folder as the machine spelt it (a config's demonstrations or
+previous policy): published with those paths relative to the run. The weights are copied as they are."""
 
 
 def _relative(run: Path, rel: Path) -> bytes:
-    """The bytes of ``run/rel`` to publish: a record of :data:`RECORDS_WITH_PATHS` with the run's own absolute path
-    (as JSON writes it) made relative to the run, so that no committed file names the machine's folders."""
+    """The bytes of ``run/rel`` to publish: a text file with the run's own absolute path (as JSON writes it) made
+    relative to the run, so that no committed file names the machine's folders."""
     data = (run / rel).read_bytes()
-    if rel.name not in RECORDS_WITH_PATHS:
+    if rel.suffix not in TEXT_SUFFIXES:
         return data
-    import json
-
     prefix = json.dumps(str(Path(run).resolve()) + "/")[1:-1].encode()
     return data.replace(prefix, b"")
+
+
+def _rehash_records(dest: Path) -> None:
+    """The complete stage records of ``dest`` made true of the files published beside them: an output whose bytes
+    :func:`_relative` changed gets its new SHA-256, and every stage that read it the new digest among its inputs
+    (a stage's digest is its outputs' alone: one pass). The run then resumes from ``dest`` as it would have."""
+    from lcmodels.experiment.keys import StageKey
+    from lcmodels.presets import outputs_digest
+
+    records = {p: read_json(p) for p in sorted((dest / STAGES_DIR).glob("*.json")) if not p.name.endswith(
+        ".pending.json")}  # fmt: skip
+    renamed: dict[str, str] = {}
+    for record in records.values():
+        if not isinstance(record, dict) or not isinstance(record.get("outputs"), dict):
+            continue
+        folder = StageKey.parse(str(record.get("stage"))).path(dest)
+        outputs = {name: (file_sha256(folder / name) if (folder / name).is_file() else sha)
+                   for name, sha in record["outputs"].items()}  # fmt: skip
+        if outputs != record["outputs"]:
+            renamed[outputs_digest(record["outputs"])] = outputs_digest(outputs)
+            record["outputs"] = outputs
+    for path, record in records.items():
+        if isinstance(record, dict) and isinstance(record.get("inputs"), dict):
+            record["inputs"] = {role: renamed.get(d, d) for role, d in record["inputs"].items()}
+            write_json(path, record)
 
 
 def publish(run: Path, dest: Path, *, overwrite: bool = False, allow_pending: bool = False,
@@ -102,4 +134,5 @@ def publish(run: Path, dest: Path, *, overwrite: bool = False, allow_pending: bo
     for rel in files:
         write_file(dest / rel, _relative(run, rel), root=dest)
         shutil.copystat(run / rel, dest / rel)
+    _rehash_records(dest)
     return files
